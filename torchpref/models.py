@@ -1,0 +1,384 @@
+r"""``PreferenceGP``: a BoTorch model of a latent utility learned from ratings and comparisons."""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import Any
+
+import torch
+from botorch.acquisition.objective import PosteriorTransform
+from botorch.models.model import Model
+from botorch.models.transforms.input import InputTransform
+from botorch.posteriors.gpytorch import GPyTorchPosterior
+from gpytorch.distributions import MultivariateNormal
+from gpytorch.kernels import Kernel, RBFKernel, ScaleKernel
+from gpytorch.mlls import MarginalLogLikelihood
+from gpytorch.models import GP
+from gpytorch.module import Module
+from gpytorch.priors import GammaPrior, LogNormalPrior
+from torch import Tensor
+
+from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
+from torchpref.laplace import (
+    ModeResult,
+    Observations,
+    PredictiveCache,
+    find_mode,
+    laplace_evidence,
+    predict,
+    predictive_cache,
+)
+from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.numerics import cholesky_jittered
+
+
+def default_covar_module(dim: int) -> ScaleKernel:
+    r"""``ScaleKernel(RBFKernel(ard_num_dims=d))`` (eq. 1) with BoTorch's dimension-scaled
+    lengthscale prior ``LogNormal(sqrt 2 + log(d) / 2, sqrt 3)`` (inputs in the unit cube) and a
+    ``Gamma(2, 1)`` prior on the outputscale ``sigma_f^2`` (utilities of order one on the
+    rating link's scale)."""
+    base = RBFKernel(
+        ard_num_dims=dim,
+        lengthscale_prior=LogNormalPrior(math.sqrt(2) + 0.5 * math.log(dim), math.sqrt(3)),
+    )
+    return ScaleKernel(base, outputscale_prior=GammaPrior(2.0, 1.0))
+
+
+class PreferenceLikelihood(Module):
+    """The two likelihoods of the model, held together (``model.likelihood``)."""
+
+    def __init__(self, comparison: PairwiseProbitLikelihood, rating: BetaRatingLikelihood):
+        super().__init__()
+        self.comparison = comparison
+        self.rating = rating
+
+
+class PreferenceGP(Model, GP):
+    r"""A GP over the items' objective space, learned from comparisons and ratings together.
+
+    The latent utility ``f ~ GP(0, k)`` (eq. 1) is observed through comparisons (eq. 3) and
+    ratings on ``[0, 1]`` (eqs. 4-7); the posterior is the Laplace approximation (eqs. 2, 8-10).
+    The mode is re-solved, warm-started, whenever the hyperparameters or the data change.
+
+    Args:
+        train_X: ``n x d`` items (float64 recommended; dtype and device are followed).
+        comparisons: ``p x 2`` long, rows ``[preferred, other]`` (BoTorch's convention).
+        ratings: ``q`` values in ``[0, 1]``; exact 0 and 1 are moved in to ``rating_eps``.
+        rating_index: ``q`` long indices into ``train_X``: the item each rating rates.
+        covar_module: the kernel; default :func:`default_covar_module`.
+        comparison_noise: ``sigma_R`` of eq. 3 (default 0.1, the paper's Fig. 4).
+        rating_scale: ``sigma_B`` of eq. 7 (default 1.0, Fig. 4).
+        rating_precision: ``nu`` of eqs. 5-6 (default 80, Fig. 4).
+        learn_likelihood: make the three likelihood parameters trainable (default: fixed, as in
+            the paper; with comparisons only, ``comparison_noise`` and the outputscale are not
+            separately identifiable).
+        input_transform: a BoTorch input transform (e.g. ``Normalize``), applied to ``train_X``
+            and to every input of :meth:`posterior`.
+        rating_eps: where exact 0 / 1 ratings are moved to.
+        max_newton_iter: iteration budget of the mode finder.
+
+    Example:
+        >>> model = PreferenceGP(X, comparisons=C, ratings=u, rating_index=idx)
+        >>> fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+        >>> model.posterior(X_test).mean
+    """
+
+    _num_outputs = 1
+
+    def __init__(
+        self,
+        train_X: Tensor,
+        comparisons: Tensor | None = None,
+        ratings: Tensor | None = None,
+        rating_index: Tensor | None = None,
+        covar_module: Kernel | None = None,
+        *,
+        comparison_noise: float = 0.1,
+        rating_scale: float = 1.0,
+        rating_precision: float = 80.0,
+        learn_likelihood: bool = False,
+        input_transform: InputTransform | None = None,
+        rating_eps: float = DEFAULT_RATING_EPS,
+        max_newton_iter: int = 100,
+    ) -> None:
+        super().__init__()
+        data = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
+        self.covar_module = covar_module if covar_module is not None else default_covar_module(data.dim)
+        self.likelihood = PreferenceLikelihood(
+            PairwiseProbitLikelihood(comparison_noise, learn=learn_likelihood),
+            BetaRatingLikelihood(rating_scale, rating_precision, learn=learn_likelihood),
+        )
+        if input_transform is not None:
+            self.input_transform = input_transform
+        self.rating_eps = rating_eps
+        self.max_newton_iter = max_newton_iter
+        self.to(device=data.train_X.device, dtype=data.train_X.dtype)
+        self._data = data
+        self._cache: dict[str, Any] | None = None
+        self._warm_f: Tensor | None = None
+        self._fit_input_transform()
+        self.eval()
+
+    # ------------------------------------------------------------------ data
+    @property
+    def data(self) -> PreferenceData:
+        """The observations (immutable)."""
+        return self._data
+
+    @property
+    def train_X(self) -> Tensor:
+        return self._data.train_X
+
+    @property
+    def comparisons(self) -> Tensor:
+        return self._data.comparisons
+
+    @property
+    def ratings(self) -> Tensor:
+        return self._data.ratings
+
+    @property
+    def rating_index(self) -> Tensor:
+        return self._data.rating_index
+
+    @property
+    def train_inputs(self) -> tuple[Tensor]:
+        return (self._data.train_X,)
+
+    @property
+    def num_outputs(self) -> int:
+        return 1
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return torch.Size([])
+
+    @property
+    def comparison_likelihood(self) -> PairwiseProbitLikelihood:
+        return self.likelihood.comparison
+
+    @property
+    def rating_likelihood(self) -> BetaRatingLikelihood:
+        return self.likelihood.rating
+
+    def _fit_input_transform(self) -> None:
+        tf = getattr(self, "input_transform", None)
+        if tf is not None:
+            was_training = tf.training
+            tf.train()
+            with torch.no_grad():
+                tf(self._data.train_X)
+            tf.train(was_training)
+
+    def _transformed_train_X(self) -> Tensor:
+        tf = getattr(self, "input_transform", None)
+        if tf is None:
+            return self._data.train_X
+        was_training = tf.training
+        tf.eval()  # bounds were learned from train_X when the data was set
+        X = tf(self._data.train_X)
+        tf.train(was_training)
+        return X
+
+    def _observations(self) -> Observations:
+        d = self._data
+        return Observations(d.comparisons, d.ratings, d.rating_index, self.likelihood.comparison, self.likelihood.rating)
+
+    def _set_data(self, data: PreferenceData, warm_f: Tensor | None) -> None:
+        """Swap in new data; re-solve the mode first and keep the old state if that fails."""
+        old = (self._data, self._cache, self._warm_f)
+        self._data, self._cache, self._warm_f = data, None, warm_f
+        try:
+            self._fit_input_transform()
+            self._state()
+        except Exception:
+            self._data, self._cache, self._warm_f = old
+            self._fit_input_transform()
+            raise
+
+    def add_observations(
+        self,
+        X: Tensor | None = None,
+        comparisons: Tensor | None = None,
+        ratings: Tensor | None = None,
+        rating_index: Tensor | None = None,
+    ) -> "PreferenceGP":
+        r"""Add items and observations in place, warm-starting the mode (no refit from scratch).
+
+        Indices in ``comparisons`` and ``rating_index`` refer to the rows of ``X`` when ``X`` is
+        given (rows equal to an existing item reuse its index), otherwise to ``train_X``. The
+        input is validated and the new mode solved before anything changes: on error the model
+        is left exactly as it was.
+
+        Returns:
+            ``self``.
+        """
+        new = self._data.add(X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
+        warm = None
+        if self._cache is not None or self._data.num_observations:
+            f_old = self._state()["mode"].f
+            if new.n > self._data.n:
+                with torch.no_grad():
+                    extra = self.posterior(new.train_X[self._data.n:].unsqueeze(-2)).mean.reshape(-1)
+                warm = torch.cat([f_old, extra])
+            else:
+                warm = f_old
+        self._set_data(new, warm)
+        return self
+
+    def set_train_data(self, train_X, comparisons=None, ratings=None, rating_index=None, strict: bool = False):
+        """Replace all data (validated first; the model is unchanged on error)."""
+        new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
+        new = new.to(device=self._data.train_X.device, dtype=self._data.train_X.dtype)
+        self._set_data(new, None)
+
+    def condition_on_observations(self, X: Tensor, Y: Tensor | None = None, **kwargs: Any) -> "PreferenceGP":
+        r"""A new model with observations added; ``self`` is unchanged.
+
+        ``Y`` (``m`` or ``m x 1``), when given, are ratings of the rows of ``X``; comparisons
+        among the rows of ``X`` go in ``comparisons=`` (indices into ``X``).
+        """
+        if Y is not None:
+            if "ratings" in kwargs:
+                raise ValueError("give ratings either as Y or as ratings=, not both.")
+            Y = Y.reshape(-1)
+            kwargs["ratings"] = Y
+            kwargs["rating_index"] = torch.arange(Y.numel(), device=Y.device)
+        fantasy = copy.deepcopy(self)
+        return fantasy.add_observations(X, **kwargs)
+
+    # ------------------------------------------------------------- inference
+    def _fingerprint(self) -> Tensor:
+        vals = [p.detach().reshape(-1) for p in self.parameters()]
+        vals += [b.detach().reshape(-1).to(self._data.train_X.dtype) for b in self.buffers() if b.is_floating_point()]
+        return torch.cat(vals) if vals else self._data.train_X.new_zeros(0)
+
+    def _kernel_chol(self, jitter: float | None = None) -> tuple[Tensor, float, Tensor]:
+        Xt = self._transformed_train_X()
+        K = self.covar_module(Xt).to_dense()
+        L, j = cholesky_jittered(K, jitter=jitter, name="kernel matrix")
+        return L, j, Xt
+
+    def _state(self) -> dict[str, Any]:
+        """The mode and prediction cache for the current hyperparameters and data (cached)."""
+        fp = self._fingerprint()
+        c = self._cache
+        if c is not None and c["data"] is self._data and torch.equal(c["fp"], fp):
+            return c
+        with torch.no_grad():
+            L, jitter, Xt = self._kernel_chol(c["jitter"] if c is not None else None)
+            warm = c["mode"].f if (c is not None and c["mode"].f.shape[0] == self._data.n) else self._warm_f
+            mode = find_mode(L, self._observations(), f0=warm, max_iter=self.max_newton_iter)
+            pred = predictive_cache(L, mode)
+        self._cache = {"data": self._data, "fp": fp, "jitter": jitter, "mode": mode, "pred": pred, "Xt": Xt}
+        return self._cache
+
+    @property
+    def mode(self) -> ModeResult:
+        """The Laplace mode (``.f``), ``W``'s factors and solver diagnostics, for the current state."""
+        return self._state()["mode"]
+
+    def W(self) -> Tensor:
+        r"""``n x n`` negative Hessian of the log-likelihood at the mode (eq. 8): the exact one,
+        or the Fisher one for the ratings if the exact ``B`` was not positive definite there
+        (``mode.fisher_fallback``)."""
+        m = self.mode
+        return self._observations().W_dense(self._data.n, m.lam, m.w)
+
+    def log_marginal_likelihood(self) -> Tensor:
+        r"""Laplace evidence ``log q(Y) = log p(Y|f) - f^T K^-1 f / 2 - log|I + W K| / 2`` at the
+        mode, a differentiable scalar whose gradient includes the mode's implicit dependence on
+        the hyperparameters. Hyperparameter priors are not included (the MLL adds them)."""
+        state = self._state()
+        L, _, _ = self._kernel_chol(state["jitter"])
+        return laplace_evidence(L, self._observations(), state["mode"])
+
+    def forward(self, X: Tensor) -> MultivariateNormal:
+        """The Laplace posterior of the latent utility at ``X`` (``batch x q x d``, transformed)."""
+        pred: PredictiveCache = self._state()["pred"]
+        Xt = self._state()["Xt"]
+        batch = X.shape[:-2]
+        q, d = X.shape[-2:]
+        Xf = X.reshape(-1, q, d)
+        K_xs = self.covar_module(Xt, Xf.reshape(-1, d)).to_dense().reshape(Xt.shape[0], -1, q)
+        k_ss = self.covar_module(Xf).to_dense()
+        mean, cov = predict(pred, K_xs, k_ss)
+        return MultivariateNormal(mean.reshape(*batch, q), cov.reshape(*batch, q, q))
+
+    def posterior(
+        self,
+        X: Tensor,
+        output_indices: list[int] | None = None,
+        observation_noise: bool | Tensor = False,
+        posterior_transform: PosteriorTransform | None = None,
+        **kwargs: Any,
+    ) -> GPyTorchPosterior:
+        r"""Posterior of the latent utility (eqs. 9-10) at ``X`` (``batch_shape x q x d``).
+
+        The factorisations are cached: repeated calls with unchanged hyperparameters and data
+        cost kernel evaluations and triangular solves only.
+        """
+        if output_indices not in (None, [0]):
+            raise ValueError(f"PreferenceGP has one output; got output_indices={output_indices}.")
+        if observation_noise is not False:
+            raise NotImplementedError("observation_noise is not defined for a latent utility model.")
+        if X.shape[-1] != self._data.dim:
+            raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
+        self.eval()
+        X = self.transform_inputs(X)
+        squeeze = X.dim() == 1
+        if squeeze:
+            X = X.unsqueeze(0)
+        post = GPyTorchPosterior(self(X))
+        if posterior_transform is not None:
+            return posterior_transform(post)
+        return post
+
+    def __call__(self, X: Tensor) -> MultivariateNormal:  # skip gpytorch's GP.__call__ machinery
+        return self.forward(X)
+
+    # ------------------------------------------------------- predictives (eq. 11)
+    def expected_rating(self, X: Tensor) -> Tensor:
+        r"""Expected rating ``Phi(m / sqrt(2 sigma_B^2 + v))`` at each row of ``X`` (``... x d``);
+        returns the shape of ``X`` without its last dimension."""
+        post = self.posterior(X.unsqueeze(-2))
+        mean = post.mean.reshape(X.shape[:-1])
+        var = post.variance.reshape(X.shape[:-1])
+        return self.likelihood.rating.expected_rating(mean, var)
+
+    def preference_probability(self, Xa: Tensor, Xb: Tensor) -> Tensor:
+        r"""``P(a preferred to b)`` row by row (``... x d`` each): ``Phi((m_a - m_b) /
+        sqrt(2 sigma_R^2 + v_a + v_b - 2 c_ab))``."""
+        if Xa.shape != Xb.shape:
+            raise ValueError(f"Xa and Xb must have the same shape, got {tuple(Xa.shape)} and {tuple(Xb.shape)}.")
+        mvn = self.posterior(torch.stack([Xa, Xb], dim=-2)).distribution
+        m, S = mvn.mean, mvn.covariance_matrix
+        var = S[..., 0, 0] + S[..., 1, 1] - 2 * S[..., 0, 1]
+        return self.likelihood.comparison.preference_probability(m[..., 0] - m[..., 1], var)
+
+    def _apply(self, fn, *args, **kwargs):
+        super()._apply(fn, *args, **kwargs)
+        data = getattr(self, "_data", None)
+        if data is not None:
+            self._data = PreferenceData(*(fn(t) for t in (data.train_X, data.comparisons, data.ratings, data.rating_index)))
+            self._cache, self._warm_f = None, None
+        return self
+
+
+class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
+    r"""Laplace evidence of a :class:`PreferenceGP` plus the log densities of its hyperparameter
+    priors; works with ``botorch.fit.fit_gpytorch_mll``."""
+
+    def __init__(self, model: PreferenceGP):
+        super().__init__(model.likelihood, model)
+
+    def forward(self, *args: Any, **kwargs: Any) -> Tensor:
+        res = self.model.log_marginal_likelihood()
+        for _, module, prior, closure, _ in self.named_priors():
+            res = res + prior.log_prob(closure(module)).sum()
+        return res
+
+    def compute_custom_loss(self, **kwargs: Any) -> Tensor:
+        """The loss BoTorch's fitting routines minimise: ``-self()``."""
+        return -self.forward()

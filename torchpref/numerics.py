@@ -1,0 +1,71 @@
+r"""Fragile numerics in one place: log-space normal ratios and a guarded Cholesky."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+from torch import Tensor
+
+LOG_2PI_HALF = 0.5 * math.log(2 * math.pi)
+
+#: The largest absolute diagonal jitter ever added to a kernel matrix (float64).
+MAX_JITTER = 1e-6
+
+
+class NotPSDError(RuntimeError):
+    """A matrix that must be positive definite is not, even with the largest allowed jitter."""
+
+
+class JitterWarning(UserWarning):
+    """Diagonal jitter was added to a matrix to make its Cholesky factorisation succeed."""
+
+
+def log_ndtr(z: Tensor) -> Tensor:
+    r"""``log Phi(z)``, accurate in both tails."""
+    return torch.special.log_ndtr(z)
+
+
+def inv_mills(z: Tensor) -> Tensor:
+    r"""``phi(z) / Phi(z)``, computed in log space (finite for all finite ``z``)."""
+    return torch.exp(-0.5 * z * z - LOG_2PI_HALF - log_ndtr(z))
+
+
+def normal_pdf(z: Tensor) -> Tensor:
+    return torch.exp(-0.5 * z * z - LOG_2PI_HALF)
+
+
+def cholesky_jittered(
+    A: Tensor, jitter: float | None = None, max_jitter: float = MAX_JITTER, name: str = "matrix"
+) -> tuple[Tensor, float]:
+    r"""Cholesky factor of ``A``, adding diagonal jitter only if plain factorisation fails.
+
+    The jitter starts at ``jitter`` (or 0, then ``1e-10``) and grows tenfold up to ``max_jitter``
+    (absolute). A :class:`JitterWarning` is issued when jitter above ``1e-8`` was needed.
+
+    Returns:
+        ``(L, jitter_used)`` with ``L L^T = A + jitter_used I``.
+
+    Raises:
+        NotPSDError: if ``A + max_jitter I`` is still not positive definite, or ``A`` has NaNs.
+    """
+    if not torch.isfinite(A).all():
+        raise NotPSDError(f"{name} has non-finite entries; cannot factorise it.")
+    tries = [] if jitter is None else [jitter]
+    tries += [0.0] + [10.0**e for e in range(-10, 1 + int(math.floor(math.log10(max_jitter))))]
+    eye = None
+    for j in tries:
+        if j > max_jitter:
+            continue
+        if j == 0:
+            L, info = torch.linalg.cholesky_ex(A)
+        else:
+            if eye is None:
+                eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+            L, info = torch.linalg.cholesky_ex(A + j * eye)
+        if not info.any():
+            if j > 1e-8 and (jitter is None or j != jitter):
+                warnings.warn(f"added jitter {j:.0e} to the diagonal of the {name}", JitterWarning, stacklevel=3)
+            return L, j
+    raise NotPSDError(f"{name} is not positive definite even with jitter {max_jitter:.0e} on its diagonal.")
