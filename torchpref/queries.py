@@ -1,0 +1,126 @@
+r"""Queries a person can answer, and the candidates they are built from (paper Sec. III.A).
+
+* :class:`RatingQuery`: one item, answered with a rating in ``[0, 1]``.
+* :class:`RankingQuery`: ``m`` items, answered with the index of the best one; recorded as
+  ``m - 1`` comparisons ``[chosen, other]``.
+
+Candidates are a finite pool of items (:class:`FinitePool`, e.g. a set of planned paths) or a
+box to sample from (:class:`BoxCandidates`; the authors drew 100 fresh uniform points per
+query).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from torchpref.data import best_of_m
+
+
+@dataclass(frozen=True)
+class RatingQuery:
+    """Ask for a rating of ``item`` (``d``); ``index`` is its row in a finite pool, if any."""
+
+    item: Tensor
+    index: int | None = None
+    kind: str = field(default="rating", init=False)
+
+    @property
+    def items(self) -> Tensor:
+        """``1 x d``: the items shown."""
+        return self.item.unsqueeze(0)
+
+    def validate_answer(self, answer) -> float:
+        try:
+            u = float(answer)
+        except (TypeError, ValueError):
+            raise ValueError(f"a rating must be a number in [0, 1], got {answer!r}.") from None
+        if not 0.0 <= u <= 1.0:
+            raise ValueError(f"a rating must lie in [0, 1], got {u}.")
+        return u
+
+
+@dataclass(frozen=True)
+class RankingQuery:
+    """Ask which of ``items`` (``m x d``) is best; ``indices`` are their rows in a pool, if any."""
+
+    items: Tensor
+    indices: tuple[int, ...] | None = None
+    kind: str = field(default="ranking", init=False)
+
+    @property
+    def m(self) -> int:
+        return self.items.shape[0]
+
+    def validate_answer(self, answer) -> int:
+        try:
+            j = int(answer)
+        except (TypeError, ValueError):
+            raise ValueError(f"a ranking answer must be an item index in 0..{self.m - 1}, got {answer!r}.") from None
+        if j != answer or not 0 <= j < self.m:
+            raise ValueError(f"a ranking answer must be an item index in 0..{self.m - 1}, got {answer!r}.")
+        return j
+
+    def comparisons(self, chosen: int) -> Tensor:
+        """The ``(m - 1) x 2`` comparisons (indices into :attr:`items`) of the answer ``chosen``."""
+        return best_of_m(chosen, list(range(self.m)))
+
+
+Query = RatingQuery | RankingQuery
+
+
+def record_answer(model, query: Query, answer) -> None:
+    """Add a query's answer to ``model`` (a :class:`~torchpref.PreferenceGP`), validated first."""
+    if isinstance(query, RatingQuery):
+        u = query.validate_answer(answer)
+        model.add_observations(query.items, ratings=[u], rating_index=[0])
+    elif isinstance(query, RankingQuery):
+        j = query.validate_answer(answer)
+        model.add_observations(query.items, comparisons=query.comparisons(j))
+    else:
+        raise TypeError(f"unknown query type {type(query).__name__}")
+
+
+def ask_user(user, query: Query):
+    """The answer of a user (``rate(x)`` / ``choose(X)``) to ``query``."""
+    if isinstance(query, RatingQuery):
+        return query.validate_answer(user.rate(query.item))
+    return query.validate_answer(user.choose(query.items))
+
+
+class Candidates:
+    """Where queries' items come from."""
+
+    def draw(self, generator: torch.Generator) -> tuple[Tensor, Tensor | None]:
+        """``(X, indices)``: candidate items ``N x d`` and their pool indices (or ``None``)."""
+        raise NotImplementedError
+
+
+class FinitePool(Candidates):
+    """A fixed set of items (``N x d``), e.g. planned trajectories' objective vectors."""
+
+    def __init__(self, X: Tensor):
+        if X.dim() != 2 or X.shape[0] < 1:
+            raise ValueError(f"a pool must be N x d with N >= 1, got shape {tuple(X.shape)}.")
+        self.X = X
+
+    def draw(self, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+        return self.X, torch.arange(self.X.shape[0], device=self.X.device)
+
+
+class BoxCandidates(Candidates):
+    """``num`` fresh uniform points in a box (``2 x d`` bounds) at every query."""
+
+    def __init__(self, bounds: Tensor, num: int = 100):
+        if bounds.dim() != 2 or bounds.shape[0] != 2 or not (bounds[1] > bounds[0]).all():
+            raise ValueError(f"bounds must be 2 x d with lower < upper, got {bounds.tolist()}.")
+        if num < 1:
+            raise ValueError(f"num must be positive, got {num}.")
+        self.bounds, self.num = bounds, num
+
+    def draw(self, generator: torch.Generator) -> tuple[Tensor, None]:
+        lo, hi = self.bounds
+        u = torch.rand(self.num, lo.shape[0], generator=generator, dtype=lo.dtype, device=lo.device)
+        return lo + (hi - lo) * u, None
