@@ -158,12 +158,14 @@ def find_mode(
         converged = False
         it = 0
         current = psi(a)
+        last = None  # (f, lam, w, M, fisher) factorised at the current ``a``
         for it in range(1, max_iter + 1):
             f = L @ a
             _, g, lam, w = obs.terms(f)
             grad = L.mT @ g - a
             M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, lam, w))
-            if info:  # exact Hessian not negative definite here: Fisher scoring step
+            fisher = bool(info)
+            if fisher:  # exact Hessian not negative definite here: Fisher scoring step
                 _, _, lam, w = obs.terms(f, fisher=True)
                 M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, lam, w))
                 if info:
@@ -174,6 +176,7 @@ def find_mode(
                 raise FloatingPointError("non-finite Newton step while finding the Laplace mode")
             if decrement / 2 < tol:
                 converged = True
+                last = (f, lam, w, M, fisher)  # ``a`` is unchanged: reuse this factorisation
                 break
             t = 1.0
             accepted = False
@@ -189,13 +192,17 @@ def find_mode(
                 converged = bool(decrement / 2 < 1e-6)
                 break
             a, current = a_new, new
-        f = L @ a
-        _, g, lam, w = obs.terms(f)
-        M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, lam, w))
-        fisher_fallback = bool(info)
+        if last is not None:
+            f, lam, w, M, fisher_fallback = last
+        else:
+            f = L @ a
+            _, g, lam, w = obs.terms(f)
+            M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, lam, w))
+            fisher_fallback = bool(info)
+            if fisher_fallback:
+                _, _, lam, w = obs.terms(f, fisher=True)
+                M = torch.linalg.cholesky(obs.whitened_hessian(L, lam, w))
         if fisher_fallback:
-            _, _, lam, w = obs.terms(f, fisher=True)
-            M = torch.linalg.cholesky(obs.whitened_hessian(L, lam, w))
             warnings.warn(
                 "the Laplace Hessian is not positive definite at the returned mode; the predictive "
                 "covariance uses the Fisher (expected) W for the ratings instead",
@@ -234,21 +241,38 @@ def laplace_evidence(L: Tensor, obs: Observations, mode: ModeResult) -> Tensor:
     return ll - 0.5 * (a_t * a_t).sum() - torch.log(torch.diagonal(M)).sum()
 
 
-@dataclass
 class PredictiveCache:
-    """What prediction needs, computed once per mode (eqs. 9-10)."""
+    """What prediction needs, computed once per mode (eqs. 9-10).
 
-    L: Tensor  # chol(K + jitter I)
-    alpha: Tensor  # K^-1 f_hat, n
-    A: Tensor  # I - B^-1, n x n: cov = K** - v^T A v with v = L^-1 K_X*
+    ``A = I - B^-1`` (an ``n x n`` inverse) is formed on first use only, so that re-solving the
+    mode during a hyperparameter fit, where no prediction is made, does not pay for it.
+
+    Args:
+        L: ``n x n`` ``chol(K + jitter I)``.
+        alpha: ``n`` vector ``K^-1 f_hat``.
+        A: ``n x n`` matrix ``I - B^-1`` (``cov = K** - v^T A v`` with ``v = L^-1 K_X*``); or
+            ``None`` with ``B_chol`` given, to compute it lazily.
+        B_chol: ``n x n`` Cholesky factor of ``B`` at the mode.
+    """
+
+    def __init__(self, L: Tensor, alpha: Tensor, A: Tensor | None = None, *, B_chol: Tensor | None = None):
+        if A is None and B_chol is None:
+            raise ValueError("give A or B_chol.")
+        self.L, self.alpha, self.B_chol, self._A = L, alpha, B_chol, A
+
+    @property
+    def A(self) -> Tensor:
+        if self._A is None:
+            n = self.L.shape[-1]
+            Binv = torch.cholesky_inverse(self.B_chol)
+            A = torch.eye(n, dtype=self.L.dtype, device=self.L.device) - Binv
+            self._A = 0.5 * (A + A.mT)
+        return self._A
 
 
 def predictive_cache(L: Tensor, mode: ModeResult) -> PredictiveCache:
-    n = L.shape[-1]
     alpha = torch.linalg.solve_triangular(L.mT, mode.a.unsqueeze(-1), upper=True).squeeze(-1)
-    Binv = torch.cholesky_inverse(mode.B_chol)
-    A = torch.eye(n, dtype=L.dtype, device=L.device) - Binv
-    return PredictiveCache(L, alpha, 0.5 * (A + A.mT))
+    return PredictiveCache(L, alpha, B_chol=mode.B_chol)
 
 
 def predict(cache: PredictiveCache, K_xs: Tensor, k_ss: Tensor) -> tuple[Tensor, Tensor]:
