@@ -17,6 +17,7 @@ from gpytorch.mlls import MarginalLogLikelihood
 from gpytorch.models import GP
 from gpytorch.module import Module
 from gpytorch.priors import GammaPrior, LogNormalPrior
+from linear_operator.operators import DenseLinearOperator
 from torch import Tensor
 
 from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
@@ -304,7 +305,8 @@ class PreferenceGP(Model, GP):
         K_xs = self.covar_module(Xt, Xf.reshape(-1, d)).to_dense().reshape(Xt.shape[0], -1, q)
         k_ss = self.covar_module(Xf).to_dense()
         mean, cov = predict(pred, K_xs, k_ss)
-        return MultivariateNormal(mean.reshape(*batch, q), cov.reshape(*batch, q, q))
+        # a lazy covariance: no Cholesky at construction (pairs of equal points are singular)
+        return MultivariateNormal(mean.reshape(*batch, q), DenseLinearOperator(cov.reshape(*batch, q, q)))
 
     def posterior(
         self,
