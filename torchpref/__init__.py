@@ -4,25 +4,68 @@ A Gaussian-process utility over the options' objective space, fitted by Laplace 
 comparisons (eq. 3) and bounded ratings (eqs. 4-7) at once, as a BoTorch ``Model``.
 """
 
-from torchpref.data import PreferenceData, best_of_m, likert_to_unit, prepare_ratings, unit_to_likert
+from torchpref.acquisition import QueryInformation, QueryUCB, latent_ucb
+from torchpref.active import History, QueryRecord, fit_model, run_active_learning
+from torchpref.data import (
+    PreferenceData,
+    RatingBoundaryWarning,
+    best_of_m,
+    likert_to_unit,
+    prepare_ratings,
+    unit_to_likert,
+)
 from torchpref.laplace import LaplaceConvergenceWarning
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.metrics import error_on_best, expected_rating, rating_from_latent, true_positives, wrms, wrms_authors
 from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP, default_covar_module
-from torchpref.numerics import NotPSDError
+from torchpref.numerics import JitterWarning, NotPSDError
+from torchpref.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
+from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
+from torchpref.test_functions import WaveFunction, evaluation_grid
+from torchpref.users import SimulatedUser, User
 from torchpref.version import __version__
 
 __all__ = [
     "BetaRatingLikelihood",
+    "BoxCandidates",
+    "FinitePool",
+    "History",
+    "InformationPerEffort",
+    "JitterWarning",
     "LaplaceConvergenceWarning",
     "LaplaceMarginalLogLikelihood",
     "NotPSDError",
     "PairwiseProbitLikelihood",
     "PreferenceData",
     "PreferenceGP",
+    "QueryInformation",
+    "QueryRecord",
+    "QueryUCB",
+    "RandomMixed",
+    "RandomRankings",
+    "RandomRatings",
+    "RankingQuery",
+    "RatingBoundaryWarning",
+    "RatingQuery",
+    "SimulatedUser",
+    "UCBC",
+    "UCBRatings",
+    "User",
+    "WaveFunction",
     "__version__",
     "best_of_m",
     "default_covar_module",
+    "error_on_best",
+    "evaluation_grid",
+    "expected_rating",
+    "fit_model",
+    "latent_ucb",
     "likert_to_unit",
     "prepare_ratings",
+    "rating_from_latent",
+    "run_active_learning",
+    "true_positives",
     "unit_to_likert",
+    "wrms",
+    "wrms_authors",
 ]
