@@ -179,10 +179,11 @@ class InformationField:
         num_gaussians: int = 8,
         amplitude: tuple[float, float] = (0.4, 1.0),
         width: tuple[float, float] = (25.0, 60.0),
-        noise_amplitude: float = 0.25,
+        noise_amplitude: float = 0.4,
         noise_cells: int = 4,
         noise_octaves: int = 3,
         baseline: float = 0.05,
+        saturation: float | None = 0.4,
         dtype=torch.float64,
     ) -> InformationField:
         r"""A random field: ``baseline + sum_k a_k exp(-|p - c_k|^2 / (2 s_k^2)) + noise``, clamped at 0.
@@ -198,6 +199,9 @@ class InformationField:
             noise_cells: Perlin lattice cells across the shorter side in the first octave.
             noise_octaves: Perlin octaves.
             baseline: a constant added everywhere.
+            saturation: if given, the field is capped at this quantile of its grid values,
+                a sensor that saturates: high-information plateaus that planners seeking
+                information follow, which makes long informative paths. ``None``: no cap.
         """
         if num_gaussians < 0:
             raise ValueError(f"num_gaussians must be non-negative, got {num_gaussians}.")
@@ -224,4 +228,8 @@ class InformationField:
         cells = (max(1, round(noise_cells * aspect)), noise_cells) if aspect >= 1 else (noise_cells, max(1, round(noise_cells / aspect)))
         noise = perlin_grid(shape, cells, octaves=noise_octaves, generator=generator, dtype=dtype)
         grid = (grid + noise_amplitude * noise).clamp_min(0.0)
+        if saturation is not None:
+            if not 0 < saturation <= 1:
+                raise ValueError(f"saturation must be in (0, 1], got {saturation}.")
+            grid = grid.clamp_max(float(torch.quantile(grid, saturation)))
         return cls(grid, extent)

@@ -155,6 +155,7 @@ class Lake:
         roughness: float = 0.12,
         harmonics: int = 5,
         start_fraction: float = 0.82,
+        span: float | None = 390.0,
     ) -> Lake:
         r"""A smooth random lake, star-shaped about the origin.
 
@@ -162,7 +163,8 @@ class Lake:
         ``1 + sum_{k=2}^{harmonics+1} c_k cos(k theta + phi_k)`` with ``c_k`` uniform in
         ``roughness * [-1, 1] / k``. Start and goal sit at ``start_fraction`` of the radius on
         opposite ends of the long axis, so the straight line between them runs through the
-        origin and, the lake being star-shaped, lies on the water.
+        origin and, the lake being star-shaped, lies on the water. If ``span`` is given, the
+        lake is scaled so that start and goal are ``span`` apart.
         """
         if num_vertices < 8:
             raise ValueError(f"num_vertices must be at least 8, got {num_vertices}.")
@@ -190,4 +192,9 @@ class Lake:
         re = start_fraction * radius(ends)
         start = torch.stack([re[0] * ends[0].cos(), re[0] * ends[0].sin()])
         goal = torch.stack([re[1] * ends[1].cos(), re[1] * ends[1].sin()])
+        if span is not None:
+            if not span > 0:
+                raise ValueError(f"span must be positive, got {span}.")
+            scale = span / float((goal - start).norm())
+            vertices, start, goal = vertices * scale, start * scale, goal * scale
         return cls(vertices, start, goal)
