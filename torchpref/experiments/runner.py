@@ -1,0 +1,225 @@
+r"""A generic trial runner and the statistics, files and figures of an experiment.
+
+:func:`run_trials` maps a picklable, module-level ``trial_fn`` over a list of argument tuples
+with any :class:`concurrent.futures.Executor`: by default a ``ProcessPoolExecutor``; for a
+large sweep, a cluster's executor works unchanged, e.g.
+
+.. code-block:: python
+
+    from dask.distributed import Client           # optional, not a torchpref requirement
+    executor = Client("scheduler:8786").get_executor()
+    run_wave_experiment(trials=10_000, executor=executor)
+
+    from ray.util.multiprocessing import Pool      # Ray: its Pool, or any Executor adapter
+    ...
+
+A trial function should call :func:`single_threaded` first: tiny linear algebra runs fastest
+on one thread per process, and the setting belongs to the worker, not to an import.
+
+The summaries are per query count (``mean`` and standard error over trials), paired tests
+(Wilcoxon signed-rank and paired t, SciPy) compare two strategies trial by trial.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import torch
+
+
+def single_threaded() -> None:
+    """Make the calling process use one intra-op thread (call inside a trial function)."""
+    if torch.get_num_threads() != 1:
+        torch.set_num_threads(1)
+
+
+def default_workers() -> int:
+    """Worker processes to use by default: the CPUs this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def run_trials(
+    trial_fn: Callable[..., Any],
+    trial_args_list: Sequence[tuple],
+    executor: Executor | None = None,
+    progress: bool = True,
+    *,
+    workers: int | None = None,
+    description: str = "trials",
+) -> list[Any]:
+    r"""Run ``trial_fn(*args)`` for every ``args`` in ``trial_args_list``; results in input order.
+
+    Args:
+        trial_fn: a module-level (picklable) function.
+        trial_args_list: one tuple of arguments per trial.
+        executor: any ``concurrent.futures.Executor`` (a process pool, a Dask client's
+            ``get_executor()``, ...). ``None``: a ``ProcessPoolExecutor`` with ``workers``
+            processes, shut down afterwards; with ``workers=1`` the trials run in this process.
+        progress: show a ``tqdm`` bar over completed trials.
+        workers: processes of the default pool (default :func:`default_workers`).
+        description: the progress bar's label.
+
+    Returns:
+        ``[trial_fn(*args) for args in trial_args_list]``.
+    """
+    args_list = [tuple(a) for a in trial_args_list]
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers}.")
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(args_list), desc=description, unit="trial")
+    results: list[Any] = [None] * len(args_list)
+    try:
+        if executor is None and (workers or default_workers()) == 1:
+            for i, a in enumerate(args_list):
+                results[i] = trial_fn(*a)
+                if bar is not None:
+                    bar.update(1)
+            return results
+        own = executor is None
+        ex = ProcessPoolExecutor(max_workers=workers or default_workers()) if own else executor
+        try:
+            futures = {ex.submit(trial_fn, *a): i for i, a in enumerate(args_list)}
+            for fut in as_completed(futures):
+                results[futures[fut]] = fut.result()
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if own:
+                ex.shutdown(cancel_futures=True)
+        return results
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+# ------------------------------------------------------------------------------ statistics
+def mean_sem(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float]]:
+    r"""Mean and standard error (``std / sqrt(n)``, ``ddof = 1``) over trials.
+
+    Args:
+        values: ``trials x points`` (e.g. one metric curve per trial).
+
+    Returns:
+        ``(mean, sem)``, each a list with one value per point (``sem`` 0 for one trial).
+    """
+    t = torch.as_tensor(values, dtype=torch.float64)
+    if t.dim() != 2 or t.shape[0] == 0:
+        raise ValueError(f"values must be trials x points with at least one trial, got shape {tuple(t.shape)}.")
+    n = t.shape[0]
+    sem = t.std(dim=0, correction=1) / math.sqrt(n) if n > 1 else torch.zeros(t.shape[1], dtype=t.dtype)
+    return t.mean(dim=0).tolist(), sem.tolist()
+
+
+def paired_tests(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
+    r"""Paired comparison of two strategies' per-trial values (same trials, same order).
+
+    Returns:
+        ``mean_diff`` (``a - b``), its standard error ``sem_diff``, the paired t-test's
+        ``t`` and two-sided ``p_ttest``, the Wilcoxon signed-rank ``p_wilcoxon`` (two-sided,
+        zero differences dropped; NaN when all differences are zero), and ``wins`` / ``losses``
+        / ``ties``: trials where ``a`` is larger / smaller / equal.
+    """
+    from scipy import stats
+
+    x = torch.as_tensor(a, dtype=torch.float64)
+    y = torch.as_tensor(b, dtype=torch.float64)
+    if x.shape != y.shape or x.dim() != 1 or x.numel() < 2:
+        raise ValueError(f"a and b must be paired 1-D samples of equal length >= 2, got shapes "
+                         f"{tuple(x.shape)} and {tuple(y.shape)}.")
+    d = (x - y).numpy()
+    out = {
+        "n": int(d.size),
+        "mean_diff": float(d.mean()),
+        "sem_diff": float(d.std(ddof=1) / math.sqrt(d.size)),
+        "wins": int((d > 0).sum()),
+        "losses": int((d < 0).sum()),
+        "ties": int((d == 0).sum()),
+    }
+    if (d == 0).all():
+        out.update(t=float("nan"), p_ttest=float("nan"), p_wilcoxon=float("nan"))
+        return out
+    tt = stats.ttest_rel(x.numpy(), y.numpy())
+    out["t"], out["p_ttest"] = float(tt.statistic), float(tt.pvalue)
+    out["p_wilcoxon"] = float(stats.wilcoxon(d, zero_method="wilcox").pvalue)
+    return out
+
+
+# ---------------------------------------------------------------------------------- files
+def write_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON (creating the folder); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=2) + "\n")
+    return path
+
+
+def write_summary_csv(path: str | os.PathLike, summary: dict[str, dict[str, list[float]]],
+                      x_name: str = "queries") -> Path:
+    r"""Long-format CSV, one row per (strategy, point): ``strategy, x_name, <column>...``.
+
+    Args:
+        summary: ``{strategy: {column: [value per point]}}``, all columns of equal length.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    columns = sorted({c for cols in summary.values() for c in cols})
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["strategy", x_name, *columns])
+        for name, cols in summary.items():
+            n = len(next(iter(cols.values())))
+            for i in range(n):
+                w.writerow([name, i, *(repr(float(cols[c][i])) if c in cols else "" for c in columns)])
+    return path
+
+
+def plot_mean_sem(
+    path: str | os.PathLike,
+    panels: Iterable[tuple[str, dict[str, tuple[Sequence[float], Sequence[float], Sequence[float]]]]],
+    xlabel: str = "number of queries",
+    title: str | None = None,
+) -> Path:
+    r"""One row of panels of mean curves with ± standard-error bands.
+
+    Args:
+        path: the image file (format from its suffix).
+        panels: ``(ylabel, {strategy: (x, mean, sem)})`` per panel.
+        xlabel: the shared x-axis label.
+        title: an optional figure title.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    panels = list(panels)
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.0), squeeze=False)
+    for ax, (ylabel, curves) in zip(axes[0], panels):
+        for name, (x, mean, sem) in curves.items():
+            x_t, m_t, s_t = (torch.as_tensor(v, dtype=torch.float64) for v in (x, mean, sem))
+            (line,) = ax.plot(x_t.numpy(), m_t.numpy(), label=name, lw=1.6)
+            ax.fill_between(x_t.numpy(), (m_t - s_t).numpy(), (m_t + s_t).numpy(), color=line.get_color(), alpha=0.2)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
