@@ -251,13 +251,29 @@ class PreferenceGP(Model, GP):
 
     # ------------------------------------------------------------- inference
     def _fingerprint(self) -> Tensor:
-        vals = [p.detach().reshape(-1) for p in self.parameters()]
-        vals += [b.detach().reshape(-1).to(self._data.train_X.dtype) for b in self.buffers() if b.is_floating_point()]
+        # all parameters, then all floating buffers (as parameters() / buffers()), in one module walk
+        params, bufs, seen = [], [], set()
+        for m in self.modules():
+            for t, out in ((m._parameters, params), (m._buffers, bufs)):
+                for v in t.values():
+                    if v is not None and id(v) not in seen:
+                        seen.add(id(v))
+                        out.append(v)
+        vals = [p.detach().reshape(-1) for p in params]
+        vals += [b.detach().reshape(-1).to(self._data.train_X.dtype) for b in bufs if b.is_floating_point()]
         return torch.cat(vals) if vals else self._data.train_X.new_zeros(0)
+
+    def _kernel(self, X1: Tensor, X2: Tensor | None = None) -> Tensor:
+        """Dense ``k(X1, X2)``: the kernel's ``forward`` directly (the values ``__call__`` would
+        give, without building a lazy kernel tensor) unless a kernel selects ``active_dims``."""
+        k = self.covar_module
+        if any(getattr(m, "active_dims", None) is not None for m in k.modules()):
+            return k(X1, X2).to_dense()
+        return k.forward(X1, X1 if X2 is None else X2)
 
     def _kernel_chol(self, jitter: float | None = None) -> tuple[Tensor, float, Tensor]:
         Xt = self._transformed_train_X()
-        K = self.covar_module(Xt).to_dense()
+        K = self._kernel(Xt)
         L, j = cholesky_jittered(K, jitter=jitter, name="kernel matrix")
         return L, j, Xt
 
@@ -297,13 +313,14 @@ class PreferenceGP(Model, GP):
 
     def forward(self, X: Tensor) -> MultivariateNormal:
         """The Laplace posterior of the latent utility at ``X`` (``batch x q x d``, transformed)."""
-        pred: PredictiveCache = self._state()["pred"]
-        Xt = self._state()["Xt"]
+        state = self._state()
+        pred: PredictiveCache = state["pred"]
+        Xt = state["Xt"]
         batch = X.shape[:-2]
         q, d = X.shape[-2:]
         Xf = X.reshape(-1, q, d)
-        K_xs = self.covar_module(Xt, Xf.reshape(-1, d)).to_dense().reshape(Xt.shape[0], -1, q)
-        k_ss = self.covar_module(Xf).to_dense()
+        K_xs = self._kernel(Xt, Xf.reshape(-1, d)).reshape(Xt.shape[0], -1, q)
+        k_ss = self._kernel(Xf)
         mean, cov = predict(pred, K_xs, k_ss)
         # a lazy covariance: no Cholesky at construction (pairs of equal points are singular)
         return MultivariateNormal(mean.reshape(*batch, q), DenseLinearOperator(cov.reshape(*batch, q, q)))
