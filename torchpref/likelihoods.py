@@ -227,15 +227,57 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         return torch.special.ndtr(mean / torch.sqrt(2 * self.rating_scale**2 + var.clamp_min(0)))
 
     def predictive_log_density(self, u: Tensor, mean: Tensor, var: Tensor, num_points: int = 40) -> Tensor:
-        r"""``log p(u | data) = log \int Beta(u; f) N(f; m, v) df`` (eq. 11) by Gauss-Hermite quadrature.
+        r"""``log p(u | data) = log \int Beta(u; f) N(f; m, v) df`` (eq. 11) by adaptive Gauss-Hermite.
 
-        ``u``, ``mean`` and ``var`` broadcast together; ``num_points`` quadrature nodes.
+        The Beta factor is much narrower in ``f`` than the posterior once ``v`` is of the order of
+        the prior variance (width ``~ c / sqrt(nu)``), so nodes spread over ``N(m, v)`` miss its
+        peak. The nodes are instead centred at the mode of the integrand (a few safeguarded
+        Newton steps in ``delta = f - m``) and scaled by its curvature, which is exact for a
+        Gaussian integrand. ``u``, ``mean`` and ``var`` broadcast together; ``num_points`` nodes;
+        ``var == 0`` gives ``log Beta(u; mean)``.
         """
         x, w = _gauss_hermite(num_points, mean.dtype, mean.device)
         u, mean, var = torch.broadcast_tensors(u, mean, var)
-        f = mean.unsqueeze(-1) + torch.sqrt(2 * var.clamp_min(0)).unsqueeze(-1) * x
-        lp = self.log_prob(f, u.unsqueeze(-1))
-        return torch.logsumexp(lp + torch.log(w), dim=-1) - 0.5 * math.log(math.pi)
+        v = var.clamp_min(1e-200)
+
+        def log_g(d: Tensor) -> Tensor:  # log Beta(u; m + d) + log N(m + d; m, v) + const
+            return self.log_prob(mean + d, u) - 0.5 * d * d / v
+
+        with torch.no_grad():
+            c = SQRT2 * self.rating_scale.detach()
+            f_u = c * torch.special.ndtri(u.detach())  # where the Beta mean equals u
+            P = self.fisher(f_u).detach()
+            d = v.detach() * P * (f_u - mean.detach()) / (1 + v.detach() * P)
+            cur = log_g(d)
+            for _ in range(50):
+                _, g1, g2 = self.derivatives(mean + d, u)
+                g = g1 - d / v
+                h = g2 - 1 / v
+                h = torch.where(h < 0, h, -self.fisher(mean + d) - 1 / v)
+                step = -g / h
+                t = torch.ones_like(step)
+                for _ in range(30):  # elementwise backtracking: never decrease log_g
+                    new = log_g(d + t * step)
+                    ok = torch.isfinite(new) & (new >= cur)
+                    if ok.all():
+                        break
+                    t = torch.where(ok, t, 0.5 * t)
+                new = log_g(d + t * step)
+                ok = torch.isfinite(new) & (new >= cur)
+                d = torch.where(ok, d + t * step, d)
+                cur = torch.where(ok, new, cur)
+                if (step.abs() <= 1e-10 * (d.abs() + v.sqrt())).all():
+                    break
+            _, _, g2 = self.derivatives(mean + d, u)
+            h = g2 - 1 / v
+            h = torch.where(h < 0, h, -self.fisher(mean + d) - 1 / v)
+            s = torch.rsqrt(-h)  # scale of the integrand around its mode
+        # nodes d_k = d + sqrt(2) s x_k; int g = sqrt(2) s sum_k w_k e^{x_k^2} g(d_k)
+        dk = d.unsqueeze(-1) + (SQRT2 * s).unsqueeze(-1) * x
+        lp = self.log_prob(mean.unsqueeze(-1) + dk, u.unsqueeze(-1)) - 0.5 * dk * dk / v.unsqueeze(-1)
+        out = (torch.logsumexp(lp + x * x + torch.log(w), dim=-1) + torch.log(SQRT2 * s)
+               - 0.5 * torch.log(2 * math.pi * v))
+        return torch.where(var > 0, out, self.log_prob(mean, u))
 
     def marginal(self, function_dist: MultivariateNormal) -> Beta:
         """Moment-matched Beta with the exact predictive mean (eq. 11) and the precision ``nu``.
