@@ -6,8 +6,8 @@ Likert level ``u`` of a path with objectives ``[distance, information]``:
     u = 1 \text{ if information} < 125, \quad u = 2 \text{ if } 125 \le \text{information} < 150,
     \quad u = \mathrm{clip}(\lceil 5 - (\text{distance} - 450) / 50 \rceil, 1, 5) \text{ otherwise},
 
-so a path with at least 150 information is rated 5 up to distance 500, 4 up to 550, 3 up to
-600, 2 up to 650, and 1 beyond. (The paper leaves ``information == 125`` open; here it is 2.)
+so a path with at least 150 information is rated 5 below distance 500, 4 below 550, 3 below
+600, 2 below 650, and 1 from there on (at 500 exactly the formula gives 4). (The paper leaves ``information == 125`` open; here it is 2.)
 """
 
 from __future__ import annotations

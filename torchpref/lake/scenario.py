@@ -75,7 +75,7 @@ def make_scenario(
     ``L + w (L - I / f_max)``. That cost does not change when the field is scaled, so the
     paths are planned first and the field is then scaled so that a share ``share_five`` of
     the training paths gets the paper's operator's top rating (information >= 150 and
-    distance <= 500): the thresholds then mean the same whatever the seed.
+    distance < 500): the thresholds then mean the same whatever the seed.
 
     Args:
         seed: a seed for a fresh ``torch.Generator`` (give this or ``generator``).
@@ -122,10 +122,10 @@ def make_scenario(
     test = one_set()
     if share_five is not None:
         X = train[1]
-        short = X[X[:, 0] <= 500.0, 1].sort(descending=True).values
+        short = X[X[:, 0] < 500.0, 1].sort(descending=True).values
         k = min(max(1, round(share_five * X.shape[0])), short.numel())
         if k == 0 or not short[0] > 0:
-            raise RuntimeError("no training path is short enough (<= 500) to be rated 5.")
+            raise RuntimeError("no training path is short enough (< 500) to be rated 5.")
         # the k-th most informative short path lands halfway above 150
         edge = short[k - 1] if k == short.numel() else 0.5 * (short[k - 1] + short[k])
         scale = 150.0 / float(edge)
