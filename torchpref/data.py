@@ -30,11 +30,12 @@ class RatingBoundaryWarning(UserWarning):
 def _as_tensor(value, dtype=None, device=None) -> Tensor:
     if isinstance(value, Tensor):
         return value.to(device=device if device is not None else value.device, dtype=dtype or value.dtype)
-    t = torch.as_tensor(value, device=device)
     if dtype is not None:
-        return t.to(dtype)
-    # python floats become float64, not torch's float32 default
-    return t.to(torch.float64) if t.is_floating_point() else t
+        return torch.as_tensor(value, dtype=dtype, device=device)
+    t = torch.as_tensor(value, device=device)
+    # python floats become float64, not torch's float32 default; convert from the original values
+    # (going through float32 first would round 0.1 to 0.10000000149 and 1 - 1e-9 to exactly 1)
+    return torch.as_tensor(value, dtype=torch.float64, device=device) if t.is_floating_point() else t
 
 
 def _check_finite(name: str, t: Tensor) -> None:
