@@ -292,7 +292,7 @@ def test_probit_parameter_gradient_vs_finite_differences():
     eta = torch.tensor([-1.0, -0.1, 0.2, 2.0], dtype=torch.float64)
     val = lik.log_prob(eta).sum()
     (g,) = torch.autograd.grad(val, [lik.raw_comparison_noise])
-    raw = float(lik.raw_comparison_noise)
+    raw = float(lik.raw_comparison_noise.detach())
     h = 1e-6
 
     def at(r):
