@@ -11,6 +11,11 @@ ranking query. So one acquisition function values both query types and a selecto
   utility, ``I(y; f) = H[y] - E_f H[y | f]``, under the model's own noise: a Beta rating
   (eqs. 4-7) or a best-of-``q`` choice where each item's utility is seen with
   ``N(0, sigma_R^2)`` noise (eq. 3; for ``q = 2`` exactly the probit).
+* :func:`sample_information`: the same quantity, or the information about a discrete target
+  such as the location of the maximum (entropy search), from joint posterior samples and the
+  answer's probabilities under each (:func:`choice_probabilities`,
+  :func:`rating_bin_probabilities`); what :class:`~torchpref.strategies.InformationPerEffort`
+  uses.
 """
 
 from __future__ import annotations
@@ -89,7 +94,10 @@ class QueryInformation(AcquisitionFunction):
         lik = self.model.likelihood.rating
         x, w = self._gh(mean)
         f = mean.unsqueeze(-1) + torch.sqrt(2 * var.clamp_min(0)).unsqueeze(-1) * x  # b x H
-        beta = lik.forward(f)
+        _, _, nu, a, b = lik._shape(f)
+        # far-out quadrature nodes can underflow a Beta shape to 0; its entropy term has weight ~0
+        tiny = torch.finfo(f.dtype).tiny
+        beta = Beta(a.clamp_min(tiny), b.clamp_min(tiny), validate_args=False)
         cond_entropy = (w * beta.entropy()).sum(-1)
         u = (torch.arange(self.num_grid, dtype=mean.dtype, device=mean.device) + 0.5) / self.num_grid
         logp = lik.log_prob(f.unsqueeze(-1), u)  # b x H x G
@@ -120,3 +128,59 @@ class QueryInformation(AcquisitionFunction):
         p = self._choice_probabilities(f)
         ent = lambda P: -(P * torch.log(P.clamp_min(1e-300))).sum(-1)  # noqa: E731
         return (ent(p.mean(-2)) - ent(p).mean(-1)).clamp_min(0)
+
+
+def _entropy(P: Tensor) -> Tensor:
+    return -(P * torch.log(P.clamp_min(1e-300))).sum(-1)
+
+
+def choice_probabilities(f: Tensor, comparison_noise: float | Tensor, num_quadrature: int = 6) -> Tensor:
+    r"""``... x q`` utilities -> ``... x q`` probabilities that each item is chosen as the best when
+    each utility is seen with ``N(0, sigma_R^2)`` noise (eq. 3):
+    ``P(j | f) = E_eps prod_{k != j} Phi((f_j + eps - f_k) / sigma_R)``, Gauss-Hermite over eps."""
+    x, w = np.polynomial.hermite.hermgauss(num_quadrature)
+    x, w = f.new_tensor(x), f.new_tensor(w) / math.sqrt(math.pi)
+    diff = (f.unsqueeze(-1) - f.unsqueeze(-2)) / comparison_noise  # ... x j x k
+    lp = log_ndtr(diff.unsqueeze(-1) + math.sqrt(2) * x)  # ... x j x k x H
+    q = f.shape[-1]
+    eye = torch.eye(q, dtype=torch.bool, device=f.device).unsqueeze(-1)
+    p = (torch.exp(lp.masked_fill(eye, 0.0).sum(-2)) * w).sum(-1)
+    return p / p.sum(-1, keepdim=True)
+
+
+def rating_bin_probabilities(f: Tensor, rating_likelihood, num_bins: int = 32) -> Tensor:
+    r"""``...`` utilities -> ``... x num_bins``: the probability of a rating in each of
+    ``num_bins`` equal bins of ``[0, 1]`` (Beta density of eqs. 4-7 at the bins' midpoints,
+    normalised). A binned rating carries at most the information of the rating itself."""
+    u = (torch.arange(num_bins, dtype=f.dtype, device=f.device) + 0.5) / num_bins
+    logp = rating_likelihood.log_prob(f.unsqueeze(-1), u)
+    return torch.softmax(logp, dim=-1)
+
+
+def sample_information(P: Tensor, labels: Tensor | None = None, num_labels: int | None = None) -> Tensor:
+    r"""Mutual information (nats) between a query's answer and a target, from posterior samples.
+
+    ``I(y; T) = H[E_s P(y | f_s)] - E_T H[P(y | T)]`` with ``P(y | T = t)`` the mean of
+    ``P(y | f_s)`` over the samples whose target is ``t``.
+
+    Args:
+        P: ``batch x S x Y`` answer probabilities under each of ``S`` joint posterior samples.
+        labels: ``S`` long, the discrete target of each sample (e.g. the index of its
+            maximiser: information about where the maximum is). ``None``: the target is the
+            utility itself, ``I(y; f) = H[E_s P] - E_s H[P_s]``.
+        num_labels: number of possible labels (default ``labels.max() + 1``).
+
+    Returns:
+        ``batch`` informations, clamped at 0.
+    """
+    h_marginal = _entropy(P.mean(-2))
+    if labels is None:
+        return (h_marginal - _entropy(P).mean(-1)).clamp_min(0)
+    S = P.shape[-2]
+    k = int(labels.max()) + 1 if num_labels is None else num_labels
+    onehot = torch.nn.functional.one_hot(labels, k).to(P)  # S x k
+    counts = onehot.sum(0)  # k
+    used = counts > 0
+    onehot, counts = onehot[:, used], counts[used]
+    P_t = (onehot.mT @ P) / counts.unsqueeze(-1)  # batch x k x Y
+    return (h_marginal - (counts / S * _entropy(P_t)).sum(-1)).clamp_min(0)

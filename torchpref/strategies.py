@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchpref.acquisition import QueryInformation, QueryUCB
+from torchpref.acquisition import QueryUCB, choice_probabilities, rating_bin_probabilities, sample_information
 from torchpref.queries import Query, RankingQuery, RatingQuery
 
 
@@ -138,55 +138,107 @@ class UCBC(Selector):
 class InformationPerEffort(Selector):
     r"""Ask the query whose answer is expected to carry the most information per unit of effort.
 
-    Candidates are restricted to the plausible maximisers, ``{x : UCB(x) >= max LCB}`` (with
-    eq. 12's ``gamma``), so the information bought is about where the utility is high. Among
-    them it values a rating of each item and a best-of-``m`` ranking built greedily (start at
-    the largest UCB, add the item that most increases the ranking's information), each by
-    :class:`~torchpref.acquisition.QueryInformation`, divided by the query's cost.
+    From ``num_samples`` joint posterior samples of the utility over the ``N`` candidates it
+    values each query by the mutual information between its answer and a target
+    (:func:`~torchpref.acquisition.sample_information`):
+
+    * ``target="maximizer"`` (default): which candidate is the maximiser, the discrete entropy
+      search of Hennig & Schuler (2012) / Villemonteix et al. (2009), so information is bought
+      where the utility is high;
+    * ``target="utility"``: the utility itself (the answer's ``I(y; f)``, as
+      :class:`~torchpref.acquisition.QueryInformation`).
+
+    A rating of each of the ``num_plausible`` candidates most likely to be the maximiser (ties by
+    eq. 12's UCB) is valued with its binned Beta answer; a best-of-``m`` ranking is built
+    greedily among them (start at the likeliest maximiser, add the item that most increases the
+    ranking's information). The query of largest information / cost is asked.
 
     Args:
         m: items per ranking query.
         rating_cost: effort of one rating.
-        ranking_cost: effort of one best-of-``m`` choice.
-        gamma: width of the confidence band that defines the plausible maximisers.
-        num_samples: posterior samples for the ranking information.
+        ranking_cost: effort of one best-of-``m`` choice (default ``1 + (m - 1) / 4``: 2 for
+            ``m = 5``, twice a rating; see ``docs/wave.md``).
+        gamma: eq. 12's ``gamma``, to order candidates of equal maximiser probability.
+        num_samples: joint posterior samples.
+        target: ``"maximizer"`` or ``"utility"``.
+        num_plausible: candidates considered for ratings and rankings.
+        num_bins: bins of a rating's answer.
     """
 
     name = "info per effort"
 
-    def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float = 1.0, gamma: float = 3.0,
-                 num_samples: int = 128):
-        if rating_cost <= 0 or ranking_cost <= 0:
+    def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
+                 gamma: float = 3.0, num_samples: int = 128, target: str = "maximizer",
+                 num_plausible: int = 10, num_bins: int = 10):
+        if ranking_cost is None:
+            ranking_cost = 1.0 + (m - 1) / 4
+        if not (rating_cost > 0 and ranking_cost > 0):
             raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
-        self.m, self.rating_cost, self.ranking_cost = m, rating_cost, ranking_cost
-        self.gamma, self.num_samples = gamma, num_samples
+        if target not in ("maximizer", "utility"):
+            raise ValueError(f"target must be 'maximizer' or 'utility', got {target!r}.")
+        if num_samples < 2 or num_plausible < 1:
+            raise ValueError(f"need num_samples >= 2 and num_plausible >= 1, got {num_samples} and {num_plausible}.")
+        self.m, self.rating_cost, self.ranking_cost = m, float(rating_cost), float(ranking_cost)
+        self.gamma, self.num_samples, self.target = gamma, num_samples, target
+        self.num_plausible, self.num_bins = num_plausible, num_bins
+
+    def _samples(self, model, X: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+        """``S x N`` joint samples, the posterior mean and std at ``X``."""
+        mvn = model.posterior(X.unsqueeze(0)).distribution
+        mean = mvn.mean.reshape(-1)
+        cov = mvn.covariance_matrix.reshape(mean.numel(), mean.numel())
+        std = cov.diagonal().clamp_min(0).sqrt()
+        jitter = 1e-9 * float(cov.diagonal().mean().clamp_min(1e-12))
+        eye = torch.eye(mean.numel(), dtype=mean.dtype, device=mean.device)
+        for _ in range(8):
+            L, info = torch.linalg.cholesky_ex(cov + jitter * eye)
+            if not info:
+                break
+            jitter *= 10
+        else:  # fall back on independent samples
+            L = torch.diag(std)
+        z = torch.randn(self.num_samples, mean.numel(), generator=generator, dtype=mean.dtype, device=mean.device)
+        return mean + z @ L.mT, mean, std
 
     def select(self, model, X, indices, step, num_steps, generator):
         with torch.no_grad():
-            post = model.posterior(X.unsqueeze(-2))
-            mean = post.mean.reshape(-1)
-            std = post.variance.reshape(-1).clamp_min(0).sqrt()
-            ucb, lcb = mean + self.gamma * std, mean - self.gamma * std
-            plausible = (ucb >= lcb.max()).nonzero().reshape(-1)
-            if plausible.numel() < self.m:
-                plausible = ucb.argsort(descending=True)[: max(self.m, plausible.numel())]
-            info = QueryInformation(model, num_samples=self.num_samples, generator=generator)
-            Xp = X[plausible]
-            rating_info = info(Xp.unsqueeze(-2))
+            F, mean, std = self._samples(model, X, generator)
+            N = X.shape[0]
+            ucb = mean + self.gamma * std
+            argmax = F.argmax(-1)
+            p_max = torch.bincount(argmax, minlength=N).to(mean) / F.shape[0]
+            order = torch.argsort(p_max + 1e-9 * torch.sigmoid(ucb - ucb.max()), descending=True)
+            cand = order[: min(self.num_plausible, N)]
+            Fc = F[:, cand]  # S x K
+            labels = None
+            if self.target == "maximizer":
+                # which plausible candidate is the maximiser (K + 1 labels: K for "another one"),
+                # few enough that every label has many samples (a plug-in estimate is biased
+                # upwards when labels have few samples each)
+                rank = torch.full((N,), cand.numel(), dtype=torch.long, device=X.device)
+                rank[cand] = torch.arange(cand.numel(), device=X.device)
+                labels = rank[argmax]
+            N = cand.numel() + 1
+            lik = model.likelihood
+            P_rate = rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins)  # K x S x G
+            rating_info = sample_information(P_rate, labels, N)
             best_rating = int(rating_info.argmax())
             rating_value = float(rating_info[best_rating]) / self.rating_cost
-            if Xp.shape[0] < self.m:
-                return _rating(X, indices, int(plausible[best_rating]))
-            chosen = [int(ucb[plausible].argmax())]
+            K = cand.numel()
+            if K < self.m or self.m < 2:
+                return _rating(X, indices, int(cand[best_rating]))
+            chosen = [0]
             value = 0.0
+            noise = lik.comparison.comparison_noise
             for _ in range(self.m - 1):
-                rest = torch.tensor([i for i in range(Xp.shape[0]) if i not in chosen], dtype=torch.long)
-                sets = torch.cat([Xp[chosen].expand(rest.numel(), -1, -1), Xp[rest].unsqueeze(-2)], dim=-2)
-                vals = info(sets)
+                rest = torch.tensor([i for i in range(K) if i not in chosen], dtype=torch.long)
+                sets = torch.cat([torch.tensor(chosen).expand(rest.numel(), -1), rest.unsqueeze(-1)], dim=-1)
+                f_sets = Fc[:, sets].permute(1, 0, 2)  # b x S x q
+                vals = sample_information(choice_probabilities(f_sets, noise), labels, N)
                 k = int(vals.argmax())
                 chosen.append(int(rest[k]))
                 value = float(vals[k])
             ranking_value = value / self.ranking_cost
         if ranking_value > rating_value:
-            return _ranking(X, indices, plausible[torch.tensor(chosen)])
-        return _rating(X, indices, int(plausible[best_rating]))
+            return _ranking(X, indices, cand[torch.tensor(chosen)])
+        return _rating(X, indices, int(cand[best_rating]))

@@ -55,6 +55,7 @@ TOP_K = 15
 #: effort of a rating and of a best-of-m ranking (``1 + (m - 1) / 4``: 2 for m = 5), see docs/wave.md
 RATING_COST = 1.0
 RANKING_COST = 1.0 + (M - 1) / 4
+SELECTOR_RANKING_COST = 1.0
 
 STRATEGIES = ["UCBC", "random ratings", "random rankings", "UCB ratings", "info per effort"]
 
@@ -70,7 +71,7 @@ def make_selector(name: str):
     if name == "UCB ratings":
         return UCBRatings(gamma=GAMMA)
     if name == "info per effort":
-        return InformationPerEffort(m=M, rating_cost=RATING_COST, ranking_cost=RANKING_COST, gamma=GAMMA)
+        return InformationPerEffort(m=M, rating_cost=RATING_COST, ranking_cost=SELECTOR_RANKING_COST, gamma=GAMMA)
     raise ValueError(f"unknown strategy {name!r}; choose from {STRATEGIES}.")
 
 

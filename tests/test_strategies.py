@@ -1,0 +1,76 @@
+"""Selectors return valid queries; UCBC's schedule; UCB ratings is the argmax of eq. 12."""
+
+import pytest
+import torch
+
+from torchpref.experiments.wave import make_model
+from torchpref.queries import RankingQuery, RatingQuery
+from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
+
+
+@pytest.fixture
+def model():
+    X = torch.tensor([[0.1], [0.4], [0.45], [0.8]], dtype=torch.float64)
+    C = torch.tensor([[1, 0], [1, 3], [2, 3]])
+    m = make_model(X, C)
+    m.add_observations(torch.tensor([[0.42]], dtype=torch.float64), ratings=[0.8], rating_index=[0])
+    return m
+
+
+SELECTORS = [RandomRatings(), RandomRankings(m=4), RandomMixed(m=3), UCBRatings(), UCBC(m=5),
+             InformationPerEffort(m=4), InformationPerEffort(m=3, target="utility", ranking_cost=5.0)]
+
+
+@pytest.mark.parametrize("selector", SELECTORS, ids=lambda s: type(s).__name__)
+@pytest.mark.parametrize("pool", [False, True])
+def test_valid_queries(model, selector, pool, generator):
+    X = torch.rand(30, 1, generator=generator, dtype=torch.float64)
+    idx = torch.arange(100, 130) if pool else None
+    for step in range(4):
+        q = selector.select(model, X, idx, step, 4, generator)
+        assert isinstance(q, (RatingQuery, RankingQuery))
+        if isinstance(q, RatingQuery):
+            row = (X == q.item).all(-1).nonzero().reshape(-1)
+            assert row.numel() == 1
+            assert (q.index == 100 + int(row)) if pool else q.index is None
+        else:
+            rows = [int((X == x).all(-1).nonzero()) for x in q.items]
+            assert len(set(rows)) == q.m >= 2
+            assert (q.indices == tuple(100 + r for r in rows)) if pool else q.indices is None
+
+
+def test_ucbc_schedule(model, generator):
+    sel = UCBC()
+    assert [sel.ranking_probability(t, 4) for t in range(4)] == [1.0, 0.75, 0.5, 0.25]
+    assert sel.ranking_probability(5, 4) == 0.0
+    X = torch.rand(20, 1, generator=generator, dtype=torch.float64)
+    assert isinstance(sel.select(model, X, None, 0, 10, generator), RankingQuery)  # probability 1
+    # frequency of rankings at step t of T is (T - t) / T
+    kinds = [sel.select(model, X, None, 6, 8, generator).kind for _ in range(400)]
+    assert abs(kinds.count("ranking") / 400 - 0.25) < 0.07
+
+
+def test_ucb_ratings_is_argmax(model, generator):
+    X = torch.rand(50, 1, generator=generator, dtype=torch.float64)
+    with torch.no_grad():
+        post = model.posterior(X.unsqueeze(-2))
+        ucb = post.mean.reshape(-1) + 3.0 * post.variance.reshape(-1).sqrt()
+        # independently: mean and variance from the Laplace formulas
+        K = model.covar_module(model.train_X).to_dense()
+        ks = model.covar_module(X, model.train_X).to_dense()
+        W = model.W()
+        f = model.mode.f
+        mean = ks @ torch.linalg.solve(K + 1e-10 * torch.eye(K.shape[0], dtype=K.dtype), f)
+        var = 1.0 - (ks * torch.linalg.solve(K + torch.linalg.inv(W + 1e-12 * torch.eye(K.shape[0], dtype=K.dtype)),
+                                            ks.mT).mT).sum(-1)
+    torch.testing.assert_close(post.mean.reshape(-1), mean, atol=1e-5, rtol=1e-5)
+    q = UCBRatings(gamma=3.0).select(model, X, None, 0, 1, generator)
+    assert torch.equal(q.item, X[int((mean + 3.0 * var.clamp_min(0).sqrt()).argmax())])
+    assert torch.equal(q.item, X[int(ucb.argmax())])
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="-1"):
+        InformationPerEffort(rating_cost=-1)
+    with pytest.raises(ValueError, match="entropy"):
+        InformationPerEffort(target="entropy")
