@@ -651,6 +651,8 @@ class PreferenceSession:
             info["pool_indices"] = None if query.indices is None else [int(i) for i in query.indices]
             if answer is None:
                 self._tell(self._body("no_preference", query.items, None, None, info))
+            elif isinstance(answer, bool):
+                raise ValueError(f"a ranking answer must be an item index in 0..{query.m - 1}, got {answer!r}.")
             else:
                 self._tell_choice(query.items, query.validate_answer(answer), info)
         else:
@@ -684,9 +686,9 @@ class PreferenceSession:
         if self.num_levels is not None:
             try:
                 level = float(answer)
+                value = float(likert_to_unit(level, self.num_levels))
             except (TypeError, ValueError):
                 raise ValueError(f"a rating must be a Likert level in 1..{self.num_levels}, got {answer!r}.") from None
-            value = float(likert_to_unit(level, self.num_levels))
             answer = int(level)
         else:
             value = RatingQuery(x[0]).validate_answer(answer)
