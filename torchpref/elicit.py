@@ -1,0 +1,373 @@
+r"""``torchpref elicit``: learn a person's preferences in the terminal.
+
+    torchpref elicit lake [--session FILE] [--queries Q] [--seed S] [--out DIR]
+    torchpref elicit --features items.csv [--session FILE] [--queries Q] [--seed S]
+
+Each query is shown as a table of the items' objective values (for the lake, also as a PNG of
+the candidate paths on the map, written to ``--out``). A rating is answered with a whole number
+``1..5``, a ranking with the letter of the best item; ``=`` says "no preference", ``u`` undoes
+the last answer, ``?`` shows help and ``q`` quits. Bad input is explained and asked again.
+With ``--session`` every answer is saved (and fsynced) as it is given: run the same command
+again to continue. At the end the learned utility's best items are shown (for the lake, the
+path the robot would pick).
+
+The model works on the objectives normalised to the unit cube by the items' range
+(:class:`~torchpref.session.PreferenceSession`'s ``bounds``).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+from pathlib import Path
+from typing import TextIO
+
+import torch
+from torch import Tensor
+
+from torchpref.queries import Query, RankingQuery
+from torchpref.session import PreferenceSession, SessionFileCorrupt, SessionFileError, read_session_file
+from torchpref.strategies import UCBC
+
+LETTERS = "ABCDEFGHIJKLMNOPQRSTUVWXYZ"
+NUM_LEVELS = 5
+
+HELP = """\
+Answers:
+  rating query   a whole number from 1 (unacceptable) to 5 (excellent)
+  ranking query  the letter of the best item (A, B, ...); '=' if you have no preference
+  u              undo your last answer (it is asked again)
+  ?              this help
+  q              quit (with --session, every answer so far is saved; run the same command to continue)"""
+
+
+class FeaturesError(ValueError):
+    """A features CSV that cannot be read."""
+
+
+def read_features_csv(path) -> tuple[Tensor, list[str], list[str] | None]:
+    """Items from a CSV: a header row of objective names, then one numeric row per item.
+
+    A first column holding any non-numeric value is taken as the items' labels.
+
+    Returns:
+        ``(X, names, labels)``: ``N x d`` float64 values, the ``d`` names, ``N`` labels or ``None``.
+
+    Raises:
+        FeaturesError: a missing header, a ragged row, a non-numeric or non-finite value
+            (naming the row and column), fewer than two items.
+    """
+    path = Path(path)
+    with open(path, newline="") as f:
+        rows = [r for r in csv.reader(f) if any(c.strip() for c in r)]
+    if len(rows) < 3:
+        raise FeaturesError(f"{path}: need a header row and at least two items, got {max(0, len(rows) - 1)} item(s).")
+    header, body = [c.strip() for c in rows[0]], rows[1:]
+    for i, r in enumerate(body, start=2):
+        if len(r) != len(header):
+            raise FeaturesError(f"{path}, row {i}: {len(r)} values, but the header has {len(header)} columns.")
+
+    def number(s: str) -> float | None:
+        try:
+            return float(s)
+        except ValueError:
+            return None
+
+    labels = None
+    if any(number(r[0]) is None for r in body) and len(header) > 1:
+        labels = [r[0].strip() for r in body]
+        header, body = header[1:], [r[1:] for r in body]
+    values = []
+    for i, r in enumerate(body, start=2):
+        row = []
+        for name, cell in zip(header, r):
+            v = number(cell)
+            if v is None or not math.isfinite(v):
+                raise FeaturesError(f"{path}, row {i}, column {name!r}: {cell.strip()!r} is not a finite number.")
+            row.append(v)
+        values.append(row)
+    return torch.tensor(values, dtype=torch.float64), header, labels
+
+
+# ----------------------------------------------------------------------------- worlds
+class FeaturesWorld:
+    """Items given as rows of objective values."""
+
+    noun = "item"
+
+    def __init__(self, X: Tensor, names: list[str], labels: list[str] | None):
+        self.X, self.names, self.labels = X, names, labels
+
+    def label(self, i: int | None) -> str:
+        if i is None:
+            return "-"
+        return self.labels[i] if self.labels is not None else f"#{i + 1}"
+
+    def show(self, query: Query, number: int, out: TextIO) -> None:
+        pass
+
+    def finish(self, session: PreferenceSession, out: TextIO) -> None:
+        pass
+
+
+class LakeWorld(FeaturesWorld):
+    """The lake scenario's training paths, objectives ``[distance, information]``."""
+
+    noun = "path"
+
+    def __init__(self, seed: int, out_dir: Path):
+        from torchpref.lake import make_scenario
+
+        self.scenario = make_scenario(seed)
+        self.out_dir = out_dir
+        super().__init__(self.scenario.train_X, ["distance", "information"], None)
+
+    def label(self, i: int | None) -> str:
+        return "-" if i is None else f"path {i}"
+
+    def show(self, query: Query, number: int, out: TextIO) -> None:
+        rows = list(query.indices) if isinstance(query, RankingQuery) else [query.index]
+        letters = LETTERS[: len(rows)] if isinstance(query, RankingQuery) else ["?"]
+        title = (f"Query {number}: which path is best?" if isinstance(query, RankingQuery)
+                 else f"Query {number}: rate this path from 1 to {NUM_LEVELS}")
+        png = plot_paths(self.scenario, rows, letters, title, self.out_dir / f"query-{number:02d}.png")
+        print(f"Map of the {'paths' if len(rows) > 1 else 'path'}: {png}", file=out)
+
+    def finish(self, session: PreferenceSession, out: TextIO) -> None:
+        i, x = session.best_item()
+        png = plot_paths(self.scenario, [i], ["best"], "The path the robot would pick",
+                         self.out_dir / "best-path.png")
+        import torchpref.lake as lake
+
+        planner = getattr(lake, "plan_with_utility", None)
+        if planner is not None:
+            try:
+                planned = planner(self.scenario, lambda X: session.predict(X)[0])
+                print(f"Planned with your learned utility: {planned}", file=out)
+            except Exception as exc:  # the planning API is new: fall back on the pool
+                print(f"(planning with the learned utility failed: {exc}; showing the best pool path)", file=out)
+        print(f"The robot would plan path {i}: distance {float(x[0]):.1f}, information {float(x[1]):.1f}. "
+              f"Map: {png}", file=out)
+
+
+def plot_paths(scenario, rows: list[int], letters, title: str, path: Path) -> Path:
+    """The information field over the lake with the training paths ``rows``, labelled, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Polygon
+
+    lake, field = scenario.lake, scenario.field
+    fig, ax = plt.subplots(figsize=(7, 4.8))
+    xmin, xmax, ymin, ymax = field.extent
+    ax.imshow(field.grid.numpy(), origin="lower", extent=(xmin, xmax, ymin, ymax), cmap="YlOrRd", alpha=0.8)
+    ax.add_patch(Polygon(lake.vertices.numpy(), closed=True, facecolor="none", edgecolor="#3b3b3b", lw=1.5))
+    colours = ["#1f3fbf", "#111111", "#2ca02c", "#9467bd", "#17becf", "#8c564b", "#e377c2"]
+    for k, (r, letter) in enumerate(zip(rows, letters)):
+        xy = scenario.train_paths[r].numpy()
+        c = colours[k % len(colours)]
+        ax.plot(xy[:, 0], xy[:, 1], color=c, lw=2, label=f"{letter}: d={float(scenario.train_X[r, 0]):.0f}, "
+                f"I={float(scenario.train_X[r, 1]):.0f}")
+        mid = xy[len(xy) // 2]
+        ax.annotate(str(letter), mid, fontsize=12, fontweight="bold", color=c,
+                    bbox=dict(boxstyle="round", fc="white", ec=c, alpha=0.9))
+    for pt, name in ((lake.start, "start"), (lake.goal, "goal")):
+        ax.plot(*pt.tolist(), "o", color="white", mec="black", ms=9)
+        ax.annotate(name, pt.tolist(), xytext=(6, 6), textcoords="offset points")
+    ax.set_xlim(xmin, xmax)
+    ax.set_ylim(ymin, ymax)
+    ax.set_aspect("equal")
+    ax.set_title(title)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.05), ncol=min(3, len(rows)), fontsize=8, frameon=False)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+# ----------------------------------------------------------------------------- terminal
+def _table(world: FeaturesWorld, rows: list[int | None], X: Tensor, letters, out: TextIO) -> None:
+    names = world.names
+    width = [max(10, len(n)) for n in names]
+    print("      " + f"{world.noun:<12}" + "  ".join(f"{n:>{w}}" for n, w in zip(names, width)), file=out)
+    for letter, r, x in zip(letters, rows, X):
+        vals = "  ".join(f"{float(v):>{w}.4g}" for v, w in zip(x, width))
+        print(f"  {letter:>2}  {world.label(r):<12}{vals}", file=out)
+
+
+def _read(prompt: str, inp: TextIO, out: TextIO) -> str | None:
+    out.write(prompt)
+    out.flush()
+    line = inp.readline()
+    if not line:
+        return None
+    return line.strip()
+
+
+def _ask_answer(query: Query, inp: TextIO, out: TextIO):
+    """Read an answer: ``("answer", value)``, ``("undo",)`` or ``("quit",)``; re-ask on bad input."""
+    ranking = isinstance(query, RankingQuery)
+    if ranking:
+        valid = LETTERS[: query.m]
+        prompt = f"Which is best? [{valid[0]}-{valid[-1]}, = no preference, u undo, ? help, q quit]: "
+    else:
+        prompt = f"Your rating [1-{NUM_LEVELS}, u undo, ? help, q quit]: "
+    while True:
+        text = _read(prompt, inp, out)
+        if text is None:
+            return ("quit",)
+        low = text.lower()
+        if low in ("q", "quit", "exit"):
+            return ("quit",)
+        if low in ("u", "undo"):
+            return ("undo",)
+        if low in ("?", "h", "help"):
+            print(HELP, file=out)
+            continue
+        if ranking:
+            if low == "=":
+                return ("answer", None)
+            if len(text) == 1 and text.upper() in valid:
+                return ("answer", valid.index(text.upper()))
+            print(f"{text!r} is not one of the items: type a letter from {valid[0]} to {valid[-1]} "
+                  "(or ? for help).", file=out)
+        else:
+            if text.isdigit() and 1 <= int(text) <= NUM_LEVELS:
+                return ("answer", int(text))
+            print(f"{text!r} is not a rating: type a whole number from 1 (unacceptable) to {NUM_LEVELS} "
+                  "(excellent), or ? for help.", file=out)
+
+
+def _show_query(world: FeaturesWorld, session: PreferenceSession, query: Query, out: TextIO) -> None:
+    number = session.step + 1
+    print("", file=out)
+    if isinstance(query, RankingQuery):
+        print(f"Query {number} of {session.num_queries}: which {world.noun} is best?", file=out)
+        rows = list(query.indices) if query.indices is not None else [None] * query.m
+        _table(world, rows, query.items, LETTERS[: query.m], out)
+    else:
+        print(f"Query {number} of {session.num_queries}: rate this {world.noun} from 1 (unacceptable) to "
+              f"{NUM_LEVELS} (excellent).", file=out)
+        _table(world, [query.index], query.items, [" "], out)
+    world.show(query, number, out)
+
+
+def _summary(world: FeaturesWorld, session: PreferenceSession, out: TextIO, top: int = 5) -> None:
+    X = world.X
+    mean, std = session.predict(X)
+    level = (NUM_LEVELS * session.expected_rating(X) + 0.5).clamp(1, NUM_LEVELS)
+    order = mean.argsort(descending=True)[: min(top, X.shape[0])]
+    print("", file=out)
+    print(f"Learned utility: your top {order.numel()} {world.noun}s "
+          f"(from {session.step} answers; utility = posterior mean +- sd):", file=out)
+    names = world.names
+    width = [max(10, len(n)) for n in names]
+    print("      " + f"{world.noun:<12}" + "  ".join(f"{n:>{w}}" for n, w in zip(names, width))
+          + "     utility   expected rating", file=out)
+    for k, i in enumerate(order.tolist()):
+        vals = "  ".join(f"{float(v):>{w}.4g}" for v, w in zip(X[i], width))
+        print(f"  {k + 1:>2}  {world.label(i):<12}{vals}  {float(mean[i]):+6.2f} +- {float(std[i]):.2f}"
+              f"   {float(level[i]):.1f} / {NUM_LEVELS}", file=out)
+    world.finish(session, out)
+
+
+def _open_session(world: FeaturesWorld, args, seed: int, inp: TextIO, out: TextIO) -> PreferenceSession | None:
+    n = world.X.shape[0]
+    kwargs = dict(selector=UCBC(m=min(5, n)), seed=seed, num_queries=args.queries, num_levels=NUM_LEVELS,
+                  names=world.names, session_file=args.session,
+                  metadata={"world": args.world or "features", "features": args.features})
+    try:
+        return PreferenceSession(world.X, **kwargs)
+    except SessionFileCorrupt as err:
+        print(f"torchpref elicit: {err}", file=out)
+        if not err.repairable:
+            return None
+        answer = _read("Repair the file now (the partial line is kept in a .dropped file)? [y/N]: ", inp, out)
+        if (answer or "").lower() not in ("y", "yes"):
+            return None
+        return PreferenceSession(world.X, repair=True, **kwargs)
+
+
+def _file_seed(path: str | None, default: int) -> int:
+    """The seed recorded in an existing session file (so a resumed lake has the same paths)."""
+    if path is None or not Path(path).exists():
+        return default
+    try:
+        header = read_session_file(path)[0]
+    except SessionFileError:
+        return default  # reported when the session is opened
+    return int(header["seed"]) if header is not None else default
+
+
+def run(args, stdin: TextIO | None = None, stdout: TextIO | None = None) -> int:
+    """Run an elicitation in the terminal (``args`` from :mod:`torchpref.cli`); returns the exit code."""
+    inp = sys.stdin if stdin is None else stdin
+    out = sys.stdout if stdout is None else stdout
+    if args.queries < 1:
+        print(f"torchpref elicit: --queries must be positive, got {args.queries}", file=out)
+        return 2
+    seed = _file_seed(args.session, args.seed)
+    try:
+        if args.features is not None:
+            X, names, labels = read_features_csv(args.features)
+            world: FeaturesWorld = FeaturesWorld(X, names, labels)
+        else:
+            print(f"Building the lake scenario (seed {seed}) ...", file=out, flush=True)
+            world = LakeWorld(seed, Path(args.out))
+    except (OSError, FeaturesError) as exc:
+        print(f"torchpref elicit: {exc}", file=out)
+        return 2
+    try:
+        session = _open_session(world, args, seed, inp, out)
+    except (SessionFileError, OSError) as exc:
+        print(f"torchpref elicit: {exc}", file=out)
+        return 2
+    if session is None:
+        return 2
+    with session:
+        return _loop(world, session, args, inp, out)
+
+
+def _loop(world: FeaturesWorld, session: PreferenceSession, args, inp: TextIO, out: TextIO) -> int:
+    n, d = world.X.shape
+    print(f"{n} {world.noun}s, objectives: {', '.join(world.names)}. {session.num_queries} queries; "
+          "type ? for help.", file=out)
+    if args.session:
+        note = f"resuming with {session.step} answers" if session.step else "a new session"
+        print(f"Answers are saved to {args.session} as you give them ({note}).", file=out)
+    try:
+        while not session.done:
+            query = session.ask()
+            _show_query(world, session, query, out)
+            reply = _ask_answer(query, inp, out)
+            if reply[0] == "quit":
+                where = (f"saved in {args.session}; run the same command to continue" if args.session
+                         else "not saved (no --session)")
+                print(f"\nStopped after {session.step} answers ({where}).", file=out)
+                return 0
+            if reply[0] == "undo":
+                if session.step == 0:
+                    print("Nothing to undo yet.", file=out)
+                else:
+                    undone = session.undo()
+                    print(f"Undid your answer to query {session.step + 1} ({_describe(undone)}).", file=out)
+                continue
+            session.tell(query, reply[1])
+    except KeyboardInterrupt:
+        print(f"\nInterrupted after {session.step} answers"
+              + (f" (saved in {args.session})." if args.session else "."), file=out)
+        return 130
+    print(f"\nThank you: {session.step} answers.", file=out)
+    _summary(world, session, out)
+    return 0
+
+
+def _describe(answer) -> str:
+    if answer.kind == "rating":
+        return f"rating {answer.answer}"
+    if answer.kind == "choice":
+        return f"chose {LETTERS[answer.answer]}"
+    return "no preference"
