@@ -373,3 +373,15 @@ def test_best_item_is_the_argmax_of_the_posterior_mean():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert 0 <= float(s.expected_rating(X[:1])) <= 1
+
+
+def test_duplicate_pool_items_are_never_shown_together():
+    from torchpref import RandomRankings
+
+    X = pool(6)
+    X = torch.cat([X, X[:4]])  # the same items twice (e.g. two planners' identical paths)
+    s = PreferenceSession(X, selector=RandomRankings(m=5), num_queries=10)
+    for _ in range(10):
+        q = s.ask()
+        assert torch.unique(q.items, dim=0).shape[0] == 5 and all(i < 6 for i in q.indices)
+        s.tell(q, 0)

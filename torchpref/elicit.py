@@ -275,7 +275,9 @@ def _summary(world: FeaturesWorld, session: PreferenceSession, out: TextIO, top:
 
 
 def _open_session(world: FeaturesWorld, args, seed: int, inp: TextIO, out: TextIO) -> PreferenceSession | None:
-    n = world.X.shape[0]
+    n = torch.unique(world.X, dim=0).shape[0]  # distinct items
+    if n < 2:
+        raise SessionFileError("need at least two distinct items to elicit preferences.")
     kwargs = dict(selector=UCBC(m=min(5, n)), seed=seed, num_queries=args.queries, num_levels=NUM_LEVELS,
                   names=world.names, session_file=args.session,
                   metadata={"world": args.world or "features", "features": args.features})
@@ -355,7 +357,10 @@ def _loop(world: FeaturesWorld, session: PreferenceSession, args, inp: TextIO, o
                     undone = session.undo()
                     print(f"Undid your answer to query {session.step + 1} ({_describe(undone)}).", file=out)
                 continue
-            session.tell(query, reply[1])
+            try:
+                session.tell(query, reply[1])
+            except ValueError as exc:  # not expected for a validated answer; never lose the session
+                print(f"That answer could not be used ({exc}); please try again.", file=out)
     except KeyboardInterrupt:
         print(f"\nInterrupted after {session.step} answers"
               + (f" (saved in {args.session})." if args.session else "."), file=out)
