@@ -11,9 +11,11 @@ from other processes falls on both alike, and the median is kept. Tasks:
   and caches warm;
 * ``mixed_mode``: torchpref only, 2,000 items with comparisons and ratings, construct + mode.
 
-Peak memory: ``getrusage`` max RSS of a fresh subprocess per (task, library, size), minus its max
-RSS just before the task (imports and data already in place). ``tracemalloc`` does not see
-torch's allocations, so it is not used.
+Peak memory: a fresh subprocess per (task, library, size) loads everything, resets its peak RSS
+(``/proc/self/clear_refs``), runs the task once and reads ``VmHWM`` (Linux only). Reported: that
+peak and the RSS just before the task. ``tracemalloc`` does not see torch's allocations, and
+``getrusage``'s max RSS is inherited from the parent across fork + exec, so neither is used.
+The posterior's peak includes filling each model's prediction cache (first call).
 
 Writes ``results/speed_pairwise.{csv,json,png}``.
 
@@ -29,7 +31,6 @@ import csv
 import json
 import os
 import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -110,11 +111,30 @@ def measure_mixed(repeats: int) -> float:
 
 
 # ------------------------------------------------------------------ memory (one subprocess each)
+def _proc_status_kib(key: str) -> int:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+    raise KeyError(key)
+
+
+def _reset_peak() -> int:
+    """Reset this process's peak RSS (``VmHWM``) to its current RSS; return that RSS in KiB.
+
+    ``getrusage``'s ``ru_maxrss`` cannot be used: Linux carries it across ``fork`` + ``exec``, so
+    a child of this (large) benchmark process reports the parent's peak.
+    """
+    with open("/proc/self/clear_refs", "w") as fh:
+        fh.write("5")
+    return _proc_status_kib("VmRSS")
+
+
 def _child(task: str, lib: str, n: int, p: int) -> None:
-    """Run one task once in this fresh process; print the RSS high-water marks (KiB) as JSON."""
+    """Run one task once in this fresh process; print its RSS before and its peak RSS (KiB) as JSON."""
     if task == "mixed_mode":
         X, C, u, ri = bc.make_mixed(n, p)
-        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        before = _reset_peak()
         bc.PreferenceGP(X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel()).mode
     else:
         X, C = bc.make_comparisons(n, p)
@@ -124,13 +144,15 @@ def _child(task: str, lib: str, n: int, p: int) -> None:
             (bc.fit_torchpref if lib == "torchpref" else bc.fit_pairwisegp)(fitted)
         fn, setup = task_fns(task, lib, X, C, fitted)
         arg = setup() if setup is not None else None
-        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        before = _reset_peak()
         fn(arg) if setup is not None else fn()
-    after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    after = _proc_status_kib("VmHWM")
     print(json.dumps({"before_kib": before, "after_kib": after}))
 
 
-def peak_mib(task: str, lib: str, n: int, p: int) -> float | None:
+def peak_mib(task: str, lib: str, n: int, p: int) -> tuple[float, float] | None:
+    """``(peak, baseline)`` max RSS in MiB of a fresh process running the task once; the baseline
+    is its max RSS just before the task (torch, BoTorch and the data already loaded)."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--threads", str(torch.get_num_threads()),
            "--child", task, lib, str(n), str(p)]
     out = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
@@ -138,7 +160,7 @@ def peak_mib(task: str, lib: str, n: int, p: int) -> float | None:
         log(f"  memory child failed for {task}/{lib}: {out.stderr.strip().splitlines()[-1:]}")
         return None
     r = json.loads(out.stdout.strip().splitlines()[-1])
-    return (r["after_kib"] - r["before_kib"]) / 1024.0  # Linux ru_maxrss is in KiB
+    return r["after_kib"] / 1024.0, r["before_kib"] / 1024.0
 
 
 # ------------------------------------------------------------------------------------ main
@@ -202,13 +224,16 @@ def main() -> None:
         for row in rows:
             libs = ["torchpref"] if row["task"] == "mixed_mode" else ["torchpref", "pairwisegp"]
             for lib in ("torchpref", "pairwisegp"):
-                row[f"{lib}_peak_mib"] = peak_mib(row["task"], lib, row["n"], row["p"]) if lib in libs else None
-            log(f"  {row['task']} n={row['n']}: "
-                + ", ".join(f"{lib} {row[f'{lib}_peak_mib']}" for lib in libs) + " MiB")
+                res = peak_mib(row["task"], lib, row["n"], row["p"]) if lib in libs else None
+                row[f"{lib}_peak_rss_mib"] = res[0] if res else None
+                row[f"{lib}_baseline_rss_mib"] = res[1] if res else None
+            log(f"  {row['task']} n={row['n']}: " + ", ".join(
+                f"{lib} peak {row[f'{lib}_peak_rss_mib']:.0f} (before task {row[f'{lib}_baseline_rss_mib']:.0f})"
+                for lib in libs if row[f"{lib}_peak_rss_mib"] is not None) + " MiB")
 
     fields = ["task", "n", "p", "torchpref_s", "pairwisegp_s", "ratio", "target", "met"]
     if not args.no_memory:
-        fields += ["torchpref_peak_mib", "pairwisegp_peak_mib"]
+        fields += ["torchpref_peak_rss_mib", "pairwisegp_peak_rss_mib"]
     with open(RESULTS / "speed_pairwise.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
@@ -218,7 +243,9 @@ def main() -> None:
         "torch": torch.__version__, "threads": torch.get_num_threads(), "python": platform.python_version(),
         "machine": platform.machine(), "cpus": os.cpu_count(), "load_average_at_end": os.getloadavg(),
         "repeats": args.repeats, "statistic": "median", "dtype": "float64", "dim": bc.DIM,
-        "memory": None if args.no_memory else "getrusage max RSS delta of a fresh subprocess, MiB",
+        "memory": None if args.no_memory else (
+            "VmHWM (MiB) of a fresh subprocess running the task once after resetting its peak via "
+            "/proc/self/clear_refs (peak), and its RSS just before the task (baseline: imports + data)"),
     }
     with open(RESULTS / "speed_pairwise.json", "w") as fh:
         json.dump({"meta": meta, "rows": rows, "fit_quality": quality}, fh, indent=2)
