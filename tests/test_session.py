@@ -385,3 +385,16 @@ def test_duplicate_pool_items_are_never_shown_together():
         q = s.ask()
         assert torch.unique(q.items, dim=0).shape[0] == 5 and all(i < 6 for i in q.indices)
         s.tell(q, 0)
+
+
+def test_docs_sessions_example_runs(tmp_path, monkeypatch):
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "sessions.md").read_text()
+    code = re.findall(r"```python\n(.*?)```", text, re.S)[0]
+    monkeypatch.chdir(tmp_path)
+    ns: dict = {}
+    exec(code, ns)
+    assert ns["s"].done and (tmp_path / "me.jsonl").exists()
+    ns["s"].close()
