@@ -148,11 +148,6 @@ def test_condition_on_observations_leaves_original_unchanged(model, generator):
     assert not torch.allclose(new.posterior(Xs).mean.detach(), before, atol=1e-4)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "models.py bug: PreferenceGP.eval() (called in __init__ and posterior) runs BoTorch's "
-    "Model._set_transformed_inputs, which calls self.set_train_data(X_tf, strict=False); "
-    "PreferenceGP.set_train_data replaces ALL data, so every comparison and rating is dropped "
-    "and train_X becomes the already-normalised inputs (the transform is then refitted to them)."))
 def test_normalize_input_transform_equals_manual(generator):
     from botorch.models.transforms.input import Normalize
 
@@ -250,3 +245,15 @@ def test_likelihood_parameters_learnable(generator):
 def test_posterior_rejects_wrong_dimension(model):
     with pytest.raises(ValueError, match="columns"):
         model.posterior(torch.zeros(3, 5, dtype=torch.float64))
+
+
+def test_model_without_items_is_the_prior_and_accepts_data(generator):
+    model = PreferenceGP(torch.zeros(0, 2, dtype=torch.float64), covar_module=kernel(2))
+    Xs = rand(4, 1, 2, generator=generator)
+    post = model.posterior(Xs)
+    torch.testing.assert_close(post.mean, torch.zeros_like(post.mean))
+    prior_var = model.covar_module(Xs.squeeze(-2)).to_dense().diagonal()
+    torch.testing.assert_close(post.variance.reshape(-1), prior_var.detach())
+    model.add_observations(rand(2, 2, generator=generator), comparisons=torch.tensor([[0, 1]]))
+    mean = model.posterior(model.train_X.unsqueeze(-2)).mean.reshape(-1)
+    assert mean[0] > mean[1]

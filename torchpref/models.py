@@ -163,6 +163,14 @@ class PreferenceGP(Model, GP):
     def rating_likelihood(self) -> BetaRatingLikelihood:
         return self.likelihood.rating
 
+    # The model applies its input transform itself (``_transformed_train_X``): BoTorch's
+    # swapping of transformed training inputs on train()/eval() must not replace the data.
+    def _set_transformed_inputs(self) -> None:
+        pass
+
+    def _revert_to_original_inputs(self) -> None:
+        pass
+
     def _fit_input_transform(self) -> None:
         tf = getattr(self, "input_transform", None)
         if tf is not None:
@@ -319,9 +327,12 @@ class PreferenceGP(Model, GP):
         batch = X.shape[:-2]
         q, d = X.shape[-2:]
         Xf = X.reshape(-1, q, d)
-        K_xs = self._kernel(Xt, Xf.reshape(-1, d)).reshape(Xt.shape[0], -1, q)
         k_ss = self._kernel(Xf)
-        mean, cov = predict(pred, K_xs, k_ss)
+        if Xt.shape[0] == 0:  # no items yet: the prior
+            mean, cov = k_ss.new_zeros(k_ss.shape[:-1]), k_ss
+        else:
+            K_xs = self._kernel(Xt, Xf.reshape(-1, d)).reshape(Xt.shape[0], -1, q)
+            mean, cov = predict(pred, K_xs, k_ss)
         # a lazy covariance: no Cholesky at construction (pairs of equal points are singular)
         return MultivariateNormal(mean.reshape(*batch, q), DenseLinearOperator(cov.reshape(*batch, q, q)))
 
