@@ -20,6 +20,7 @@ from torchpref.metrics import error_on_best, expected_rating, rating_from_latent
 from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP, default_covar_module
 from torchpref.numerics import JitterWarning, NotPSDError
 from torchpref.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
+from torchpref.session import PreferenceSession
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
 from torchpref.test_functions import WaveFunction, evaluation_grid
 from torchpref.users import SimulatedUser, User
@@ -38,6 +39,7 @@ __all__ = [
     "PairwiseProbitLikelihood",
     "PreferenceData",
     "PreferenceGP",
+    "PreferenceSession",
     "QueryInformation",
     "QueryRecord",
     "QueryUCB",
