@@ -223,3 +223,26 @@ def plot_mean_sem(
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def trial_seeds(seed: int, trials: int) -> list[int]:
+    """``trials`` per-trial seeds derived from a run's ``seed``."""
+    if trials < 1:
+        raise ValueError(f"trials must be a positive integer, got {trials}.")
+    g = torch.Generator().manual_seed(int(seed))
+    return torch.randint(0, 2**62, (trials,), generator=g).tolist()
+
+
+def fixed_model(X: torch.Tensor, comparisons: torch.Tensor, settings: dict[str, float]):
+    """A :class:`~torchpref.PreferenceGP` with fixed hyperparameters: ``settings`` holds
+    ``lengthscale``, ``outputscale``, ``comparison_noise``, ``rating_scale``, ``rating_precision``."""
+    from gpytorch.kernels import RBFKernel, ScaleKernel
+
+    from torchpref.models import PreferenceGP
+
+    kernel = ScaleKernel(RBFKernel())
+    kernel.base_kernel.lengthscale = settings["lengthscale"]
+    kernel.outputscale = settings["outputscale"]
+    return PreferenceGP(X, comparisons=comparisons, covar_module=kernel.to(X),
+                        comparison_noise=settings["comparison_noise"], rating_scale=settings["rating_scale"],
+                        rating_precision=settings["rating_precision"])

@@ -25,10 +25,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from torchpref.active import run_active_learning
 from torchpref.experiments.runner import (
+    fixed_model,
     mean_sem,
     paired_tests,
     plot_mean_sem,
@@ -37,6 +37,7 @@ from torchpref.experiments.runner import (
     write_json,
     write_summary_csv,
 )
+from torchpref.experiments.runner import trial_seeds as _trial_seeds
 from torchpref.metrics import rating_from_latent, true_positives, wrms
 from torchpref.models import PreferenceGP
 from torchpref.queries import BoxCandidates
@@ -77,21 +78,12 @@ def make_selector(name: str):
 
 def make_model(X: torch.Tensor, comparisons: torch.Tensor) -> PreferenceGP:
     """A :class:`PreferenceGP` with the authors' fixed hyperparameters (:data:`MODEL_SETTINGS`)."""
-    s = MODEL_SETTINGS
-    kernel = ScaleKernel(RBFKernel())
-    kernel.base_kernel.lengthscale = s["lengthscale"]
-    kernel.outputscale = s["outputscale"]
-    return PreferenceGP(X, comparisons=comparisons, covar_module=kernel.to(X),
-                        comparison_noise=s["comparison_noise"], rating_scale=s["rating_scale"],
-                        rating_precision=s["rating_precision"])
+    return fixed_model(X, comparisons, MODEL_SETTINGS)
 
 
 def trial_seeds(seed: int, trials: int) -> list[int]:
     """``trials`` per-trial seeds derived from the run's ``seed``."""
-    if trials < 1:
-        raise ValueError(f"trials must be a positive integer, got {trials}.")
-    g = torch.Generator().manual_seed(int(seed))
-    return torch.randint(0, 2**62, (trials,), generator=g).tolist()
+    return _trial_seeds(int(seed), trials)
 
 
 def run_trial(trial_seed: int, queries: int, strategies: tuple[str, ...] = tuple(STRATEGIES)) -> dict[str, Any]:

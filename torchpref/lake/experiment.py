@@ -35,11 +35,11 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from torchpref.active import run_active_learning
 from torchpref.data import likert_to_unit
 from torchpref.experiments.runner import (
+    fixed_model,
     mean_sem,
     paired_tests,
     plot_mean_sem,
@@ -48,6 +48,7 @@ from torchpref.experiments.runner import (
     write_json,
     write_summary_csv,
 )
+from torchpref.experiments.runner import trial_seeds as _trial_seeds
 from torchpref.lake.operator import LakeOperator
 from torchpref.lake.plan import normalise, plan_with_utility, unnormalise
 from torchpref.lake.scenario import LakeScenario, make_scenario
@@ -81,13 +82,7 @@ def make_selector(name: str):
 
 def make_model(X: torch.Tensor, comparisons: torch.Tensor) -> PreferenceGP:
     """A :class:`PreferenceGP` with :data:`MODEL_SETTINGS` on normalised inputs."""
-    s = MODEL_SETTINGS
-    kernel = ScaleKernel(RBFKernel())
-    kernel.base_kernel.lengthscale = s["lengthscale"]
-    kernel.outputscale = s["outputscale"]
-    return PreferenceGP(X, comparisons=comparisons, covar_module=kernel.to(X),
-                        comparison_noise=s["comparison_noise"], rating_scale=s["rating_scale"],
-                        rating_precision=s["rating_precision"])
+    return fixed_model(X, comparisons, MODEL_SETTINGS)
 
 
 class NormalisedOperator:
@@ -120,10 +115,7 @@ def unique_rows(X: torch.Tensor) -> torch.Tensor:
 
 def trial_seeds(seed: int, trials: int) -> list[int]:
     """``trials`` per-trial seeds derived from the run's ``seed``."""
-    if trials < 1:
-        raise ValueError(f"trials must be a positive integer, got {trials}.")
-    g = torch.Generator().manual_seed(int(seed) + 1)
-    return torch.randint(0, 2**62, (trials,), generator=g).tolist()
+    return _trial_seeds(int(seed) + 1, trials)
 
 
 def run_trial(scenario: LakeScenario, trial_seed: int, queries: int, strategies: tuple[str, ...],
