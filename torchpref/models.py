@@ -357,8 +357,7 @@ class PreferenceGP(Model, GP):
             raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
         self.eval()
         X = self.transform_inputs(X)
-        squeeze = X.dim() == 1
-        if squeeze:
+        if X.dim() == 1:  # a single point
             X = X.unsqueeze(0)
         post = GPyTorchPosterior(self(X))
         if posterior_transform is not None:
