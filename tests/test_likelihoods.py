@@ -325,3 +325,32 @@ def test_beta_parameter_gradients_vs_finite_differences(generator):
                 p += h
             fd = (up - down) / (2 * h)
             assert abs(float(g) - fd) <= 1e-6 * max(1.0, abs(fd)), (k, float(g), fd)
+
+
+# ------------------------------------------------- third derivatives (evidence gradient)
+def _autograd_third(second, eta):
+    eta = eta.clone().requires_grad_(True)
+    (d3,) = torch.autograd.grad(second(eta).sum(), eta)
+    return d3
+
+
+@pytest.mark.parametrize("sigma_R", [1e-3, 0.2, 1.0, 10.0])
+def test_probit_third_derivative_matches_autograd(sigma_R):
+    lik = PairwiseProbitLikelihood(sigma_R)
+    eta = torch.linspace(-8.0, 8.0, 41, dtype=torch.float64) * SQRT2 * sigma_R
+    # autograd of log Phi three times, independent of the closed forms
+    x = eta.clone().requires_grad_(True)
+    y = torch.special.log_ndtr(x / (SQRT2 * sigma_R))
+    (g1,) = torch.autograd.grad(y.sum(), x, create_graph=True)
+    (g2,) = torch.autograd.grad(g1.sum(), x, create_graph=True)
+    (ref,) = torch.autograd.grad(g2.sum(), x)
+    torch.testing.assert_close(lik.third_derivative(eta), ref, rtol=1e-6, atol=1e-12 / sigma_R**3)
+
+
+@pytest.mark.parametrize("sigma_B,nu", BETA_PARAMS)
+def test_beta_third_derivative_matches_autograd(sigma_B, nu, generator):
+    lik = BetaRatingLikelihood(sigma_B, nu)
+    eta = 2.0 * sigma_B * randn(40, generator=generator)
+    u = rand(40, generator=generator, low=0.01, high=0.99)
+    ref = _autograd_third(lambda e: lik.derivatives(e, u)[2], eta)
+    torch.testing.assert_close(lik.third_derivative(eta, u), ref, rtol=1e-7, atol=1e-9)

@@ -111,6 +111,14 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
         r = inv_mills(z)
         return log_ndtr(z), r / s, -r * (z + r) / (s * s)
 
+    def third_derivative(self, eta: Tensor) -> Tensor:
+        r"""``d^3 log p / d eta^3 = -r (1 - (z + r)(z + 2 r)) / s^3``, elementwise (how fast the
+        curvature changes; the evidence's gradient needs it)."""
+        s = self._scale()
+        z = eta / s
+        r = inv_mills(z)
+        return -r * (1 - (z + r) * (z + 2 * r)) / s**3
+
     def fisher(self, eta: Tensor) -> Tensor:
         """Negative second derivative; already non-negative for the probit."""
         return -self.derivatives(eta)[2]
@@ -214,6 +222,18 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         g_mu = nu * (torch.log(u) - torch.log1p(-u) - torch.digamma(a) + torch.digamma(b))
         h_mu = -(nu**2) * (torch.polygamma(1, a) + torch.polygamma(1, b))
         return logp, g_mu * dmu, h_mu * dmu**2 + g_mu * d2mu
+
+    def third_derivative(self, eta: Tensor, u: Tensor) -> Tensor:
+        r"""``d^3 log p / d eta^3``, elementwise: ``l3 mu'^3 + 3 l2 mu' mu'' + l1 mu'''`` with
+        ``l1, l2`` the ``mu``-derivatives of :meth:`derivatives`,
+        ``l3 = -nu^3 (psi''(a) - psi''(b))`` and ``mu''' = (t^2 - 1) phi(t) / c^3``."""
+        c, t, nu, a, b = self._shape(eta)
+        phi = normal_pdf(t)
+        dmu, d2mu, d3mu = phi / c, -t * phi / c**2, (t * t - 1) * phi / c**3
+        l1 = nu * (torch.log(u) - torch.log1p(-u) - torch.digamma(a) + torch.digamma(b))
+        l2 = -(nu**2) * (torch.polygamma(1, a) + torch.polygamma(1, b))
+        l3 = -(nu**3) * (torch.polygamma(2, a) - torch.polygamma(2, b))
+        return l3 * dmu**3 + 3 * l2 * dmu * d2mu + l1 * d3mu
 
     def fisher(self, eta: Tensor) -> Tensor:
         r"""Expected negative second derivative ``nu^2 (psi'(a) + psi'(b)) mu'^2 >= 0`` (Fisher

@@ -316,8 +316,8 @@ class PreferenceGP(Model, GP):
         mode, a differentiable scalar whose gradient includes the mode's implicit dependence on
         the hyperparameters. Hyperparameter priors are not included (the MLL adds them)."""
         state = self._state()
-        L, _, _ = self._kernel_chol(state["jitter"])
-        return laplace_evidence(L, self._observations(), state["mode"])
+        K = self._kernel(self._transformed_train_X())
+        return laplace_evidence(K, self._observations(), state["mode"], L=state["pred"].L, jitter=state["jitter"])
 
     def forward(self, X: Tensor) -> MultivariateNormal:
         """The Laplace posterior of the latent utility at ``X`` (``batch x q x d``, transformed)."""
