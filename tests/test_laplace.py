@@ -300,3 +300,28 @@ def test_whitened_hessian_sparse_and_row_forms_agree(generator):
     dense = torch.eye(n, dtype=torch.float64) + L.T @ obs.W_dense(n, lam, w) @ L
     torch.testing.assert_close(sparse, dense, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(rows, dense, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("sigma_R,lengthscale,nu", [(1.0, 0.3, 60.0), (1e-3, 0.05, 60.0), (10.0, 3.0, 60.0),
+                                                    (0.2, 0.01, 1e3)])
+def test_mode_accelerations_reach_the_plain_newton_mode(sigma_R, lengthscale, nu):
+    """Float32 steps far from the mode and chord steps near it (n >= 256) end at the mode that
+    plain float64 Newton finds, with the same exact factorisation, also where float32 fails
+    (tiny sigma_R: huge curvatures) and the solver falls back to float64."""
+    from torchpref.laplace import find_mode
+
+    g = torch.Generator().manual_seed(11)
+    n = 300
+    X = rand(n, 2, generator=g)
+    K = kernel(torch.tensor([lengthscale, lengthscale], dtype=torch.float64), 1.0, 2)(X).to_dense()
+    L = torch.linalg.cholesky(K + 1e-6 * torch.eye(n, dtype=torch.float64))
+    ri = torch.randperm(n, generator=g)[:100]
+    obs = Observations(random_comparisons(n, 500, g), rand(100, generator=g, low=0.05, high=0.95), ri,
+                       PairwiseProbitLikelihood(sigma_R), BetaRatingLikelihood(0.8, nu))
+    fast = find_mode(L, obs)
+    plain = find_mode(L, obs, max_chord=0, single_precision_min_size=10**9)
+    assert fast.converged and plain.converged
+    torch.testing.assert_close(fast.f, plain.f, rtol=0, atol=1e-6 * (1 + plain.f.abs().max()))
+    assert fast.B_chol.dtype == torch.float64
+    scale = plain.B_chol.abs().max()  # B ~ 1 / sigma_R^2: compare relative to its size
+    torch.testing.assert_close(fast.B_chol / scale, plain.B_chol / scale, rtol=0, atol=1e-7)

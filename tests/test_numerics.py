@@ -11,3 +11,19 @@ def test_lower_t_matmul_is_the_full_product(n, blocks, generator):
     L = torch.tril(torch.randn(n, n, generator=generator, dtype=torch.float64))
     X = torch.randn(n, 9 if n < 100 else n, generator=generator, dtype=torch.float64)
     torch.testing.assert_close(lower_t_matmul(L, X, blocks=blocks), L.T @ X, rtol=1e-12, atol=1e-12)
+
+
+def test_cholesky_jittered_names_the_failure():
+    from torchpref.numerics import NotPSDError, cholesky_jittered
+
+    A = torch.eye(4, dtype=torch.float64)
+    A[1, 2] = A[2, 1] = float("nan")
+    with pytest.raises(NotPSDError, match="non-finite"):
+        cholesky_jittered(A)
+    with pytest.raises(NotPSDError, match="not positive definite even with jitter"):
+        cholesky_jittered(-torch.eye(3, dtype=torch.float64))
+    # singular (rank one) but positive semi-definite: a small jitter suffices and is reported
+    v = torch.arange(1.0, 4.0, dtype=torch.float64)
+    L, j = cholesky_jittered(torch.outer(v, v), jitter=None)
+    assert 0 < j <= 1e-6
+    torch.testing.assert_close(L @ L.T, torch.outer(v, v) + j * torch.eye(3, dtype=torch.float64))

@@ -175,6 +175,7 @@ def find_mode(
     max_iter: int = 100,
     tol: float = 1e-11,
     max_chord: int = 3,
+    single_precision_min_size: int = 256,
 ) -> ModeResult:
     r"""Newton's method with a backtracking line search for the posterior mode (eq. 2).
 
@@ -194,6 +195,9 @@ def find_mode(
         tol: stop when half the Newton decrement ``grad^T B^{-1} grad / 2`` (an estimate of the
             distance to the optimum in log-posterior units) is below ``tol``.
         max_chord: chord steps per factorisation (0: plain Newton).
+        single_precision_min_size: from this ``n`` on, float64 problems take their steps far
+            from the mode (Newton decrement above 1) with ``B`` factorised in float32, falling
+            back to float64 if that factorisation fails or its step does not increase ``Psi``.
     """
     with torch.no_grad():
         L = L.detach()
@@ -224,12 +228,39 @@ def find_mode(
                 t *= 0.5
             return None
 
+        def single_precision_step(grad_: Tensor, lam_: Tensor, w_: Tensor):
+            """A Newton step factorised in float32: ``((a, Psi(a)), decrement)`` or ``None``."""
+            nonlocal L32
+            if L32 is None:
+                L32 = L.float()
+            M32, info32 = torch.linalg.cholesky_ex(obs.whitened_hessian(L32, lam_.float(), w_.float()))
+            if info32:
+                return None
+            step_ = torch.cholesky_solve(grad_.float().unsqueeze(-1), M32).squeeze(-1).to(L.dtype)
+            decrement_ = (grad_ * step_).sum()
+            if not (torch.isfinite(decrement_) and decrement_ / 2 >= tol):
+                return None
+            found_ = search(a, current, step_, decrement_)
+            return None if found_ is None else (found_, decrement_)
+
         converged = False
         it = 0
         current = psi(a)
         last = None  # (f, lam, w, M, fisher) factorised at the current ``a``
+        # far from the mode (no step yet, or a Newton decrement above 1) a step's direction need
+        # not be accurate: large float64 problems factorise B in float32 there, at half the cost
+        far_allowed = L.dtype == torch.float64 and n >= single_precision_min_size
+        far = far_allowed
+        L32 = None
         for it in range(1, max_iter + 1):
             f, grad, lam, w = gradient(a)
+            if far:
+                taken = single_precision_step(grad, lam, w)
+                if taken is not None:
+                    (a, current), decrement = taken
+                    far = bool(decrement > 1.0)
+                    continue
+                far = far_allowed = False  # float32 does not suffice for this problem
             M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, lam, w))
             fisher = bool(info)
             if fisher:  # exact Hessian not negative definite here: Fisher scoring step
@@ -252,6 +283,7 @@ def find_mode(
                 break
             a, current = found
             if decrement > 1.0:  # far from the mode the old B is a poor model: refactorise
+                far = far_allowed
                 continue
             for _ in range(max_chord):
                 _, grad_c, _, _ = gradient(a)

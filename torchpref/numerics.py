@@ -58,8 +58,6 @@ def cholesky_jittered(
             continue
         if j == 0:
             L, info = torch.linalg.cholesky_ex(A)
-            if info.any() and not torch.isfinite(A).all():  # checked only on failure: it costs a pass
-                raise NotPSDError(f"{name} has non-finite entries; cannot factorise it.")
         else:
             if eye is None:
                 eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
@@ -68,6 +66,8 @@ def cholesky_jittered(
             if j > 1e-8 and (jitter is None or j != jitter):
                 warnings.warn(f"added jitter {j:.0e} to the diagonal of the {name}", JitterWarning, stacklevel=3)
             return L, j
+    if not torch.isfinite(A).all():  # checked only on failure: it costs a pass over A
+        raise NotPSDError(f"{name} has non-finite entries; cannot factorise it.")
     raise NotPSDError(f"{name} is not positive definite even with jitter {max_jitter:.0e} on its diagonal.")
 
 
