@@ -61,8 +61,9 @@ def test_ucb_ratings_is_argmax(model, generator):
         W = model.W()
         f = model.mode.f
         mean = ks @ torch.linalg.solve(K + 1e-10 * torch.eye(K.shape[0], dtype=K.dtype), f)
-        var = 1.0 - (ks * torch.linalg.solve(K + torch.linalg.inv(W + 1e-12 * torch.eye(K.shape[0], dtype=K.dtype)),
-                                            ks.mT).mT).sum(-1)
+        prior_var = model.covar_module.outputscale  # k(x, x) of the experiment's RBF kernel
+        var = prior_var - (ks * torch.linalg.solve(K + torch.linalg.inv(W + 1e-12 * torch.eye(K.shape[0], dtype=K.dtype)),
+                                                   ks.mT).mT).sum(-1)
     torch.testing.assert_close(post.mean.reshape(-1), mean, atol=1e-5, rtol=1e-5)
     q = UCBRatings(gamma=3.0).select(model, X, None, 0, 1, generator)
     assert torch.equal(q.item, X[int((mean + 3.0 * var.clamp_min(0).sqrt()).argmax())])

@@ -112,16 +112,17 @@ def run_trial(trial_seed: int, queries: int, strategies: tuple[str, ...] = tuple
         return {"wrms": float(wrms(est, u_true)), "tp": float(true_positives(est, u_true, k=TOP_K))}
 
     out = {}
-    for name in strategies:
-        user = SimulatedUser.paper_wave(lambda X: truth(X, noise=False),
-                                        generator=torch.Generator().manual_seed(seeds[0]))
-        first = user.choose(x0)
-        model = make_model(x0, torch.tensor([[first, 1 - first]]))
-        hist = run_active_learning(model, user, candidates, make_selector(name), queries,
-                                   generator=torch.Generator().manual_seed(seeds[1]), metrics=metrics,
-                                   costs={"rating": RATING_COST, "ranking": RANKING_COST})
-        out[name] = {"wrms": hist.metric("wrms"), "tp": hist.metric("tp"), "cost": hist.cumulative_cost(),
-                     "kinds": [r.query.kind for r in hist.records]}
+    with torch.inference_mode():  # nothing in a trial needs gradients (fixed hyperparameters)
+        for name in strategies:
+            user = SimulatedUser.paper_wave(lambda X: truth(X, noise=False),
+                                            generator=torch.Generator().manual_seed(seeds[0]))
+            first = user.choose(x0)
+            model = make_model(x0, torch.tensor([[first, 1 - first]]))
+            hist = run_active_learning(model, user, candidates, make_selector(name), queries,
+                                       generator=torch.Generator().manual_seed(seeds[1]), metrics=metrics,
+                                       costs={"rating": RATING_COST, "ranking": RANKING_COST})
+            out[name] = {"wrms": hist.metric("wrms"), "tp": hist.metric("tp"), "cost": hist.cumulative_cost(),
+                         "kinds": [r.query.kind for r in hist.records]}
     return out
 
 
