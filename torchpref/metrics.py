@@ -43,10 +43,11 @@ def _pair(name_a: str, a: Tensor, name_b: str, b: Tensor) -> tuple[Tensor, Tenso
     if a.shape[-1] != b.shape[-1] or a.shape[-1] == 0:
         raise ValueError(f"{name_a} and {name_b} must have the same non-zero number of points, got "
                          f"shapes {tuple(a.shape)} and {tuple(b.shape)}.")
-    try:
-        torch.broadcast_shapes(a.shape, b.shape)
-    except RuntimeError as e:
-        raise ValueError(f"{name_a} {tuple(a.shape)} and {name_b} {tuple(b.shape)} do not broadcast.") from e
+    if a.shape != b.shape:
+        try:
+            torch.broadcast_shapes(a.shape, b.shape)
+        except RuntimeError as e:
+            raise ValueError(f"{name_a} {tuple(a.shape)} and {name_b} {tuple(b.shape)} do not broadcast.") from e
     return a, b
 
 
@@ -125,8 +126,10 @@ def true_positives(est: Tensor, true: Tensor, k: int = 15) -> Tensor:
     n = est.shape[-1]
     if not isinstance(k, int) or isinstance(k, bool) or not 1 <= k <= n:
         raise ValueError(f"k must be an integer in 1..{n} (the number of points), got {k!r}.")
-    shape = torch.broadcast_shapes(est.shape, true.shape)
-    est, true = est.expand(shape), true.expand(shape)
+    if est.shape != true.shape:
+        shape = torch.broadcast_shapes(est.shape, true.shape)
+        est, true = est.expand(shape), true.expand(shape)
+    shape = est.shape
     in_est = torch.zeros(shape, dtype=torch.bool, device=est.device)
     in_est.scatter_(-1, est.topk(k, dim=-1).indices, True)
     return in_est.gather(-1, true.topk(k, dim=-1).indices).sum(dim=-1)
