@@ -10,9 +10,12 @@ from scipy import integrate, stats
 from torchpref.acquisition import (
     QueryInformation,
     choice_probabilities,
+    greedy_choice_set,
     latent_ucb,
+    membership_information,
     rating_bin_probabilities,
     sample_information,
+    top_set_membership,
 )
 from torchpref.experiments.wave import make_model
 
@@ -110,3 +113,106 @@ def test_optimize_acqf_with_latent_ucb(model):
         ucb = latent_ucb(model, 3.0)(grid)
     assert 0 <= float(x) <= 1
     assert float(val) >= float(ucb.max()) - 1e-3
+
+
+def test_top_set_membership_counts():
+    g = torch.Generator().manual_seed(3)
+    F = torch.randn(40, 25, generator=g, dtype=torch.float64)
+    Z = top_set_membership(F, 6)
+    assert (Z.sum(-1) == 6).all()
+    # members are at least as large as every non-member, sample by sample
+    lo = torch.where(Z, F, torch.inf).amin(-1)
+    hi = torch.where(Z, -torch.inf, F).amax(-1)
+    assert (lo > hi).all()
+    with pytest.raises(ValueError, match="k must be"):
+        top_set_membership(F, 0)
+
+
+def test_membership_information_identities():
+    g = torch.Generator().manual_seed(4)
+    S, N = 200, 7
+    Z = torch.rand(S, N, generator=g) < torch.linspace(0.2, 0.8, N)
+    # an answer independent of every label: no information (plug-in: exactly 0)
+    P = torch.softmax(torch.randn(3, 1, 5, generator=g, dtype=torch.float64), -1).expand(3, S, 5)
+    torch.testing.assert_close(membership_information(P, Z, bias_correction=False), torch.zeros(3, dtype=torch.float64))
+    # without correction each item's term is sample_information with that item's labels
+    P = torch.softmax(2 * torch.randn(4, S, 3, generator=g, dtype=torch.float64), -1)
+    per_item = torch.stack([sample_information(P, Z[:, i].long(), 2) for i in range(N)], -1)
+    torch.testing.assert_close(membership_information(P, Z, min_count=1, bias_correction=False), per_item.sum(-1))
+    # an answer that reveals item 0's label (and nothing else): its binary entropy, plus (nearly) nothing
+    z0 = Z[:, 0]
+    Z2 = torch.stack([z0, torch.rand(S, generator=g) < 0.5], -1)
+    P = torch.nn.functional.one_hot(z0.long(), 2).to(torch.float64).unsqueeze(0)
+    p = z0.double().mean()
+    h = -(p * p.log() + (1 - p) * (1 - p).log())
+    info = membership_information(P, Z2[:, :1], min_count=1, bias_correction=False)
+    torch.testing.assert_close(info, h.reshape(1))
+    # the correction leaves a deterministic answer's information (no variance within labels) as is
+    torch.testing.assert_close(membership_information(P, Z2[:, :1], min_count=1), h.reshape(1), atol=0.01, rtol=0)
+    # items whose rarer label has fewer than min_count samples do not count
+    Zr = torch.zeros(S, 1, dtype=torch.bool)
+    Zr[:3] = True
+    P = torch.nn.functional.one_hot(Zr[:, 0].long(), 2).to(torch.float64).unsqueeze(0)
+    assert float(membership_information(P, Zr, min_count=4)) == 0.0
+    assert float(membership_information(P, Zr, min_count=3, bias_correction=False)) > 0.05
+
+
+def test_membership_information_bias_correction():
+    """One item whose label the answer informs and 60 unrelated items: from 128 samples the
+    plug-in sum is biased well above the information (a 20000-sample estimate for the one item,
+    the rest carry none); the corrected sum is close to it."""
+    g = torch.Generator().manual_seed(5)
+
+    def draw(S):
+        f = torch.randn(S, 1, generator=g, dtype=torch.float64)  # what the answer depends on
+        other = torch.randn(S, 60, generator=g, dtype=torch.float64)  # unrelated items
+        F = torch.cat([f + 0.3 * torch.randn(S, 1, generator=g, dtype=torch.float64), other], -1)
+        Z = F > 0.5
+        P = torch.softmax(torch.cat([3 * f, torch.zeros_like(f), -3 * f], -1), -1).unsqueeze(0)  # 1 x S x 3
+        return P, Z
+
+    P, Z = draw(20000)
+    ref = float(membership_information(P, Z[:, :1], bias_correction=False))  # item 0 alone, no bias to speak of
+    plug, corr = [], []
+    for _ in range(30):
+        P, Z = draw(128)
+        plug.append(float(membership_information(P, Z, bias_correction=False)))
+        corr.append(float(membership_information(P, Z)))
+    plug, corr = np.mean(plug), np.mean(corr)
+    assert ref > 0.1
+    assert plug > ref + 0.1  # 60 unrelated items, each biased upwards
+    assert abs(corr - ref) < 0.04
+    assert abs(corr - ref) < 0.25 * abs(plug - ref)
+
+
+def test_greedy_choice_set_matches_brute_force():
+    g = torch.Generator().manual_seed(6)
+    F = torch.randn(64, 8, generator=g, dtype=torch.float64) + torch.linspace(-1, 1, 8, dtype=torch.float64)
+    labels = F.argmax(-1)
+    seen = []
+
+    def value(P):
+        seen.append(P)
+        return sample_information(P, labels, 8)
+
+    chosen, best = greedy_choice_set(F, 0.2, 4, value, start=None)
+    assert len(set(chosen)) == 4
+    # the final set's probabilities are choice_probabilities' (log space, Gauss-Hermite)
+    f_final = F[:, chosen].unsqueeze(0)
+    P_final = choice_probabilities(f_final, 0.2)
+    assert best == pytest.approx(float(sample_information(P_final, labels, 8)), rel=1e-9)
+    # every step: the best set of its candidates, by brute force
+    import itertools
+
+    pairs = list(itertools.combinations(range(8), 2))
+    vals = sample_information(choice_probabilities(F[:, torch.tensor(pairs)].permute(1, 0, 2), 0.2), labels, 8)
+    assert set(chosen[:2]) == set(pairs[int(vals.argmax())])
+    for r in (3, 4):
+        rest = [c for c in range(8) if c not in chosen[: r - 1]]
+        sets = torch.tensor([chosen[: r - 1] + [c] for c in rest])
+        vals = sample_information(choice_probabilities(F[:, sets].permute(1, 0, 2), 0.2), labels, 8)
+        assert chosen[r - 1] == rest[int(vals.argmax())]
+    # a fixed start is kept
+    assert greedy_choice_set(F, 0.2, 3, value, start=5)[0][0] == 5
+    with pytest.raises(ValueError, match="m="):
+        greedy_choice_set(F, 0.2, 9, value)

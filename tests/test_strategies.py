@@ -18,7 +18,8 @@ def model():
 
 
 SELECTORS = [RandomRatings(), RandomRankings(m=4), RandomMixed(m=3), UCBRatings(), UCBC(m=5),
-             InformationPerEffort(m=4), InformationPerEffort(m=3, target="utility", ranking_cost=5.0)]
+             InformationPerEffort(m=4), InformationPerEffort(m=4, target="maximizer"),
+             InformationPerEffort(m=3, target="utility", ranking_cost=5.0)]
 
 
 @pytest.mark.parametrize("selector", SELECTORS, ids=lambda s: type(s).__name__)
@@ -75,3 +76,34 @@ def test_bad_arguments():
         InformationPerEffort(rating_cost=-1)
     with pytest.raises(ValueError, match="entropy"):
         InformationPerEffort(target="entropy")
+    with pytest.raises(ValueError, match="top_fraction"):
+        InformationPerEffort(top_fraction=1.0)
+
+
+@pytest.mark.parametrize("target", ["top", "maximizer"])
+def test_information_per_effort_costs_and_determinism(model, target, generator):
+    X = torch.rand(40, 1, generator=generator, dtype=torch.float64)
+    kinds = {}
+    for name, kw in {"cheap ratings": {"ranking_cost": 1e6}, "cheap rankings": {"rating_cost": 1e6}}.items():
+        sel = InformationPerEffort(m=4, target=target, **kw)
+        q1 = sel.select(model, X, None, 0, 5, torch.Generator().manual_seed(7))
+        q2 = sel.select(model, X, None, 0, 5, torch.Generator().manual_seed(7))
+        kinds[name] = q1.kind
+        a = q1.item if q1.kind == "rating" else q1.items
+        b = q2.item if q2.kind == "rating" else q2.items
+        assert torch.equal(a, b)  # same generator state, same query
+    assert kinds == {"cheap ratings": "rating", "cheap rankings": "ranking"}
+
+
+def test_top_target_avoids_known_bad_region(generator):
+    """Low ratings all over [0, 0.5]: every item of the queries lies in the unexplored half,
+    where membership of the top set is uncertain."""
+    X0 = torch.linspace(0, 0.5, 26, dtype=torch.float64).reshape(-1, 1)
+    m = make_model(X0[:2], torch.tensor([[1, 0]]))
+    m.add_observations(X0, ratings=[0.1] * 26, rating_index=list(range(26)))
+    sel = InformationPerEffort(m=5, ranking_cost=1.0)
+    for t in range(3):
+        X = torch.rand(100, 1, generator=generator, dtype=torch.float64)
+        q = sel.select(m, X, None, t, 3, generator)
+        items = q.item.reshape(-1) if q.kind == "rating" else q.items.reshape(-1)
+        assert (items > 0.52).all(), items

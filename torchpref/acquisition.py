@@ -16,11 +16,17 @@ ranking query. So one acquisition function values both query types and a selecto
   answer's probabilities under each (:func:`choice_probabilities`,
   :func:`rating_bin_probabilities`); what :class:`~torchpref.strategies.InformationPerEffort`
   uses.
+* :func:`membership_information`: the summed information about each item's membership of a set
+  such as the top set of each sample (:func:`top_set_membership`), with a finite-sample bias
+  correction; :func:`greedy_choice_set` builds a best-of-``m`` query that maximises any such
+  value.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+from typing import Callable
 
 import numpy as np
 import torch
@@ -130,8 +136,14 @@ class QueryInformation(AcquisitionFunction):
         return (ent(p.mean(-2)) - ent(p).mean(-1)).clamp_min(0)
 
 
+@functools.lru_cache(maxsize=8)
+def _hermgauss(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    x, w = np.polynomial.hermite.hermgauss(n)
+    return tuple(x.tolist()), tuple(w.tolist())
+
+
 def _entropy(P: Tensor) -> Tensor:
-    return -(P * torch.log(P.clamp_min(1e-300))).sum(-1)
+    return -torch.special.xlogy(P, P).sum(-1)
 
 
 def choice_probabilities(f: Tensor, comparison_noise: float | Tensor, num_quadrature: int = 6) -> Tensor:
@@ -184,3 +196,162 @@ def sample_information(P: Tensor, labels: Tensor | None = None, num_labels: int 
     onehot, counts = onehot[:, used], counts[used]
     P_t = (onehot.mT @ P) / counts.unsqueeze(-1)  # batch x k x Y
     return (h_marginal - (counts / S * _entropy(P_t)).sum(-1)).clamp_min(0)
+
+
+def top_set_membership(F: Tensor, k: int) -> Tensor:
+    r"""``S x N`` joint samples -> ``S x N`` boolean: is item ``i`` among the ``k`` largest of
+    sample ``s`` (ties at the ``k``-th value count as members)."""
+    if not 1 <= k <= F.shape[-1]:
+        raise ValueError(f"k must be in 1..{F.shape[-1]}, got {k}.")
+    return F >= F.topk(k, dim=-1).values[..., -1:]
+
+
+def _membership_terms(sums: Tensor, totals: Tensor, n1: Tensor, S: Tensor, Y: int, delta: bool) -> Tensor:
+    """Per-item ``I(y; z_i)``, ``... x batch x N``, from the label-1 sums over the samples of
+    ``P`` (and, with ``delta``, of ``P^2`` after it: ``... x batch x N x Y`` or ``2Y``), their
+    totals over all samples (``... x batch x Y`` or ``2Y``), the label-1 counts (``... x 1 x N``)
+    and the numbers of samples (``... x 1 x 1``); ``delta`` subtracts the second-order entropy
+    bias."""
+    n1 = n1.unsqueeze(-1)  # ... x 1 x N x 1
+    n0 = S.unsqueeze(-1) - n1
+    m_in = sums / n1.clamp_min(1)
+    m_out = ((totals.unsqueeze(-2) - sums) / n0.clamp_min(1)).clamp_min(0)
+    m_all = totals / S
+    w = n1.squeeze(-1) / S
+    info = (_entropy(m_all[..., :Y]).unsqueeze(-1) - w * _entropy(m_in[..., :Y])
+            - (1 - w) * _entropy(m_out[..., :Y]))
+    if delta:
+        def spread(m: Tensor, n: Tensor) -> Tensor:  # sum_y Var_y / P_y (ddof 1), each term in [0, 1]
+            P, Q = m[..., :Y], m[..., Y:]
+            # + 1e-12: a mean at rounding level (the out-label means are differences) adds nothing
+            ratio = ((Q - P * P).clamp_min(0) / (P + 1e-12)).clamp_max(1)
+            return ratio.sum(-1) * (n / (n - 1).clamp_min(1)).squeeze(-1)
+
+        info = info - (spread(m_in, n1) + spread(m_out, n0)
+                       - spread(m_all, S).unsqueeze(-1)) / (2 * S)
+    return info
+
+
+def membership_information(P: Tensor, Z: Tensor, min_count: int = 4, bias_correction: bool = True) -> Tensor:
+    r"""Summed information (nats) a query's answer carries about each item's membership of a set.
+
+    ``sum_i I(y; z_i)`` with ``z_i`` the binary label "item ``i`` is in the set" (e.g. the top
+    set of :func:`top_set_membership`): the expected reduction of the summed binary entropies
+    of the memberships. Each term is ``H[P] - sum_t w_t H[P_t]`` with ``P`` the mean of the
+    samples' answer probabilities and ``P_t`` the mean over the samples of label ``t`` (as in
+    :func:`sample_information`).
+
+    **Bias.** The entropy of a mean of ``n`` samples is biased low, and the label means have
+    few samples, so this plug-in information is biased high: summed over many items the bias
+    can exceed the information itself, and it is larger for answers with many outcomes (a
+    binned rating) than for a best-of-``m`` choice, so it would tilt a comparison between the
+    two. ``bias_correction`` (i) subtracts each entropy's second-order bias
+    ``(1 / 2n) sum_y Var(P_y) / P_y`` (sample variances) and (ii) removes what remains of the
+    ``1 / S`` term by the split-half extrapolation ``2 I_S - (I_{S/2}' + I_{S/2}'') / 2``
+    (items with fewer than two samples of a label in a half keep ``I_S``).
+
+    Args:
+        P: ``batch x S x Y`` answer probabilities under each of ``S`` joint posterior samples.
+        Z: ``S x N`` boolean memberships in the same samples.
+        min_count: the fewest samples each label of an item needs for the item to count: a
+            (nearly) known membership carries no information to speak of, only bias.
+        bias_correction: apply (i) and (ii).
+
+    Returns:
+        ``batch`` informations, clamped at 0 (without correction: each item's term).
+    """
+    S = Z.shape[0]
+    if P.shape[-2] != S:
+        raise ValueError(f"P has {P.shape[-2]} samples, Z has {S}.")
+    n1 = Z.sum(0)
+    keep = (n1 >= max(min_count, 1)) & (n1 <= S - max(min_count, 1))
+    if bias_correction:
+        keep &= (n1 >= 2) & (n1 <= S - 2)
+    if not bool(keep.any()):
+        return P.new_zeros(P.shape[:-2])
+    Z = Z[:, keep].to(P)
+    Y = P.shape[-1]
+    if not bias_correction:
+        info = _membership_terms(torch.einsum("sn,...sy->...ny", Z, P), P.sum(-2), Z.sum(0, keepdim=True),
+                                 P.new_tensor([[float(S)]]), Y, False)
+        return info.clamp_min(0).sum(-1)
+    PQ = torch.cat([P, P * P], dim=-1)
+    if S < 8:
+        info = _membership_terms(torch.einsum("sn,...sy->...ny", Z, PQ), PQ.sum(-2), Z.sum(0, keepdim=True),
+                                 P.new_tensor([[float(S)]]), Y, True)
+        return info.sum(-1).clamp_min(0)
+    # the full sample and its two halves at once (the full sums are the halves' sums)
+    h = S // 2
+    Zh = torch.stack([Z[:h], Z[h:2 * h]])  # 2 x h x n
+    PQh = torch.stack([PQ[..., :h, :], PQ[..., h:2 * h, :]])  # 2 x batch x h x 2Y
+    sums = torch.einsum("tsn,t...sy->t...ny", Zh, PQh)
+    totals, counts = PQh.sum(-2), Zh.sum(-2).unsqueeze(-2)  # 2 x batch x 2Y, 2 x 1 x n
+    if S > 2 * h:  # odd S: the last sample counts in the full estimate only
+        sums_full = sums.sum(0) + torch.einsum("n,...y->...ny", Z[-1], PQ[..., -1, :])
+        totals_full, counts_full = totals.sum(0) + PQ[..., -1, :], counts.sum(0) + Z[-1]
+    else:
+        sums_full, totals_full, counts_full = sums.sum(0), totals.sum(0), counts.sum(0)
+    extra = (1,) * (sums.dim() - 3)
+    ns = P.new_tensor([float(S), float(h), float(h)]).reshape(3, *extra, 1)
+    terms = _membership_terms(torch.cat([sums_full.unsqueeze(0), sums]), torch.cat([totals_full.unsqueeze(0), totals]),
+                              torch.cat([counts_full.unsqueeze(0), counts]).reshape(3, *extra, -1), ns, Y, True)
+    info, a, b = terms[0], terms[1], terms[2]
+    both = ((counts >= 2) & (counts <= h - 2)).all(0).reshape(-1)
+    info = torch.where(both, 2 * info - 0.5 * (a + b), info)
+    return info.sum(-1).clamp_min(0)  # unbiased terms may be negative: clamp only the sum
+
+
+def greedy_choice_set(
+    F: Tensor,
+    comparison_noise: float | Tensor,
+    m: int,
+    value: Callable[[Tensor], Tensor],
+    start: int | None = None,
+    num_quadrature: int = 6,
+) -> tuple[list[int], float]:
+    r"""Build a best-of-``m`` query greedily among ``K`` items to maximise ``value``.
+
+    Starting from item ``start`` (or, if ``None``, the best pair), add the item that most
+    increases ``value(P)``, ``P`` the ``sets x S x q`` choice probabilities of
+    :func:`choice_probabilities` under the samples ``F`` (``S x K``). The pairwise ``Phi``
+    terms are computed once and multiplied incrementally, so each step costs products only.
+
+    Returns:
+        The chosen columns of ``F`` (in the order added) and the value of the final set.
+    """
+    S, K = F.shape
+    if not 2 <= m <= K:
+        raise ValueError(f"need 2 <= m <= {K} items, got m={m}.")
+    x, w = _hermgauss(num_quadrature)
+    x, w = F.new_tensor(x), F.new_tensor(w) / math.sqrt(math.pi)
+    # Phi((f_j + eps - f_k) / s) = erfc(-z / sqrt 2) / 2, products instead of sums of logs (an
+    # underflow to 0 only drops a negligible probability); 1 on j = k
+    Ft = F.mT  # K x S
+    z = ((Ft.unsqueeze(1) - Ft.unsqueeze(0)) / comparison_noise).unsqueeze(-1) + math.sqrt(2) * x
+    ph = 0.5 * torch.special.erfc(z.mul_(-1 / math.sqrt(2)))  # j x k x S x H
+    ar = torch.arange(K, device=F.device)
+    ph[ar, ar] = 1.0
+
+    def probs(prod: Tensor) -> Tensor:  # R x q x S x H -> R x S x q
+        p = prod @ w
+        return (p / p.sum(-2, keepdim=True)).transpose(-1, -2)
+
+    if start is None:  # every pair (j, c), j < c
+        j, c = torch.triu_indices(K, K, 1, device=F.device)
+        vals = value(probs(torch.stack([ph[j, c], ph[c, j]], dim=1)))
+        b = int(vals.argmax())
+        chosen, best = [int(j[b]), int(c[b])], float(vals[b])
+    else:
+        chosen, best = [int(start)], float("nan")
+    A = ph[:, chosen].prod(1)  # K x S x H: product over chosen k of ph[j, k]
+    while len(chosen) < m:
+        mask = torch.ones(K, dtype=torch.bool, device=F.device)
+        mask[chosen] = False
+        rest = mask.nonzero().reshape(-1)
+        old = A[chosen].unsqueeze(0) * ph[chosen][:, rest].transpose(0, 1)  # R x r x S x H
+        vals = value(probs(torch.cat([old, A[rest].unsqueeze(1)], dim=1)))  # R x (r + 1) x S x H
+        b = int(vals.argmax())
+        chosen.append(int(rest[b]))
+        best = float(vals[b])
+        A = A * ph[:, chosen[-1]]
+    return chosen, best
