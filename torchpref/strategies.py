@@ -190,13 +190,15 @@ class InformationPerEffort(Selector):
         min_count: ``target="top"``: an item counts only if both its labels have at least this
             many samples (membership probability in ``[min_count / S, 1 - min_count / S]``;
             see :func:`~torchpref.acquisition.membership_information`).
+        bias_correction: ``target="top"``: correct the information estimates' finite-sample
+            bias (:func:`~torchpref.acquisition.membership_information`).
     """
 
     name = "info per effort"
 
     def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
                  gamma: float = 3.0, num_samples: int = 128, target: str = "top", top_fraction: float = 0.2,
-                 num_plausible: int = 15, num_bins: int = 10, min_count: int = 8):
+                 num_plausible: int = 15, num_bins: int = 10, min_count: int = 8, bias_correction: bool = True):
         if ranking_cost is None:
             ranking_cost = 1.0 + (m - 1) / 4
         if not (rating_cost > 0 and ranking_cost > 0):
@@ -210,7 +212,7 @@ class InformationPerEffort(Selector):
         self.m, self.rating_cost, self.ranking_cost = m, float(rating_cost), float(ranking_cost)
         self.gamma, self.num_samples, self.target = gamma, num_samples, target
         self.top_fraction, self.num_plausible, self.num_bins = top_fraction, num_plausible, num_bins
-        self.min_count = min_count
+        self.min_count, self.bias_correction = min_count, bias_correction
 
     def _samples(self, model, X: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
         """``S x N`` joint samples, the posterior mean and std at ``X``."""
@@ -241,7 +243,7 @@ class InformationPerEffort(Selector):
                 order = torch.argsort(p * (1 - p) + tie, descending=True)
 
                 def info(P: Tensor) -> Tensor:
-                    return membership_information(P, Z, self.min_count)
+                    return membership_information(P, Z, self.min_count, self.bias_correction)
             else:
                 argmax = F.argmax(-1)
                 p_max = torch.bincount(argmax, minlength=N).to(mean) / F.shape[0]
