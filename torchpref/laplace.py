@@ -176,6 +176,7 @@ def find_mode(
     tol: float = 1e-11,
     max_chord: int = 3,
     single_precision_min_size: int = 256,
+    chord_min_size: int = 128,
 ) -> ModeResult:
     r"""Newton's method with a backtracking line search for the posterior mode (eq. 2).
 
@@ -195,6 +196,9 @@ def find_mode(
         tol: stop when half the Newton decrement ``grad^T B^{-1} grad / 2`` (an estimate of the
             distance to the optimum in log-posterior units) is below ``tol``.
         max_chord: chord steps per factorisation (0: plain Newton).
+        chord_min_size: chord steps only from this ``n`` on: for small ``n`` a factorisation
+            costs about as much as the gradient a chord step needs, and plain Newton takes fewer
+            steps.
         single_precision_min_size: from this ``n`` on, float64 problems take their steps far
             from the mode (Newton decrement above 1) with ``B`` factorised in float32, falling
             back to float64 if that factorisation fails or its step does not increase ``Psi``.
@@ -285,7 +289,7 @@ def find_mode(
             if decrement > 1.0:  # far from the mode the old B is a poor model: refactorise
                 far = far_allowed
                 continue
-            for _ in range(max_chord):
+            for _ in range(max_chord if n >= chord_min_size else 0):
                 _, grad_c, _, _ = gradient(a)
                 step_c = torch.cholesky_solve(grad_c.unsqueeze(-1), M).squeeze(-1)
                 decrement_c = (grad_c * step_c).sum()
