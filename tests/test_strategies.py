@@ -51,6 +51,29 @@ def test_ucbc_schedule(model, generator):
     assert abs(kinds.count("ranking") / 400 - 0.25) < 0.07
 
 
+def test_ucbc_ranking_softmax_temperature(model, generator):
+    """The ranking draw is a softmax of UCB / T: a tiny T takes the top-UCB candidates, a huge T
+    draws near-uniformly (the authors' 5 and 25 are close to the latter)."""
+    X = torch.rand(12, 1, generator=generator, dtype=torch.float64)
+    with torch.no_grad():
+        post = model.posterior(X.unsqueeze(-2))
+        ucb = post.mean.reshape(-1) + 3.0 * post.variance.reshape(-1).sqrt()
+    top3 = ucb.sort(descending=True).values[:3]  # values: far from the data UCBs tie
+
+    def first_rows(temperature, draws):
+        sel = UCBC(m=3, temperatures=(temperature, temperature))
+        out = []
+        for _ in range(draws):
+            q = sel.select(model, X, None, 0, 10, generator)  # step 0: always a ranking
+            out.append({int((X == x).all(-1).nonzero()) for x in q.items})
+        return out
+
+    for rows in first_rows(1e-6, 20):
+        torch.testing.assert_close(ucb[sorted(rows)].sort(descending=True).values, top3, rtol=0, atol=1e-4)
+    hits = sum(0 in rows for rows in first_rows(1e4, 600)) / 600
+    assert abs(hits - 3 / 12) < 0.07  # uniform: each item in a 3-of-12 draw with probability 1/4
+
+
 def test_ucb_ratings_is_argmax(model, generator):
     X = torch.rand(50, 1, generator=generator, dtype=torch.float64)
     with torch.no_grad():

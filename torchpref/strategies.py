@@ -9,6 +9,8 @@ random rankings, UCB ratings, random mixed. The paper's combined strategy is :cl
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -108,7 +110,10 @@ class UCBC(Selector):
     At zero-based query ``t`` of ``T`` it asks for a ranking with probability
     ``max(0, (T - t) / T)`` (so early queries are rankings, later ones ratings), else a rating.
     Rating: the candidate of largest UCB. Ranking: ``m`` distinct candidates drawn by a softmax
-    over UCB, with temperature ``temperatures[0]`` for the first and ``temperatures[1]`` after.
+    ``exp(UCB / T)``, with temperature ``T = temperatures[0]`` for the first and
+    ``temperatures[1]`` after (with the authors' 5 and 25 and UCBs of a few units, close to
+    uniform: the ranking branch explores). The authors' code zeroed a drawn candidate's UCB and
+    could draw it again; here the ``m`` candidates are distinct.
 
     Args:
         gamma: eq. 12's ``gamma`` (the paper's text: 3; the authors' code: 2).
@@ -134,11 +139,10 @@ class UCBC(Selector):
         rows = []
         for k in range(self.m):
             temp = self.temperatures[0] if k == 0 else self.temperatures[1]
-            p = torch.softmax(temp * (logits - logits.max()), dim=0)
-            if rows:
-                p[torch.tensor(rows)] = 0.0
+            p = torch.softmax((logits - logits.max()) / temp, dim=0)  # drawn rows: logit -inf
             r = int(torch.multinomial(p, 1, generator=generator))
             rows.append(r)
+            logits[r] = -math.inf
         return _ranking(X, indices, torch.tensor(rows))
 
 
