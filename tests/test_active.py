@@ -83,3 +83,21 @@ def test_bad_input():
     with pytest.raises(ValueError, match="0"):
         run_active_learning(model, user, BoxCandidates(BOUNDS), RandomMixed(), 2, generator=torch.Generator(),
                             refit_every=0)
+
+
+def test_pool_with_repeated_rows_never_shows_an_item_twice():
+    """``FinitePool`` offers each distinct item once (first row's index), so random rankings of a
+    pool full of duplicates still compare distinct items and the loop runs."""
+    from torchpref.queries import FinitePool
+    from torchpref.strategies import RandomRankings
+
+    base = torch.tensor([[0.1], [0.3], [0.5], [0.9]], dtype=torch.float64)
+    pool = base[torch.tensor([0, 1, 1, 2, 0, 3, 3, 3])]
+    X, idx = FinitePool(pool).draw(torch.Generator())
+    assert idx.tolist() == [0, 1, 3, 5]
+    torch.testing.assert_close(X, pool[idx])
+    model, user = _setup(4)
+    hist = run_active_learning(model, user, FinitePool(pool), RandomRankings(m=4), 5,
+                               generator=torch.Generator().manual_seed(0))
+    for r in hist.records:
+        assert len({float(x) for x in r.query.items.reshape(-1)}) == 4

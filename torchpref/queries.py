@@ -99,15 +99,23 @@ class Candidates:
 
 
 class FinitePool(Candidates):
-    """A fixed set of items (``N x d``), e.g. planned trajectories' objective vectors."""
+    """A fixed set of items (``N x d``), e.g. planned trajectories' objective vectors.
+
+    Rows that repeat an earlier row are not offered again (``draw`` returns each distinct item
+    once, with the index of its first row), so a ranking never shows the same item twice.
+    """
 
     def __init__(self, X: Tensor):
         if X.dim() != 2 or X.shape[0] < 1:
             raise ValueError(f"a pool must be N x d with N >= 1, got shape {tuple(X.shape)}.")
         self.X = X
+        _, group = torch.unique(X, dim=0, return_inverse=True)
+        rows = torch.arange(X.shape[0], device=X.device)
+        first = torch.full((int(group.max()) + 1,), X.shape[0], device=X.device)
+        self._rows = first.scatter_reduce(0, group, rows, reduce="amin").sort().values
 
     def draw(self, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-        return self.X, torch.arange(self.X.shape[0], device=self.X.device)
+        return self.X[self._rows], self._rows
 
 
 class BoxCandidates(Candidates):
