@@ -257,3 +257,29 @@ def test_model_without_items_is_the_prior_and_accepts_data(generator):
     model.add_observations(rand(2, 2, generator=generator), comparisons=torch.tensor([[0, 1]]))
     mean = model.posterior(model.train_X.unsqueeze(-2)).mean.reshape(-1)
     assert mean[0] > mean[1]
+
+
+def test_marginals_equal_the_posteriors_diagonal(model, generator):
+    """``marginals`` (the fast path of ``expected_rating``) against ``posterior``: plain, with a
+    Normalize input transform, a kernel on selected ``active_dims``, and with no data (prior)."""
+    from botorch.models.transforms.input import Normalize
+    from gpytorch.kernels import RBFKernel, ScaleKernel
+
+    X = rand(3, 4, 2, generator=generator)
+    d = model.data
+    models = [
+        model,
+        PreferenceGP(3 * d.train_X + 1, d.comparisons, d.ratings, d.rating_index, covar_module=kernel(2),
+                     input_transform=Normalize(2)),
+        PreferenceGP(d.train_X, d.comparisons, d.ratings, d.rating_index,
+                     covar_module=ScaleKernel(RBFKernel(active_dims=[1])).to(torch.float64)),
+        PreferenceGP(torch.zeros(0, 2, dtype=torch.float64), covar_module=kernel(2)),
+    ]
+    for m in models:
+        mean, var = m.marginals(X)
+        post = m.posterior(X.unsqueeze(-2))
+        assert mean.shape == var.shape == (3, 4)
+        torch.testing.assert_close(mean, post.mean.reshape(3, 4), rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(var, post.variance.reshape(3, 4), rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="columns"):
+        model.marginals(rand(4, 3, generator=generator))

@@ -261,23 +261,31 @@ class PreferenceGP(Model, GP):
     def _fingerprint(self) -> Tensor:
         # all parameters, then all floating buffers (as parameters() / buffers()), in one module walk
         params, bufs, seen = [], [], set()
-        for m in self.modules():
+        stack, modules = [self], []
+        while stack:  # the modules in ``self.modules()`` order, without its generator overhead
+            m = stack.pop()
+            modules.append(m)
+            stack.extend(c for c in reversed(m._modules.values()) if c is not None)
+        for m in modules:
             for t, out in ((m._parameters, params), (m._buffers, bufs)):
                 for v in t.values():
                     if v is not None and id(v) not in seen:
                         seen.add(id(v))
                         out.append(v)
-        vals = [p.detach().reshape(-1) for p in params]
-        vals += [b.detach().reshape(-1).to(self._data.train_X.dtype) for b in bufs if b.is_floating_point()]
-        return torch.cat(vals) if vals else self._data.train_X.new_zeros(0)
+        vals = params + [b for b in bufs if b.is_floating_point()]
+        with torch.no_grad():  # torch.cat promotes the dtypes
+            return torch.cat([v.reshape(-1) for v in vals]) if vals else self._data.train_X.new_zeros(0)
 
-    def _kernel(self, X1: Tensor, X2: Tensor | None = None) -> Tensor:
-        """Dense ``k(X1, X2)``: the kernel's ``forward`` directly (the values ``__call__`` would
-        give, without building a lazy kernel tensor) unless a kernel selects ``active_dims``."""
+    def _kernel(self, X1: Tensor, X2: Tensor | None = None, diag: bool = False) -> Tensor:
+        """Dense ``k(X1, X2)`` (or its diagonal): the kernel's ``forward`` directly (the values
+        ``__call__`` would give, without building a lazy kernel tensor) unless a kernel selects
+        ``active_dims``."""
         k = self.covar_module
+        X2 = X1 if X2 is None else X2
         if any(getattr(m, "active_dims", None) is not None for m in k.modules()):
-            return k(X1, X2).to_dense()
-        return k.forward(X1, X1 if X2 is None else X2)
+            out = k(X1, X2, diag=diag)
+            return out if diag else out.to_dense()
+        return k.forward(X1, X2, diag=diag)
 
     def _kernel_chol(self, jitter: float | None = None) -> tuple[Tensor, float, Tensor]:
         Xt = self._transformed_train_X()
@@ -355,7 +363,8 @@ class PreferenceGP(Model, GP):
             raise NotImplementedError("observation_noise is not defined for a latent utility model.")
         if X.shape[-1] != self._data.dim:
             raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
-        self.eval()
+        if self.training:
+            self.eval()
         X = self.transform_inputs(X)
         if X.dim() == 1:  # a single point
             X = X.unsqueeze(0)
@@ -368,12 +377,27 @@ class PreferenceGP(Model, GP):
         return self.forward(X)
 
     # ------------------------------------------------------- predictives (eq. 11)
+    def marginals(self, X: Tensor) -> tuple[Tensor, Tensor]:
+        r"""Posterior mean and variance of the latent utility at each row of ``X`` (``... x d``),
+        each of ``X``'s shape without its last dimension: what ``posterior(X.unsqueeze(-2))``
+        gives, without building a batch of ``1 x 1`` covariances and distribution objects."""
+        if X.shape[-1] != self._data.dim:
+            raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
+        if self.training:
+            self.eval()
+        Xf = self.transform_inputs(X).reshape(-1, X.shape[-1])
+        state = self._state()
+        k_ss = self._kernel(Xf, diag=True).reshape(-1, 1, 1)
+        if state["Xt"].shape[0] == 0:  # no items yet: the prior
+            mean, var = k_ss.new_zeros(k_ss.shape[0]), k_ss
+        else:
+            mean, var = predict(state["pred"], self._kernel(state["Xt"], Xf).unsqueeze(-1), k_ss)
+        return mean.reshape(X.shape[:-1]), var.reshape(X.shape[:-1])
+
     def expected_rating(self, X: Tensor) -> Tensor:
         r"""Expected rating ``Phi(m / sqrt(2 sigma_B^2 + v))`` at each row of ``X`` (``... x d``);
         returns the shape of ``X`` without its last dimension."""
-        post = self.posterior(X.unsqueeze(-2))
-        mean = post.mean.reshape(X.shape[:-1])
-        var = post.variance.reshape(X.shape[:-1])
+        mean, var = self.marginals(X)
         return self.likelihood.rating.expected_rating(mean, var)
 
     def preference_probability(self, Xa: Tensor, Xb: Tensor) -> Tensor:
