@@ -213,30 +213,29 @@ def find_mode(
             if not torch.isfinite(a).all():
                 a = L.new_zeros(n)
 
-        def psi(a_: Tensor) -> Tensor:
-            return obs.log_likelihood(L @ a_) - 0.5 * (a_ * a_).sum()
-
-        def gradient(a_: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        def evaluate(a_: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+            """``(a, Psi(a), f, grad Psi(a), lambda, w)``: one likelihood pass serves the line
+            search's test and, if the point is accepted, the next Newton step."""
             f_ = L @ a_
-            _, g_, lam_, w_ = obs.terms(f_)
-            return f_, L.mT @ g_ - a_, lam_, w_
+            ll_, g_, lam_, w_ = obs.terms(f_)
+            return a_, ll_ - 0.5 * (a_ * a_).sum(), f_, L.mT @ g_ - a_, lam_, w_
 
-        def search(a_: Tensor, current_: Tensor, step_: Tensor, decrement_: Tensor):
-            """Armijo backtracking along ``step_``: ``(a, Psi(a))`` or ``None``."""
+        def search(point_, step_: Tensor, decrement_: Tensor):
+            """Armijo backtracking from ``point_`` along ``step_``: the accepted point or ``None``."""
             t = 1.0
             while t > 1e-12:
-                a_new = a_ + t * step_
-                new = psi(a_new)
-                if torch.isfinite(new) and new >= current_ + 1e-4 * t * decrement_:
-                    return a_new, new
+                new = evaluate(point_[0] + t * step_)
+                if torch.isfinite(new[1]) and new[1] >= point_[1] + 1e-4 * t * decrement_:
+                    return new
                 t *= 0.5
             return None
 
-        def single_precision_step(grad_: Tensor, lam_: Tensor, w_: Tensor):
-            """A Newton step factorised in float32: ``((a, Psi(a)), decrement)`` or ``None``."""
+        def single_precision_step(point_):
+            """A Newton step factorised in float32: ``(new point, decrement)`` or ``None``."""
             nonlocal L32
             if L32 is None:
                 L32 = L.float()
+            _, _, _, grad_, lam_, w_ = point_
             M32, info32 = torch.linalg.cholesky_ex(obs.whitened_hessian(L32, lam_.float(), w_.float()))
             if info32:
                 return None
@@ -244,27 +243,27 @@ def find_mode(
             decrement_ = (grad_ * step_).sum()
             if not (torch.isfinite(decrement_) and decrement_ / 2 >= tol):
                 return None
-            found_ = search(a, current, step_, decrement_)
+            found_ = search(point_, step_, decrement_)
             return None if found_ is None else (found_, decrement_)
 
         converged = False
         it = 0
-        current = psi(a)
-        last = None  # (f, lam, w, M, fisher) factorised at the current ``a``
+        point = evaluate(a)
+        last = None  # (f, lam, w, M, fisher) factorised at the current point
         # far from the mode (no step yet, or a Newton decrement above 1) a step's direction need
         # not be accurate: large float64 problems factorise B in float32 there, at half the cost
         far_allowed = L.dtype == torch.float64 and n >= single_precision_min_size
         far = far_allowed
         L32 = None
         for it in range(1, max_iter + 1):
-            f, grad, lam, w = gradient(a)
             if far:
-                taken = single_precision_step(grad, lam, w)
+                taken = single_precision_step(point)
                 if taken is not None:
-                    (a, current), decrement = taken
+                    point, decrement = taken
                     far = bool(decrement > 1.0)
                     continue
                 far = far_allowed = False  # float32 does not suffice for this problem
+            _, _, f, grad, lam, w = point
             M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, lam, w))
             fisher = bool(info)
             if fisher:  # exact Hessian not negative definite here: Fisher scoring step
@@ -278,36 +277,37 @@ def find_mode(
                 raise FloatingPointError("non-finite Newton step while finding the Laplace mode")
             if decrement / 2 < tol:
                 converged = True
-                last = (f, lam, w, M, fisher)  # ``a`` is unchanged: reuse this factorisation
+                last = (f, lam, w, M, fisher)  # the point is unchanged: reuse this factorisation
                 break
-            found = search(a, current, step, decrement)
+            found = search(point, step, decrement)
             if found is None:
                 # no ascent possible in floating point: at the optimum up to round-off
                 converged = bool(decrement / 2 < 1e-6)
                 break
-            a, current = found
+            point = found
             if decrement > 1.0:  # far from the mode the old B is a poor model: refactorise
                 far = far_allowed
                 continue
             for _ in range(max_chord if n >= chord_min_size else 0):
-                _, grad_c, _, _ = gradient(a)
+                grad_c = point[3]
                 step_c = torch.cholesky_solve(grad_c.unsqueeze(-1), M).squeeze(-1)
                 decrement_c = (grad_c * step_c).sum()
                 if not decrement_c < 0.25 * decrement:
                     break  # not contracting fast enough (or not finite): refactorise
                 if decrement_c < 1e-8:  # Psi would change by less than its round-off: full step
-                    found = (a + step_c, psi(a + step_c))
+                    found = evaluate(point[0] + step_c)
                 else:
-                    found = search(a, current, step_c, decrement_c)
+                    found = search(point, step_c, decrement_c)
                 if found is None:
                     break
-                (a, current), decrement = found, decrement_c
+                point, decrement = found, decrement_c
                 if decrement / 2 < tol:
                     break  # converged, to be confirmed with a fresh B
+        a = point[0]
         if last is not None:
             f, lam, w, M, fisher_fallback = last
         else:
-            f, _, lam, w = gradient(a)
+            _, _, f, _, lam, w = point
             M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, lam, w))
             fisher_fallback = bool(info)
             if fisher_fallback:
