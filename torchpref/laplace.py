@@ -101,15 +101,6 @@ class Observations:
         i, j = C[:, 0], C[:, 1]
         return diag[i] + diag[j] - 2 * S[i, j], diag[ri]
 
-    def log_likelihood(self, f: Tensor) -> Tensor:
-        C, u, ri = self.comparisons, self.ratings, self.rating_index
-        ll = f.new_zeros(())
-        if C.shape[0]:
-            ll = ll + self.comparison_likelihood.log_prob(f[C[:, 0]] - f[C[:, 1]]).sum()
-        if u.shape[0]:
-            ll = ll + self.rating_likelihood.log_prob(f[ri], u).sum()
-        return ll
-
     @functools.cached_property
     def _W_pattern(self) -> tuple[Tensor, Tensor]:
         """``W``'s nonzero pattern, computed once: ``(2 x nnz indices, slot of each term)``."""
