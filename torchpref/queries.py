@@ -98,6 +98,15 @@ class Candidates:
         raise NotImplementedError
 
 
+def first_unique_rows(X: Tensor) -> Tensor:
+    """Indices of the first occurrence of each distinct row of ``X`` (``N x d``), in order:
+    planners can return the same path twice, and a query must not show an item twice."""
+    _, group = torch.unique(X, dim=0, return_inverse=True)
+    rows = torch.arange(X.shape[0], device=X.device)
+    first = torch.full((int(group.max()) + 1,), X.shape[0], device=X.device)
+    return first.scatter_reduce(0, group, rows, reduce="amin").sort().values
+
+
 class FinitePool(Candidates):
     """A fixed set of items (``N x d``), e.g. planned trajectories' objective vectors.
 
@@ -109,10 +118,7 @@ class FinitePool(Candidates):
         if X.dim() != 2 or X.shape[0] < 1:
             raise ValueError(f"a pool must be N x d with N >= 1, got shape {tuple(X.shape)}.")
         self.X = X
-        _, group = torch.unique(X, dim=0, return_inverse=True)
-        rows = torch.arange(X.shape[0], device=X.device)
-        first = torch.full((int(group.max()) + 1,), X.shape[0], device=X.device)
-        self._rows = first.scatter_reduce(0, group, rows, reduce="amin").sort().values
+        self._rows = first_unique_rows(X)
 
     def draw(self, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         return self.X[self._rows], self._rows

@@ -42,7 +42,8 @@ from torch import Tensor
 
 from torchpref.data import best_of_m, likert_to_unit
 from torchpref.models import PreferenceGP, default_covar_module
-from torchpref.queries import BoxCandidates, Candidates, FinitePool, Query, RankingQuery, RatingQuery
+from torchpref.queries import (BoxCandidates, Candidates, FinitePool, Query, RankingQuery, RatingQuery,
+                               first_unique_rows)
 from torchpref.strategies import UCBC, Selector
 from torchpref.version import __version__
 
@@ -361,7 +362,7 @@ class PreferenceSession:
         self.num_queries = int(num_queries)
         self.seed = int(seed)
         self.names = None if names is None else [str(n) for n in names]
-        n_pool = _first_unique_rows(self._pool).numel() if self._pool is not None else None
+        n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
         self.selector = selector if selector is not None else UCBC(m=min(5, n_pool) if n_pool else 5)
         self.model_factory = model_factory if model_factory is not None else default_session_model
         self._anchor = self.transform(self._pool[:1] if self._pool is not None else bounds.mean(0, keepdim=True))
@@ -622,8 +623,8 @@ class PreferenceSession:
         step = self.step
         gen = step_generator(self.seed, step)
         X, idx = self._candidates.draw(gen)
-        rows = _first_unique_rows(X)  # a pool may hold the same item twice: never show it twice
-        q = self.selector.select(self._model, self.transform(X[rows]), rows, step, self.num_queries, gen)
+        rows = torch.arange(X.shape[0])  # a pool draws each distinct item once (FinitePool)
+        q = self.selector.select(self._model, self.transform(X), rows, step, self.num_queries, gen)
         if isinstance(q, RatingQuery):
             r = int(q.index)
             query: Query = RatingQuery(X[r], None if idx is None else int(idx[r]))
@@ -739,15 +740,6 @@ class PreferenceSession:
         self._next_seq += 1
         self._pending = self._pending_step = None
         return undone
-
-
-def _first_unique_rows(X: Tensor) -> Tensor:
-    """Indices of the first occurrence of each distinct row of ``X`` (``N x d``), in order."""
-    _, inverse = torch.unique(X, dim=0, return_inverse=True)
-    first: dict[int, int] = {}
-    for i, g in enumerate(inverse.tolist()):
-        first.setdefault(g, i)
-    return torch.tensor(sorted(first.values()), dtype=torch.long)
 
 
 def _describe(spec) -> str:

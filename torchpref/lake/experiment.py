@@ -54,7 +54,7 @@ from torchpref.lake.plan import normalise, plan_with_utility, unnormalise
 from torchpref.lake.scenario import LakeScenario, make_scenario
 from torchpref.metrics import wrms
 from torchpref.models import PreferenceGP
-from torchpref.queries import FinitePool
+from torchpref.queries import FinitePool, first_unique_rows
 from torchpref.strategies import UCBC, InformationPerEffort, RandomRatings, UCBRatings
 
 #: fixed model hyperparameters (see the module docstring)
@@ -104,15 +104,6 @@ def pool_bounds(scenario: LakeScenario) -> torch.Tensor:
     return torch.stack([X.min(0).values, X.max(0).values])
 
 
-def unique_rows(X: torch.Tensor) -> torch.Tensor:
-    """Indices of the first occurrence of each distinct row of ``X`` (in order): planners can
-    return the same path for different weights, and a query must not compare an item with itself."""
-    _, inverse = torch.unique(X, dim=0, return_inverse=True)
-    first = torch.full((int(inverse.max()) + 1,), X.shape[0], dtype=torch.long)
-    first = first.scatter_reduce(0, inverse, torch.arange(X.shape[0]), reduce="amin")
-    return first.sort().values
-
-
 def trial_seeds(seed: int, trials: int) -> list[int]:
     """``trials`` per-trial seeds derived from the run's ``seed``."""
     return _trial_seeds(int(seed) + 1, trials)
@@ -129,7 +120,7 @@ def run_trial(scenario: LakeScenario, trial_seed: int, queries: int, strategies:
     single_threaded()
     operator = LakeOperator()
     bounds = pool_bounds(scenario)
-    keep = unique_rows(scenario.train_X)
+    keep = first_unique_rows(scenario.train_X)
     pool = normalise(scenario.train_X[keep], bounds)
     Z_test = normalise(scenario.test_X, bounds)
     level_test = operator.level(scenario.test_X)
