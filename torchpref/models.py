@@ -361,17 +361,21 @@ class PreferenceGP(Model, GP):
             raise ValueError(f"PreferenceGP has one output; got output_indices={output_indices}.")
         if observation_noise is not False:
             raise NotImplementedError("observation_noise is not defined for a latent utility model.")
-        if X.shape[-1] != self._data.dim:
-            raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
-        if self.training:
-            self.eval()
-        X = self.transform_inputs(X)
+        X = self._prediction_inputs(X)
         if X.dim() == 1:  # a single point
             X = X.unsqueeze(0)
         post = GPyTorchPosterior(self(X))
         if posterior_transform is not None:
             return posterior_transform(post)
         return post
+
+    def _prediction_inputs(self, X: Tensor) -> Tensor:
+        """``X`` checked (``... x d``), the model in eval mode, the input transform applied."""
+        if X.shape[-1] != self._data.dim:
+            raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
+        if self.training:
+            self.eval()
+        return self.transform_inputs(X)
 
     def __call__(self, X: Tensor) -> MultivariateNormal:  # skip gpytorch's GP.__call__ machinery
         return self.forward(X)
@@ -381,11 +385,7 @@ class PreferenceGP(Model, GP):
         r"""Posterior mean and variance of the latent utility at each row of ``X`` (``... x d``),
         each of ``X``'s shape without its last dimension: what ``posterior(X.unsqueeze(-2))``
         gives, without building a batch of ``1 x 1`` covariances and distribution objects."""
-        if X.shape[-1] != self._data.dim:
-            raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
-        if self.training:
-            self.eval()
-        Xf = self.transform_inputs(X).reshape(-1, X.shape[-1])
+        Xf = self._prediction_inputs(X).reshape(-1, X.shape[-1])
         state = self._state()
         k_ss = self._kernel(Xf, diag=True).reshape(-1, 1, 1)
         if state["Xt"].shape[0] == 0:  # no items yet: the prior
