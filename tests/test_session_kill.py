@@ -147,7 +147,7 @@ def test_sigkill_at_random_points_loses_nothing(tmp_path):
     t0 = time.monotonic()
     runs, mid_write_steps, kills = [], [], 0
     while True:
-        child = Child(script, path, pause=0.02)
+        child = Child(script, path, pause=0.1)  # the window a mid-write kill must land in
         runs.append(child)
         ready = int(child.wait_for("READY").split()[1])
         if kills >= NUM_KILLS or ready >= TOTAL:
