@@ -3,11 +3,13 @@ r"""The active-learning loop: ask, record, update, measure (paper Sec. III.C, IV
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import torch
+from torch import Tensor
 from botorch.fit import fit_gpytorch_mll
 
+from torchpref.batch import BatchedPreferenceGP
 from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
 from torchpref.queries import Candidates, Query, RatingQuery, ask_user, record_answer
 from torchpref.strategies import Selector
@@ -115,3 +117,73 @@ def run_active_learning(
         if callback is not None:
             callback(step, record, model, values)
     return history
+
+
+class _Trial:
+    """One trial of a batched model, with :meth:`PreferenceGP.add_observations`'s signature."""
+
+    def __init__(self, model: BatchedPreferenceGP, trial: int):
+        self.model, self.trial = model, trial
+
+    def add_observations(self, X=None, comparisons=None, ratings=None, rating_index=None):
+        self.model.add_observations(self.trial, X, comparisons, ratings, rating_index)
+
+
+def run_active_learning_batch(
+    model: BatchedPreferenceGP,
+    users: Sequence,
+    candidates: Candidates,
+    selector: Selector,
+    num_queries: int,
+    *,
+    generators: Sequence[torch.Generator],
+    metrics: Callable[[BatchedPreferenceGP], dict[str, Tensor]] | None = None,
+    costs: dict[str, float] | None = None,
+) -> list[History]:
+    r""":func:`run_active_learning` for ``T`` independent trials at once (fixed hyperparameters).
+
+    Trial ``b`` asks ``users[b]``, draws its candidates and makes its selector's random choices
+    with ``generators[b]`` exactly as a single run with that generator would, so each trial's
+    questions and answers are those of ``run_active_learning`` on
+    ``model.trial_model(b)`` (up to the Newton tolerance, which can only matter where two
+    candidates tie); only the modes are solved together (:class:`~torchpref.batch.BatchedPreferenceGP`)
+    and the selector decides for all trials in one call (:meth:`Selector.select_batch`).
+
+    Args:
+        model: the trials' starting models, updated in place.
+        users: one user per trial.
+        candidates: where each query's items come from (drawn per trial).
+        selector: picks the queries; needs :meth:`~torchpref.strategies.Selector.select_batch`.
+        num_queries: how many questions per trial.
+        generators: one per trial.
+        metrics: ``model -> {name: T values}``, evaluated before the first query and after each.
+        costs: effort of a ``"rating"`` and of a ``"ranking"`` query (default 1 each).
+
+    Returns:
+        One :class:`History` per trial (``model`` is ``None``: ``model`` holds all trials).
+    """
+    T = model.num_trials
+    if len(users) != T or len(generators) != T:
+        raise ValueError(f"need one user and one generator per trial ({T}), got {len(users)} and {len(generators)}.")
+    if num_queries < 0:
+        raise ValueError(f"num_queries must be non-negative, got {num_queries}.")
+    costs = {**DEFAULT_COSTS, **(costs or {})}
+    histories = [History() for _ in range(T)]
+
+    def measure() -> None:
+        if metrics is not None:
+            values = {k: v.tolist() for k, v in metrics(model).items()}
+            for b, h in enumerate(histories):
+                h.metrics.append({k: v[b] for k, v in values.items()})
+
+    measure()
+    for step in range(num_queries):
+        draws = [candidates.draw(g) for g in generators]
+        X = torch.stack([x for x, _ in draws])
+        queries = selector.select_batch(model, X, [i for _, i in draws], step, num_queries, generators)
+        for b, query in enumerate(queries):
+            answer = ask_user(users[b], query)
+            record_answer(_Trial(model, b), query, answer)
+            histories[b].records.append(QueryRecord(step, query, answer, costs[query.kind]))
+        measure()
+    return histories

@@ -10,12 +10,12 @@ random rankings, UCB ratings, random mixed. The paper's combined strategy is :cl
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import torch
 from torch import Tensor
 
 from torchpref.acquisition import (
-    QueryUCB,
     greedy_choice_set,
     membership_information,
     rating_bin_probabilities,
@@ -42,13 +42,27 @@ def _check_m(m: int, X: Tensor) -> None:
 
 
 class Selector:
-    """Base class; ``name`` labels results."""
+    r"""Base class; ``name`` labels results.
+
+    Subclasses implement :meth:`select_batch`, which picks one query for each of ``T``
+    independent trials at the same step (``X``: ``T x N x d``; ``model`` a
+    :class:`~torchpref.batch.BatchedPreferenceGP`, or a :class:`~torchpref.PreferenceGP` when
+    ``T = 1``); :meth:`select` is its single-trial case, so both run the same code and consume
+    each trial's generator identically. A custom selector may override :meth:`select` alone
+    (it then runs in :func:`~torchpref.active.run_active_learning` only).
+    """
 
     name = "selector"
 
     def select(self, model, X: Tensor, indices: Tensor | None, step: int, num_steps: int,
                generator: torch.Generator) -> Query:
-        raise NotImplementedError
+        """The next query for ``model`` among the candidates ``X`` (``N x d``)."""
+        return self.select_batch(model, X.unsqueeze(0), [indices], step, num_steps, [generator])[0]
+
+    def select_batch(self, model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        """One query per trial: ``X`` is ``T x N x d``, ``indices`` and ``generators`` one per trial."""
+        raise NotImplementedError(f"{type(self).__name__} implements no select_batch: it runs one trial at a time.")
 
 
 class RandomRatings(Selector):
@@ -56,8 +70,9 @@ class RandomRatings(Selector):
 
     name = "random ratings"
 
-    def select(self, model, X, indices, step, num_steps, generator):
-        return _rating(X, indices, int(torch.randint(X.shape[0], (1,), generator=generator)))
+    def select_batch(self, model, X, indices, step, num_steps, generators):
+        return [_rating(X[b], indices[b], int(torch.randint(X.shape[1], (1,), generator=g)))
+                for b, g in enumerate(generators)]
 
 
 class RandomRankings(Selector):
@@ -68,9 +83,10 @@ class RandomRankings(Selector):
     def __init__(self, m: int = 5):
         self.m = m
 
-    def select(self, model, X, indices, step, num_steps, generator):
-        _check_m(self.m, X)
-        return _ranking(X, indices, torch.randperm(X.shape[0], generator=generator)[: self.m])
+    def select_batch(self, model, X, indices, step, num_steps, generators):
+        _check_m(self.m, X[0])
+        return [_ranking(X[b], indices[b], torch.randperm(X.shape[1], generator=g)[: self.m])
+                for b, g in enumerate(generators)]
 
 
 class RandomMixed(Selector):
@@ -81,15 +97,30 @@ class RandomMixed(Selector):
     def __init__(self, m: int = 5, p_ranking: float = 0.5):
         self.m, self.p_ranking = m, p_ranking
 
-    def select(self, model, X, indices, step, num_steps, generator):
-        if float(torch.rand((), generator=generator, dtype=torch.float64)) < self.p_ranking:
-            return RandomRankings(self.m).select(model, X, indices, step, num_steps, generator)
-        return RandomRatings().select(model, X, indices, step, num_steps, generator)
+    def select_batch(self, model, X, indices, step, num_steps, generators):
+        out = []
+        for b, g in enumerate(generators):
+            coin = float(torch.rand((), generator=g, dtype=torch.float64))
+            sel = RandomRankings(self.m) if coin < self.p_ranking else RandomRatings()
+            out += sel.select_batch(model, X[b : b + 1], indices[b : b + 1], step, num_steps, [g])
+        return out
 
 
-def _ucb(model, X: Tensor, gamma: float) -> Tensor:
+def _ucb(model, X: Tensor, gamma: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Eq. 12's ``mean + gamma * std`` at ``X`` (``T x N x d``), with the mean and std (``T x N``)."""
     with torch.no_grad():
-        return QueryUCB(model, gamma)(X.unsqueeze(-2))
+        mean, var = model.marginals(X)
+    std = var.clamp_min(0).sqrt()
+    return mean + gamma * std, mean, std
+
+
+def _joint(model, X: Tensor) -> tuple[Tensor, Tensor]:
+    """Joint posterior mean ``T x N`` and covariance ``T x N x N`` at ``X`` (``T x N x d``)."""
+    if hasattr(model, "joint"):
+        return model.joint(X)
+    mvn = model.posterior(X).distribution
+    T, N = X.shape[:2]
+    return mvn.mean.reshape(T, N), mvn.covariance_matrix.reshape(T, N, N)
 
 
 class UCBRatings(Selector):
@@ -100,8 +131,9 @@ class UCBRatings(Selector):
     def __init__(self, gamma: float = 3.0):
         self.gamma = gamma
 
-    def select(self, model, X, indices, step, num_steps, generator):
-        return _rating(X, indices, int(_ucb(model, X, self.gamma).argmax()))
+    def select_batch(self, model, X, indices, step, num_steps, generators):
+        best = _ucb(model, X, self.gamma)[0].argmax(-1).tolist()
+        return [_rating(X[b], indices[b], i) for b, i in enumerate(best)]
 
 
 class UCBC(Selector):
@@ -129,21 +161,25 @@ class UCBC(Selector):
     def ranking_probability(self, step: int, num_steps: int) -> float:
         return max(0.0, (num_steps - step) / num_steps)
 
-    def select(self, model, X, indices, step, num_steps, generator):
-        ucb = _ucb(model, X, self.gamma)
-        coin = float(torch.rand((), generator=generator, dtype=torch.float64))
-        if coin >= self.ranking_probability(step, num_steps):
-            return _rating(X, indices, int(ucb.argmax()))
-        _check_m(self.m, X)
-        logits = ucb.clone()
-        rows = []
-        for k in range(self.m):
-            temp = self.temperatures[0] if k == 0 else self.temperatures[1]
-            p = torch.softmax((logits - logits.max()) / temp, dim=0)  # drawn rows: logit -inf
-            r = int(torch.multinomial(p, 1, generator=generator))
-            rows.append(r)
-            logits[r] = -math.inf
-        return _ranking(X, indices, torch.tensor(rows))
+    def select_batch(self, model, X, indices, step, num_steps, generators):
+        ucb = _ucb(model, X, self.gamma)[0]
+        out = []
+        for b, g in enumerate(generators):
+            coin = float(torch.rand((), generator=g, dtype=torch.float64))
+            if coin >= self.ranking_probability(step, num_steps):
+                out.append(_rating(X[b], indices[b], int(ucb[b].argmax())))
+                continue
+            _check_m(self.m, X[b])
+            logits = ucb[b].clone()
+            rows = []
+            for k in range(self.m):
+                temp = self.temperatures[0] if k == 0 else self.temperatures[1]
+                p = torch.softmax((logits - logits.max()) / temp, dim=0)  # drawn rows: logit -inf
+                r = int(torch.multinomial(p, 1, generator=g))
+                rows.append(r)
+                logits[r] = -math.inf
+            out.append(_ranking(X[b], indices[b], torch.tensor(rows)))
+        return out
 
 
 class InformationPerEffort(Selector):
@@ -218,62 +254,74 @@ class InformationPerEffort(Selector):
         self.top_fraction, self.num_plausible, self.num_bins = top_fraction, num_plausible, num_bins
         self.min_count, self.bias_correction = min_count, bias_correction
 
-    def _samples(self, model, X: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
-        """``S x N`` joint samples, the posterior mean and std at ``X``."""
-        mvn = model.posterior(X.unsqueeze(0)).distribution
-        mean = mvn.mean.reshape(-1)
-        cov = mvn.covariance_matrix.reshape(mean.numel(), mean.numel())
-        std = cov.diagonal().clamp_min(0).sqrt()
-        jitter = 1e-9 * float(cov.diagonal().mean().clamp_min(1e-12))
-        eye = torch.eye(mean.numel(), dtype=mean.dtype, device=mean.device)
-        for _ in range(8):
-            L, info = torch.linalg.cholesky_ex(cov + jitter * eye)
-            if not info:
+    def _samples(self, model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Tensor, Tensor, Tensor]:
+        """``T x S x N`` joint samples, the posterior mean and std (``T x N``) at ``X`` (``T x N x d``)."""
+        mean, cov = _joint(model, X)
+        T, N = mean.shape
+        std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+        jitter = 1e-9 * cov.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)
+        eye = torch.eye(N, dtype=mean.dtype, device=mean.device)
+        L, info = torch.linalg.cholesky_ex(cov + jitter.reshape(T, 1, 1) * eye)
+        for _ in range(7):
+            bad = info > 0
+            if not bool(bad.any()):
                 break
-            jitter *= 10
-        else:  # fall back on independent samples
-            L = torch.diag(std)
-        z = torch.randn(self.num_samples, mean.numel(), generator=generator, dtype=mean.dtype, device=mean.device)
-        return mean + z @ L.mT, mean, std
+            jitter = torch.where(bad, 10 * jitter, jitter)
+            L_bad, info_bad = torch.linalg.cholesky_ex(cov[bad] + jitter[bad].reshape(-1, 1, 1) * eye)
+            L[bad] = L_bad
+            info = info.clone()
+            info[bad] = info_bad
+        bad = info > 0
+        if bool(bad.any()):  # fall back on independent samples
+            L[bad] = torch.diag_embed(std[bad])
+        z = torch.stack([torch.randn(self.num_samples, N, generator=g, dtype=mean.dtype, device=mean.device)
+                         for g in generators])
+        return mean.unsqueeze(-2) + z @ L.mT, mean, std
 
-    def select(self, model, X, indices, step, num_steps, generator):
+    def select_batch(self, model, X, indices, step, num_steps, generators):
         with torch.no_grad():
-            F, mean, std = self._samples(model, X, generator)
-            N = X.shape[0]
-            tie = 1e-9 * torch.sigmoid((mean + self.gamma * std) - (mean + self.gamma * std).max())
-            if self.target == "top":
-                Z = top_set_membership(F, max(1, min(N, round(self.top_fraction * N))))
-                p = Z.to(F).mean(0)
-                order = torch.argsort(p * (1 - p) + tie, descending=True)
-
-                def info(P: Tensor) -> Tensor:
-                    return membership_information(P, Z, self.min_count, self.bias_correction)
-            else:
-                argmax = F.argmax(-1)
-                p_max = torch.bincount(argmax, minlength=N).to(mean) / F.shape[0]
-                order = torch.argsort(p_max + tie, descending=True)
-                labels = None
-                if self.target == "maximizer":
-                    # which plausible candidate is the maximiser (K + 1 labels: K for "another
-                    # one"), few enough that every label has many samples (a plug-in estimate is
-                    # biased upwards when labels have few samples each)
-                    K = min(self.num_plausible, N)
-                    rank = torch.full((N,), K, dtype=torch.long, device=X.device)
-                    rank[order[:K]] = torch.arange(K, device=X.device)
-                    labels = rank[argmax]
-
-                def info(P: Tensor) -> Tensor:
-                    return sample_information(P, labels, None if labels is None else K + 1)
-            cand = order[: min(self.num_plausible, N)]
-            Fc = F[:, cand]  # S x K
+            F, mean, std = self._samples(model, X, generators)
             lik = model.likelihood
-            rating_info = info(rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # K x S x G -> K
-            best_rating = int(cand[int(rating_info.argmax())])
-            rating_value = float(rating_info.max()) / self.rating_cost
-            if cand.numel() < self.m or self.m < 2:
-                return _rating(X, indices, best_rating)
-            chosen, value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, info, start=0)
-            ranking_value = value / self.ranking_cost
-        if ranking_value > rating_value:
-            return _ranking(X, indices, cand[torch.tensor(chosen)])
-        return _rating(X, indices, best_rating)
+            decisions = [self._decide(F[b], mean[b], std[b], lik) for b in range(X.shape[0])]
+        return [_rating(X[b], indices[b], rows) if kind == "rating" else _ranking(X[b], indices[b], rows)
+                for b, (kind, rows) in enumerate(decisions)]
+
+    def _decide(self, F: Tensor, mean: Tensor, std: Tensor, lik) -> tuple[str, int | Tensor]:
+        """``("rating", row)`` or ``("ranking", rows)`` from one trial's ``S x N`` samples."""
+        N = F.shape[-1]
+        ucb = mean + self.gamma * std
+        tie = 1e-9 * torch.sigmoid(ucb - ucb.max())
+        if self.target == "top":
+            Z = top_set_membership(F, max(1, min(N, round(self.top_fraction * N))))
+            p = Z.to(F).mean(0)
+            order = torch.argsort(p * (1 - p) + tie, descending=True)
+
+            def info(P: Tensor) -> Tensor:
+                return membership_information(P, Z, self.min_count, self.bias_correction)
+        else:
+            argmax = F.argmax(-1)
+            p_max = torch.bincount(argmax, minlength=N).to(mean) / F.shape[0]
+            order = torch.argsort(p_max + tie, descending=True)
+            labels = None
+            if self.target == "maximizer":
+                # which plausible candidate is the maximiser (K + 1 labels: K for "another
+                # one"), few enough that every label has many samples (a plug-in estimate is
+                # biased upwards when labels have few samples each)
+                K = min(self.num_plausible, N)
+                rank = torch.full((N,), K, dtype=torch.long, device=F.device)
+                rank[order[:K]] = torch.arange(K, device=F.device)
+                labels = rank[argmax]
+
+            def info(P: Tensor) -> Tensor:
+                return sample_information(P, labels, None if labels is None else K + 1)
+        cand = order[: min(self.num_plausible, N)]
+        Fc = F[:, cand]  # S x K
+        rating_info = info(rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # K x S x G -> K
+        best_rating = int(cand[int(rating_info.argmax())])
+        rating_value = float(rating_info.max()) / self.rating_cost
+        if cand.numel() < self.m or self.m < 2:
+            return "rating", best_rating
+        chosen, value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, info, start=0)
+        if value / self.ranking_cost > rating_value:
+            return "ranking", cand[torch.tensor(chosen)]
+        return "rating", best_rating

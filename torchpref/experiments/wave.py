@@ -26,7 +26,8 @@ from typing import Any
 
 import torch
 
-from torchpref.active import run_active_learning
+from torchpref.active import run_active_learning, run_active_learning_batch
+from torchpref.batch import BatchedPreferenceGP
 from torchpref.experiments.runner import (
     fixed_model,
     mean_sem,
@@ -90,21 +91,44 @@ def trial_seeds(seed: int, trials: int) -> list[int]:
     return _trial_seeds(int(seed), trials)
 
 
+def _setup(trial_seed: int) -> tuple[WaveFunction, list[int], torch.Tensor, torch.Tensor]:
+    """A trial's wave function, its seeds (user, selector), true ratings on the grid, first pair."""
+    g = torch.Generator().manual_seed(trial_seed)
+    truth = WaveFunction.random(generator=g)
+    seeds = torch.randint(0, 2**62, (3,), generator=g).tolist()
+    with torch.no_grad():
+        u_true = rating_from_latent(truth(evaluation_grid(GRID_POINTS), noise=False), MODEL_SETTINGS["rating_scale"])
+    x0 = torch.rand(2, 1, generator=g, dtype=torch.float64)
+    return truth, seeds, u_true, x0
+
+
+def _start(truth: WaveFunction, seeds: list[int], x0: torch.Tensor) -> tuple[SimulatedUser, PreferenceGP, torch.Generator]:
+    """A fresh user, the model of its answer to the first pair, and the selector's generator:
+    every strategy of a trial starts from these."""
+    user = SimulatedUser.paper_wave(lambda X: truth(X, noise=False), generator=torch.Generator().manual_seed(seeds[0]))
+    first = user.choose(x0)
+    return user, make_model(x0, torch.tensor([[first, 1 - first]])), torch.Generator().manual_seed(seeds[1])
+
+
+def _candidates() -> BoxCandidates:
+    return BoxCandidates(torch.tensor([[0.0], [1.0]], dtype=torch.float64), NUM_CANDIDATES)
+
+
+def _record(hist) -> dict[str, list]:
+    return {"wrms": hist.metric("wrms"), "tp": hist.metric("tp"), "cost": hist.cumulative_cost(),
+            "kinds": [r.query.kind for r in hist.records]}
+
+
 def run_trial(trial_seed: int, queries: int, strategies: tuple[str, ...] = tuple(STRATEGIES)) -> dict[str, Any]:
-    r"""One trial: every strategy on the same wave function and first comparison.
+    r"""One trial, one model at a time (:func:`~torchpref.active.run_active_learning`): every
+    strategy on the same wave function and first comparison.
 
     Returns:
         ``{strategy: {"wrms": [Q + 1], "tp": [Q + 1], "cost": [Q + 1], "kinds": [Q]}}``.
     """
     single_threaded()
-    g = torch.Generator().manual_seed(trial_seed)
-    truth = WaveFunction.random(generator=g)
-    seeds = torch.randint(0, 2**62, (3,), generator=g).tolist()
+    truth, seeds, u_true, x0 = _setup(trial_seed)
     grid = evaluation_grid(GRID_POINTS)
-    with torch.no_grad():
-        u_true = rating_from_latent(truth(grid, noise=False), MODEL_SETTINGS["rating_scale"])
-    x0 = torch.rand(2, 1, generator=g, dtype=torch.float64)
-    candidates = BoxCandidates(torch.tensor([[0.0], [1.0]], dtype=torch.float64), NUM_CANDIDATES)
 
     def metrics(model) -> dict[str, float]:
         with torch.no_grad():
@@ -114,16 +138,37 @@ def run_trial(trial_seed: int, queries: int, strategies: tuple[str, ...] = tuple
     out = {}
     with torch.inference_mode():  # nothing in a trial needs gradients (fixed hyperparameters)
         for name in strategies:
-            user = SimulatedUser.paper_wave(lambda X: truth(X, noise=False),
-                                            generator=torch.Generator().manual_seed(seeds[0]))
-            first = user.choose(x0)
-            model = make_model(x0, torch.tensor([[first, 1 - first]]))
-            hist = run_active_learning(model, user, candidates, make_selector(name), queries,
-                                       generator=torch.Generator().manual_seed(seeds[1]), metrics=metrics,
-                                       costs={"rating": RATING_COST, "ranking": RANKING_COST})
-            out[name] = {"wrms": hist.metric("wrms"), "tp": hist.metric("tp"), "cost": hist.cumulative_cost(),
-                         "kinds": [r.query.kind for r in hist.records]}
+            user, model, gen = _start(truth, seeds, x0)
+            hist = run_active_learning(model, user, _candidates(), make_selector(name), queries, generator=gen,
+                                       metrics=metrics, costs={"rating": RATING_COST, "ranking": RANKING_COST})
+            out[name] = _record(hist)
     return out
+
+
+def run_trial_batch(trial_seeds: tuple[int, ...], queries: int, strategy: str) -> list[dict[str, Any]]:
+    r"""Several trials of one strategy at once (:func:`~torchpref.active.run_active_learning_batch`,
+    one batched model): per trial the same questions, answers and metrics as :func:`run_trial`
+    (up to the Newton tolerance, which only matters where two candidates tie).
+
+    Returns:
+        One ``{strategy: {...}}`` per trial, as :func:`run_trial` for this strategy.
+    """
+    single_threaded()
+    setups = [_setup(s) for s in trial_seeds]
+    u_true = torch.stack([u for _, _, u, _ in setups])
+    grid = evaluation_grid(GRID_POINTS).expand(len(setups), -1, -1)
+
+    def metrics(model) -> dict[str, torch.Tensor]:
+        est = model.expected_rating(grid)
+        return {"wrms": wrms(est, u_true), "tp": true_positives(est, u_true, k=TOP_K).to(est)}
+
+    with torch.inference_mode():
+        starts = [_start(truth, seeds, x0) for truth, seeds, _, x0 in setups]
+        model = BatchedPreferenceGP.from_models([m for _, m, _ in starts])
+        hists = run_active_learning_batch(model, [u for u, _, _ in starts], _candidates(), make_selector(strategy),
+                                          queries, generators=[g for _, _, g in starts], metrics=metrics,
+                                          costs={"rating": RATING_COST, "ranking": RANKING_COST})
+    return [{strategy: _record(h)} for h in hists]
 
 
 def _at_budgets(values: list[float], cost: list[float], budgets: list[float]) -> list[float]:
