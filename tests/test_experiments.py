@@ -44,3 +44,20 @@ def test_tiny_wave_run(tmp_path):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     summary = json.loads((tmp_path / "wave_summary.json").read_text())
     assert "info per effort vs UCBC" in summary["paired_tests"]["queries"]
+
+
+def test_wave_batched_run_equals_trial_by_trial():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from torchpref.experiments.wave import run_wave_experiment
+
+    kw = dict(trials=3, queries=4, seed=2, out=None, progress=False)
+    one = run_wave_experiment(**kw, workers=1, batch_size=None)
+    with ThreadPoolExecutor(2) as ex:  # chunks of 2 and 1 trials, any executor
+        two = run_wave_experiment(**kw, executor=ex, batch_size=2)
+    for s in STRATEGIES:
+        for k in ("wrms_mean", "tp_mean"):
+            assert one["strategies"][s][k] == pytest.approx(two["strategies"][s][k], abs=1e-9)
+    assert one["summary"]["fraction_ratings"] == two["summary"]["fraction_ratings"]
+    with pytest.raises(ValueError, match="batch_size"):
+        run_wave_experiment(**kw, batch_size=0)

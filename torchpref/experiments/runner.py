@@ -57,6 +57,7 @@ def run_trials(
     *,
     workers: int | None = None,
     description: str = "trials",
+    sizes: Sequence[int] | None = None,
 ) -> list[Any]:
     r"""Run ``trial_fn(*args)`` for every ``args`` in ``trial_args_list``; results in input order.
 
@@ -69,6 +70,7 @@ def run_trials(
         progress: show a ``tqdm`` bar over completed trials.
         workers: processes of the default pool (default :func:`default_workers`).
         description: the progress bar's label.
+        sizes: how many trials each call runs (for the progress bar; default 1 each).
 
     Returns:
         ``[trial_fn(*args) for args in trial_args_list]``.
@@ -76,27 +78,31 @@ def run_trials(
     args_list = [tuple(a) for a in trial_args_list]
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers}.")
+    sizes = [1] * len(args_list) if sizes is None else list(sizes)
+    if len(sizes) != len(args_list):
+        raise ValueError(f"sizes must have one entry per call ({len(args_list)}), got {len(sizes)}.")
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(args_list), desc=description, unit="trial")
+        bar = tqdm(total=sum(sizes), desc=description, unit="trial")
     results: list[Any] = [None] * len(args_list)
     try:
         if executor is None and (workers or default_workers()) == 1:
             for i, a in enumerate(args_list):
                 results[i] = trial_fn(*a)
                 if bar is not None:
-                    bar.update(1)
+                    bar.update(sizes[i])
             return results
         own = executor is None
         ex = ProcessPoolExecutor(max_workers=workers or default_workers()) if own else executor
         try:
             futures = {ex.submit(trial_fn, *a): i for i, a in enumerate(args_list)}
             for fut in as_completed(futures):
-                results[futures[fut]] = fut.result()
+                i = futures[fut]
+                results[i] = fut.result()
                 if bar is not None:
-                    bar.update(1)
+                    bar.update(sizes[i])
         finally:
             if own:
                 ex.shutdown(cancel_futures=True)

@@ -229,6 +229,7 @@ def run_wave_experiment(
     workers: int | None = None,
     strategies: list[str] | None = None,
     progress: bool = True,
+    batch_size: int | None = 50,
 ) -> dict[str, Any]:
     r"""Run the Fig. 6 experiment and (if ``out`` is given) write its files.
 
@@ -247,6 +248,9 @@ def run_wave_experiment(
         workers: processes of the default pool.
         strategies: a subset of :data:`STRATEGIES` (default all).
         progress: show a progress bar.
+        batch_size: trials of one strategy solved together (:func:`run_trial_batch`, one
+            executor call each); ``None``: one trial, all strategies, one model at a time per
+            call (:func:`run_trial`). Both give the same results.
 
     Returns:
         The ``wave.json`` content, with ``"summary"`` (the ``wave_summary.json`` content) added.
@@ -256,10 +260,24 @@ def run_wave_experiment(
     strategies = list(STRATEGIES if strategies is None else strategies)
     for s in strategies:
         make_selector(s)  # validates the name
+    if batch_size is not None and batch_size < 1:
+        raise ValueError(f"batch_size must be a positive integer or None, got {batch_size}.")
     t0 = time.perf_counter()
-    args = [(s, queries, tuple(strategies)) for s in trial_seeds(seed, trials)]
-    results = run_trials(run_trial, args, executor=executor, progress=progress, workers=workers,
-                         description="wave trials")
+    seeds = trial_seeds(seed, trials)
+    if batch_size is None:
+        results = run_trials(run_trial, [(s, queries, tuple(strategies)) for s in seeds], executor=executor,
+                             progress=progress, workers=workers, description="wave trials")
+    else:
+        # the costliest strategy first, so that the last calls to finish are short ones
+        order = sorted(strategies, key=lambda s: s != "info per effort")
+        starts = [(s, i) for s in order for i in range(0, trials, batch_size)]
+        tasks = [(tuple(seeds[i : i + batch_size]), queries, s) for s, i in starts]
+        parts = run_trials(run_trial_batch, tasks, executor=executor, progress=progress, workers=workers,
+                           description="wave trials", sizes=[len(t[0]) for t in tasks])
+        results = [{} for _ in seeds]
+        for (s, i), part in zip(starts, parts):
+            for k, r in enumerate(part):
+                results[i + k][s] = r[s]
     wall = time.perf_counter() - t0
     summary = summarise(results, strategies)
     summary.update(trials=trials, seed=seed, wall_time_s=wall, workers=workers,
