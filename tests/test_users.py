@@ -183,3 +183,17 @@ def test_bad_input():
         bad.choose(torch.zeros(3, 2, dtype=torch.float64))
     # a 1 x d item is accepted by rate
     assert 0 < user.rate(torch.zeros(1, 1, dtype=torch.float64)) < 1
+
+
+def test_scalar_gamma_path_matches_tensor_path():
+    """One shape (a simulated rating) takes a Python-float path: same values, same draws."""
+    from torchpref.users import _log_gamma_scalar, _log_gamma_tensor
+
+    for seed in range(200):
+        a = [0.01, 0.3, 0.99, 1.0, 2.5, 40.0, 79.9][seed % 7]
+        g1, g2 = torch.Generator().manual_seed(seed), torch.Generator().manual_seed(seed)
+        x1 = _log_gamma_scalar(a, torch.float64, g1)
+        x2 = _log_gamma_tensor(torch.tensor([a], dtype=torch.float64), g2)
+        assert float(x1) == pytest.approx(float(x2), rel=1e-12, abs=1e-12)
+        assert torch.equal(g1.get_state(), g2.get_state())
+    assert sample_log_gamma(torch.tensor(3.0, dtype=torch.float64), torch.Generator()).shape == ()

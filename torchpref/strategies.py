@@ -280,48 +280,45 @@ class InformationPerEffort(Selector):
 
     def select_batch(self, model, X, indices, step, num_steps, generators):
         with torch.no_grad():
-            F, mean, std = self._samples(model, X, generators)
+            F, mean, std = self._samples(model, X, generators)  # T x S x N
+            T, S, N = F.shape
             lik = model.likelihood
-            decisions = [self._decide(F[b], mean[b], std[b], lik) for b in range(X.shape[0])]
-        return [_rating(X[b], indices[b], rows) if kind == "rating" else _ranking(X[b], indices[b], rows)
-                for b, (kind, rows) in enumerate(decisions)]
+            ucb = mean + self.gamma * std
+            tie = 1e-9 * torch.sigmoid(ucb - ucb.max(-1, keepdim=True).values)
+            if self.target == "top":
+                Z = top_set_membership(F, max(1, min(N, round(self.top_fraction * N))))
+                p = Z.to(F).mean(-2)
+                order = torch.argsort(p * (1 - p) + tie, dim=-1, descending=True)
 
-    def _decide(self, F: Tensor, mean: Tensor, std: Tensor, lik) -> tuple[str, int | Tensor]:
-        """``("rating", row)`` or ``("ranking", rows)`` from one trial's ``S x N`` samples."""
-        N = F.shape[-1]
-        ucb = mean + self.gamma * std
-        tie = 1e-9 * torch.sigmoid(ucb - ucb.max())
-        if self.target == "top":
-            Z = top_set_membership(F, max(1, min(N, round(self.top_fraction * N))))
-            p = Z.to(F).mean(0)
-            order = torch.argsort(p * (1 - p) + tie, descending=True)
+                def info(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
+                    return membership_information(P, Z, self.min_count, self.bias_correction)
+            else:
+                argmax = F.argmax(-1)  # T x S
+                p_max = torch.zeros_like(mean).scatter_add_(1, argmax, torch.ones_like(F[..., 0])) / S
+                order = torch.argsort(p_max + tie, dim=-1, descending=True)
+                if self.target == "maximizer":
+                    # which plausible candidate is the maximiser (K + 1 labels: K for "another
+                    # one"), few enough that every label has many samples (a plug-in estimate is
+                    # biased upwards when labels have few samples each)
+                    K = min(self.num_plausible, N)
+                    rank = torch.full((T, N), K, dtype=torch.long, device=F.device)
+                    rank.scatter_(1, order[:, :K], torch.arange(K, device=F.device).expand(T, K))
+                    labels = rank.gather(1, argmax)  # T x S
 
-            def info(P: Tensor) -> Tensor:
-                return membership_information(P, Z, self.min_count, self.bias_correction)
-        else:
-            argmax = F.argmax(-1)
-            p_max = torch.bincount(argmax, minlength=N).to(mean) / F.shape[0]
-            order = torch.argsort(p_max + tie, descending=True)
-            labels = None
-            if self.target == "maximizer":
-                # which plausible candidate is the maximiser (K + 1 labels: K for "another
-                # one"), few enough that every label has many samples (a plug-in estimate is
-                # biased upwards when labels have few samples each)
-                K = min(self.num_plausible, N)
-                rank = torch.full((N,), K, dtype=torch.long, device=F.device)
-                rank[order[:K]] = torch.arange(K, device=F.device)
-                labels = rank[argmax]
-
-            def info(P: Tensor) -> Tensor:
-                return sample_information(P, labels, None if labels is None else K + 1)
-        cand = order[: min(self.num_plausible, N)]
-        Fc = F[:, cand]  # S x K
-        rating_info = info(rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # K x S x G -> K
-        best_rating = int(cand[int(rating_info.argmax())])
-        rating_value = float(rating_info.max()) / self.rating_cost
-        if cand.numel() < self.m or self.m < 2:
-            return "rating", best_rating
-        chosen, value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, info, start=0)
-        if value / self.ranking_cost > rating_value:
-            return "ranking", cand[torch.tensor(chosen)]
-        return "rating", best_rating
+                    def info(P: Tensor) -> Tensor:
+                        return torch.stack([sample_information(P[b], labels[b], K + 1) for b in range(T)])
+                else:
+                    def info(P: Tensor) -> Tensor:
+                        return sample_information(P)
+            cand = order[:, : min(self.num_plausible, N)]  # T x K
+            Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, cand.shape[1]))  # T x S x K
+            rating_info = info(rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # T x K x S x G -> T x K
+            best_rating = cand.gather(1, rating_info.argmax(-1, keepdim=True)).squeeze(-1).tolist()
+            rating_value = rating_info.max(-1).values / self.rating_cost
+            if cand.shape[1] < self.m or self.m < 2:
+                return [_rating(X[b], indices[b], best_rating[b]) for b in range(T)]
+            chosen, value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, info, start=0)
+            ranking = (value / self.ranking_cost > rating_value).tolist()
+            rows = cand.gather(1, chosen)  # T x m
+        return [_ranking(X[b], indices[b], rows[b]) if ranking[b] else _rating(X[b], indices[b], best_rating[b])
+                for b in range(T)]

@@ -88,6 +88,13 @@ def sample_log_gamma(concentration: Tensor, generator: torch.Generator | None = 
     if not (torch.isfinite(a).all() and (a > 0).all()):
         raise ValueError(f"concentration must be positive and finite, got {a.flatten()[:5].tolist()}.")
     flat = a.reshape(-1)
+    if flat.numel() == 1 and flat.device.type == "cpu":
+        return _log_gamma_scalar(float(flat), flat.dtype, generator).reshape(a.shape)
+    return _log_gamma_tensor(flat, generator).reshape(a.shape)
+
+
+def _log_gamma_tensor(flat: Tensor, generator: torch.Generator | None) -> Tensor:
+    """:func:`sample_log_gamma` for a 1-D tensor of valid shapes."""
     small = flat < 1
     a1 = torch.where(small, flat + 1, flat)
     d = a1 - 1.0 / 3.0
@@ -108,7 +115,29 @@ def sample_log_gamma(concentration: Tensor, generator: torch.Generator | None = 
         idx = small.nonzero().squeeze(-1)
         u = torch.rand(idx.numel(), generator=generator, dtype=flat.dtype, device=flat.device)
         out[idx] = out[idx] + torch.log(u) / flat[idx]  # G_a = G_{a+1} U^{1/a}
-    return out.reshape(a.shape)
+    return out
+
+
+def _log_gamma_scalar(a: float, dtype: torch.dtype, generator: torch.Generator | None) -> Tensor:
+    """:func:`sample_log_gamma` for one shape on the CPU, in Python floats: the same draws from
+    ``generator`` in the same order (a simulated user's one rating costs microseconds, not a
+    dozen tensor operations)."""
+    small = a < 1
+    d = (a + 1 if small else a) - 1.0 / 3.0
+    c = 1.0 / math.sqrt(9.0 * d)
+    while True:
+        z = float(torch.randn(1, generator=generator, dtype=dtype))
+        u = float(torch.rand(1, generator=generator, dtype=dtype))
+        v = (1 + c * z) ** 3
+        if v > 0:
+            log_v = math.log(v)
+            if (math.log(u) if u > 0 else -math.inf) < 0.5 * z * z + d - d * v + d * log_v:
+                out = math.log(d) + log_v
+                break
+    if small:
+        u = float(torch.rand(1, generator=generator, dtype=dtype))
+        out += (math.log(u) if u > 0 else -math.inf) / a
+    return torch.tensor(out, dtype=dtype)
 
 
 def sample_beta(
