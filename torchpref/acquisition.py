@@ -143,8 +143,8 @@ def _hermgauss(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
     return tuple(x.tolist()), tuple(w.tolist())
 
 
-def _entropy(P: Tensor) -> Tensor:
-    return -torch.special.xlogy(P, P).sum(-1)
+def _entropy(P: Tensor, dim: int = -1) -> Tensor:
+    return -torch.special.xlogy(P, P).sum(dim)
 
 
 def choice_probabilities(f: Tensor, comparison_noise: float | Tensor, num_quadrature: int = 6) -> Tensor:
@@ -166,8 +166,9 @@ def rating_bin_probabilities(f: Tensor, rating_likelihood, num_bins: int = 32) -
     ``num_bins`` equal bins of ``[0, 1]`` (Beta density of eqs. 4-7 at the bins' midpoints,
     normalised). A binned rating carries at most the information of the rating itself."""
     u = (torch.arange(num_bins, dtype=f.dtype, device=f.device) + 0.5) / num_bins
-    logp = rating_likelihood.log_prob(f.unsqueeze(-1), u)
-    return torch.softmax(logp, dim=-1)
+    # bins first: the softmax then runs over contiguous rows (a short last dimension is slow)
+    logp = rating_likelihood.log_prob(f.unsqueeze(0), u.reshape(num_bins, *([1] * f.dim())))
+    return torch.softmax(logp, dim=0).movedim(0, -1)
 
 
 def sample_information(P: Tensor, labels: Tensor | None = None, num_labels: int | None = None) -> Tensor:
@@ -210,27 +211,29 @@ def top_set_membership(F: Tensor, k: int) -> Tensor:
 
 def _membership_terms(sums: Tensor, totals: Tensor, n1: Tensor, S: Tensor, Y: int, delta: bool) -> Tensor:
     """Per-item ``I(y; z_i)``, ``... x batch x N``, from the label-1 sums over the samples of
-    ``P`` (and, with ``delta``, of ``P^2`` after it: ``... x batch x N x Y`` or ``2Y``), their
-    totals over all samples (``... x batch x Y`` or ``2Y``), the label-1 counts (``... x 1 x N``)
-    and the numbers of samples (``... x 1 x 1``); ``delta`` subtracts the second-order entropy
-    bias."""
-    n1 = n1.unsqueeze(-1)  # ... x 1 x N x 1
-    n0 = S.unsqueeze(-1) - n1
-    m_in = sums / n1.clamp_min(1)
-    m_out = ((totals.unsqueeze(-2) - sums) / n0.clamp_min(1)).clamp_min(0)
+    ``P`` (and, with ``delta``, of ``P^2`` after it), answer-major: ``... x batch x Y x N`` (or
+    ``2Y``), their totals over all samples (``... x batch x Y`` or ``2Y``), the label-1 counts
+    (``... x 1 x N``) and the numbers of samples (``... x 1 x 1``); ``delta`` subtracts the
+    second-order entropy bias. (With the answers before the items, the sums over answers run
+    over contiguous rows of items: much faster than reducing a short last dimension.)"""
+    n1y = n1.unsqueeze(-2)  # ... x 1 x 1 x N
+    n0y = S.unsqueeze(-1) - n1y
+    m_in = sums / n1y.clamp_min(1)
+    m_out = ((totals.unsqueeze(-1) - sums) / n0y.clamp_min(1)).clamp_min(0)
     m_all = totals / S
-    w = n1.squeeze(-1) / S
-    info = (_entropy(m_all[..., :Y]).unsqueeze(-1) - w * _entropy(m_in[..., :Y])
-            - (1 - w) * _entropy(m_out[..., :Y]))
+    w = n1 / S
+    info = (_entropy(m_all[..., :Y]).unsqueeze(-1) - w * _entropy(m_in[..., :Y, :], dim=-2)
+            - (1 - w) * _entropy(m_out[..., :Y, :], dim=-2))
     if delta:
-        def spread(m: Tensor, n: Tensor) -> Tensor:  # sum_y Var_y / P_y (ddof 1), each term in [0, 1]
-            P, Q = m[..., :Y], m[..., Y:]
-            # + 1e-12: a mean at rounding level (the out-label means are differences) adds nothing
+        def spread(P: Tensor, Q: Tensor, n: Tensor, dim: int) -> Tensor:
+            # sum_y Var_y / P_y (ddof 1), each term in [0, 1]; + 1e-12: a mean at rounding level
+            # (the out-label means are differences) adds nothing
             ratio = ((Q - P * P).clamp_min(0) / (P + 1e-12)).clamp_max(1)
-            return ratio.sum(-1) * (n / (n - 1).clamp_min(1)).squeeze(-1)
+            return ratio.sum(dim) * (n / (n - 1).clamp_min(1))
 
-        info = info - (spread(m_in, n1) + spread(m_out, n0)
-                       - spread(m_all, S).unsqueeze(-1)) / (2 * S)
+        s_all = spread(m_all[..., :Y], m_all[..., Y:], S.squeeze(-1), -1).unsqueeze(-1)
+        info = info - (spread(m_in[..., :Y, :], m_in[..., Y:, :], n1, -2)
+                       + spread(m_out[..., :Y, :], m_out[..., Y:, :], S - n1, -2) - s_all) / (2 * S)
     return info
 
 
@@ -324,23 +327,23 @@ def _membership_chunk(P: Tensor, Z: Tensor, keep: Tensor, n: int, bias_correctio
     keep = keep.gather(1, cols).unsqueeze(1)  # T x 1 x n
     # (einsum folds B into the product's columns; a matmul would copy Z for each of B)
     if not bias_correction:
-        info = _membership_terms(torch.einsum("tsn,tbsy->tbny", Z, P), P.sum(-2), Z.sum(1, keepdim=True),
+        info = _membership_terms(torch.einsum("tsn,tbsy->tbyn", Z, P), P.sum(-2), Z.sum(1, keepdim=True),
                                  P.new_tensor(float(S)).reshape(1, 1, 1), Y, False)
         return torch.where(keep, info.clamp_min(0), 0.0).sum(-1)
     PQ = torch.cat([P, P * P], dim=-1)  # T x B x S x 2Y
     if S < 8:
-        info = _membership_terms(torch.einsum("tsn,tbsy->tbny", Z, PQ), PQ.sum(-2), Z.sum(1, keepdim=True),
+        info = _membership_terms(torch.einsum("tsn,tbsy->tbyn", Z, PQ), PQ.sum(-2), Z.sum(1, keepdim=True),
                                  P.new_tensor(float(S)).reshape(1, 1, 1), Y, True)
         return torch.where(keep, info, 0.0).sum(-1).clamp_min(0)
     # the full sample and its two halves at once (the full sums are the halves' sums)
     h = S // 2
     Zh = Z[:, :2 * h].reshape(T, 2, h, n)  # T x 2 x h x n
     PQh = PQ[..., :2 * h, :].reshape(T, B, 2, h, 2 * Y)  # T x B x 2 x h x 2Y
-    sums = torch.einsum("tksn,tbksy->tkbny", Zh, PQh)  # T x 2 x B x n x 2Y
+    sums = torch.einsum("tksn,tbksy->tkbyn", Zh, PQh)  # T x 2 x B x 2Y x n
     totals, counts = PQh.sum(-2).transpose(1, 2), Zh.sum(-2).unsqueeze(-2)  # T x 2 x B x 2Y, T x 2 x 1 x n
     if S > 2 * h:  # odd S: the last sample counts in the full estimate only
         last, z_last = PQ[..., -1, :], Z[:, -1].unsqueeze(1)  # T x B x 2Y, T x 1 x n
-        sums_full = sums.sum(1) + z_last.unsqueeze(-1) * last.unsqueeze(-2)
+        sums_full = sums.sum(1) + last.unsqueeze(-1) * z_last.unsqueeze(-2)
         totals_full, counts_full = totals.sum(1) + last, counts.sum(1) + z_last
     else:
         sums_full, totals_full, counts_full = sums.sum(1), totals.sum(1), counts.sum(1)
