@@ -157,3 +157,51 @@ def test_batch_loop_input_checks():
 
     with pytest.raises(NotImplementedError, match="select_batch"):
         run_active_learning_batch(model, [None, None], cands, OneAtATime(), 1, generators=[torch.Generator()] * 2)
+
+
+@pytest.mark.parametrize("hyper_seed", range(6))
+def test_batch_random_extreme_problems(hyper_seed):
+    """The robustness suite's random problems (duplicated items, contradictory comparisons,
+    extreme ratings), 12 of one dimension at a time under one draw of extreme hyperparameters:
+    batched modes finite, converged and equal to the single models' (one model at a time)."""
+    import warnings
+
+    from gpytorch.kernels import RBFKernel, ScaleKernel
+    from test_robustness import random_config
+
+    from torchpref.models import PreferenceGP
+
+    hyper = random_config(1000 + hyper_seed)[0]
+    problems = [random_config(s) for s in range(hyper_seed * 40, hyper_seed * 40 + 40)]
+    d = problems[0][0]["d"]
+    problems = [p for p in problems if p[0]["d"] == d][:12]
+    k = ScaleKernel(RBFKernel()).to(torch.float64)
+    k.base_kernel.lengthscale = hyper["lengthscale"]
+    k.outputscale = hyper["outputscale"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # jitter / boundary warnings are expected here
+        models = [PreferenceGP(X, C if len(C) else None, u if len(u) else None, ri if len(u) else None,
+                               covar_module=k, comparison_noise=hyper["comparison_noise"],
+                               rating_scale=hyper["rating_scale"], rating_precision=hyper["rating_precision"])
+                  for _, X, C, u, ri in problems]
+        batch = BatchedPreferenceGP.from_models(models)
+        modes = batch.mode()
+        assert batch._state()["mode"]["converged"].all()
+        Xs = torch.rand(len(models), 5, d, generator=torch.Generator().manual_seed(hyper_seed), dtype=torch.float64)
+        mean, var = batch.marginals(Xs)
+        assert torch.isfinite(mean).all() and torch.isfinite(var).all()
+        for b, model in enumerate(models):
+            f = model.mode.f
+            assert torch.isfinite(modes[b]).all()
+            assert (modes[b] - f).abs().max() <= 1e-5 * max(1.0, float(f.abs().max()))
+
+
+def test_trial_model_is_independent():
+    models, batch, g = _random_trials(2, 2, 11)
+    X = torch.rand(2, 6, 1, generator=g, dtype=torch.float64)
+    before = batch.marginals(X)[0].clone()
+    single = batch.trial_model(0)
+    single.covar_module.outputscale = 2.0
+    single.likelihood.comparison.comparison_noise = 0.5
+    batch.add_observations(1, torch.rand(1, 1, dtype=torch.float64), ratings=[0.3], rating_index=[0])
+    assert torch.allclose(batch.marginals(X)[0][0], before[0], atol=1e-9)

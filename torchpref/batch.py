@@ -18,6 +18,7 @@ Hyperparameters are fixed (no fitting): use a :class:`~torchpref.PreferenceGP` t
 
 from __future__ import annotations
 
+import copy
 import warnings
 from typing import Sequence
 
@@ -128,7 +129,8 @@ class BatchedPreferenceGP:
         d = self._data[trial]
         t = self.template
         model = PreferenceGP(d.train_X, d.comparisons, d.ratings, d.rating_index,
-                             covar_module=t.covar_module, rating_eps=t.rating_eps, max_newton_iter=t.max_newton_iter)
+                             covar_module=copy.deepcopy(t.covar_module), rating_eps=t.rating_eps,
+                             max_newton_iter=t.max_newton_iter)  # its own kernel: fitting it changes no trial
         model.likelihood.load_state_dict(t.likelihood.state_dict())
         return model
 
