@@ -9,9 +9,8 @@ from torchpref.experiments import wave
 from torchpref.numerics import NotPSDError
 from torchpref.queries import BoxCandidates
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, Selector
-from torchpref.users import SimulatedUser
-
 from torchpref.test_functions import WaveFunction
+from torchpref.users import SimulatedUser
 
 
 def _random_trials(T: int, steps: int, seed: int):

@@ -130,3 +130,20 @@ def test_top_target_avoids_known_bad_region(generator):
         q = sel.select(m, X, None, t, 3, generator)
         items = q.item.reshape(-1) if q.kind == "rating" else q.items.reshape(-1)
         assert (items > 0.52).all(), items
+
+
+def test_ucb_selectors_take_any_botorch_model():
+    """Without ``marginals`` (here BoTorch's PairwiseGP) the UCB selectors use ``posterior``."""
+    from botorch.models import PairwiseGP
+
+    from torchpref.strategies import UCBC, UCBRatings
+
+    g = torch.Generator().manual_seed(0)
+    X = torch.rand(6, 1, generator=g, dtype=torch.float64)
+    model = PairwiseGP(X, torch.tensor([[0, 1], [2, 3], [4, 5]]))
+    cand = torch.rand(30, 1, generator=g, dtype=torch.float64)
+    post = model.posterior(cand.unsqueeze(-2))
+    ucb = post.mean.reshape(-1) + 3.0 * post.variance.reshape(-1).sqrt()
+    q = UCBRatings(gamma=3.0).select(model, cand, None, 0, 5, g)
+    assert torch.equal(q.item, cand[int(ucb.argmax())])
+    assert UCBC(m=3).select(model, cand, None, 0, 5, g).kind in ("rating", "ranking")

@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import torch
-from torch import Tensor
 from botorch.fit import fit_gpytorch_mll
+from torch import Tensor
 
 from torchpref.batch import BatchedPreferenceGP
 from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP

@@ -109,7 +109,11 @@ class RandomMixed(Selector):
 def _ucb(model, X: Tensor, gamma: float) -> tuple[Tensor, Tensor, Tensor]:
     """Eq. 12's ``mean + gamma * std`` at ``X`` (``T x N x d``), with the mean and std (``T x N``)."""
     with torch.no_grad():
-        mean, var = model.marginals(X)
+        if hasattr(model, "marginals"):
+            mean, var = model.marginals(X)
+        else:  # any BoTorch model
+            post = model.posterior(X.unsqueeze(-2))
+            mean, var = post.mean[..., 0, 0], post.variance[..., 0, 0]
     std = var.clamp_min(0).sqrt()
     return mean + gamma * std, mean, std
 
