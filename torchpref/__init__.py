@@ -5,7 +5,8 @@ comparisons (eq. 3) and bounded ratings (eqs. 4-7) at once, as a BoTorch ``Model
 """
 
 from torchpref.acquisition import QueryInformation, QueryUCB, latent_ucb
-from torchpref.active import History, QueryRecord, fit_model, run_active_learning
+from torchpref.active import History, QueryRecord, fit_model, run_active_learning, run_active_learning_batch
+from torchpref.batch import BatchedPreferenceGP
 from torchpref.data import (
     PreferenceData,
     RatingBoundaryWarning,
@@ -27,6 +28,7 @@ from torchpref.users import SimulatedUser, User
 from torchpref.version import __version__
 
 __all__ = [
+    "BatchedPreferenceGP",
     "BetaRatingLikelihood",
     "BoxCandidates",
     "FinitePool",
@@ -66,6 +68,7 @@ __all__ = [
     "prepare_ratings",
     "rating_from_latent",
     "run_active_learning",
+    "run_active_learning_batch",
     "true_positives",
     "unit_to_likert",
     "wrms",
