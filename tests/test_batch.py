@@ -204,3 +204,31 @@ def test_trial_model_is_independent():
     single.likelihood.comparison.comparison_noise = 0.5
     batch.add_observations(1, torch.rand(1, 1, dtype=torch.float64), ratings=[0.3], rating_index=[0])
     assert torch.allclose(batch.marginals(X)[0][0], before[0], atol=1e-9)
+
+
+def test_fisher_steps_where_the_hessian_is_not_negative_definite():
+    """Started where a Beta rating's log-likelihood is convex (nu = 2, u = 0.02, f = 2, prior
+    variance 10: B = I + L^T W L < 0), the batched Newton takes Fisher-scoring steps and reaches
+    the same mode as laplace.find_mode from the same start."""
+    from gpytorch.kernels import RBFKernel, ScaleKernel
+
+    from torchpref.laplace import find_mode
+    from torchpref.models import PreferenceGP
+
+    k = ScaleKernel(RBFKernel()).to(torch.float64)
+    k.outputscale = 10.0
+    X = torch.tensor([[0.3], [0.9]], dtype=torch.float64)
+    models = [PreferenceGP(X, ratings=[0.02, 0.6], rating_index=[0, 1], covar_module=k, rating_scale=1.0,
+                           rating_precision=2.0) for _ in range(2)]
+    batch = BatchedPreferenceGP.from_models(models)
+    s = batch._padded()
+    K = k.forward(s["X"], s["X"])
+    L = torch.linalg.cholesky(K)
+    f0 = torch.tensor([[2.0, 0.0], [0.0, 0.0]], dtype=torch.float64)
+    lam, w = batch._terms(s, f0)[2:]
+    assert torch.linalg.cholesky_ex(batch._hessian(s, L, lam, w))[1][0] > 0  # not PD at the start
+    out = batch._find_modes(s, L, f0)
+    assert out["converged"].all()
+    for b in range(2):
+        ref = find_mode(L[b], models[b]._observations(), f0=f0[b])
+        assert torch.allclose(out["f"][b], ref.f, atol=1e-6)
