@@ -232,3 +232,13 @@ def test_fisher_steps_where_the_hessian_is_not_negative_definite():
     for b in range(2):
         ref = find_mode(L[b], models[b]._observations(), f0=f0[b])
         assert torch.allclose(out["f"][b], ref.f, atol=1e-6)
+
+
+def test_batch_copies_hyperparameters():
+    models, batch, g = _random_trials(2, 2, 13)
+    X = torch.rand(2, 6, 1, generator=g, dtype=torch.float64)
+    before = batch.marginals(X)[1].clone()
+    models[0].covar_module.outputscale = 3.0  # the models' kernel is not the batch's
+    batch.add_observations(1, torch.rand(1, 1, dtype=torch.float64), ratings=[0.3], rating_index=[0])
+    batch.add_observations(1, torch.rand(1, 1, dtype=torch.float64), ratings=[0.4], rating_index=[0])
+    assert torch.allclose(batch.marginals(X)[1][0], before[0], atol=1e-9)

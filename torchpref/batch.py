@@ -70,7 +70,8 @@ class BatchedPreferenceGP:
     r"""``T`` independent mixed ratings + comparisons models with shared fixed hyperparameters.
 
     Build it from ``T`` :class:`~torchpref.PreferenceGP` models (:meth:`from_models`) that share
-    their kernel's and likelihoods' values; each trial starts with its model's data. Answers go
+    their kernel's and likelihoods' values; each trial starts with its model's data, and the
+    hyperparameters are copied (changing the models afterwards changes no trial). Answers go
     in per trial (:meth:`add_observations`); modes are re-solved, all at once and warm-started,
     when a prediction is next asked for.
 
@@ -82,9 +83,9 @@ class BatchedPreferenceGP:
             raise ValueError("BatchedPreferenceGP does not support input transforms; transform the items first.")
         if len(data) < 1:
             raise ValueError("need at least one trial.")
-        self.template = template
-        self.covar_module = template.covar_module
-        self.likelihood = template.likelihood
+        self.template = copy.deepcopy(template)  # the hyperparameters as they are now
+        self.covar_module = self.template.covar_module
+        self.likelihood = self.template.likelihood
         self.rating_eps = template.rating_eps
         self.max_newton_iter = template.max_newton_iter
         self.tol = tol
@@ -126,13 +127,13 @@ class BatchedPreferenceGP:
 
     def trial_model(self, trial: int) -> PreferenceGP:
         """A stand-alone :class:`~torchpref.PreferenceGP` of one trial (same hyperparameters)."""
-        d = self._data[trial]
-        t = self.template
-        model = PreferenceGP(d.train_X, d.comparisons, d.ratings, d.rating_index,
-                             covar_module=copy.deepcopy(t.covar_module), rating_eps=t.rating_eps,
-                             max_newton_iter=t.max_newton_iter)  # its own kernel: fitting it changes no trial
-        model.likelihood.load_state_dict(t.likelihood.state_dict())
-        return model
+        d, t, lik = self._data[trial], self.template, self.likelihood
+        return PreferenceGP(d.train_X, d.comparisons, d.ratings, d.rating_index,
+                            covar_module=copy.deepcopy(t.covar_module),  # its own: fitting it changes no trial
+                            comparison_noise=float(lik.comparison.comparison_noise),
+                            rating_scale=float(lik.rating.rating_scale),
+                            rating_precision=float(lik.rating.rating_precision),
+                            rating_eps=t.rating_eps, max_newton_iter=t.max_newton_iter)
 
     # ------------------------------------------------------------------ inference
     def _kernel(self, X1: Tensor, X2: Tensor | None = None, diag: bool = False) -> Tensor:
