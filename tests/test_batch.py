@@ -7,7 +7,7 @@ from torchpref.active import run_active_learning, run_active_learning_batch
 from torchpref.batch import BatchedPreferenceGP, batched_cholesky
 from torchpref.experiments import wave
 from torchpref.numerics import NotPSDError
-from torchpref.queries import BoxCandidates
+from torchpref.queries import BoxCandidates, FinitePool
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, Selector
 from torchpref.test_functions import WaveFunction
 from torchpref.users import SimulatedUser
@@ -120,9 +120,15 @@ def test_wave_batch_equals_one_trial_at_a_time(strategy):
         assert max(abs(x - y) for x, y in zip(a["wrms"], b["wrms"])) < 1e-9
 
 
-def test_batch_loop_matches_single_loop_random_mixed():
-    """A selector the wave run does not use, through the generic loops, with target 'maximizer'."""
-    for selector in (RandomMixed(m=3), InformationPerEffort(m=3, target="maximizer", num_samples=32)):
+@pytest.mark.parametrize("pool", [False, True])
+def test_batch_loop_matches_single_loop_random_mixed(pool):
+    """Selectors the wave run does not use (random mixed, target 'maximizer' / 'utility'), through
+    the generic loops, from a box or from a finite pool (queries then carry pool indices)."""
+    g = torch.Generator().manual_seed(5)
+    cands = (FinitePool(torch.rand(25, 1, generator=g, dtype=torch.float64)) if pool
+             else BoxCandidates(torch.tensor([[0.0], [1.0]], dtype=torch.float64), 20))
+    for selector in (RandomMixed(m=3), InformationPerEffort(m=3, target="maximizer", num_samples=32),
+                     InformationPerEffort(m=3, target="utility", num_samples=32), UCBC(m=3)):
         truths = [WaveFunction.random(generator=torch.Generator().manual_seed(s)) for s in (1, 2)]
 
         def users():
@@ -133,7 +139,6 @@ def test_batch_loop_matches_single_loop_random_mixed():
             return [wave.make_model(torch.tensor([[0.2], [0.7]], dtype=torch.float64), torch.tensor([[1, 0]]))
                     for _ in truths]
 
-        cands = BoxCandidates(torch.tensor([[0.0], [1.0]], dtype=torch.float64), 20)
         hb = run_active_learning_batch(BatchedPreferenceGP.from_models(starts()), users(), cands, selector, 4,
                                        generators=[torch.Generator().manual_seed(10 + i) for i in range(2)])
         for i, (model, user) in enumerate(zip(starts(), users())):
@@ -141,6 +146,10 @@ def test_batch_loop_matches_single_loop_random_mixed():
             assert [r.answer for r in h.records] == [r.answer for r in hb[i].records]
             for r1, r2 in zip(h.records, hb[i].records):
                 assert torch.equal(r1.query.items, r2.query.items)
+                assert getattr(r1.query, "indices", getattr(r1.query, "index", None)) == \
+                    getattr(r2.query, "indices", getattr(r2.query, "index", None))
+                if pool:
+                    assert getattr(r2.query, "indices", getattr(r2.query, "index", None)) is not None
 
 
 def test_batch_loop_input_checks():
