@@ -12,6 +12,11 @@ top-15 points are in the estimated top-15.
 Every strategy of a trial sees the same wave function, the same first comparison and the
 same candidate draws' seed, so strategies compare trial by trial (paired tests).
 
+The trials of a strategy run in batches (:func:`run_trial_batch`: one
+:class:`~torchpref.batch.BatchedPreferenceGP` for the batch, one selector call per step for all
+its trials), which gives the same questions, answers and metrics as one model at a time
+(:func:`run_trial`, ``batch_size=None``) at a third of the cost.
+
 Command line: ``torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR]``;
 from Python: :func:`run_wave_experiment`.
 """
