@@ -15,7 +15,7 @@ same candidate draws' seed, so strategies compare trial by trial (paired tests).
 The trials of a strategy run in batches (:func:`run_trial_batch`: one
 :class:`~torchpref.batch.BatchedPreferenceGP` for the batch, one selector call per step for all
 its trials), which gives the same questions, answers and metrics as one model at a time
-(:func:`run_trial`, ``batch_size=None``) at a third of the cost.
+(:func:`run_trial`, ``batch_size=None``) for less than half the CPU time.
 
 Command line: ``torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR]``;
 from Python: :func:`run_wave_experiment`.
