@@ -23,6 +23,9 @@ def test_run_trials_any_executor():
 def test_statistics():
     m, s = mean_sem([[1.0, 2.0], [3.0, 2.0]])
     assert m == [2.0, 2.0] and s[0] == pytest.approx(1.0) and s[1] == 0.0
+    nan = float("nan")  # missing values: each point uses the trials that have one
+    m, s = mean_sem([[1.0, nan, nan], [3.0, 2.0, nan], [5.0, 4.0, nan]])
+    assert m == pytest.approx([3.0, 3.0, 0.0]) and s == pytest.approx([2 / 3**0.5, 1.0, 0.0])
     t = paired_tests([1.0, 2.0, 3.0, 4.5], [0.5, 1.0, 2.5, 3.0])
     assert t["mean_diff"] == pytest.approx(0.875) and t["wins"] == 4 and 0 < t["p_ttest"] < 0.05
     with pytest.raises(ValueError, match="3"):

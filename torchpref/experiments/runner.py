@@ -116,18 +116,35 @@ def run_trials(
 def mean_sem(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float]]:
     r"""Mean and standard error (``std / sqrt(n)``, ``ddof = 1``) over trials.
 
+    NaN entries are missing values (e.g. a metric a trial could not take): each point's mean and
+    standard error use its trials with a value (a point with none has mean 0).
+
     Args:
         values: ``trials x points`` (e.g. one metric curve per trial).
 
     Returns:
-        ``(mean, sem)``, each a list with one value per point (``sem`` 0 for one trial).
+        ``(mean, sem)``, each a list with one value per point (``sem`` 0 with fewer than two
+        values).
     """
     t = torch.as_tensor(values, dtype=torch.float64)
     if t.dim() != 2 or t.shape[0] == 0:
         raise ValueError(f"values must be trials x points with at least one trial, got shape {tuple(t.shape)}.")
-    n = t.shape[0]
-    sem = t.std(dim=0, correction=1) / math.sqrt(n) if n > 1 else torch.zeros(t.shape[1], dtype=t.dtype)
-    return t.mean(dim=0).tolist(), sem.tolist()
+    ok = ~torch.isnan(t)
+    if ok.all():
+        n = t.shape[0]
+        sem = t.std(dim=0, correction=1) / math.sqrt(n) if n > 1 else torch.zeros(t.shape[1], dtype=t.dtype)
+        return t.mean(dim=0).tolist(), sem.tolist()
+    n = ok.sum(0).clamp_min(1)
+    m = torch.where(ok, t, 0).sum(0) / n
+    var = torch.where(ok, (t - m).pow(2), 0).sum(0) / (n - 1).clamp_min(1)
+    sem = torch.where(n > 1, var.sqrt() / n.sqrt(), torch.zeros_like(m))
+    return m.tolist(), sem.tolist()
+
+
+def fraction_ratings(results: Sequence[dict[str, Any]], strategies: Sequence[str]) -> dict[str, float]:
+    """Per strategy, the share of its queries (``result[strategy]["kinds"]``) that were ratings."""
+    return {s: sum(k == "rating" for r in results for k in r[s]["kinds"]) / max(1, sum(len(r[s]["kinds"]) for r in results))
+            for s in strategies}
 
 
 def paired_tests(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:

@@ -35,6 +35,7 @@ from torchpref.active import run_active_learning, run_active_learning_batch
 from torchpref.batch import BatchedPreferenceGP
 from torchpref.experiments.runner import (
     fixed_model,
+    fraction_ratings,
     mean_sem,
     paired_tests,
     plot_mean_sem,
@@ -217,11 +218,9 @@ def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str,
             key = f"{a} vs {b}"
             tests["queries"][key] = {k: paired_tests(final[a][k], final[b][k]) for k in ("wrms", "tp")}
             tests["effort"][key] = {k: paired_tests(at_budget[a][k], at_budget[b][k]) for k in ("wrms", "tp")}
-    ratings = {s: sum(k == "rating" for r in results for k in r[s]["kinds"]) / (len(results) * max(queries, 1))
-               for s in strategies}
     return {"queries": queries, "per_query": per_query, "per_effort": per_effort, "budgets": budgets,
             "final": {s: {k: mean_sem([[v] for v in final[s][k]]) for k in ("wrms", "tp")} for s in strategies},
-            "paired_tests": tests, "fraction_ratings": ratings}
+            "paired_tests": tests, "fraction_ratings": fraction_ratings(results, strategies)}
 
 
 def run_wave_experiment(

@@ -40,6 +40,7 @@ from torchpref.active import run_active_learning
 from torchpref.data import likert_to_unit
 from torchpref.experiments.runner import (
     fixed_model,
+    fraction_ratings,
     mean_sem,
     paired_tests,
     plot_mean_sem,
@@ -163,23 +164,13 @@ def run_trial(scenario: LakeScenario, trial_seed: int, queries: int, strategies:
     return out
 
 
-def _nan_mean_sem(values: list[list[float]]) -> tuple[list[float], list[float]]:
-    t = torch.as_tensor(values, dtype=torch.float64)
-    ok = ~torch.isnan(t)
-    n = ok.sum(0).clamp_min(1)
-    m = torch.where(ok, t, 0).sum(0) / n
-    var = torch.where(ok, (t - m).pow(2), 0).sum(0) / (n - 1).clamp_min(1)
-    sem = torch.where(n > 1, var.sqrt() / n.sqrt(), torch.zeros_like(m))
-    return m.tolist(), sem.tolist()
-
-
 def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str, Any]:
     """Per-query mean ± SEM, final values, share rated 5, paired tests and planning results."""
     per_query = {}
     for s in strategies:
         entry = {}
         for k in ("error5", "wrms", "chosen_rating"):
-            m, e = _nan_mean_sem([r[s][k] for r in results])
+            m, e = mean_sem([r[s][k] for r in results])  # NaN: a trial without a value
             entry[f"{k}_mean"], entry[f"{k}_sem"] = m, e
         per_query[s] = entry
     final = {s: {k: [r[s][k][-1] for r in results] for k in ("error5", "wrms", "chosen_rating")} for s in strategies}
@@ -204,12 +195,11 @@ def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str,
                 "optimised_path_kept": sum(p["planned"] for p in plans),
                 "trials": plans,
             }
-    ratings = {s: sum(k == "rating" for r in results for k in r[s]["kinds"]) / sum(len(r[s]["kinds"]) for r in results)
-               for s in strategies}
     return {"per_query": per_query,
             "final": {s: {k: [per_query[s][f"{k}_mean"][-1], per_query[s][f"{k}_sem"][-1]]
                           for k in ("error5", "wrms", "chosen_rating")} for s in strategies},
-            "share_rated_5": share5, "paired_tests": tests, "planning": planning, "fraction_ratings": ratings}
+            "share_rated_5": share5, "paired_tests": tests, "planning": planning,
+            "fraction_ratings": fraction_ratings(results, strategies)}
 
 
 def run_lake_experiment(
