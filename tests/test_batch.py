@@ -4,9 +4,9 @@ import pytest
 import torch
 
 from torchpref.active import run_active_learning, run_active_learning_batch
-from torchpref.batch import BatchedPreferenceGP, batched_cholesky
+from torchpref.batch import BatchedPreferenceGP
 from torchpref.experiments import wave
-from torchpref.numerics import NotPSDError
+from torchpref.numerics import NotPSDError, batched_cholesky
 from torchpref.queries import BoxCandidates, FinitePool
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, Selector
 from torchpref.test_functions import WaveFunction

@@ -27,3 +27,15 @@ def test_cholesky_jittered_names_the_failure():
     L, j = cholesky_jittered(torch.outer(v, v), jitter=None)
     assert 0 < j <= 1e-6
     torch.testing.assert_close(L @ L.T, torch.outer(v, v) + j * torch.eye(3, dtype=torch.float64))
+
+
+def test_cholesky_batch_per_matrix_schedules():
+    from torchpref.numerics import cholesky_batch
+
+    eye = torch.eye(3, dtype=torch.float64)
+    A = torch.stack([eye, torch.ones(3, 3, dtype=torch.float64), -eye])  # fine, singular, negative definite
+    J = torch.tensor([[0.0, 0.0, 0.0], [1e-3, 1e-1, 1e-3], [1e-2, 1.0, 1e-2]], dtype=torch.float64)  # k x T
+    L, jitter, failed = cholesky_batch(A, J)
+    assert failed.tolist() == [False, False, True]
+    assert jitter[:2].tolist() == [0.0, 0.1]  # the second matrix: its own schedule's first success
+    assert torch.allclose(L[:2] @ L[:2].mT, A[:2] + jitter[:2].reshape(2, 1, 1) * eye)

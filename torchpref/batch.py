@@ -28,7 +28,7 @@ from torch import Tensor
 from torchpref.data import PreferenceData
 from torchpref.laplace import LaplaceConvergenceWarning
 from torchpref.models import PreferenceGP
-from torchpref.numerics import MAX_JITTER, NotPSDError
+from torchpref.numerics import NotPSDError, batched_cholesky
 
 
 def _pad(tensors: Sequence[Tensor], length: int, fill) -> Tensor:
@@ -37,33 +37,6 @@ def _pad(tensors: Sequence[Tensor], length: int, fill) -> Tensor:
     for b, t in enumerate(tensors):
         out[b, : t.shape[0]] = t
     return out
-
-
-def batched_cholesky(A: Tensor, max_jitter: float = MAX_JITTER, name: str = "matrix") -> tuple[Tensor, Tensor]:
-    r"""Cholesky factors of a batch ``T x n x n``, adding diagonal jitter (0, then ``1e-10`` up to
-    ``max_jitter``, tenfold) only to the matrices whose plain factorisation fails.
-
-    Returns:
-        ``(L, jitter)`` with ``jitter`` the ``T`` amounts used.
-
-    Raises:
-        NotPSDError: naming the matrices still not positive definite at ``max_jitter``.
-    """
-    L, info = torch.linalg.cholesky_ex(A)
-    jitter = A.new_zeros(A.shape[0])
-    j = 1e-10
-    eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
-    while bool((info > 0).any()):
-        if j > max_jitter:
-            bad = (info > 0).nonzero().reshape(-1).tolist()
-            raise NotPSDError(f"the {name} of trials {bad} is not positive definite even with jitter {max_jitter:g}.")
-        bad = info > 0
-        Lj, info_j = torch.linalg.cholesky_ex(A[bad] + j * eye)
-        L[bad], jitter[bad] = Lj, j
-        info = info.clone()
-        info[bad] = info_j
-        j *= 10
-    return L, jitter
 
 
 class BatchedPreferenceGP:
@@ -288,7 +261,7 @@ class BatchedPreferenceGP:
             f0 = X.new_zeros(mask.shape)
             old = self._stale
             if old is not None:  # warm start: the old modes, the old predictive means for new items
-                f0 = self._mean(old, X)  # items are only ever appended: old ones keep their rows
+                f0 = self._mean(old, self._cross(old, X))  # items are only appended: old ones keep their rows
                 f_old, n_old = old["f"], old["n"].to(X.device)
                 keep = torch.arange(f_old.shape[1], device=X.device).unsqueeze(0) < n_old.unsqueeze(1)
                 f0[:, : f_old.shape[1]] = torch.where(keep, f_old, f0[:, : f_old.shape[1]])
@@ -301,8 +274,13 @@ class BatchedPreferenceGP:
         self._cache, self._stale = s, None
         return s
 
-    def _mean(self, s: dict, X: Tensor) -> Tensor:
-        Kxs = torch.where(s["mask"].unsqueeze(-1), self._kernel(s["X"], X), 0.0)
+    def _cross(self, s: dict, X: Tensor) -> Tensor:
+        """``T x n x N`` kernel between a state's padded items (rows of padding: 0) and ``X``."""
+        return torch.where(s["mask"].unsqueeze(-1), self._kernel(s["X"], X), 0.0)
+
+    @staticmethod
+    def _mean(s: dict, Kxs: Tensor) -> Tensor:
+        """Posterior mean ``K_*X K^-1 f_hat`` (eq. 9) from :meth:`_cross`'s ``Kxs``."""
         return (s["alpha"].unsqueeze(-2) @ Kxs).squeeze(-2)
 
     def _check_X(self, X: Tensor) -> Tensor:
@@ -311,18 +289,18 @@ class BatchedPreferenceGP:
             raise ValueError(f"X must be T x N x d = {self.num_trials} x N x {d}, got shape {tuple(X.shape)}.")
         return X.to(self._data[0].train_X)
 
-    def _project(self, X: Tensor) -> tuple[dict, Tensor, Tensor]:
+    def _predict(self, X: Tensor) -> tuple[dict, Tensor, Tensor]:
+        """The state, the posterior mean at (checked) ``X`` and ``v = L^-1 K_X*`` (eq. 10's projection)."""
         s = self._state()
-        Kxs = torch.where(s["mask"].unsqueeze(-1), self._kernel(s["X"], X), 0.0)  # T x n x N
-        return s, Kxs, torch.linalg.solve_triangular(s["L"], Kxs, upper=False)
+        Kxs = self._cross(s, X)
+        return s, self._mean(s, Kxs), torch.linalg.solve_triangular(s["L"], Kxs, upper=False)
 
     def marginals(self, X: Tensor) -> tuple[Tensor, Tensor]:
         r"""Posterior mean and variance of each trial's latent utility at its points (``X``:
         ``T x N x d``; returns two ``T x N``), eqs. 9-10."""
         X = self._check_X(X)
         with torch.no_grad():
-            s, Kxs, v = self._project(X)
-            mean = (s["alpha"].unsqueeze(-2) @ Kxs).squeeze(-2)
+            s, mean, v = self._predict(X)
             var = self._kernel(X, diag=True) - (v * (s["A"] @ v)).sum(-2)
         return mean, var
 
@@ -330,8 +308,7 @@ class BatchedPreferenceGP:
         r"""Posterior mean ``T x N`` and covariance ``T x N x N`` of each trial's utility at its points."""
         X = self._check_X(X)
         with torch.no_grad():
-            s, Kxs, v = self._project(X)
-            mean = (s["alpha"].unsqueeze(-2) @ Kxs).squeeze(-2)
+            s, mean, v = self._predict(X)
             cov = self._kernel(X) - v.mT @ (s["A"] @ v)
         return mean, cov
 

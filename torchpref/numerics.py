@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from typing import Sequence
 
 import torch
 from torch import Tensor
@@ -36,6 +37,57 @@ def normal_pdf(z: Tensor) -> Tensor:
     return torch.exp(-0.5 * z * z - LOG_2PI_HALF)
 
 
+def jitter_schedule(max_jitter: float = MAX_JITTER) -> list[float]:
+    """The diagonal jitters tried in turn: 0, then ``1e-10`` growing tenfold up to ``max_jitter``."""
+    return [0.0] + [10.0**e for e in range(-10, 1 + int(math.floor(math.log10(max_jitter))))]
+
+
+def cholesky_batch(A: Tensor, jitters: Sequence[float] | Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    r"""Cholesky factors of a batch ``T x n x n``, each with the first diagonal jitter of
+    ``jitters`` that succeeds; a later jitter is tried only on the matrices still failing.
+
+    Args:
+        A: ``T x n x n`` symmetric matrices.
+        jitters: ``k`` amounts, or ``k x T``: a schedule per matrix.
+
+    Returns:
+        ``(L, jitter, failed)``: the factors (where ``failed``, of the last try), the ``T``
+        amounts used and the ``T`` matrices that no jitter made positive definite.
+    """
+    T = A.shape[0]
+    J = torch.as_tensor(jitters, dtype=A.dtype, device=A.device)
+    J = J.unsqueeze(-1).expand(-1, T) if J.dim() == 1 else J
+    eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+    L, info = torch.linalg.cholesky_ex(A + J[0].reshape(T, 1, 1) * eye)
+    jitter = J[0].clone()
+    for j in J[1:]:
+        bad = info > 0
+        if not bool(bad.any()):
+            break
+        L_bad, info_bad = torch.linalg.cholesky_ex(A[bad] + j[bad].reshape(-1, 1, 1) * eye)
+        L[bad], jitter[bad] = L_bad, j[bad]
+        info = info.clone()
+        info[bad] = info_bad
+    return L, jitter, info > 0
+
+
+def batched_cholesky(A: Tensor, max_jitter: float = MAX_JITTER, name: str = "matrix") -> tuple[Tensor, Tensor]:
+    r"""Cholesky factors of a batch ``T x n x n``, adding diagonal jitter (:func:`jitter_schedule`,
+    as :func:`cholesky_jittered`) only to the matrices whose plain factorisation fails.
+
+    Returns:
+        ``(L, jitter)`` with ``jitter`` the ``T`` amounts used.
+
+    Raises:
+        NotPSDError: naming the matrices still not positive definite at ``max_jitter``.
+    """
+    L, jitter, failed = cholesky_batch(A, jitter_schedule(max_jitter))
+    if bool(failed.any()):
+        bad = failed.nonzero().reshape(-1).tolist()
+        raise NotPSDError(f"the {name} of trials {bad} is not positive definite even with jitter {max_jitter:g}.")
+    return L, jitter
+
+
 def cholesky_jittered(
     A: Tensor, jitter: float | None = None, max_jitter: float = MAX_JITTER, name: str = "matrix"
 ) -> tuple[Tensor, float]:
@@ -50,8 +102,7 @@ def cholesky_jittered(
     Raises:
         NotPSDError: if ``A + max_jitter I`` is still not positive definite, or ``A`` has NaNs.
     """
-    tries = [] if jitter is None else [jitter]
-    tries += [0.0] + [10.0**e for e in range(-10, 1 + int(math.floor(math.log10(max_jitter))))]
+    tries = ([] if jitter is None else [jitter]) + jitter_schedule(max_jitter)
     eye = None
     for j in tries:
         if j > max_jitter:

@@ -22,6 +22,7 @@ from torchpref.acquisition import (
     sample_information,
     top_set_membership,
 )
+from torchpref.numerics import cholesky_batch
 from torchpref.queries import Query, RankingQuery, RatingQuery
 
 
@@ -263,21 +264,12 @@ class InformationPerEffort(Selector):
         mean, cov = _joint(model, X)
         T, N = mean.shape
         std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
-        jitter = 1e-9 * cov.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)
-        eye = torch.eye(N, dtype=mean.dtype, device=mean.device)
-        L, info = torch.linalg.cholesky_ex(cov + jitter.reshape(T, 1, 1) * eye)
+        jitters = [1e-9 * cov.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)]  # relative, then tenfold
         for _ in range(7):
-            bad = info > 0
-            if not bool(bad.any()):
-                break
-            jitter = torch.where(bad, 10 * jitter, jitter)
-            L_bad, info_bad = torch.linalg.cholesky_ex(cov[bad] + jitter[bad].reshape(-1, 1, 1) * eye)
-            L[bad] = L_bad
-            info = info.clone()
-            info[bad] = info_bad
-        bad = info > 0
-        if bool(bad.any()):  # fall back on independent samples
-            L[bad] = torch.diag_embed(std[bad])
+            jitters.append(10 * jitters[-1])
+        L, _, failed = cholesky_batch(cov, torch.stack(jitters))
+        if bool(failed.any()):  # fall back on independent samples
+            L[failed] = torch.diag_embed(std[failed])
         z = torch.stack([torch.randn(self.num_samples, N, generator=g, dtype=mean.dtype, device=mean.device)
                          for g in generators])
         return mean.unsqueeze(-2) + z @ L.mT, mean, std

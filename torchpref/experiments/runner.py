@@ -143,8 +143,8 @@ def mean_sem(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float
 
 def fraction_ratings(results: Sequence[dict[str, Any]], strategies: Sequence[str]) -> dict[str, float]:
     """Per strategy, the share of its queries (``result[strategy]["kinds"]``) that were ratings."""
-    return {s: sum(k == "rating" for r in results for k in r[s]["kinds"]) / max(1, sum(len(r[s]["kinds"]) for r in results))
-            for s in strategies}
+    return {s: sum(k == "rating" for r in results for k in r[s]["kinds"])
+            / max(1, sum(len(r[s]["kinds"]) for r in results)) for s in strategies}
 
 
 def paired_tests(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:

@@ -108,7 +108,8 @@ def _setup(trial_seed: int) -> tuple[WaveFunction, list[int], torch.Tensor, torc
     return truth, seeds, u_true, x0
 
 
-def _start(truth: WaveFunction, seeds: list[int], x0: torch.Tensor) -> tuple[SimulatedUser, PreferenceGP, torch.Generator]:
+def _start(truth: WaveFunction, seeds: list[int],
+           x0: torch.Tensor) -> tuple[SimulatedUser, PreferenceGP, torch.Generator]:
     """A fresh user, the model of its answer to the first pair, and the selector's generator:
     every strategy of a trial starts from these."""
     user = SimulatedUser.paper_wave(lambda X: truth(X, noise=False), generator=torch.Generator().manual_seed(seeds[0]))
@@ -118,6 +119,12 @@ def _start(truth: WaveFunction, seeds: list[int], x0: torch.Tensor) -> tuple[Sim
 
 def _candidates() -> BoxCandidates:
     return BoxCandidates(torch.tensor([[0.0], [1.0]], dtype=torch.float64), NUM_CANDIDATES)
+
+
+def _metrics(est: torch.Tensor, u_true: torch.Tensor) -> dict[str, torch.Tensor]:
+    """WRMS (eq. 14) and true positives among the top :data:`TOP_K` of estimated ratings on the
+    grid (``... x GRID_POINTS``: one trial or a batch)."""
+    return {"wrms": wrms(est, u_true), "tp": true_positives(est, u_true, k=TOP_K).to(est)}
 
 
 def _record(hist) -> dict[str, list]:
@@ -138,8 +145,7 @@ def run_trial(trial_seed: int, queries: int, strategies: tuple[str, ...] = tuple
 
     def metrics(model) -> dict[str, float]:
         with torch.no_grad():
-            est = model.expected_rating(grid)
-        return {"wrms": float(wrms(est, u_true)), "tp": float(true_positives(est, u_true, k=TOP_K))}
+            return {k: float(v) for k, v in _metrics(model.expected_rating(grid), u_true).items()}
 
     out = {}
     with torch.inference_mode():  # nothing in a trial needs gradients (fixed hyperparameters)
@@ -165,8 +171,7 @@ def run_trial_batch(trial_seeds: tuple[int, ...], queries: int, strategy: str) -
     grid = evaluation_grid(GRID_POINTS).expand(len(setups), -1, -1)
 
     def metrics(model) -> dict[str, torch.Tensor]:
-        est = model.expected_rating(grid)
-        return {"wrms": wrms(est, u_true), "tp": true_positives(est, u_true, k=TOP_K).to(est)}
+        return _metrics(model.expected_rating(grid), u_true)
 
     with torch.inference_mode():
         starts = [_start(truth, seeds, x0) for truth, seeds, _, x0 in setups]
