@@ -8,7 +8,7 @@ from torchpref.active import run_active_learning
 from torchpref.experiments.wave import make_model
 from torchpref.queries import BoxCandidates, RankingQuery, RatingQuery
 from torchpref.strategies import RandomMixed
-from torchpref.test_functions import WaveFunction
+from torchpref.utility_functions import WaveFunction
 from torchpref.users import SimulatedUser
 
 BOUNDS = torch.tensor([[0.0], [1.0]], dtype=torch.float64)

@@ -9,7 +9,7 @@ from torchpref.experiments import wave
 from torchpref.numerics import NotPSDError, batched_cholesky
 from torchpref.queries import BoxCandidates, FinitePool
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, Selector
-from torchpref.test_functions import WaveFunction
+from torchpref.utility_functions import WaveFunction
 from torchpref.users import SimulatedUser
 
 

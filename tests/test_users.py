@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy import stats
 
-from torchpref.test_functions import WaveFunction, evaluation_grid
+from torchpref.utility_functions import WaveFunction, evaluation_grid
 from torchpref.users import RATING_CLAMP, SimulatedUser, User, sample_beta, sample_log_gamma
 
 

@@ -23,7 +23,7 @@ from torchpref.numerics import JitterWarning, NotPSDError
 from torchpref.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
 from torchpref.session import PreferenceSession
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
-from torchpref.test_functions import WaveFunction, evaluation_grid
+from torchpref.utility_functions import WaveFunction, evaluation_grid
 from torchpref.users import SimulatedUser, User
 from torchpref.version import __version__
 

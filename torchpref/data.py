@@ -24,7 +24,7 @@ DEFAULT_RATING_EPS = 1e-3
 
 
 class RatingBoundaryWarning(UserWarning):
-    """A rating at exactly 0 or 1 was moved inside the open interval (DESIGN.md)."""
+    """A rating at exactly 0 or 1 was moved inside the open interval (docs/decisions.md)."""
 
 
 def _as_tensor(value, dtype=None, device=None) -> Tensor:

@@ -148,7 +148,7 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         u \sim \mathrm{Beta}(\nu \mu, \nu (1 - \mu)), \qquad
         \mu = \Phi\!\left(\frac{f}{\sqrt{2}\,\sigma_B}\right)
 
-    (the paper prints ``beta = (1 - nu) mu``, a typo: see DESIGN.md).
+    (the paper prints ``beta = (1 - nu) mu``, a typo: see docs/decisions.md).
 
     Args:
         rating_scale: ``sigma_B``, how the latent utility maps onto the rating scale (eq. 7).

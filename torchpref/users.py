@@ -15,7 +15,7 @@ A person at a prompt, a lake operator model or :class:`SimulatedUser` all fit.
   largest noisy value wins. For ``m = 2`` this is eq. 3,
   ``P(a > b) = Phi((f_a - f_b) / (sigma_R sqrt 2))``;
 * ratings: ``u ~ Beta(nu mu, nu (1 - mu))`` with ``mu = Phi(f / (sigma_B sqrt 2))``
-  (eqs. 4-7, with the shape parameters of DESIGN.md: the printed eq. 6 is a typo).
+  (eqs. 4-7, with the shape parameters of docs/decisions.md: the printed eq. 6 is a typo).
 
 All randomness comes from one ``torch.Generator``; :func:`sample_beta` and
 :func:`sample_log_gamma` draw Gamma variates by Marsaglia and Tsang's method from that
@@ -202,7 +202,7 @@ class SimulatedUser:
         n_choices: number of :meth:`choose` queries answered so far.
 
     Example:
-        >>> from torchpref.test_functions import WaveFunction
+        >>> from torchpref.utility_functions import WaveFunction
         >>> g = torch.Generator().manual_seed(0)
         >>> truth = WaveFunction.random(generator=g)
         >>> user = SimulatedUser.paper_wave(lambda X: truth(X, noise=False), generator=g)
@@ -255,7 +255,7 @@ class SimulatedUser:
         *,
         noiseless: bool = False,
     ) -> SimulatedUser:
-        r"""The user of the authors' 1-D wave experiment (DESIGN.md, from their code).
+        r"""The user of the authors' 1-D wave experiment (docs/decisions.md, from their code).
 
         ``comparison_noise`` ``sigma_R = 0.05``, ``rating_scale`` ``sigma_B = 0.8`` and
         ``rating_precision`` ``nu = 80``. (The *model* in that experiment used
@@ -263,7 +263,7 @@ class SimulatedUser:
 
         Args:
             utility: the latent function, ``n x 1`` to ``n`` (e.g. a
-                :class:`~torchpref.test_functions.WaveFunction`).
+                :class:`~torchpref.utility_functions.WaveFunction`).
             generator: the source of randomness.
             noiseless: as in the constructor.
 
@@ -344,7 +344,7 @@ class SimulatedUser:
             return float(mu[0])
         mu = mu.to(torch.float64).clamp(RATING_CLAMP, 1 - RATING_CLAMP)
         nu = self.rating_precision
-        u = sample_beta(nu * mu, nu * (1 - mu), self.generator)  # eqs. 5-6 (DESIGN.md)
+        u = sample_beta(nu * mu, nu * (1 - mu), self.generator)  # eqs. 5-6 (docs/decisions.md)
         return float(u.clamp(RATING_CLAMP, 1 - RATING_CLAMP)[0])
 
     def choose(self, X: Tensor) -> int:

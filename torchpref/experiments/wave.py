@@ -49,10 +49,10 @@ from torchpref.metrics import rating_from_latent, true_positives, wrms
 from torchpref.models import PreferenceGP
 from torchpref.queries import BoxCandidates
 from torchpref.strategies import UCBC, InformationPerEffort, RandomRankings, RandomRatings, UCBRatings
-from torchpref.test_functions import WaveFunction, evaluation_grid
+from torchpref.utility_functions import WaveFunction, evaluation_grid
 from torchpref.users import SimulatedUser
 
-#: the authors' model hyperparameters for this experiment (DESIGN.md): their 1-D run's
+#: the authors' model hyperparameters for this experiment (docs/decisions.md): their 1-D run's
 #: ``log_hyp = log([0.02, 0.6, 0.2, 0.8, 60])`` is ``[lengthscale, sigma_f, sigma_R, sigma_B, nu]``,
 #: so the kernel variance is ``sigma_f^2 = 0.36``. (A later GPpref.py forced the variance to 1; the
 #: authors' numbers quoted in the issue reproduce with 0.36, not with 1: random rankings' WRMS at
