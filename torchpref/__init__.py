@@ -20,6 +20,7 @@ from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.metrics import error_on_best, expected_rating, rating_from_latent, true_positives, wrms, wrms_authors
 from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP, default_covar_module
 from torchpref.numerics import JitterWarning, NotPSDError
+from torchpref.ordinal import OrdinalRatingLikelihood, TieLikelihood
 from torchpref.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
 from torchpref.session import PreferenceSession
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
@@ -38,6 +39,7 @@ __all__ = [
     "LaplaceConvergenceWarning",
     "LaplaceMarginalLogLikelihood",
     "NotPSDError",
+    "OrdinalRatingLikelihood",
     "PairwiseProbitLikelihood",
     "PreferenceData",
     "PreferenceGP",
@@ -52,6 +54,7 @@ __all__ = [
     "RatingBoundaryWarning",
     "RatingQuery",
     "SimulatedUser",
+    "TieLikelihood",
     "UCBC",
     "UCBRatings",
     "User",

@@ -1,4 +1,4 @@
-r"""The two likelihoods of the paper, as GPyTorch likelihoods.
+r"""The likelihoods of the model, as GPyTorch likelihoods.
 
 Each is a function of one latent scalar per observation, its *predictor* ``eta``:
 
@@ -6,6 +6,13 @@ Each is a function of one latent scalar per observation, its *predictor* ``eta``
   (``i`` preferred), ``p(i > j | f) = Phi(eta / (sqrt 2 sigma_R))``.
 * :class:`BetaRatingLikelihood` (eqs. 4-7): ``eta = f_i`` for a rating of item ``i``,
   ``u ~ Beta(nu mu, nu (1 - mu))`` with ``mu = Phi(eta / (sqrt 2 sigma_B))``.
+
+and, in :mod:`torchpref.ordinal` (not in the paper), the ordered-probit ones:
+
+* :class:`~torchpref.ordinal.TieLikelihood`: ``eta = f_i - f_j`` for a "no preference" answer,
+  ``p(i ~ j | f) = Phi((tau - eta) / s) - Phi((-tau - eta) / s)`` (Thurstone with a threshold).
+* :class:`~torchpref.ordinal.OrdinalRatingLikelihood`: ``eta = f_i`` for a level ``k`` in
+  ``1..K``, ``p(k | f) = Phi((c_k - eta) / sigma) - Phi((c_{k-1} - eta) / sigma)`` (ordered probit).
 
 :meth:`derivatives` returns the log-likelihood and its first and second derivatives with
 respect to ``eta``, in closed form (tested against autograd); :mod:`torchpref.laplace` chains
@@ -307,6 +314,7 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         mu = self.expected_rating(function_dist.mean, function_dist.variance)
         nu = self.rating_precision
         return Beta(nu * mu, nu * (1 - mu))
+
 
 
 def _gauss_hermite(n: int, dtype, device) -> tuple[Tensor, Tensor]:
