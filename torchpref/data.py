@@ -5,7 +5,10 @@ The model sees three things (paper Sec. III.B.1):
 * ``train_X`` (``n x d``): the items, one row per distinct point of the objective space;
 * ``comparisons`` (``p x 2`` long): row ``[i, j]`` means item ``i`` was preferred to item
   ``j`` (BoTorch's convention; the paper's label ``d = -1`` for ``x_i > x_j``);
-* ``ratings`` (``q``) in ``[0, 1]`` with ``rating_index`` (``q`` long): item rated by each.
+* ``ratings`` (``q``) in ``[0, 1]`` with ``rating_index`` (``q`` long): item rated by each;
+  or, for data with ``rating_levels = K``, levels ``1..K`` (the ordinal likelihood's input);
+* ``ties`` (``t x 2`` long): row ``[i, j]`` means the person had no preference between ``i``
+  and ``j`` (not in the paper; see docs/observations.md).
 
 :class:`PreferenceData` is immutable: adding observations returns a new object, so a failed
 update never leaves a half-updated model behind.
@@ -100,6 +103,44 @@ def best_of_m(chosen: int, shown: Sequence[int] | Tensor) -> Tensor:
     return torch.stack([torch.full_like(others, chosen), others], dim=-1)
 
 
+def best_of_m_with_ties(best: Sequence[int] | Tensor, shown: Sequence[int] | Tensor) -> tuple[Tensor, Tensor]:
+    r"""A best-of-``m`` answer that names several items as equally best.
+
+    Each of the ``b`` best items is preferred to each of the ``m - b`` others, and each pair of
+    best items is a tie ("these two are equally best").
+
+    Args:
+        best: indices of the ``b >= 1`` items picked as equally best.
+        shown: the ``m`` indices of the items shown, all of ``best`` among them.
+
+    Returns:
+        ``(comparisons, ties)``: ``b (m - b) x 2`` rows ``[best, other]`` and ``b (b - 1) / 2 x 2``
+        rows ``[best_a, best_b]``. One best item gives :func:`best_of_m`'s comparisons and no tie.
+    """
+    shown_t = _as_tensor(shown, dtype=torch.long).flatten()
+    best_t = _as_tensor(best, dtype=torch.long).flatten()
+    if best_t.numel() < 1 or best_t.unique().numel() != best_t.numel():
+        raise ValueError(f"the best items must be one or more distinct indices, got {best_t.tolist()}.")
+    missing = [b for b in best_t.tolist() if b not in shown_t.tolist()]
+    if missing:
+        raise ValueError(f"the best item(s) {missing} are not among those shown {shown_t.tolist()}.")
+    best_of_m(int(best_t[0]), shown_t)  # the same checks of ``shown``
+    others = shown_t[~torch.isin(shown_t, best_t)]
+    comparisons = torch.stack([best_t.repeat_interleave(others.numel()), others.repeat(best_t.numel())], dim=-1)
+    ties = torch.combinations(best_t, 2) if best_t.numel() > 1 else torch.zeros(0, 2, dtype=torch.long)
+    return comparisons, ties
+
+
+def prepare_levels(levels, num_levels: int, dtype=torch.float64, device=None) -> Tensor:
+    """Validate rating levels: integers in ``1..num_levels`` (kept as values of ``dtype``)."""
+    lv = _as_tensor(levels, dtype=dtype, device=device).flatten()
+    _check_finite("rating levels", lv)
+    bad = (lv != lv.round()) | (lv < 1) | (lv > num_levels)
+    if bad.any():
+        raise ValueError(f"rating levels must be integers in 1..{num_levels}, got {lv[bad][:5].tolist()}.")
+    return lv
+
+
 def prepare_ratings(ratings, eps: float = DEFAULT_RATING_EPS, dtype=torch.float64, device=None) -> Tensor:
     """Validate ratings and move exact 0 and 1 in to ``eps`` and ``1 - eps`` (with a warning)."""
     r = _as_tensor(ratings, dtype=dtype, device=device).flatten()
@@ -130,12 +171,21 @@ class PreferenceData:
         comparisons: ``p x 2`` long, rows ``[preferred, other]``.
         ratings: ``q`` values in ``(0, 1)``.
         rating_index: ``q`` long indices into ``train_X``.
+        ties: ``t x 2`` long, rows ``[i, j]``: no preference between ``i`` and ``j``.
+        rating_levels: ``K`` when ``ratings`` are levels ``1..K`` (ordinal likelihood); ``None``
+            for ratings in ``(0, 1)`` (Beta likelihood).
     """
 
     train_X: Tensor
     comparisons: Tensor
     ratings: Tensor
     rating_index: Tensor
+    ties: Tensor | None = None
+    rating_levels: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.ties is None:
+            object.__setattr__(self, "ties", torch.zeros(0, 2, dtype=torch.long, device=self.train_X.device))
 
     @classmethod
     def create(
@@ -145,7 +195,11 @@ class PreferenceData:
         ratings=None,
         rating_index=None,
         rating_eps: float = DEFAULT_RATING_EPS,
+        ties=None,
+        rating_levels: int | None = None,
     ) -> "PreferenceData":
+        if rating_levels is not None and (int(rating_levels) != rating_levels or rating_levels < 2):
+            raise ValueError(f"rating_levels must be an integer of at least 2, got {rating_levels}.")
         X = _as_tensor(train_X)
         if not X.is_floating_point():
             X = X.to(torch.float64)
@@ -157,19 +211,9 @@ class PreferenceData:
         n = X.shape[0]
         dev = X.device
         C = _check_comparisons(comparisons, n, dev)
-        if (ratings is None) != (rating_index is None):
-            raise ValueError("ratings and rating_index must be given together.")
-        if ratings is None:
-            r = torch.zeros(0, dtype=X.dtype, device=dev)
-            ri = torch.zeros(0, dtype=torch.long, device=dev)
-        else:
-            r = prepare_ratings(ratings, rating_eps, dtype=X.dtype, device=dev)
-            ri = _check_index("rating_index", rating_index, n, dev)
-            if ri.numel() != r.numel():
-                raise ValueError(
-                    f"ratings and rating_index must have the same length, got {r.numel()} and {ri.numel()}."
-                )
-        return cls(X, C, r, ri)
+        t = _check_comparisons(ties, n, dev, name="ties")
+        r, ri = _check_ratings(ratings, rating_index, n, rating_eps, rating_levels, X.dtype, dev)
+        return cls(X, C, r, ri, t, None if rating_levels is None else int(rating_levels))
 
     @property
     def n(self) -> int:
@@ -181,7 +225,7 @@ class PreferenceData:
 
     @property
     def num_observations(self) -> int:
-        return self.comparisons.shape[0] + self.ratings.shape[0]
+        return self.comparisons.shape[0] + self.ratings.shape[0] + self.ties.shape[0]
 
     def index_items(self, X, atol: float = 0.0) -> tuple["PreferenceData", Tensor]:
         r"""Indices of the rows of ``X`` (``m x d``), adding those not already present.
@@ -211,7 +255,8 @@ class PreferenceData:
                 new_rows.append(row.unsqueeze(0))
         data = self
         if new_rows:
-            data = PreferenceData(torch.cat([allX] + new_rows, dim=0), self.comparisons, self.ratings, self.rating_index)
+            data = PreferenceData(torch.cat([allX] + new_rows, dim=0), self.comparisons, self.ratings, self.rating_index,
+                                  self.ties, self.rating_levels)
         return data, torch.tensor(idx, dtype=torch.long, device=allX.device)
 
     def add(
@@ -221,10 +266,12 @@ class PreferenceData:
         ratings=None,
         rating_index=None,
         rating_eps: float = DEFAULT_RATING_EPS,
+        ties=None,
     ) -> "PreferenceData":
         """New data with items appended (by coordinates: duplicates reuse their index) and
-        observations appended. Indices in ``comparisons`` / ``rating_index`` refer to the rows
-        of ``X`` when ``X`` is given, otherwise to the existing ``train_X``."""
+        observations appended. Indices in ``comparisons`` / ``ties`` / ``rating_index`` refer to
+        the rows of ``X`` when ``X`` is given, otherwise to the existing ``train_X``. Ratings are
+        levels ``1..K`` when the data has ``rating_levels``."""
         data = self
         if X is not None:
             data, map_idx = self.index_items(X)
@@ -233,33 +280,27 @@ class PreferenceData:
         m = map_idx.numel() if map_idx is not None else self.n
         dev = self.train_X.device
         C = _check_comparisons(comparisons, m, dev)
-        if (ratings is None) != (rating_index is None):
-            raise ValueError("ratings and rating_index must be given together.")
-        if ratings is None:
-            r = torch.zeros(0, dtype=self.train_X.dtype, device=dev)
-            ri = torch.zeros(0, dtype=torch.long, device=dev)
-        else:
-            r = prepare_ratings(ratings, rating_eps, dtype=self.train_X.dtype, device=dev)
-            ri = _check_index("rating_index", rating_index, m, dev)
-            if ri.numel() != r.numel():
-                raise ValueError(
-                    f"ratings and rating_index must have the same length, got {r.numel()} and {ri.numel()}."
-                )
+        t = _check_comparisons(ties, m, dev, name="ties")
+        r, ri = _check_ratings(ratings, rating_index, m, rating_eps, self.rating_levels, self.train_X.dtype, dev)
         if map_idx is not None:
-            C = map_idx[C]
-            ri = map_idx[ri]
+            C, t, ri = map_idx[C], map_idx[t], map_idx[ri]
             if C.numel() and (C[:, 0] == C[:, 1]).any():
                 raise ValueError("a comparison compares an item with itself (two rows of X are the same item).")
+            if t.numel() and (t[:, 0] == t[:, 1]).any():
+                raise ValueError("a tie pairs an item with itself (two rows of X are the same item).")
         return PreferenceData(
             data.train_X,
             torch.cat([data.comparisons, C], dim=0),
             torch.cat([data.ratings, r], dim=0),
             torch.cat([data.rating_index, ri], dim=0),
+            torch.cat([data.ties, t], dim=0),
+            self.rating_levels,
         )
 
     def to(self, *args, **kwargs) -> "PreferenceData":
         X = self.train_X.to(*args, **kwargs)
-        return PreferenceData(X, self.comparisons.to(X.device), self.ratings.to(X), self.rating_index.to(X.device))
+        return PreferenceData(X, self.comparisons.to(X.device), self.ratings.to(X), self.rating_index.to(X.device),
+                              self.ties.to(X.device), self.rating_levels)
 
 
 def _check_index(name: str, index, n: int, device) -> Tensor:
@@ -274,16 +315,35 @@ def _check_index(name: str, index, n: int, device) -> Tensor:
     return t
 
 
-def _check_comparisons(comparisons, n: int, device) -> Tensor:
+def _check_ratings(ratings, rating_index, n: int, eps: float, levels: int | None, dtype, device) -> tuple[Tensor, Tensor]:
+    """Validated ``(ratings, rating_index)``: values in ``[0, 1]`` (or levels ``1..levels``)."""
+    if (ratings is None) != (rating_index is None):
+        raise ValueError("ratings and rating_index must be given together.")
+    if ratings is None:
+        return torch.zeros(0, dtype=dtype, device=device), torch.zeros(0, dtype=torch.long, device=device)
+    if levels is None:
+        r = prepare_ratings(ratings, eps, dtype=dtype, device=device)
+    else:
+        r = prepare_levels(ratings, levels, dtype=dtype, device=device)
+    ri = _check_index("rating_index", rating_index, n, device)
+    if ri.numel() != r.numel():
+        raise ValueError(f"ratings and rating_index must have the same length, got {r.numel()} and {ri.numel()}.")
+    return r, ri
+
+
+def _check_comparisons(comparisons, n: int, device, name: str = "comparisons") -> Tensor:
+    """Validated ``p x 2`` index pairs (``comparisons`` or ``ties``): in range, no item paired with itself."""
     if comparisons is None:
         return torch.zeros(0, 2, dtype=torch.long, device=device)
     C = _as_tensor(comparisons, device=device)
     if C.numel() == 0:
         return torch.zeros(0, 2, dtype=torch.long, device=device)
     if C.dim() != 2 or C.shape[-1] != 2:
-        raise ValueError(f"comparisons must be p x 2 (rows [preferred, other]), got shape {tuple(C.shape)}.")
-    C = _check_index("comparisons", C, n, device).view(-1, 2)
+        rows = "[preferred, other]" if name == "comparisons" else "[i, j]"
+        raise ValueError(f"{name} must be p x 2 (rows {rows}), got shape {tuple(C.shape)}.")
+    C = _check_index(name, C, n, device).view(-1, 2)
     same = C[:, 0] == C[:, 1]
     if same.any():
-        raise ValueError(f"an item is compared with itself in comparison row(s) {same.nonzero().flatten()[:5].tolist()}.")
+        what = "an item is compared with itself in comparison" if name == "comparisons" else "an item is tied with itself in tie"
+        raise ValueError(f"{what} row(s) {same.nonzero().flatten()[:5].tolist()}.")
     return C

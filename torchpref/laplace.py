@@ -17,9 +17,10 @@ using ``f^T K^{-1} f = a^T a`` and ``|I + W K| = |B|`` (Sylvester). The whitened
 square root of ``W``, so it stays valid where the Beta part of ``W`` is negative (far from
 the data); it only needs ``B`` positive definite, which holds at a mode.
 
-``W`` is never formed: a comparison ``[i, j]`` contributes ``lambda_k (e_i - e_j)(e_i - e_j)^T``
+``W`` is never formed: a comparison or a tie ``[i, j]`` contributes ``lambda_k (e_i - e_j)(e_i - e_j)^T``
 and a rating of item ``i`` contributes ``w_k e_i e_i^T``, so
-``L^T W L = (D L)^T diag(lambda) (D L) + (R L)^T diag(w) (R L)``.
+``L^T W L = (D L)^T diag(lambda) (D L) + (R L)^T diag(w) (R L)``, with ``D`` the rows of the
+comparisons followed by those of the ties.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import torch
 from torch import Tensor
 
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.ordinal import OrdinalRatingLikelihood, TieLikelihood
 from torchpref.numerics import NotPSDError, lower_t_matmul
 
 
@@ -41,18 +43,43 @@ class LaplaceConvergenceWarning(UserWarning):
 
 @dataclass(frozen=True)
 class Observations:
-    """Index structure of the observations and the likelihoods that score them."""
+    """Index structure of the observations and the likelihoods that score them.
+
+    The pairwise terms are the ``p`` comparisons followed by the ``t`` ties (``pairs``, ``p + t``
+    rows, one ``lambda`` each); the per-item terms are the ratings, scored by the Beta likelihood
+    or, for levels, the ordinal one.
+    """
 
     comparisons: Tensor  # p x 2 long
     ratings: Tensor  # q
     rating_index: Tensor  # q long
     comparison_likelihood: PairwiseProbitLikelihood
-    rating_likelihood: BetaRatingLikelihood
+    rating_likelihood: BetaRatingLikelihood | OrdinalRatingLikelihood
+    ties: Tensor | None = None  # t x 2 long
+    tie_likelihood: TieLikelihood | None = None
+
+    @functools.cached_property
+    def pairs(self) -> Tensor:
+        """``(p + t) x 2``: the comparisons, then the ties."""
+        if self.ties is None or not self.ties.shape[0]:
+            return self.comparisons
+        if self.tie_likelihood is None:
+            raise ValueError("ties need a tie_likelihood.")
+        return torch.cat([self.comparisons, self.ties.to(self.comparisons)])
+
+    def _pair_derivatives(self, eta: Tensor, third: bool = False) -> tuple[Tensor, ...]:
+        """The comparisons' and the ties' ``(log p, d1, d2)`` (or third derivatives), concatenated."""
+        p = self.comparisons.shape[0]
+        parts = []
+        for lik, e in ((self.comparison_likelihood, eta[:p]), (self.tie_likelihood, eta[p:])):
+            if e.shape[0]:
+                parts.append((lik.third_derivative(e),) if third else lik.derivatives(e))
+        return tuple(torch.cat(x) for x in zip(*parts))
 
     def adjoint(self, n: int, x: Tensor | None = None, y: Tensor | None = None) -> Tensor:
-        r"""``D^T x + R^T y`` (``n``): per-comparison values ``x`` (``p``) added at the preferred
-        item and subtracted at the other, per-rating values ``y`` (``q``) added at the rated item."""
-        C, ri = self.comparisons, self.rating_index
+        r"""``D^T x + R^T y`` (``n``): per-pair values ``x`` (``p + t``) added at the first item and
+        subtracted at the second, per-rating values ``y`` (``q``) added at the rated item."""
+        C, ri = self.pairs, self.rating_index
         ref = x if x is not None else y
         out = ref.new_zeros(n)
         if x is not None and C.shape[0]:
@@ -65,16 +92,16 @@ class Observations:
         r"""Log-likelihood and its derivatives at ``f`` (``n``).
 
         Returns:
-            ``(log p(Y|f), grad_f log p, lambda (p), w (q))`` where ``W = D^T diag(lambda) D +
+            ``(log p(Y|f), grad_f log p, lambda (p + t), w (q))`` where ``W = D^T diag(lambda) D +
             R^T diag(w) R`` is the negative Hessian (eq. 8); with ``fisher=True`` the rating
             weights are their expected (Fisher) values, which are never negative.
         """
-        C, u, ri = self.comparisons, self.ratings, self.rating_index
+        C, u, ri = self.pairs, self.ratings, self.rating_index
         ll = f.new_zeros(())
         d1c, lam = f.new_zeros(C.shape[0]), f.new_zeros(C.shape[0])
         d1r, w = f.new_zeros(u.shape[0]), f.new_zeros(u.shape[0])
         if C.shape[0]:
-            lp, d1c, d2 = self.comparison_likelihood.derivatives(f[C[:, 0]] - f[C[:, 1]])
+            lp, d1c, d2 = self._pair_derivatives(f[C[:, 0]] - f[C[:, 1]])
             ll = ll + lp.sum()
             lam = -d2
         if u.shape[0]:
@@ -86,17 +113,17 @@ class Observations:
     def curvature_slopes(self, f: Tensor) -> tuple[Tensor, Tensor]:
         r"""``(d lambda / d eta, d w / d eta)``: how each term's weight in ``W`` changes with its
         predictor (minus the likelihoods' third derivatives), for the evidence's gradient."""
-        C, u, ri = self.comparisons, self.ratings, self.rating_index
+        C, u, ri = self.pairs, self.ratings, self.rating_index
         dlam, dw = f.new_zeros(C.shape[0]), f.new_zeros(u.shape[0])
         if C.shape[0]:
-            dlam = -self.comparison_likelihood.third_derivative(f[C[:, 0]] - f[C[:, 1]])
+            dlam = -self._pair_derivatives(f[C[:, 0]] - f[C[:, 1]], third=True)[0]
         if u.shape[0]:
             dw = -self.rating_likelihood.third_derivative(f[ri], u)
         return dlam, dw
 
     def pair_variances(self, S: Tensor) -> tuple[Tensor, Tensor]:
-        r"""``(d_k^T S d_k, S_{ii})`` per comparison and per rating, for an ``n x n`` ``S``."""
-        C, ri = self.comparisons, self.rating_index
+        r"""``(d_k^T S d_k, S_{ii})`` per pair and per rating, for an ``n x n`` ``S``."""
+        C, ri = self.pairs, self.rating_index
         diag = S.diagonal()
         i, j = C[:, 0], C[:, 1]
         return diag[i] + diag[j] - 2 * S[i, j], diag[ri]
@@ -104,7 +131,7 @@ class Observations:
     @functools.cached_property
     def _W_pattern(self) -> tuple[Tensor, Tensor]:
         """``W``'s nonzero pattern, computed once: ``(2 x nnz indices, slot of each term)``."""
-        C, ri = self.comparisons, self.rating_index
+        C, ri = self.pairs, self.rating_index
         i, j = C[:, 0], C[:, 1]
         rows, cols = torch.cat([i, j, i, j, ri]), torch.cat([i, j, j, i, ri])
         n = int(torch.cat([rows, cols.new_zeros(1)]).max()) + 1
@@ -128,7 +155,7 @@ class Observations:
         ``W`` (one ``n^3`` product); otherwise ``(D L)^T diag(lambda) (D L) + (R L)^T diag(w) (R L)``
         (``(p + q) n^2``, differentiable).
         """
-        C, ri = self.comparisons, self.rating_index
+        C, ri = self.pairs, self.rating_index
         n = L.shape[-1]
         tracked = torch.is_grad_enabled() and (L.requires_grad or lam.requires_grad or w.requires_grad)
         if not tracked and 2 * (C.shape[0] + ri.shape[0]) > n:

@@ -31,6 +31,7 @@ from torchpref.laplace import (
     predictive_cache,
 )
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.ordinal import OrdinalRatingLikelihood, TieLikelihood, default_cut_points
 from torchpref.numerics import cholesky_jittered
 
 
@@ -47,12 +48,15 @@ def default_covar_module(dim: int) -> ScaleKernel:
 
 
 class PreferenceLikelihood(Module):
-    """The two likelihoods of the model, held together (``model.likelihood``)."""
+    """The likelihoods of the model, held together (``model.likelihood``): ``comparison``,
+    ``rating`` (Beta, or ordinal for levels) and ``tie`` (which shares ``comparison``'s ``sigma_R``)."""
 
-    def __init__(self, comparison: PairwiseProbitLikelihood, rating: BetaRatingLikelihood):
+    def __init__(self, comparison: PairwiseProbitLikelihood, rating: BetaRatingLikelihood | OrdinalRatingLikelihood,
+                 tie: TieLikelihood | None = None):
         super().__init__()
         self.comparison = comparison
         self.rating = rating
+        self.tie = tie if tie is not None else TieLikelihood(comparison=comparison)
 
 
 class PreferenceGP(Model, GP):
@@ -78,6 +82,14 @@ class PreferenceGP(Model, GP):
             and to every input of :meth:`posterior`.
         rating_eps: where exact 0 / 1 ratings are moved to.
         max_newton_iter: iteration budget of the mode finder.
+        ties: ``t x 2`` long, rows ``[i, j]``: "no preference" between items ``i`` and ``j``
+            (:class:`~torchpref.ordinal.TieLikelihood`).
+        rating_levels: ``K``: the ratings are levels ``1..K``, scored by the ordinal likelihood
+            (:class:`~torchpref.ordinal.OrdinalRatingLikelihood`) instead of the Beta one.
+        tie_threshold: ``tau`` of the tie likelihood (default 0.1).
+        cut_points: the ordinal likelihood's ``K - 1`` cut points (default
+            :func:`~torchpref.ordinal.default_cut_points`, the Beta link's bin edges).
+        level_noise: the ordinal likelihood's ``sigma`` (default 0.2).
 
     Example:
         >>> model = PreferenceGP(X, comparisons=C, ratings=u, rating_index=idx)
@@ -102,14 +114,25 @@ class PreferenceGP(Model, GP):
         input_transform: InputTransform | None = None,
         rating_eps: float = DEFAULT_RATING_EPS,
         max_newton_iter: int = 100,
+        ties: Tensor | None = None,
+        rating_levels: int | None = None,
+        tie_threshold: float = 0.1,
+        cut_points: Tensor | None = None,
+        level_noise: float = 0.2,
     ) -> None:
         super().__init__()
-        data = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
+        data = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps, ties=ties,
+                                     rating_levels=rating_levels)
         self.covar_module = covar_module if covar_module is not None else default_covar_module(data.dim)
+        comparison = PairwiseProbitLikelihood(comparison_noise, learn=learn_likelihood)
+        if rating_levels is None:
+            rating = BetaRatingLikelihood(rating_scale, rating_precision, learn=learn_likelihood)
+        else:
+            if cut_points is None:
+                cut_points = default_cut_points(int(rating_levels), rating_scale)
+            rating = OrdinalRatingLikelihood(int(rating_levels), cut_points, level_noise, learn=learn_likelihood)
         self.likelihood = PreferenceLikelihood(
-            PairwiseProbitLikelihood(comparison_noise, learn=learn_likelihood),
-            BetaRatingLikelihood(rating_scale, rating_precision, learn=learn_likelihood),
-        )
+            comparison, rating, TieLikelihood(tie_threshold, comparison, learn=learn_likelihood))
         if input_transform is not None:
             self.input_transform = input_transform
         self.rating_eps = rating_eps
@@ -144,6 +167,16 @@ class PreferenceGP(Model, GP):
         return self._data.rating_index
 
     @property
+    def ties(self) -> Tensor:
+        """``t x 2`` long: the "no preference" pairs."""
+        return self._data.ties
+
+    @property
+    def rating_levels(self) -> int | None:
+        """``K`` when ratings are levels ``1..K`` (ordinal likelihood), else ``None``."""
+        return self._data.rating_levels
+
+    @property
     def train_inputs(self) -> tuple[Tensor]:
         return (self._data.train_X,)
 
@@ -160,8 +193,12 @@ class PreferenceGP(Model, GP):
         return self.likelihood.comparison
 
     @property
-    def rating_likelihood(self) -> BetaRatingLikelihood:
+    def rating_likelihood(self) -> BetaRatingLikelihood | OrdinalRatingLikelihood:
         return self.likelihood.rating
+
+    @property
+    def tie_likelihood(self) -> TieLikelihood:
+        return self.likelihood.tie
 
     # The model applies its input transform itself (``_transformed_train_X``): BoTorch's
     # swapping of transformed training inputs on train()/eval() must not replace the data.
@@ -192,7 +229,8 @@ class PreferenceGP(Model, GP):
 
     def _observations(self) -> Observations:
         d = self._data
-        return Observations(d.comparisons, d.ratings, d.rating_index, self.likelihood.comparison, self.likelihood.rating)
+        return Observations(d.comparisons, d.ratings, d.rating_index, self.likelihood.comparison, self.likelihood.rating,
+                            d.ties, self.likelihood.tie)
 
     def _set_data(self, data: PreferenceData, warm_f: Tensor | None) -> None:
         """Swap in new data; re-solve the mode first and keep the old state if that fails."""
@@ -212,18 +250,19 @@ class PreferenceGP(Model, GP):
         comparisons: Tensor | None = None,
         ratings: Tensor | None = None,
         rating_index: Tensor | None = None,
+        ties: Tensor | None = None,
     ) -> "PreferenceGP":
         r"""Add items and observations in place, warm-starting the mode (no refit from scratch).
 
-        Indices in ``comparisons`` and ``rating_index`` refer to the rows of ``X`` when ``X`` is
-        given (rows equal to an existing item reuse its index), otherwise to ``train_X``. The
-        input is validated and the new mode solved before anything changes: on error the model
-        is left exactly as it was.
+        Indices in ``comparisons``, ``ties`` and ``rating_index`` refer to the rows of ``X`` when
+        ``X`` is given (rows equal to an existing item reuse its index), otherwise to ``train_X``.
+        Ratings are levels ``1..K`` for a model with ``rating_levels``. The input is validated and
+        the new mode solved before anything changes: on error the model is left exactly as it was.
 
         Returns:
             ``self``.
         """
-        new = self._data.add(X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
+        new = self._data.add(X, comparisons, ratings, rating_index, rating_eps=self.rating_eps, ties=ties)
         warm = None
         if self._cache is not None or self._data.num_observations:
             f_old = self._state()["mode"].f
@@ -236,9 +275,11 @@ class PreferenceGP(Model, GP):
         self._set_data(new, warm)
         return self
 
-    def set_train_data(self, train_X, comparisons=None, ratings=None, rating_index=None, strict: bool = False):
+    def set_train_data(self, train_X, comparisons=None, ratings=None, rating_index=None, strict: bool = False,
+                       ties=None):
         """Replace all data (validated first; the model is unchanged on error)."""
-        new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
+        new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps, ties=ties,
+                                    rating_levels=self.rating_levels)
         new = new.to(device=self._data.train_X.device, dtype=self._data.train_X.dtype)
         self._set_data(new, None)
 
@@ -400,21 +441,44 @@ class PreferenceGP(Model, GP):
         mean, var = self.marginals(X)
         return self.likelihood.rating.expected_rating(mean, var)
 
-    def preference_probability(self, Xa: Tensor, Xb: Tensor) -> Tensor:
-        r"""``P(a preferred to b)`` row by row (``... x d`` each): ``Phi((m_a - m_b) /
-        sqrt(2 sigma_R^2 + v_a + v_b - 2 c_ab))``."""
+    def expected_level(self, X: Tensor) -> Tensor:
+        r"""Expected level ``1 + sum_k Phi((m - c_k) / sqrt(sigma^2 + v))`` at each row of ``X``
+        (``... x d``), for a model with ``rating_levels``."""
+        return self._ordinal().expected_level(*self.marginals(X))
+
+    def level_probabilities(self, X: Tensor) -> Tensor:
+        r"""Predictive probability of each level at each row of ``X`` (``... x d``): ``... x K``."""
+        return self._ordinal().level_probabilities(*self.marginals(X))
+
+    def _ordinal(self) -> OrdinalRatingLikelihood:
+        if not isinstance(self.likelihood.rating, OrdinalRatingLikelihood):
+            raise ValueError("levels are predicted by a model with rating_levels=K (ordinal ratings).")
+        return self.likelihood.rating
+
+    def _pair_moments(self, Xa: Tensor, Xb: Tensor) -> tuple[Tensor, Tensor]:
+        """Posterior mean and variance of ``f(a) - f(b)``, row by row."""
         if Xa.shape != Xb.shape:
             raise ValueError(f"Xa and Xb must have the same shape, got {tuple(Xa.shape)} and {tuple(Xb.shape)}.")
         mvn = self.posterior(torch.stack([Xa, Xb], dim=-2)).distribution
         m, S = mvn.mean, mvn.covariance_matrix
-        var = S[..., 0, 0] + S[..., 1, 1] - 2 * S[..., 0, 1]
-        return self.likelihood.comparison.preference_probability(m[..., 0] - m[..., 1], var)
+        return m[..., 0] - m[..., 1], S[..., 0, 0] + S[..., 1, 1] - 2 * S[..., 0, 1]
+
+    def preference_probability(self, Xa: Tensor, Xb: Tensor) -> Tensor:
+        r"""``P(a preferred to b)`` row by row (``... x d`` each): ``Phi((m_a - m_b) /
+        sqrt(2 sigma_R^2 + v_a + v_b - 2 c_ab))``."""
+        return self.likelihood.comparison.preference_probability(*self._pair_moments(Xa, Xb))
+
+    def tie_probability(self, Xa: Tensor, Xb: Tensor) -> Tensor:
+        r"""``P(no preference between a and b)`` row by row (``... x d`` each), the tie likelihood
+        integrated over the posterior of ``f(a) - f(b)``."""
+        return self.likelihood.tie.tie_probability(*self._pair_moments(Xa, Xb))
 
     def _apply(self, fn, *args, **kwargs):
         super()._apply(fn, *args, **kwargs)
         data = getattr(self, "_data", None)
         if data is not None:
-            self._data = PreferenceData(*(fn(t) for t in (data.train_X, data.comparisons, data.ratings, data.rating_index)))
+            self._data = PreferenceData(*(fn(t) for t in (data.train_X, data.comparisons, data.ratings, data.rating_index,
+                                                          data.ties)), data.rating_levels)
             self._cache, self._warm_f = None, None
         return self
 

@@ -1,0 +1,193 @@
+"""Ties and ordinal levels in PreferenceGP: the Laplace mode against SciPy on the log posterior,
+the evidence gradient (kernel, tie threshold, cut points) against finite differences, fitting,
+predictives and bad input."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from botorch.fit import fit_gpytorch_mll
+from gpytorch.kernels import RBFKernel, ScaleKernel
+from scipy import optimize, special, stats
+
+from conftest import rand, random_comparisons
+from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
+
+SQRT2 = math.sqrt(2.0)
+
+
+def kernel(ls: float, os_: float, d: int) -> ScaleKernel:
+    k = ScaleKernel(RBFKernel(ard_num_dims=d)).to(torch.float64)
+    k.base_kernel.lengthscale = torch.full((d,), ls, dtype=torch.float64)
+    k.outputscale = torch.tensor(os_, dtype=torch.float64)
+    return k
+
+
+def build(kind: str, seed: int = 0, learn: bool = False, n: int = 10, d: int = 2):
+    """Comparisons, ties and either Beta ratings or 5-level ratings on ``n`` random items."""
+    g = torch.Generator().manual_seed(seed)
+    X = rand(n, d, generator=g)
+    C = random_comparisons(n, 6, g)
+    ties = random_comparisons(n, 4, g)
+    ri = torch.randperm(n, generator=g)[:6]
+    if kind == "levels":
+        r = torch.tensor([1, 2, 3, 5, 4, 2], dtype=torch.float64)
+        model = PreferenceGP(X, C, r, ri, kernel(0.4, 1.3, d), ties=ties, rating_levels=5, tie_threshold=0.15,
+                             learn_likelihood=learn, comparison_noise=0.3)
+    else:
+        r = rand(6, generator=g, low=0.1, high=0.9)
+        model = PreferenceGP(X, C, r, ri, kernel(0.4, 1.3, d), ties=ties, tie_threshold=0.15,
+                             learn_likelihood=learn, comparison_noise=0.3)
+    return model
+
+
+def scipy_log_posterior(model):
+    """``log p(Y | f)`` and its gradient, with SciPy's normal CDF and density only (comparisons,
+    ties and levels)."""
+    C, T, u, ri = (model.comparisons.numpy(), model.ties.numpy(), model.ratings.numpy(), model.rating_index.numpy())
+    s = SQRT2 * float(model.likelihood.comparison.comparison_noise)
+    tau = float(model.likelihood.tie.tie_threshold)
+    rating = model.likelihood.rating
+    c = np.concatenate([[-np.inf], rating.cut_points.detach().numpy(), [np.inf]])
+    k = u.astype(int)
+    sig = float(rating.level_noise)
+    N = stats.norm
+
+    def interval(a, b):  # Phi(a) - Phi(b), a > b, without 1 - 1 in the upper tail
+        return np.where(b > 0, N.sf(b) - N.sf(a), N.cdf(a) - N.cdf(b))
+
+    def value(f):
+        d = f[T[:, 0]] - f[T[:, 1]]
+        return (special.log_ndtr((f[C[:, 0]] - f[C[:, 1]]) / s).sum()
+                + np.log(interval((tau - d) / s, (-tau - d) / s)).sum()
+                + np.log(interval((c[k] - f[ri]) / sig, (c[k - 1] - f[ri]) / sig)).sum())
+
+    def grad(f):
+        g = np.zeros_like(f)
+        z = (f[C[:, 0]] - f[C[:, 1]]) / s
+        r = N.pdf(z) / N.cdf(z) / s
+        np.add.at(g, C[:, 0], r)
+        np.add.at(g, C[:, 1], -r)
+        d = f[T[:, 0]] - f[T[:, 1]]
+        a, b = (tau - d) / s, (-tau - d) / s
+        r = (N.pdf(b) - N.pdf(a)) / interval(a, b) / s
+        np.add.at(g, T[:, 0], r)
+        np.add.at(g, T[:, 1], -r)
+        a, b = (c[k] - f[ri]) / sig, (c[k - 1] - f[ri]) / sig
+        np.add.at(g, ri, (N.pdf(b) - N.pdf(a)) / interval(a, b) / sig)
+        return g
+
+    return value, grad
+
+
+def test_mode_matches_scipy():
+    """Comparisons, ties and ordinal levels together: our Newton mode is SciPy's maximum."""
+    model = build("levels")
+    value, grad = scipy_log_posterior(model)
+    # maximise log p(Y | L a) - a^T a / 2 over whitened a (L from NumPy): a well-conditioned problem
+    Lnp = np.linalg.cholesky(model.covar_module(model.train_X).to_dense().detach().numpy())
+    res = optimize.minimize(lambda a: -value(Lnp @ a) + 0.5 * a @ a, np.zeros(Lnp.shape[0]),
+                            jac=lambda a: -Lnp.T @ grad(Lnp @ a) + a, method="BFGS",
+                            options={"gtol": 1e-8, "maxiter": 10000})
+    root = optimize.root(lambda a: Lnp.T @ grad(Lnp @ a) - a, res.x, tol=1e-14)  # polish: zero gradient
+    assert root.success and np.abs(root.fun).max() < 1e-10 and -value(Lnp @ root.x) + 0.5 * root.x @ root.x <= res.fun
+    f_scipy = Lnp @ root.x
+    ours = model.mode.f.numpy()
+    np.testing.assert_allclose(ours, f_scipy, atol=1e-7)
+    # W (eq. 8) against central differences of SciPy's gradient of log p(Y|f)
+    n, h = ours.shape[0], 1e-5
+    H = np.stack([(grad(ours + h * e) - grad(ours - h * e)) / (2 * h) for e in np.eye(n)], axis=1)
+    np.testing.assert_allclose(model.W().numpy(), -0.5 * (H + H.T), atol=1e-6 * np.abs(H).max())
+
+
+def _raw_params(model, learn: bool) -> dict:
+    k = model.covar_module
+    params = {"lengthscale": k.base_kernel.raw_lengthscale, "outputscale": k.raw_outputscale}
+    if learn:
+        params["tie_threshold"] = model.likelihood.tie.raw_tie_threshold
+        params["comparison_noise"] = model.likelihood.comparison.raw_comparison_noise
+        if model.rating_levels:
+            params["cut_points"] = model.likelihood.rating.raw_cut_points
+    return params
+
+
+@pytest.mark.parametrize("kind,learn", [("levels", True), ("beta", True), ("levels", False)])
+def test_evidence_gradient_vs_finite_differences(kind, learn):
+    model = build(kind, seed=3, learn=learn)
+    params = _raw_params(model, learn)
+    value = model.log_marginal_likelihood()
+    grads = torch.autograd.grad(value, list(params.values()))
+    h = 1e-5
+    for (name, p), g in zip(params.items(), grads):
+        for k in range(p.numel()):
+            with torch.no_grad():
+                p.view(-1)[k] += h
+                up = float(model.log_marginal_likelihood().detach())  # re-solves the mode
+                p.view(-1)[k] -= 2 * h
+                down = float(model.log_marginal_likelihood().detach())
+                p.view(-1)[k] += h
+            fd = (up - down) / (2 * h)
+            gk = float(g.reshape(-1)[k])
+            assert abs(gk - fd) <= 1e-5 * max(abs(fd), 1e-2), f"{name}[{k}]: autograd {gk} vs FD {fd}"
+
+
+def test_fit_learns_tie_threshold_and_cut_points():
+    """``fit_gpytorch_mll`` moves the tie threshold and the cut points, keeps them ordered and
+    increases the evidence plus priors."""
+    model = build("levels", seed=1, learn=True, n=14)
+    mll = LaplaceMarginalLogLikelihood(model)
+    before = float(mll().detach())
+    tau0, c0 = float(model.likelihood.tie.tie_threshold.detach()), model.likelihood.rating.cut_points.detach().clone()
+    fit_gpytorch_mll(mll)
+    assert float(mll().detach()) > before
+    assert float(model.likelihood.tie.tie_threshold.detach()) != tau0
+    c = model.likelihood.rating.cut_points.detach()
+    assert not torch.equal(c, c0) and (c.diff() > 0).all()
+
+
+def test_ties_pull_utilities_together():
+    """A tie between two items pulls their posterior means together; ignoring it does not."""
+    X = torch.tensor([[0.1], [0.5], [0.9]], dtype=torch.float64)
+    C = torch.tensor([[0, 1], [0, 2]])
+    without = PreferenceGP(X, C, covar_module=kernel(0.1, 1.0, 1))
+    with_tie = PreferenceGP(X, C, covar_module=kernel(0.1, 1.0, 1), ties=torch.tensor([[1, 2]]))
+    gap = lambda m: abs(float(m.mode.f[1] - m.mode.f[2]))
+    assert gap(with_tie) < gap(without) + 1e-12
+    model = PreferenceGP(X, torch.tensor([[0, 1]]), covar_module=kernel(0.1, 1.0, 1))
+    p0 = float(model.tie_probability(X[1:2], X[2:3]).detach())
+    model.add_observations(ties=torch.tensor([[2, 1]]))
+    assert model.ties.tolist() == [[2, 1]]
+    assert float(model.tie_probability(X[1:2], X[2:3]).detach()) > p0
+
+
+def test_level_predictives_and_expected_rating():
+    model = build("levels", seed=2)
+    X = model.train_X[:4]
+    probs = model.level_probabilities(X)
+    assert probs.shape == (4, 5)
+    torch.testing.assert_close(probs.sum(-1), torch.ones(4, dtype=torch.float64))
+    level = model.expected_level(X)
+    torch.testing.assert_close(level, (probs * torch.arange(1, 6, dtype=torch.float64)).sum(-1))
+    torch.testing.assert_close(model.expected_rating(X), (level - 0.5) / 5)
+    with pytest.raises(ValueError, match="rating_levels"):
+        build("beta").expected_level(X)
+
+
+def test_bad_input_is_refused_and_leaves_the_model_unchanged():
+    model = build("levels", seed=4)
+    before = (model.ties.clone(), model.ratings.clone(), model.mode.f.clone())
+    with pytest.raises(ValueError, match="tied with itself"):
+        model.add_observations(ties=torch.tensor([[3, 3]]))
+    with pytest.raises(ValueError, match=r"1\.\.5.*6"):
+        model.add_observations(ratings=torch.tensor([6.0]), rating_index=torch.tensor([0]))
+    with pytest.raises(ValueError, match=r"1\.\.5.*0\.3"):
+        model.add_observations(ratings=torch.tensor([0.3]), rating_index=torch.tensor([0]))
+    with pytest.raises(ValueError, match="same item"):
+        model.add_observations(torch.zeros(2, 2, dtype=torch.float64), ties=torch.tensor([[0, 1]]))
+    assert torch.equal(model.ties, before[0]) and torch.equal(model.ratings, before[1])
+    torch.testing.assert_close(model.mode.f, before[2])
+    with pytest.raises(ValueError, match="tied with itself"):
+        PreferenceGP(torch.rand(3, 1, dtype=torch.float64), ties=[[1, 1]])
+    with pytest.raises(ValueError, match="rating_levels"):
+        PreferenceGP(torch.rand(3, 1, dtype=torch.float64), ratings=[1], rating_index=[0], rating_levels=1)
