@@ -227,3 +227,27 @@ def test_tie_shares_the_comparison_noise():
     assert float(tie.log_prob(torch.tensor(0.05, **T))) != float(before)
     assert float(tie.tie_probability(torch.tensor(0.0, **T), torch.tensor(0.0, **T))) == pytest.approx(
         stats.norm.cdf(0.1 / (SQRT2 * 0.5)) - stats.norm.cdf(-0.1 / (SQRT2 * 0.5)), rel=1e-12)
+
+
+@pytest.mark.parametrize("tau,sigma_R", [(0.1, 0.1), (0.5, 1.0)])
+def test_strict_preference_is_the_tie_upper_category(tau, sigma_R):
+    from torchpref.ordinal import StrictPreferenceLikelihood
+
+    tie = TieLikelihood(tau, PairwiseProbitLikelihood(sigma_R))
+    strict = StrictPreferenceLikelihood(tie)
+    s = SQRT2 * sigma_R
+    eta = torch.linspace(-3.5 * s - tau, 3.5 * s + tau, 41, **T)
+    total = strict.log_prob(eta).exp() + tie.log_prob(eta).exp() + strict.log_prob(-eta).exp()
+    torch.testing.assert_close(total, torch.ones_like(eta), rtol=0, atol=1e-14)
+    ref = autograd3(lambda e: torch.special.log_ndtr((e - tau) / s), eta)
+    lp, d1, d2 = strict.derivatives(eta)
+    torch.testing.assert_close(lp, ref[0], rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(d1, ref[1], rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(d2, ref[2], rtol=1e-8, atol=1e-11)
+    torch.testing.assert_close(strict.third_derivative(eta), ref[3], rtol=1e-6, atol=1e-9)
+    # predictive: the three categories' predictive probabilities also sum to one
+    m, v = torch.tensor([0.3, -0.1], **T), torch.tensor([0.2, 1.0], **T)
+    total = strict.preference_probability(m, v) + tie.tie_probability(m, v) + strict.preference_probability(-m, v)
+    torch.testing.assert_close(total, torch.ones_like(m), rtol=0, atol=1e-14)
+    zero = StrictPreferenceLikelihood(TieLikelihood(1e-300, PairwiseProbitLikelihood(sigma_R)))
+    torch.testing.assert_close(zero.log_prob(eta), PairwiseProbitLikelihood(sigma_R).log_prob(eta))  # tau = 0: eq. 3

@@ -31,7 +31,7 @@ from torchpref.laplace import (
     predictive_cache,
 )
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
-from torchpref.ordinal import OrdinalRatingLikelihood, TieLikelihood, default_cut_points
+from torchpref.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood, default_cut_points
 from torchpref.numerics import cholesky_jittered
 
 
@@ -49,7 +49,8 @@ def default_covar_module(dim: int) -> ScaleKernel:
 
 class PreferenceLikelihood(Module):
     """The likelihoods of the model, held together (``model.likelihood``): ``comparison``,
-    ``rating`` (Beta, or ordinal for levels) and ``tie`` (which shares ``comparison``'s ``sigma_R``)."""
+    ``rating`` (Beta, or ordinal for levels), ``tie`` (which shares ``comparison``'s ``sigma_R``) and
+    ``strict`` (a comparison where "no preference" was allowed, the tie's upper category)."""
 
     def __init__(self, comparison: PairwiseProbitLikelihood, rating: BetaRatingLikelihood | OrdinalRatingLikelihood,
                  tie: TieLikelihood | None = None):
@@ -57,6 +58,7 @@ class PreferenceLikelihood(Module):
         self.comparison = comparison
         self.rating = rating
         self.tie = tie if tie is not None else TieLikelihood(comparison=comparison)
+        self.strict = StrictPreferenceLikelihood(self.tie)
 
 
 class PreferenceGP(Model, GP):
@@ -89,7 +91,11 @@ class PreferenceGP(Model, GP):
         tie_threshold: ``tau`` of the tie likelihood (default 0.1).
         cut_points: the ordinal likelihood's ``K - 1`` cut points (default
             :func:`~torchpref.ordinal.default_cut_points`, the Beta link's bin edges).
-        level_noise: the ordinal likelihood's ``sigma`` (default 0.2).
+        ties_offered: "no preference" was an allowed answer to the comparisons, which are then
+            scored ``Phi((f_i - f_j - tau) / (sqrt 2 sigma_R))`` (the tie's ordered probit) instead
+            of eq. 3 (a forced choice); needed to learn ``tau``. Default ``False``.
+        level_noise: the ordinal likelihood's ``sigma``; default ``sqrt(pi) sigma_B / sqrt(nu + 1)``,
+            the Beta likelihood's rating noise at mid-scale in latent units (0.197 at the defaults).
 
     Example:
         >>> model = PreferenceGP(X, comparisons=C, ratings=u, rating_index=idx)
@@ -118,7 +124,8 @@ class PreferenceGP(Model, GP):
         rating_levels: int | None = None,
         tie_threshold: float = 0.1,
         cut_points: Tensor | None = None,
-        level_noise: float = 0.2,
+        level_noise: float | None = None,
+        ties_offered: bool = False,
     ) -> None:
         super().__init__()
         data = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps, ties=ties,
@@ -130,9 +137,12 @@ class PreferenceGP(Model, GP):
         else:
             if cut_points is None:
                 cut_points = default_cut_points(int(rating_levels), rating_scale)
+            if level_noise is None:  # sd of Beta(nu/2, nu/2) over d mu / d f at f = 0
+                level_noise = math.sqrt(math.pi) * rating_scale / math.sqrt(rating_precision + 1)
             rating = OrdinalRatingLikelihood(int(rating_levels), cut_points, level_noise, learn=learn_likelihood)
         self.likelihood = PreferenceLikelihood(
             comparison, rating, TieLikelihood(tie_threshold, comparison, learn=learn_likelihood))
+        self.ties_offered = bool(ties_offered)
         if input_transform is not None:
             self.input_transform = input_transform
         self.rating_eps = rating_eps
@@ -229,8 +239,9 @@ class PreferenceGP(Model, GP):
 
     def _observations(self) -> Observations:
         d = self._data
-        return Observations(d.comparisons, d.ratings, d.rating_index, self.likelihood.comparison, self.likelihood.rating,
-                            d.ties, self.likelihood.tie)
+        lik = self.likelihood
+        comparison = lik.strict if self.ties_offered else lik.comparison
+        return Observations(d.comparisons, d.ratings, d.rating_index, comparison, lik.rating, d.ties, lik.tie)
 
     def _set_data(self, data: PreferenceData, warm_f: Tensor | None) -> None:
         """Swap in new data; re-solve the mode first and keep the old state if that fails."""
@@ -465,8 +476,9 @@ class PreferenceGP(Model, GP):
 
     def preference_probability(self, Xa: Tensor, Xb: Tensor) -> Tensor:
         r"""``P(a preferred to b)`` row by row (``... x d`` each): ``Phi((m_a - m_b) /
-        sqrt(2 sigma_R^2 + v_a + v_b - 2 c_ab))``."""
-        return self.likelihood.comparison.preference_probability(*self._pair_moments(Xa, Xb))
+        sqrt(2 sigma_R^2 + v_a + v_b - 2 c_ab))`` (with ``ties_offered``, ``m_a - m_b - tau``)."""
+        lik = self.likelihood.strict if self.ties_offered else self.likelihood.comparison
+        return lik.preference_probability(*self._pair_moments(Xa, Xb))
 
     def tie_probability(self, Xa: Tensor, Xb: Tensor) -> Tensor:
         r"""``P(no preference between a and b)`` row by row (``... x d`` each), the tie likelihood

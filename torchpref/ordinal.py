@@ -101,6 +101,52 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
         return Bernoulli(probs=self.tie_probability(m[..., i] - m[..., j], S[..., i, i] + S[..., j, j] - 2 * S[..., i, j]))
 
 
+
+class StrictPreferenceLikelihood(Likelihood):
+    r"""A strict comparison where "no preference" was an allowed answer: the upper category of the
+    tie's ordered probit,
+
+    .. math::
+        p(x_i \succ x_j \mid f) = \Phi\!\left(\frac{\eta - \tau}{s}\right), \qquad \eta = f_i - f_j,
+
+    so that strict answers, ties and reversed answers sum to one. Without it (eq. 3, a forced
+    choice) the likelihood of the data only grows with ``tau`` and ``tau`` cannot be learned.
+    With ``tau = 0`` it is eq. 3. Log-concave.
+
+    Args:
+        tie: the :class:`TieLikelihood` whose ``tau`` and ``sigma_R`` it uses.
+    """
+
+    def __init__(self, tie: TieLikelihood):
+        super().__init__()
+        self.tie = tie
+
+    def _bounds(self, eta: Tensor) -> tuple[Tensor, Tensor]:
+        return torch.full_like(eta, math.inf), self.tie.tie_threshold - eta
+
+    def forward(self, function_samples: Tensor, comparisons: Tensor) -> Bernoulli:
+        """Distribution of "the first item of each row is strictly preferred" (``... x p``)."""
+        eta = function_samples[..., comparisons[:, 0]] - function_samples[..., comparisons[:, 1]]
+        return Bernoulli(probs=self.log_prob(eta).exp())
+
+    def log_prob(self, eta: Tensor) -> Tensor:
+        return self.derivatives(eta)[0]
+
+    def derivatives(self, eta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(log p, d log p / d eta, d^2 log p / d eta^2)``, elementwise."""
+        return normal_interval(*self._bounds(eta), self.tie.comparison._scale())
+
+    def third_derivative(self, eta: Tensor) -> Tensor:
+        return normal_interval(*self._bounds(eta), self.tie.comparison._scale(), third=True)[3]
+
+    def fisher(self, eta: Tensor) -> Tensor:
+        return -self.derivatives(eta)[2]
+
+    def preference_probability(self, mean_diff: Tensor, var_diff: Tensor) -> Tensor:
+        r"""Predictive ``P(a > b) = Phi((m - tau) / sqrt(2 sigma_R^2 + v))``."""
+        r = torch.sqrt(2 * self.tie.comparison.comparison_noise**2 + var_diff.clamp_min(0))
+        return torch.special.ndtr((mean_diff - self.tie.tie_threshold) / r)
+
 def default_cut_points(num_levels: int, rating_scale: float = 1.0) -> Tensor:
     r"""``c_k = sqrt 2 sigma_B Phi^{-1}(k / K)``, ``k = 1..K-1``: where the Beta likelihood's mean
     rating (eq. 7) crosses the edges of the ``K`` equal bins of ``likert_to_unit``, so that the
