@@ -16,8 +16,9 @@ Two paired studies; in each trial every arm sees the same items and the same ans
 * **Ties**: 30 random pairs answered by a user who says "no preference" when the perceived
   utilities (noise ``sigma_R = 0.05`` each) differ by less than a margin (10 % or 25 % of the
   utility's range on the grid). Arms: ``ignored`` (no-preference answers add nothing: the
-  behaviour before this study), ``used`` (tie likelihood, ``tau`` = the margin), ``learned``
-  (``tau`` fitted, starting from the default 0.1). Metrics: WRMS of the expected rating on
+  behaviour before this study), ``used`` (tie likelihood, ``tau`` = the margin, strict answers
+  as the tie's upper category: ``ties_offered=True``), ``learned`` (the same with ``tau`` fitted,
+  starting from the default 0.1). Metrics: WRMS of the expected rating on
   ``[0, 1]`` (as the wave experiment), top-15 true positives, regret.
 
 Run ``nice -n 10 python benchmarks/ordinal.py [--trials 100]``; writes
@@ -120,9 +121,11 @@ def scores(est_rating: torch.Tensor, est_utility: torch.Tensor, u_true: torch.Te
             "regret": float((f_true.max() - f_true[best]) / (f_true.max() - f_true.min()))}
 
 
-def fit_likelihood(model) -> int:
-    """Fit the likelihood parameters that require gradients (the kernel is fixed); returns the
-    number of optimiser warnings."""
+def fit_likelihood(model, *names: str) -> int:
+    """Fit the likelihood parameters ``names`` alone (the kernel is fixed); returns the number of
+    optimiser warnings."""
+    for n, p in model.named_parameters():
+        p.requires_grad_(n.split(".")[-1] in names)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
@@ -168,7 +171,7 @@ def likert_trial(kind: str, seed: int, queries: int, lake=None) -> dict:
             model = level_model(X, C, settings, learn=arm == "ordinal-learned")
             model.add_observations(ratings=levels, rating_index=rated)
             if arm == "ordinal-learned":
-                out["fit_warnings"] = fit_likelihood(model)
+                out["fit_warnings"] = fit_likelihood(model, "raw_cut_points")
         with torch.no_grad():
             mean, _ = model.marginals(X_test)
             est = model.expected_rating(X_test)  # both on the level scale's [0, 1]: (E[level] - 1/2) / K
@@ -177,15 +180,13 @@ def likert_trial(kind: str, seed: int, queries: int, lake=None) -> dict:
 
 
 def level_model(X, C, settings: dict, learn: bool):
-    """A fixed-kernel model with 5-level ordinal ratings; with ``learn`` only the cut points are trainable."""
+    """A fixed-kernel model with 5-level ordinal ratings (cut points trainable with ``learn``)."""
     base = fixed_model(X, C, settings)
     from torchpref.models import PreferenceGP
 
     model = PreferenceGP(X, C, covar_module=base.covar_module, comparison_noise=settings["comparison_noise"],
                          rating_scale=settings["rating_scale"], rating_precision=settings["rating_precision"],
                          rating_levels=K, learn_likelihood=learn)
-    for p in (model.likelihood.comparison.raw_comparison_noise, model.likelihood.tie.raw_tie_threshold):
-        p.requires_grad_(False)
     return model
 
 
@@ -210,13 +211,12 @@ def tie_trial(kind: str, margin_share: float, seed: int, queries: int) -> dict:
         else:
             from torchpref.models import PreferenceGP
 
-            model = PreferenceGP(X, C, covar_module=base.covar_module, ties=T, learn_likelihood=arm == "learned",
-                                 tie_threshold=margin if arm == "used" else 0.1,
+            model = PreferenceGP(X, C, covar_module=base.covar_module, ties=T, learn_likelihood=arm != "used",
+                                 tie_threshold=margin if arm == "used" else 0.1, ties_offered=True,
                                  comparison_noise=settings["comparison_noise"], rating_scale=settings["rating_scale"],
                                  rating_precision=settings["rating_precision"])
-            model.likelihood.comparison.raw_comparison_noise.requires_grad_(False)
-            if arm == "learned":
-                out["fit_warnings"] = fit_likelihood(model)
+            if arm == "learned":  # tau fitted (fitting sigma_R too diverges: both grow without bound)
+                out["fit_warnings"] = fit_likelihood(model, "raw_tie_threshold")
                 out["tau_learned"] = float(model.likelihood.tie.tie_threshold.detach())
         with torch.no_grad():
             mean, _ = model.marginals(X_test)

@@ -37,6 +37,7 @@ from torch import Tensor
 from torch.distributions import Beta
 
 from torchpref.numerics import log_ndtr
+from torchpref.ordinal import OrdinalRatingLikelihood
 
 
 def latent_ucb(model, gamma: float = 3.0) -> UpperConfidenceBound:
@@ -63,7 +64,8 @@ class QueryInformation(AcquisitionFunction):
 
     ``q = 1``: a rating ``u ~ Beta(nu mu(f), nu (1 - mu(f)))`` with ``f ~ N(m, v)``; computed by
     Gauss-Hermite quadrature over ``f`` (closed-form Beta entropies) and a midpoint grid over
-    ``u`` for the predictive entropy.
+    ``u`` for the predictive entropy. For a model with ordinal ratings (``rating_levels``), the
+    level ``k``: ``H[E_f P(k | f)] - E_f H[P(k | f)]`` by the same quadrature over ``f``.
 
     ``q >= 2``: the index of the best item when each utility is seen with ``N(0, sigma_R^2)``
     noise; ``P(j | f) = E_eps prod_{k != j} Phi((f_j + eps - f_k) / sigma_R)`` by Gauss-Hermite,
@@ -101,6 +103,9 @@ class QueryInformation(AcquisitionFunction):
         lik = self.model.likelihood.rating
         x, w = self._gh(mean)
         f = mean.unsqueeze(-1) + torch.sqrt(2 * var.clamp_min(0)).unsqueeze(-1) * x  # b x H
+        if isinstance(lik, OrdinalRatingLikelihood):  # a level: H[E_f P(k | f)] - E_f H[P(k | f)]
+            P = lik(f).probs  # b x H x K
+            return (_entropy((w.unsqueeze(-1) * P).sum(-2)) - (w * _entropy(P)).sum(-1)).clamp_min(0)
         _, _, nu, a, b = lik._shape(f)
         # far-out quadrature nodes can underflow a Beta shape to 0; its entropy term has weight ~0
         tiny = torch.finfo(f.dtype).tiny
@@ -164,7 +169,11 @@ def choice_probabilities(f: Tensor, comparison_noise: float | Tensor, num_quadra
 def rating_bin_probabilities(f: Tensor, rating_likelihood, num_bins: int = 32) -> Tensor:
     r"""``...`` utilities -> ``... x num_bins``: the probability of a rating in each of
     ``num_bins`` equal bins of ``[0, 1]`` (Beta density of eqs. 4-7 at the bins' midpoints,
-    normalised). A binned rating carries at most the information of the rating itself."""
+    normalised). A binned rating carries at most the information of the rating itself. For an
+    :class:`~torchpref.ordinal.OrdinalRatingLikelihood` the bins are its ``K`` levels (``... x K``,
+    exact; ``num_bins`` is not used)."""
+    if isinstance(rating_likelihood, OrdinalRatingLikelihood):
+        return rating_likelihood(f).probs
     u = (torch.arange(num_bins, dtype=f.dtype, device=f.device) + 0.5) / num_bins
     # bins first: the softmax then runs over contiguous rows (a short last dimension is slow)
     logp = rating_likelihood.log_prob(f.unsqueeze(0), u.reshape(num_bins, *([1] * f.dim())))

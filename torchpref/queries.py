@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from torchpref.data import best_of_m
+from torchpref.data import best_of_m, unit_to_likert
 
 
 @dataclass(frozen=True)
@@ -75,7 +75,9 @@ def record_answer(model, query: Query, answer) -> None:
     """Add a query's answer to ``model`` (a :class:`~torchpref.PreferenceGP`), validated first."""
     if isinstance(query, RatingQuery):
         u = query.validate_answer(answer)
-        model.add_observations(query.items, ratings=[u], rating_index=[0])
+        levels = getattr(model, "rating_levels", None)  # an ordinal model records the level of u's bin
+        model.add_observations(query.items, ratings=[u] if levels is None else unit_to_likert(u, levels),
+                               rating_index=[0])
     elif isinstance(query, RankingQuery):
         j = query.validate_answer(answer)
         model.add_observations(query.items, comparisons=query.comparisons(j))
