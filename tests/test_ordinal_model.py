@@ -207,3 +207,24 @@ def test_bad_input_is_refused_and_leaves_the_model_unchanged():
         PreferenceGP(torch.rand(3, 1, dtype=torch.float64), ties=[[1, 1]])
     with pytest.raises(ValueError, match="rating_levels"):
         PreferenceGP(torch.rand(3, 1, dtype=torch.float64), ratings=[1], rating_index=[0], rating_levels=1)
+
+
+def test_batched_model_with_ties_and_levels_matches_single_models():
+    """Problems of different sizes in one batched model (ties and levels padded, masked) have the
+    modes of the same problems fitted alone; conditioning adds levels to every problem."""
+    g = torch.Generator().manual_seed(5)
+    X = rand(2, 6, 1, generator=g)
+    C = [torch.tensor([[0, 1]]), torch.tensor([[1, 2], [3, 4]])]
+    levels, index = [torch.tensor([1.0, 4.0]), torch.tensor([5.0])], [torch.tensor([2, 3]), torch.tensor([0])]
+    ties = [torch.tensor([[3, 4], [0, 5]]), torch.zeros(0, 2, dtype=torch.long)]
+    batch = PreferenceGP(X, C, levels, index, kernel(0.3, 1.0, 1), ties=ties, rating_levels=5, ties_offered=True)
+    for b in range(2):
+        single = PreferenceGP(X[b], C[b], levels[b], index[b], kernel(0.3, 1.0, 1), ties=ties[b], rating_levels=5,
+                              ties_offered=True)
+        torch.testing.assert_close(batch.mode.f[b], single.mode.f, rtol=0, atol=1e-10)
+    cond = batch.condition_on_observations(rand(2, 1, generator=g), ratings=torch.tensor([2.0]),
+                                           rating_index=torch.tensor([0]))
+    assert cond.ratings[:, -1].tolist() == [2.0, 2.0] and cond.ties.shape == (2, 2, 2)
+    with pytest.raises(ValueError, match=r"1\.\.5"):
+        batch.condition_on_observations(rand(2, 1, generator=g), ratings=torch.tensor([0.5]),
+                                        rating_index=torch.tensor([0]))

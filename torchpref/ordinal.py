@@ -45,6 +45,8 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
         learn: whether ``tie_threshold`` is a trainable parameter.
     """
 
+    log_concave = True  # its weights in W are never negative
+
     def __init__(self, tie_threshold: float = 0.1, comparison: PairwiseProbitLikelihood | None = None, *,
                  learn: bool = False, tie_threshold_prior=None, tie_threshold_constraint=None):
         super().__init__()
@@ -117,6 +119,8 @@ class StrictPreferenceLikelihood(Likelihood):
         tie: the :class:`TieLikelihood` whose ``tau`` and ``sigma_R`` it uses.
     """
 
+    log_concave = True  # its weights in W are never negative
+
     def __init__(self, tie: TieLikelihood):
         super().__init__()
         self.tie = tie
@@ -176,6 +180,8 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
         learn_noise: whether ``level_noise`` is trainable (it is not identifiable separately from
             the kernel's outputscale and the cut points without comparisons).
     """
+
+    log_concave = True  # its weights in W are never negative
 
     def __init__(self, num_levels: int = 5, cut_points=None, level_noise: float = 0.2, *, learn: bool = False,
                  cut_points_prior=None, learn_noise: bool = False, level_noise_prior=None):
