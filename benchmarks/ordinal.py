@@ -17,8 +17,9 @@ Two paired studies; in each trial every arm sees the same items and the same ans
   utilities (noise ``sigma_R = 0.05`` each) differ by less than a margin (10 % or 25 % of the
   utility's range on the grid). Arms: ``ignored`` (no-preference answers add nothing: the
   behaviour before this study), ``used`` (tie likelihood, ``tau`` = the margin, strict answers
-  as the tie's upper category: ``ties_offered=True``), ``learned`` (the same with ``tau`` fitted,
-  starting from the default 0.1). Metrics: WRMS of the expected rating on
+  as the tie's upper category: ``ties_offered=True``), ``default`` (the same with the default
+  ``tau = 0.1``, what a session that does not know the margin gets), ``learned`` (``tau`` fitted,
+  starting from 0.1). Metrics: WRMS of the expected rating on
   ``[0, 1]`` (as the wave experiment), top-15 true positives, regret.
 
 Run ``nice -n 10 python benchmarks/ordinal.py [--trials 100]``; writes
@@ -51,7 +52,7 @@ WAVE = {"lengthscale": 0.02, "outputscale": 0.36, "comparison_noise": 0.2, "rati
 BUMP = dict(WAVE, lengthscale=0.15, outputscale=1.0)
 LAKE = {"lengthscale": 0.15, "outputscale": 1.0, "comparison_noise": 0.1, "rating_scale": 1.0, "rating_precision": 20.0}
 LIKERT_ARMS = ["beta", "ordinal", "ordinal-learned"]
-TIE_ARMS = ["ignored", "used", "learned"]
+TIE_ARMS = ["ignored", "used", "default", "learned"]
 
 
 # ------------------------------------------------------------------------------- worlds
@@ -211,7 +212,7 @@ def tie_trial(kind: str, margin_share: float, seed: int, queries: int) -> dict:
         else:
             from torchpref.models import PreferenceGP
 
-            model = PreferenceGP(X, C, covar_module=base.covar_module, ties=T, learn_likelihood=arm != "used",
+            model = PreferenceGP(X, C, covar_module=base.covar_module, ties=T, learn_likelihood=arm == "learned",
                                  tie_threshold=margin if arm == "used" else 0.1, ties_offered=True,
                                  comparison_noise=settings["comparison_noise"], rating_scale=settings["rating_scale"],
                                  rating_precision=settings["rating_precision"])
@@ -303,7 +304,8 @@ def main(argv=None) -> int:
     arms = {"likert": LIKERT_ARMS, "ties": TIE_ARMS}
     summary = {"likert": summarise(likert, LIKERT_ARMS, [("ordinal", "beta"), ("ordinal-learned", "beta"),
                                                          ("ordinal-learned", "ordinal")]),
-               "ties": summarise(ties, TIE_ARMS, [("used", "ignored"), ("learned", "ignored"), ("learned", "used")])}
+               "ties": summarise(ties, TIE_ARMS, [("used", "ignored"), ("default", "ignored"), ("learned", "ignored"),
+                                                  ("learned", "used")])}
     for name, trials in ties.items():
         summary["ties"][name]["tie_share"] = sum(t["tie_share"] for t in trials) / len(trials)
         summary["ties"][name]["tau_learned_mean"] = sum(t["tau_learned"] for t in trials) / len(trials)
