@@ -81,6 +81,7 @@ class PosteriorState:
     fingerprint: Tensor  # the hyperparameter values it was computed for
     padded: PaddedData  # the problems, items transformed by the input transform
     jitter: float | Tensor  # diagonal jitter of L (one per problem for a batch)
+    likelihood: Module  # the likelihood module ``obs`` refers to
     obs: Observations
     mode: ModeResult  # batched: B = number of problems
     pred: PredictiveCache
@@ -373,10 +374,12 @@ class PreferenceGP(Model, GP):
             L, jitter = self._prior_factor(padded, prev)
             same_size = c is not None and c.mode.f.shape == L.shape[:-1]
             warm = c.mode.f if same_size else self._warm_f
-            obs = self._observations()
+            # the observations' index structure depends on the data only: kept across hyperparameters
+            obs = c.obs if c is not None and c.data is self._data and c.likelihood is self.likelihood \
+                else self._observations()
             mode = find_mode(L, obs, f0=warm, max_iter=self.max_newton_iter)
             pred = PredictiveCache.from_mode(L, mode)
-        self._cache = PosteriorState(self._data, fp, padded, jitter, obs, mode, pred)
+        self._cache = PosteriorState(self._data, fp, padded, jitter, self.likelihood, obs, mode, pred)
         return self._cache
 
     @property
