@@ -35,6 +35,13 @@ def _ranking(X: Tensor, indices: Tensor | None, rows: Tensor) -> RankingQuery:
     return RankingQuery(X[rows], None if indices is None else tuple(int(indices[r]) for r in rows))
 
 
+def _ranking_size(m: int) -> int:
+    """``m`` checked at construction: a whole number of items per ranking, at least 2."""
+    if isinstance(m, bool) or int(m) != m or m < 2:
+        raise ValueError(f"a ranking query needs m >= 2 items (a whole number), got m={m!r}.")
+    return int(m)
+
+
 def _check_m(m: int, X: Tensor) -> None:
     if m < 2:
         raise ValueError(f"a ranking query needs m >= 2 items, got m={m}.")
@@ -82,7 +89,7 @@ class RandomRankings(Selector):
     name = "random rankings"
 
     def __init__(self, m: int = 5):
-        self.m = m
+        self.m = _ranking_size(m)
 
     def select_batch(self, model, X, indices, step, num_steps, generators):
         _check_m(self.m, X[0])
@@ -96,7 +103,7 @@ class RandomMixed(Selector):
     name = "random mixed"
 
     def __init__(self, m: int = 5, p_ranking: float = 0.5):
-        self.m, self.p_ranking = m, p_ranking
+        self.m, self.p_ranking = _ranking_size(m), p_ranking
 
     def select_batch(self, model, X, indices, step, num_steps, generators):
         out = []
@@ -161,7 +168,7 @@ class UCBC(Selector):
     name = "UCBC"
 
     def __init__(self, gamma: float = 3.0, m: int = 5, temperatures: tuple[float, float] = (5.0, 25.0)):
-        self.gamma, self.m, self.temperatures = gamma, m, temperatures
+        self.gamma, self.m, self.temperatures = gamma, _ranking_size(m), temperatures
 
     def ranking_probability(self, step: int, num_steps: int) -> float:
         return max(0.0, (num_steps - step) / num_steps)
@@ -244,6 +251,7 @@ class InformationPerEffort(Selector):
     def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
                  gamma: float = 3.0, num_samples: int = 128, target: str = "top", top_fraction: float = 0.2,
                  num_plausible: int = 15, num_bins: int = 10, min_count: int = 8, bias_correction: bool = True):
+        m = _ranking_size(m)
         if ranking_cost is None:
             ranking_cost = 1.0 + (m - 1) / 4
         if not (rating_cost > 0 and ranking_cost > 0):
