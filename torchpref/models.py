@@ -86,6 +86,7 @@ class PosteriorState:
     pred: PredictiveCache
 
     def is_current(self, data: object, fingerprint: Tensor) -> bool:
+        """Whether this state was computed for ``data`` with the hyperparameters ``fingerprint``."""
         return self.data is data and torch.equal(self.fingerprint, fingerprint)
 
 
@@ -206,10 +207,12 @@ class PreferenceGP(Model, GP):
 
     @property
     def comparison_likelihood(self) -> PairwiseProbitLikelihood:
+        """The comparisons' likelihood (eq. 3), a :class:`~torchpref.PairwiseProbitLikelihood`."""
         return self.likelihood.comparison
 
     @property
     def rating_likelihood(self) -> BetaRatingLikelihood:
+        """The ratings' likelihood (eqs. 4-7), a :class:`~torchpref.BetaRatingLikelihood`."""
         return self.likelihood.rating
 
     # The model applies its input transform itself (``_transformed_train_X``): BoTorch's
@@ -288,7 +291,8 @@ class PreferenceGP(Model, GP):
         self._set_data(new, warm)
         return self
 
-    def set_train_data(self, train_X, comparisons=None, ratings=None, rating_index=None, strict: bool = False):
+    def set_train_data(self, train_X: Tensor, comparisons: Tensor | None = None, ratings: Tensor | None = None,
+                       rating_index: Tensor | None = None, strict: bool = False) -> None:
         """Replace all data (validated first; the model is unchanged on error)."""
         new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
         new = new.to(device=self.train_X.device, dtype=self.train_X.dtype)

@@ -13,6 +13,7 @@ import math
 from typing import Sequence
 
 import torch
+from botorch.models.model import Model
 from torch import Tensor
 
 from torchpref.acquisition import (
@@ -62,12 +63,12 @@ class Selector:
 
     name = "selector"
 
-    def select(self, model, X: Tensor, indices: Tensor | None, step: int, num_steps: int,
+    def select(self, model: Model, X: Tensor, indices: Tensor | None, step: int, num_steps: int,
                generator: torch.Generator) -> Query:
         """The next query for ``model`` among the candidates ``X`` (``N x d``)."""
         return self.select_batch(model, X.unsqueeze(0), [indices], step, num_steps, [generator])[0]
 
-    def select_batch(self, model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
         """One query per trial: ``X`` is ``T x N x d``, ``indices`` and ``generators`` one per trial."""
         raise NotImplementedError(f"{type(self).__name__} implements no select_batch: it runs one trial at a time.")
@@ -78,7 +79,8 @@ class RandomRatings(Selector):
 
     name = "random ratings"
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
         return [_rating(X[b], indices[b], int(torch.randint(X.shape[1], (1,), generator=g)))
                 for b, g in enumerate(generators)]
 
@@ -91,7 +93,8 @@ class RandomRankings(Selector):
     def __init__(self, m: int = 5):
         self.m = _ranking_size(m)
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
         _check_m(self.m, X[0])
         return [_ranking(X[b], indices[b], torch.randperm(X.shape[1], generator=g)[: self.m])
                 for b, g in enumerate(generators)]
@@ -105,7 +108,8 @@ class RandomMixed(Selector):
     def __init__(self, m: int = 5, p_ranking: float = 0.5):
         self.m, self.p_ranking = _ranking_size(m), p_ranking
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
         out = []
         for b, g in enumerate(generators):
             coin = float(torch.rand((), generator=g, dtype=torch.float64))
@@ -143,7 +147,8 @@ class UCBRatings(Selector):
     def __init__(self, gamma: float = 3.0):
         self.gamma = gamma
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
         best = _ucb(model, X, self.gamma)[0].argmax(-1).tolist()
         return [_rating(X[b], indices[b], i) for b, i in enumerate(best)]
 
@@ -171,9 +176,11 @@ class UCBC(Selector):
         self.gamma, self.m, self.temperatures = gamma, _ranking_size(m), temperatures
 
     def ranking_probability(self, step: int, num_steps: int) -> float:
+        """The probability ``max(0, (T - t) / T)`` of a ranking at zero-based query ``step`` of ``num_steps``."""
         return max(0.0, (num_steps - step) / num_steps)
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
         ucb = _ucb(model, X, self.gamma)[0]
         out = []
         for b, g in enumerate(generators):
@@ -282,7 +289,8 @@ class InformationPerEffort(Selector):
                          for g in generators])
         return mean.unsqueeze(-2) + z @ L.mT, mean, std
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
         with torch.no_grad():
             F, mean, std = self._samples(model, X, generators)  # T x S x N
             T, S, N = F.shape
