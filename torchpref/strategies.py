@@ -18,6 +18,7 @@ from torch import Tensor
 
 from torchpref.acquisition import (
     greedy_choice_set,
+    item_ucb,
     membership_information,
     rating_bin_probabilities,
     sample_information,
@@ -118,16 +119,10 @@ class RandomMixed(Selector):
         return out
 
 
-def _ucb(model, X: Tensor, gamma: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Eq. 12's ``mean + gamma * std`` at ``X`` (``T x N x d``), with the mean and std (``T x N``)."""
+def _ucb(model, X: Tensor, gamma: float) -> Tensor:
+    """Eq. 12's UCB at ``X`` (``T x N x d``): ``T x N`` (:func:`~torchpref.acquisition.item_ucb`)."""
     with torch.no_grad():
-        if hasattr(model, "marginals"):
-            mean, var = model.marginals(X)
-        else:  # any BoTorch model
-            post = model.posterior(X.unsqueeze(-2))
-            mean, var = post.mean[..., 0, 0], post.variance[..., 0, 0]
-    std = var.clamp_min(0).sqrt()
-    return mean + gamma * std, mean, std
+        return item_ucb(model, X, gamma)[0]
 
 
 def _joint(model, X: Tensor) -> tuple[Tensor, Tensor]:
@@ -149,7 +144,7 @@ class UCBRatings(Selector):
 
     def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
-        best = _ucb(model, X, self.gamma)[0].argmax(-1).tolist()
+        best = _ucb(model, X, self.gamma).argmax(-1).tolist()
         return [_rating(X[b], indices[b], i) for b, i in enumerate(best)]
 
 
@@ -181,7 +176,7 @@ class UCBC(Selector):
 
     def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
-        ucb = _ucb(model, X, self.gamma)[0]
+        ucb = _ucb(model, X, self.gamma)
         out = []
         for b, g in enumerate(generators):
             coin = float(torch.rand((), generator=g, dtype=torch.float64))
