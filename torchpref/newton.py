@@ -72,6 +72,7 @@ class Factor:
     fisher: Tensor
 
     def where(self, take: Tensor, other: "Factor") -> "Factor":
+        """Problem by problem: this factor where ``take`` (``B``) is true, ``other`` elsewhere."""
         if bool(take.all()):
             return self
         t1, t2 = take.reshape(-1, 1), take.reshape(-1, 1, 1)

@@ -69,6 +69,7 @@ class PosteriorState:
     pred: PredictiveCache
 
     def is_current(self, data: object, fingerprint: Tensor) -> bool:
+        """Whether this state was computed for ``data`` with the hyperparameters ``fingerprint``."""
         return self.data is data and torch.equal(self.fingerprint, fingerprint)
 
     @classmethod
