@@ -29,6 +29,7 @@ Run ``nice -n 10 python benchmarks/ordinal.py [--trials 100]``; writes
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import time
 import warnings
@@ -277,30 +278,41 @@ def plot(path: Path, summary: dict, arms: dict) -> None:
     fig.savefig(path, dpi=110)
 
 
+def run_likert(seeds: list[int], lake_trials: int, seed: int) -> dict:
+    from torchpref.lake.operator import LakeOperator
+    from torchpref.lake.scenario import make_scenario
+
+    likert = {kind: [likert_trial(kind, s, 20) for s in tqdm(seeds, desc=f"likert {kind}")]
+              for kind in ("wave", "bump", "partial")}
+    scenario = make_scenario(seed)
+    lo, hi = scenario.train_X.min(0).values, scenario.train_X.max(0).values
+    lake = ((scenario.train_X - lo) / (hi - lo), LakeOperator().level(scenario.train_X))
+    likert["lake"] = [likert_trial("lake", s, 20, lake) for s in tqdm(seeds[:lake_trials], desc="likert lake")]
+    return likert
+
+
+def run_ties(seeds: list[int]) -> dict:
+    return {f"{kind} {int(100 * share)}%": [tie_trial(kind, share, s, 30) for s in tqdm(seeds, desc=f"ties {kind} {share}")]
+            for kind in ("wave", "bump") for share in (0.1, 0.25)}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=100)
     parser.add_argument("--lake-trials", type=int, default=40)
     parser.add_argument("--seed", type=int, default=14)
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--studies", default="likert,ties",
+                        help="studies to run; the others' trials are read back from OUT/ordinal.json")
     args = parser.parse_args(argv)
+    studies = set(args.studies.split(","))
     single_threaded()
     args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    likert, ties = {}, {}
     seeds = trial_seeds(args.seed, args.trials)
-    for kind in ("wave", "bump", "partial"):
-        likert[kind] = [likert_trial(kind, s, 20) for s in tqdm(seeds, desc=f"likert {kind}")]
-    from torchpref.lake.scenario import make_scenario
-    from torchpref.lake.operator import LakeOperator
-
-    scenario = make_scenario(args.seed)
-    lo, hi = scenario.train_X.min(0).values, scenario.train_X.max(0).values
-    lake = ((scenario.train_X - lo) / (hi - lo), LakeOperator().level(scenario.train_X))
-    likert["lake"] = [likert_trial("lake", s, 20, lake) for s in tqdm(seeds[: args.lake_trials], desc="likert lake")]
-    for kind in ("wave", "bump"):
-        for share in (0.1, 0.25):
-            ties[f"{kind} {int(100 * share)}%"] = [tie_trial(kind, share, s, 30) for s in tqdm(seeds, desc=f"ties {kind} {share}")]
+    previous = None if studies >= {"likert", "ties"} else json.loads((args.out / "ordinal.json").read_text())
+    likert = run_likert(seeds, args.lake_trials, args.seed) if "likert" in studies else previous["likert"]
+    ties = run_ties(seeds) if "ties" in studies else previous["ties"]
     arms = {"likert": LIKERT_ARMS, "ties": TIE_ARMS}
     summary = {"likert": summarise(likert, LIKERT_ARMS, [("ordinal", "beta"), ("ordinal-learned", "beta"),
                                                          ("ordinal-learned", "ordinal")]),

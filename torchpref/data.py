@@ -134,7 +134,8 @@ def best_of_m_with_ties(best: Sequence[int] | Tensor, shown: Sequence[int] | Ten
     return comparisons, ties
 
 
-def prepare_levels(levels, num_levels: int, dtype=torch.float64, device=None) -> Tensor:
+def prepare_levels(levels: TensorLike, num_levels: int, dtype: torch.dtype = torch.float64,
+                   device: torch.device | str | None = None) -> Tensor:
     """Validate rating levels: integers in ``1..num_levels`` (kept as values of ``dtype``)."""
     lv = _as_tensor(levels, dtype=dtype, device=device).flatten()
     _check_finite("rating levels", lv)
@@ -199,7 +200,7 @@ class PreferenceData:
         ratings: TensorLike | None = None,
         rating_index: TensorLike | None = None,
         rating_eps: float = DEFAULT_RATING_EPS,
-        ties=None,
+        ties: TensorLike | None = None,
         rating_levels: int | None = None,
     ) -> "PreferenceData":
         """Validated data: ``train_X`` (``n x d``; integers become float64), ``comparisons``
@@ -281,7 +282,7 @@ class PreferenceData:
         ratings: TensorLike | None = None,
         rating_index: TensorLike | None = None,
         rating_eps: float = DEFAULT_RATING_EPS,
-        ties=None,
+        ties: TensorLike | None = None,
     ) -> "PreferenceData":
         """New data with items appended (by coordinates: duplicates reuse their index) and
         observations appended. Indices in ``comparisons`` / ``ties`` / ``rating_index`` refer to

@@ -11,9 +11,11 @@ are log-concave, so their part of ``W`` (eq. 8) is never negative. They follow t
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import torch
-from gpytorch.constraints import Positive
+from gpytorch.constraints import Interval, Positive
+from gpytorch.priors import Prior
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.likelihoods import Likelihood
 from torch import Tensor
@@ -48,7 +50,8 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
     log_concave = True  # its weights in W are never negative
 
     def __init__(self, tie_threshold: float = 0.1, comparison: PairwiseProbitLikelihood | None = None, *,
-                 learn: bool = False, tie_threshold_prior=None, tie_threshold_constraint=None):
+                 learn: bool = False, tie_threshold_prior: Prior | None = None,
+                 tie_threshold_constraint: Interval | None = None):
         super().__init__()
         self.comparison = comparison if comparison is not None else PairwiseProbitLikelihood()
         self._register("tie_threshold", tie_threshold, tie_threshold_constraint or Positive(), tie_threshold_prior,
@@ -56,6 +59,7 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
 
     @property
     def tie_threshold(self) -> Tensor:
+        """``tau``, the largest perceived difference answered with "no preference"."""
         return self._get("tie_threshold")
 
     @tie_threshold.setter
@@ -134,6 +138,7 @@ class StrictPreferenceLikelihood(Likelihood):
         return Bernoulli(probs=self.log_prob(eta).exp())
 
     def log_prob(self, eta: Tensor) -> Tensor:
+        """``log p`` of a strict answer given its predictor ``eta = f_preferred - f_other``."""
         return self.derivatives(eta)[0]
 
     def derivatives(self, eta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -141,9 +146,11 @@ class StrictPreferenceLikelihood(Likelihood):
         return normal_interval(*self._bounds(eta), self.tie.comparison._scale())
 
     def third_derivative(self, eta: Tensor) -> Tensor:
+        """``d^3 log p / d eta^3``, elementwise (for the evidence's gradient)."""
         return normal_interval(*self._bounds(eta), self.tie.comparison._scale(), third=True)[3]
 
     def fisher(self, eta: Tensor) -> Tensor:
+        """Negative second derivative; already non-negative (log-concave)."""
         return -self.derivatives(eta)[2]
 
     def preference_probability(self, mean_diff: Tensor, var_diff: Tensor) -> Tensor:
@@ -183,8 +190,9 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
 
     log_concave = True  # its weights in W are never negative
 
-    def __init__(self, num_levels: int = 5, cut_points=None, level_noise: float = 0.2, *, learn: bool = False,
-                 cut_points_prior=None, learn_noise: bool = False, level_noise_prior=None):
+    def __init__(self, num_levels: int = 5, cut_points: Tensor | Sequence[float] | None = None,
+                 level_noise: float = 0.2, *, learn: bool = False, cut_points_prior: Prior | None = None,
+                 learn_noise: bool = False, level_noise_prior: Prior | None = None):
         super().__init__()
         if int(num_levels) != num_levels or num_levels < 2:
             raise ValueError(f"num_levels must be an integer of at least 2, got {num_levels}.")
@@ -203,6 +211,7 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
 
     @property
     def level_noise(self) -> Tensor:
+        """``sigma``, the noise on the latent utility when a level is picked."""
         return self._get("level_noise")
 
     @level_noise.setter
@@ -226,7 +235,7 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
         with torch.no_grad():  # softplus^-1(g) = g + log(-expm1(-g))
             raw.copy_(torch.cat([c[:1], gaps + torch.log(-torch.expm1(-gaps))]))
 
-    def check_levels(self, levels) -> Tensor:
+    def check_levels(self, levels: Tensor | Sequence[float]) -> Tensor:
         """``levels`` as a long tensor, or a ``ValueError`` naming any value not an integer in ``1..K``."""
         y = torch.as_tensor(levels)
         bad = (y != y.round()) | (y < 1) | (y > self.num_levels) if y.is_floating_point() else (
