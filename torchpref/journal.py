@@ -92,7 +92,17 @@ class SessionVersionError(SessionFileError):
 
 
 class SessionMismatchError(SessionFileError):
-    """The file was written for other items, dimensions or settings than those given."""
+    """The file was written for other items, dimensions or settings than those given.
+
+    Attributes:
+        setting: the header field that differs (``"dim"``, ``"candidates"``, ``"bounds"``, ...).
+        theirs: the file's value, described.
+        mine: the value given, described.
+    """
+
+    def __init__(self, message: str, setting: str = "", theirs: str = "", mine: str = ""):
+        super().__init__(message)
+        self.setting, self.theirs, self.mine = setting, theirs, mine
 
 
 class SessionRepairWarning(UserWarning):
@@ -183,7 +193,8 @@ def _check_header(path, h: dict) -> None:
         c.integer("num_levels", lo=2)
     c.bounds(c.get("bounds"), "bounds", dim)
     names = h.get("names")
-    if names is not None and not (isinstance(names, list) and len(names) == dim and all(isinstance(n, str) for n in names)):
+    names_ok = isinstance(names, list) and len(names) == dim and all(isinstance(n, str) for n in names)
+    if names is not None and not names_ok:
         c.fail(f"names must be null or {dim} strings, got {names!r:.120}")
     if not isinstance(h.get("metadata", {}), dict):
         c.fail(f"metadata must be a JSON object, got {h.get('metadata')!r:.80}")
@@ -307,7 +318,8 @@ def _parse(path, data: bytes) -> tuple[dict | None, list[dict], bool]:
             if not isinstance(rec, dict) or "type" not in rec:
                 raise ValueError("not a JSON object with a 'type'")
         except RecursionError:
-            raise SessionFileCorrupt(path, i + 1, "not a valid record (nested too deeply)", last, line, offset) from None
+            reason = "not a valid record (nested too deeply)"
+            raise SessionFileCorrupt(path, i + 1, reason, last, line, offset) from None
         except (UnicodeDecodeError, ValueError) as exc:
             reason = (f"the last line is incomplete (no newline at its end; {exc})" if last and newline_missing
                       else f"not a valid record ({exc})")

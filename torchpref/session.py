@@ -49,6 +49,7 @@ __all__ = [
     "SessionMismatchError",
     "SessionRepairWarning",
     "SessionVersionError",
+    "default_ranking_size",
     "default_session_model",
     "read_session_file",
     "step_generator",
@@ -82,11 +83,23 @@ class SessionAnswer:
     time: str
 
 
-def step_generator(seed: int, step: int) -> torch.Generator:
+def step_generator(seed: int, step: int, attempt: int = 0) -> torch.Generator:
     """The generator for query ``step`` of a session seeded ``seed``: a fresh stream per step, so a
-    restarted session proposes what the uninterrupted one would have."""
-    digest = hashlib.sha256(f"torchpref-session:{int(seed)}:{int(step)}".encode()).digest()
+    restarted session proposes what the uninterrupted one would have (``attempt``: a further
+    stream for the same step, when the first one's query repeats the last answered one)."""
+    key = f"torchpref-session:{int(seed)}:{int(step)}" + (f":{int(attempt)}" if attempt else "")
+    digest = hashlib.sha256(key.encode()).digest()
     return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
+
+
+MAX_REDRAWS = 10
+"""How many further draws :meth:`PreferenceSession.ask` makes while its query repeats the last one answered."""
+
+
+def default_ranking_size(num_items: int) -> int:
+    """Items per ranking query for a pool of ``num_items`` distinct items: 5, or fewer than the
+    pool (``num_items - 1``, at least 2), so that a small pool's rankings are not all the same set."""
+    return max(2, min(5, num_items - 1))
 
 
 def default_session_model(train_X: Tensor) -> PreferenceGP:
@@ -174,7 +187,7 @@ class PreferenceSession:
         self.seed = _whole("seed", seed, None)
         self.names = None if names is None else [str(n) for n in names]
         n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
-        self.selector = selector if selector is not None else UCBC(m=min(5, n_pool) if n_pool else 5)
+        self.selector = selector if selector is not None else UCBC(m=default_ranking_size(n_pool) if n_pool else 5)
         self.model_factory = model_factory if model_factory is not None else default_session_model
         self._anchor = self.transform(self._pool[:1] if self._pool is not None else bounds.mean(0, keepdim=True))
         self._pending: tuple[int, Query] | None = None  # (step, query) until answered
@@ -220,8 +233,7 @@ class PreferenceSession:
         if h["dim"] != self.dim:
             raise SessionMismatchError(
                 f"session file {p} was written for {h['dim']}-dimensional items, but these items have "
-                f"{self.dim} dimensions."
-            )
+                f"{self.dim} dimensions.", "dim", str(h["dim"]), str(self.dim))
         for key, mine in (("candidates", self._spec), ("bounds", self.bounds.tolist()), ("seed", self.seed),
                           ("num_levels", self.num_levels)):
             if dumps_settings(h[key]) != dumps_settings(mine):
@@ -230,8 +242,8 @@ class PreferenceSession:
                     theirs, mine = _describe(theirs), _describe(mine)
                 raise SessionMismatchError(
                     f"session file {p} was written with {key} {theirs}, but this session has {key} {mine}; "
-                    f"open it with PreferenceSession.load({str(p)!r}) to use the file's settings."
-                )
+                    f"open it with PreferenceSession.load({str(p)!r}) to use the file's settings.",
+                    key, str(theirs), str(mine))
 
     @classmethod
     def load(cls, path, candidates: Tensor | Candidates | None = None, **kwargs: Any) -> "PreferenceSession":
@@ -390,18 +402,25 @@ class PreferenceSession:
         step = self.step
         if self._pending is not None and self._pending[0] == step:
             return self._pending[1]
-        gen = step_generator(self.seed, step)
+        last = sorted(self._active[-1]["items"]) if self._active else None
+        for attempt in range(MAX_REDRAWS + 1):  # not the items just answered about again (small pools)
+            query = self._select(step, attempt)
+            if sorted(query.items.tolist()) != last:
+                break
+        self._pending = (step, query)
+        return query
+
+    def _select(self, step: int, attempt: int) -> Query:
+        """The selector's query ``step`` (its ``attempt``-th draw), in the caller's coordinates."""
+        gen = step_generator(self.seed, step, attempt)
         X, idx = self._candidates.draw(gen)
         rows = torch.arange(X.shape[0])  # a pool draws each distinct item once (FinitePool)
         q = self.selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)
         if isinstance(q, RatingQuery):
             r = int(q.index)
-            query: Query = RatingQuery(X[r], None if idx is None else int(idx[r]))
-        else:
-            rr = list(q.indices)
-            query = RankingQuery(X[rr], None if idx is None else tuple(int(idx[r]) for r in rr))
-        self._pending = (step, query)
-        return query
+            return RatingQuery(X[r], None if idx is None else int(idx[r]))
+        rr = list(q.indices)
+        return RankingQuery(X[rr], None if idx is None else tuple(int(idx[r]) for r in rr))
 
     def tell(self, query: Query, answer) -> None:
         """Record ``answer`` to ``query``: a Likert level (or a ``[0, 1]`` rating if the session has
@@ -503,7 +522,8 @@ def _candidates_spec(candidates) -> tuple[Candidates, dict, Tensor, Tensor]:
         return FinitePool(pool), {"kind": "pool", "items": pool.tolist()}, pool.min(0).values, pool.max(0).values
     if isinstance(candidates, BoxCandidates):
         b = candidates.bounds.to(torch.float64)
-        return BoxCandidates(b, candidates.num), {"kind": "box", "bounds": b.tolist(), "num": candidates.num}, b[0], b[1]
+        spec = {"kind": "box", "bounds": b.tolist(), "num": candidates.num}
+        return BoxCandidates(b, candidates.num), spec, b[0], b[1]
     raise TypeError(f"candidates must be a tensor, FinitePool or BoxCandidates, got {type(candidates).__name__}.")
 
 
