@@ -17,7 +17,7 @@ import pytest
 
 pexpect = pytest.importorskip("pexpect")
 
-from torchpref.journal import records_in_force  # noqa: E402
+from torchpref.records import records_in_force  # noqa: E402
 from torchpref.session import read_session_file  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]

@@ -210,7 +210,7 @@ class Interrupt:
 def consistent(s: PreferenceSession, path, X) -> None:
     """Model, file and history agree: the history is the file's answers in force, and the
     posterior is that of a fresh session replaying the file."""
-    from torchpref.journal import records_in_force
+    from torchpref.records import records_in_force
 
     _, records, _ = read_session_file(path)
     assert [h.seq for h in s.history] == [r["seq"] for r in records_in_force(records)]

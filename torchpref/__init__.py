@@ -36,7 +36,6 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
     from torchpref.utility_functions import WaveFunction, evaluation_grid
     from torchpref.users import SimulatedUser, User
-    from torchpref.version import __version__
 
 # public name -> the torchpref module that defines it
 _EXPORTS = {

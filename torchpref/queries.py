@@ -20,6 +20,17 @@ from torch import Tensor
 from torchpref.data import best_of_m, likert_to_unit
 
 
+def as_integer(value) -> int | None:
+    """``value`` as an ``int`` if it is an integer (a Python, NumPy or 0-d integer tensor one; not
+    a bool, a float or text), else ``None``."""
+    if isinstance(value, bool):
+        return None
+    try:
+        return operator.index(value)
+    except TypeError:
+        return None
+
+
 def _is_text_or_bool(answer) -> bool:
     return isinstance(answer, (str, bytes, bool))
 
@@ -84,12 +95,7 @@ class RankingQuery:
         """
         if answer is None and no_preference:
             return None
-        try:
-            if isinstance(answer, bool):
-                raise TypeError
-            j = operator.index(answer)
-        except TypeError:
-            j = None
+        j = as_integer(answer)
         if j is None or not 0 <= j < self.m:
             raise ValueError(f"a ranking answer must be an item index in 0..{self.m - 1}, got {answer!r}.")
         return j

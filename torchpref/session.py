@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import operator
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,12 +30,13 @@ from typing import Any, Callable, Sequence
 import torch
 from torch import Tensor
 
-from torchpref.journal import (FORMAT_VERSION, Journal, SessionFileCorrupt, SessionFileError, SessionMismatchError,
-                               SessionRepairWarning, SessionVersionError, check_new_record, dumps_settings, now,
-                               read_session_file, records_in_force)
+from torchpref.journal import Journal, now, read_session_file
+from torchpref.records import (FORMAT_VERSION, SessionFileCorrupt, SessionFileError, SessionMismatchError,
+                               SessionRepairWarning, SessionVersionError, check_new_record, dumps_settings,
+                               records_in_force)
 from torchpref.models import PreferenceGP, default_covar_module
 from torchpref.queries import (BoxCandidates, Candidates, FinitePool, Query, RankingQuery, RatingQuery,
-                               first_unique_rows, record_answer)
+                               as_integer, first_unique_rows, record_answer)
 from torchpref.strategies import UCBC, Selector
 from torchpref.version import __version__
 
@@ -501,12 +501,7 @@ class PreferenceSession:
 
 def _whole(name: str, value, lo: int | None) -> int:
     """``value`` as an int (an integer, not a bool, float or text) of at least ``lo``."""
-    try:
-        if isinstance(value, bool):
-            raise TypeError
-        v = operator.index(value)
-    except TypeError:
-        v = None
+    v = as_integer(value)
     if v is None or (lo is not None and v < lo):
         raise ValueError(f"{name} must be an integer{'' if lo is None else f' >= {lo}'}, got {value!r}.")
     return v
