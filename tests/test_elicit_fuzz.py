@@ -2,7 +2,9 @@
 damaged files and hostile keystrokes must never print a traceback and never lose an answer it
 acknowledged (an answer is acknowledged when the next prompt appears).
 
-``TORCHPREF_FUZZ_RUNS`` sets the number of keystroke sessions (default 4, a few seconds each).
+``TORCHPREF_FUZZ_RUNS`` sets the number of keystroke sessions (default 2, each two processes).
+The damaged files go through the command line in-process here, and through the terminal in the
+``slow`` test.
 """
 
 import io
@@ -97,7 +99,7 @@ def drive(child, rng: random.Random, acked: list, max_steps: int = 40) -> str:
     return "quit"
 
 
-@pytest.mark.parametrize("run", range(int(os.environ.get("TORCHPREF_FUZZ_RUNS", "4"))))
+@pytest.mark.parametrize("run", range(int(os.environ.get("TORCHPREF_FUZZ_RUNS", "2"))))
 def test_hostile_keystrokes_lose_nothing(tmp_path, run):
     rng = random.Random(1000 + run)
     items, session = tmp_path / "items.csv", tmp_path / "s.jsonl"
@@ -123,7 +125,7 @@ def test_hostile_keystrokes_lose_nothing(tmp_path, run):
 def test_ctrl_c_during_start_up(tmp_path):
     items = tmp_path / "items.csv"
     items.write_text(CSV)
-    for delay in (0.3, 1.0, 2.5):
+    for delay in (0.5, 2.0):
         child = spawn("--features", items, "--session", tmp_path / "s.jsonl")
         child.expect([pexpect.TIMEOUT, PROMPT], timeout=delay)
         child.sendcontrol("c")
@@ -153,12 +155,12 @@ def damaged_files(tmp_path, valid: bytes) -> dict:
     return {name: data for name, data in bad.items()}
 
 
-def test_damaged_session_files_are_one_line_errors(tmp_path):
+def good_session(tmp_path) -> tuple[Path, Path, list]:
+    """A CSV and a session file with two answers in force, written through the terminal."""
     items, good = tmp_path / "items.csv", tmp_path / "good.jsonl"
     items.write_text(CSV)
     child = spawn("--features", items, "--session", good, "--queries", 4)
     acked: list = []
-    rng = random.Random(7)
     while len(acked) < 2:
         child.expect(PROMPT)
         ranking = child.match.group(2) is not None
@@ -168,8 +170,36 @@ def test_damaged_session_files_are_one_line_errors(tmp_path):
     child.sendline("q")
     no_traceback(child, finish(child))
     assert answers_in_file(good) == acked
-    valid = good.read_bytes()
-    for name, data in damaged_files(tmp_path, valid).items():
+    return items, good, acked
+
+
+def test_damaged_session_files_are_one_line_errors(tmp_path, monkeypatch, capsys):
+    from torchpref.cli import main
+
+    items, good, _ = good_session(tmp_path)
+    for name, data in damaged_files(tmp_path, good.read_bytes()).items():
+        path = tmp_path / f"{re.sub(r'[^a-z]+', '-', name)}.jsonl"
+        path.write_bytes(data)
+        for reply in ("n\n", "y\nq\n"):  # refuse, or accept, a repair where one is offered
+            path.write_bytes(data)
+            monkeypatch.setattr(sys, "stdin", io.StringIO(reply))
+            code = main(["elicit", "--features", str(items), "--session", str(path), "--queries", "4"])
+            out, err = capsys.readouterr()
+            assert "Traceback" not in out + err
+            if "Repair the file now" in out:
+                assert code == (0 if reply.startswith("y") else 2), (name, out, err)
+            else:
+                assert code == 2 and len(err.strip().splitlines()) == 1 and err.startswith("torchpref elicit: "), \
+                    (name, err)
+    code = main(["elicit", "--features", str(items), "--session", str(tmp_path)])
+    assert code == 2 and "is a directory" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_damaged_session_files_through_the_terminal(tmp_path):
+    items, good, _ = good_session(tmp_path)
+    rng = random.Random(7)
+    for name, data in damaged_files(tmp_path, good.read_bytes()).items():
         path = tmp_path / f"{re.sub(r'[^a-z]+', '-', name)}.jsonl"
         path.write_bytes(data)
         child = spawn("--features", items, "--session", path, "--queries", 4)

@@ -20,6 +20,7 @@ import importlib
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from torchpref.version import __version__
@@ -160,7 +161,21 @@ def _elicit(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the exit status (errors: one line on stderr)."""
+    """Run the command line; returns the exit status (errors and warnings: one line each on stderr)."""
+    shown = warnings.showwarning
+    warnings.showwarning = _warning_line
+    try:
+        return _main(argv)
+    finally:
+        warnings.showwarning = shown
+
+
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as one line (no source line): ``torchpref: SomeWarning: message``."""
+    print(f"torchpref: {category.__name__}: {one_line(message)}", file=sys.stderr if file is None else file)
+
+
+def _main(argv: list[str] | None) -> int:
     command = "torchpref"
     try:
         args = build_parser().parse_args(argv)
