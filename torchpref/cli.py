@@ -67,8 +67,9 @@ def _experiment_args(p: argparse.ArgumentParser, trials: int, queries: int) -> N
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``torchpref`` argument parser."""
-    parser = argparse.ArgumentParser(prog="torchpref", description=__doc__.split("\n")[0].strip("`r\" "))
+    """The parser of ``torchpref``'s arguments (its help texts are plain text, no markup)."""
+    parser = argparse.ArgumentParser(
+        prog="torchpref", description="Reproduce the paper's experiments, or learn your preferences in the terminal.")
     parser.add_argument("--version", action="version", version=f"torchpref {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     rep = sub.add_parser("reproduce", help="reproduce one of the paper's experiments")

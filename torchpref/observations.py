@@ -27,6 +27,10 @@ from torch import Tensor
 
 from torchpref.numerics import lower_t_matmul
 
+#: Up to this many items ``W`` is multiplied as a dense matrix (formed by one scatter, no sparse
+#: pattern to build); above it as a sparse one.
+DENSE_W_MAX_ITEMS = 256
+
 
 class TermLikelihood(Protocol):
     """What a :class:`Term` asks of its likelihood: closed-form derivatives in the predictor."""
@@ -64,6 +68,7 @@ class Term:
 
     @property
     def size(self) -> int:
+        """The number ``m`` of observations in this term."""
         return self.index.shape[-2]
 
     def _args(self) -> tuple[Tensor, ...]:
@@ -182,6 +187,7 @@ class Observations:
 
     @property
     def num_observations(self) -> int:
+        """The number of observations over all terms."""
         return sum(t.size for t in self.terms)
 
     def evaluate(self, f: Tensor, fisher: Tensor | None = None) -> LikelihoodTerms:
@@ -201,6 +207,7 @@ class Observations:
         return out if self.terms else torch.zeros(self.batch, n)
 
     def curvature_slopes(self, f: Tensor) -> tuple[Tensor, ...]:
+        """Each term's :meth:`Term.curvature_slope` at ``f``."""
         return tuple(t.curvature_slope(f) for t in self.terms)
 
     def quadratic_forms(self, S: Tensor) -> tuple[Tensor, ...]:
@@ -221,10 +228,12 @@ class Observations:
         return torch.sparse_coo_tensor(index, vals, (N, N), is_coalesced=True, check_invariants=False)
 
     def W_times(self, weights: Sequence[Tensor], X: Tensor) -> Tensor:
-        """``W X`` (``B x n x k``) for ``B x n x k`` ``X``, by the block-sparse ``W``."""
+        """``W X`` (``B x n x k``) for ``B x n x k`` ``X``: dense for small ``n``, else block-sparse."""
         B, n, k = X.shape
         if not self.terms:
             return torch.zeros_like(X)
+        if n <= DENSE_W_MAX_ITEMS:
+            return self.W_dense(n, weights) @ X
         return torch.sparse.mm(self.W_blocks(n, weights), X.reshape(B * n, k)).reshape(B, n, k)
 
     def W_dense(self, n: int, weights: Sequence[Tensor]) -> Tensor:

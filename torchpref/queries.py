@@ -48,7 +48,7 @@ class RatingQuery:
         """``1 x d``: the items shown."""
         return self.item.unsqueeze(0)
 
-    def validate_answer(self, answer, num_levels: int | None = None) -> float:
+    def validate_answer(self, answer: object, num_levels: int | None = None) -> float:
         """The rating in ``[0, 1]`` that ``answer`` gives: ``answer`` itself, or with ``num_levels``
         a whole Likert level ``1..num_levels`` mapped by :func:`~torchpref.likert_to_unit`.
 
@@ -86,7 +86,7 @@ class RankingQuery:
         """The number of items shown."""
         return self.items.shape[0]
 
-    def validate_answer(self, answer, no_preference: bool = False) -> int | None:
+    def validate_answer(self, answer: object, no_preference: bool = False) -> int | None:
         """The chosen row ``0..m-1`` (an integer; not a bool, float or text); ``None`` (no
         preference) where ``no_preference`` allows it.
 

@@ -246,7 +246,7 @@ class PreferenceSession:
                     key, str(theirs), str(mine))
 
     @classmethod
-    def load(cls, path, candidates: Tensor | Candidates | None = None, **kwargs: Any) -> "PreferenceSession":
+    def load(cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Any) -> "PreferenceSession":
         """Resume the session in ``path`` with the settings in its header (seed, levels, bounds,
         candidates, names); ``selector``, ``model_factory``, ``repair`` and ``num_queries`` may be given.
 
@@ -422,7 +422,7 @@ class PreferenceSession:
         rr = list(q.indices)
         return RankingQuery(X[rr], None if idx is None else tuple(int(idx[r]) for r in rr))
 
-    def tell(self, query: Query, answer) -> None:
+    def tell(self, query: Query, answer: int | float | None) -> None:
         """Record ``answer`` to ``query``: a Likert level (or a ``[0, 1]`` rating if the session has
         no levels) for a :class:`~torchpref.RatingQuery`; the index of the chosen row of
         ``query.items`` for a :class:`~torchpref.RankingQuery`, or ``None`` for no preference
@@ -439,7 +439,7 @@ class PreferenceSession:
                 "pool_indices": None if rows is None or rows[0] is None else [int(i) for i in rows]}
         self._tell(query, answer, info)
 
-    def tell_rating(self, x: Tensor, rating) -> None:
+    def tell_rating(self, x: Tensor, rating: int | float) -> None:
         """A rating of any item ``x`` (``d``), given out of turn: a Likert level (or ``[0, 1]``)."""
         x = _as_items(x, self.dim, "x")
         if x.shape[0] != 1:
