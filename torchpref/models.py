@@ -10,6 +10,7 @@ import torch
 from botorch.acquisition.objective import PosteriorTransform
 from botorch.models.model import Model
 from botorch.models.transforms.input import InputTransform
+from botorch.sampling.base import MCSampler
 from botorch.posteriors.gpytorch import GPyTorchPosterior
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.kernels import Kernel, RBFKernel, ScaleKernel
@@ -21,17 +22,11 @@ from linear_operator.operators import DenseLinearOperator
 from torch import Tensor
 
 from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
-from torchpref.laplace import (
-    ModeResult,
-    Observations,
-    PredictiveCache,
-    find_mode,
-    laplace_evidence,
-    predict,
-    predictive_cache,
-)
+from torchpref.fantasy import condition_batch, fantasize
+from torchpref.laplace import ModeResult, Observations, laplace_evidence
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
-from torchpref.numerics import cholesky_jittered
+from torchpref.padding import PaddedData
+from torchpref.posterior_state import PosteriorState, fingerprint
 
 
 def default_covar_module(dim: int) -> ScaleKernel:
@@ -53,6 +48,13 @@ class PreferenceLikelihood(Module):
         super().__init__()
         self.comparison = comparison
         self.rating = rating
+
+
+def _create_data(train_X, comparisons, ratings, rating_index, rating_eps: float) -> PreferenceData | PaddedData:
+    """Validated data: one problem for ``n x d`` items, one per batch element for ``b x n x d``."""
+    if isinstance(train_X, Tensor) and train_X.dim() == 3:
+        return PaddedData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
+    return PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
 
 
 class PreferenceGP(Model, GP):
@@ -104,8 +106,9 @@ class PreferenceGP(Model, GP):
         max_newton_iter: int = 100,
     ) -> None:
         super().__init__()
-        data = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
-        self.covar_module = covar_module if covar_module is not None else default_covar_module(data.dim)
+        data = _create_data(train_X, comparisons, ratings, rating_index, rating_eps)
+        X = data.train_X if isinstance(data, PreferenceData) else data.X
+        self.covar_module = covar_module if covar_module is not None else default_covar_module(X.shape[-1])
         self.likelihood = PreferenceLikelihood(
             PairwiseProbitLikelihood(comparison_noise, learn=learn_likelihood),
             BetaRatingLikelihood(rating_scale, rating_precision, learn=learn_likelihood),
@@ -114,38 +117,48 @@ class PreferenceGP(Model, GP):
             self.input_transform = input_transform
         self.rating_eps = rating_eps
         self.max_newton_iter = max_newton_iter
-        self.to(device=data.train_X.device, dtype=data.train_X.dtype)
-        self._data = data
-        self._cache: dict[str, Any] | None = None
+        self.to(device=X.device, dtype=X.dtype)
+        self._data: PreferenceData | PaddedData = data
+        self._cache: PosteriorState | None = None
         self._warm_f: Tensor | None = None
         self._fit_input_transform()
         self.eval()
 
     # ------------------------------------------------------------------ data
     @property
-    def data(self) -> PreferenceData:
-        """The observations (immutable)."""
+    def data(self) -> PreferenceData | PaddedData:
+        """The observations (immutable): a :class:`~torchpref.data.PreferenceData`, or for a
+        batched model (``batch_shape`` not empty) a :class:`~torchpref.padding.PaddedData`."""
         return self._data
+
+    def _padded(self) -> PaddedData:
+        d = self._data
+        return PaddedData.single(d) if isinstance(d, PreferenceData) else d
 
     @property
     def train_X(self) -> Tensor:
-        return self._data.train_X
+        """``batch_shape x n x d`` items."""
+        return self._padded().X
 
     @property
     def comparisons(self) -> Tensor:
-        return self._data.comparisons
+        """``batch_shape x p x 2`` comparisons (rows ``[preferred, other]``)."""
+        return self._padded().comparisons
 
     @property
     def ratings(self) -> Tensor:
-        return self._data.ratings
+        """``batch_shape x r`` ratings in ``(0, 1)``."""
+        return self._padded().ratings
 
     @property
     def rating_index(self) -> Tensor:
-        return self._data.rating_index
+        """``batch_shape x r`` rows of :attr:`train_X` the :attr:`ratings` are of."""
+        return self._padded().rating_index
 
     @property
     def train_inputs(self) -> tuple[Tensor]:
-        return (self._data.train_X,)
+        """``(train_X,)``, as GPyTorch models hold their inputs."""
+        return (self.train_X,)
 
     @property
     def num_outputs(self) -> int:
@@ -153,14 +166,17 @@ class PreferenceGP(Model, GP):
 
     @property
     def batch_shape(self) -> torch.Size:
-        return torch.Size([])
+        """``torch.Size([])`` for one problem; ``[b]`` for batched training data (BoTorch's meaning)."""
+        return self._padded().batch_shape
 
     @property
     def comparison_likelihood(self) -> PairwiseProbitLikelihood:
+        """The comparisons' likelihood (eq. 3), a :class:`~torchpref.PairwiseProbitLikelihood`."""
         return self.likelihood.comparison
 
     @property
     def rating_likelihood(self) -> BetaRatingLikelihood:
+        """The ratings' likelihood (eqs. 4-7), a :class:`~torchpref.BetaRatingLikelihood`."""
         return self.likelihood.rating
 
     # The model applies its input transform itself (``_transformed_train_X``): BoTorch's
@@ -177,24 +193,24 @@ class PreferenceGP(Model, GP):
             was_training = tf.training
             tf.train()
             with torch.no_grad():
-                tf(self._data.train_X)
+                tf(self.train_X)
             tf.train(was_training)
 
     def _transformed_train_X(self) -> Tensor:
         tf = getattr(self, "input_transform", None)
         if tf is None:
-            return self._data.train_X
+            return self.train_X
         was_training = tf.training
         tf.eval()  # bounds were learned from train_X when the data was set
-        X = tf(self._data.train_X)
+        X = tf(self.train_X)
         tf.train(was_training)
         return X
 
     def _observations(self) -> Observations:
-        d = self._data
-        return Observations(d.comparisons, d.ratings, d.rating_index, self.likelihood.comparison, self.likelihood.rating)
+        """The observations of the ``B`` problems (flattened batch) as likelihood terms."""
+        return self._padded().observations(self.likelihood.comparison, self.likelihood.rating)
 
-    def _set_data(self, data: PreferenceData, warm_f: Tensor | None) -> None:
+    def _set_data(self, data: PreferenceData | PaddedData, warm_f: Tensor | None) -> None:
         """Swap in new data; re-solve the mode first and keep the old state if that fails."""
         old = (self._data, self._cache, self._warm_f)
         self._data, self._cache, self._warm_f = data, None, warm_f
@@ -223,10 +239,13 @@ class PreferenceGP(Model, GP):
         Returns:
             ``self``.
         """
+        if not isinstance(self._data, PreferenceData):
+            raise NotImplementedError("add_observations needs a model of one problem; a batched model is "
+                                      "conditioned with condition_on_observations.")
         new = self._data.add(X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
         warm = None
         if self._cache is not None or self._data.num_observations:
-            f_old = self._state()["mode"].f
+            f_old = self._state().mode.f[0]
             if new.n > self._data.n:
                 with torch.no_grad():
                     extra = self.posterior(new.train_X[self._data.n:].unsqueeze(-2)).mean.reshape(-1)
@@ -236,46 +255,44 @@ class PreferenceGP(Model, GP):
         self._set_data(new, warm)
         return self
 
-    def set_train_data(self, train_X, comparisons=None, ratings=None, rating_index=None, strict: bool = False):
+    def set_train_data(self, train_X: Tensor, comparisons: Tensor | None = None, ratings: Tensor | None = None,
+                       rating_index: Tensor | None = None, strict: bool = False) -> None:
         """Replace all data (validated first; the model is unchanged on error)."""
         new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
-        new = new.to(device=self._data.train_X.device, dtype=self._data.train_X.dtype)
+        new = new.to(device=self.train_X.device, dtype=self.train_X.dtype)
         self._set_data(new, None)
 
     def condition_on_observations(self, X: Tensor, Y: Tensor | None = None, **kwargs: Any) -> "PreferenceGP":
         r"""A new model with observations added; ``self`` is unchanged.
 
         ``Y`` (``m`` or ``m x 1``), when given, are ratings of the rows of ``X``; comparisons
-        among the rows of ``X`` go in ``comparisons=`` (indices into ``X``).
+        among the rows of ``X`` go in ``comparisons=`` (indices into ``X``). Batched ``X``
+        (``batch x m x d``), batched observations or a batched model give a batched model
+        (:func:`~torchpref.fantasy.condition_batch`).
         """
         if Y is not None:
             if "ratings" in kwargs:
                 raise ValueError("give ratings either as Y or as ratings=, not both.")
-            Y = Y.reshape(-1)
+            Y = Y.reshape(*Y.shape[:-1]) if Y.dim() > 1 and Y.shape[-1] == 1 else Y
             kwargs["ratings"] = Y
-            kwargs["rating_index"] = torch.arange(Y.numel(), device=Y.device)
+            kwargs["rating_index"] = torch.arange(Y.shape[-1], device=Y.device).expand(Y.shape)
+        batched = (self.batch_shape or X.dim() > 2 or any(
+            v is not None and torch.as_tensor(v).dim() > k
+            for v, k in ((kwargs.get("comparisons"), 2), (kwargs.get("ratings"), 1))))
+        if batched:
+            return condition_batch(self, X, **kwargs)
         fantasy = copy.deepcopy(self)
         return fantasy.add_observations(X, **kwargs)
 
-    # ------------------------------------------------------------- inference
-    def _fingerprint(self) -> Tensor:
-        # all parameters, then all floating buffers (as parameters() / buffers()), in one module walk
-        params, bufs, seen = [], [], set()
-        stack, modules = [self], []
-        while stack:  # the modules in ``self.modules()`` order, without its generator overhead
-            m = stack.pop()
-            modules.append(m)
-            stack.extend(c for c in reversed(m._modules.values()) if c is not None)
-        for m in modules:
-            for t, out in ((m._parameters, params), (m._buffers, bufs)):
-                for v in t.values():
-                    if v is not None and id(v) not in seen:
-                        seen.add(id(v))
-                        out.append(v)
-        vals = params + [b for b in bufs if b.is_floating_point()]
-        with torch.no_grad():  # torch.cat promotes the dtypes
-            return torch.cat([v.reshape(-1) for v in vals]) if vals else self._data.train_X.new_zeros(0)
+    def fantasize(self, X: Tensor, sampler: MCSampler, observation_noise: Tensor | None = None,
+                  kind: str | None = None, **kwargs: Any) -> "PreferenceGP":
+        r"""A batched fantasy model (see :func:`~torchpref.fantasy.fantasize`): comparisons among
+        the ``q`` points of ``X`` (``batch x q x d``) with a ``PairwiseMCSampler``, ratings of them
+        with any other sampler (or as ``kind`` says). ``observation_noise`` is not used: the
+        answers' noise is the likelihoods'."""
+        return fantasize(self, X, sampler, kind)
 
+    # ------------------------------------------------------------- inference
     def _kernel(self, X1: Tensor, X2: Tensor | None = None, diag: bool = False) -> Tensor:
         """Dense ``k(X1, X2)`` (or its diagonal): the kernel's ``forward`` directly (the values
         ``__call__`` would give, without building a lazy kernel tensor) unless a kernel selects
@@ -287,62 +304,48 @@ class PreferenceGP(Model, GP):
             return out if diag else out.to_dense()
         return k.forward(X1, X2, diag=diag)
 
-    def _kernel_chol(self, jitter: float | None = None) -> tuple[Tensor, float, Tensor]:
-        Xt = self._transformed_train_X()
-        K = self._kernel(Xt)
-        L, j = cholesky_jittered(K, jitter=jitter, name="kernel matrix")
-        return L, j, Xt
-
-    def _state(self) -> dict[str, Any]:
+    def _state(self) -> PosteriorState:
         """The mode and prediction cache for the current hyperparameters and data (cached)."""
-        fp = self._fingerprint()
-        c = self._cache
-        if c is not None and c["data"] is self._data and torch.equal(c["fp"], fp):
-            return c
-        with torch.no_grad():
-            L, jitter, Xt = self._kernel_chol(c["jitter"] if c is not None else None)
-            warm = c["mode"].f if (c is not None and c["mode"].f.shape[0] == self._data.n) else self._warm_f
-            mode = find_mode(L, self._observations(), f0=warm, max_iter=self.max_newton_iter)
-            pred = predictive_cache(L, mode)
-        self._cache = {"data": self._data, "fp": fp, "jitter": jitter, "mode": mode, "pred": pred, "Xt": Xt}
+        fp = fingerprint(self)
+        if self._cache is None or not self._cache.is_current(self._data, fp):
+            self._cache = PosteriorState.build(self, fp, self._cache)
         return self._cache
 
     @property
     def mode(self) -> ModeResult:
-        """The Laplace mode (``.f``), ``W``'s factors and solver diagnostics, for the current state."""
-        return self._state()["mode"]
+        """The Laplace mode (``.f``), ``W``'s factors and solver diagnostics, for the current state
+        (with a leading dimension over the flattened batch for a batched model)."""
+        mode = self._state().mode
+        return mode.select(0) if not self.batch_shape else mode
 
     def W(self) -> Tensor:
-        r"""``n x n`` negative Hessian of the log-likelihood at the mode (eq. 8): the exact one,
-        or the Fisher one for the ratings if the exact ``B`` was not positive definite there
+        r"""``batch_shape x n x n`` negative Hessian of the log-likelihood at the mode (eq. 8): the
+        exact one, or the Fisher one if the exact ``B`` was not positive definite there
         (``mode.fisher_fallback``)."""
-        m = self.mode
-        return self._observations().W_dense(self._data.n, m.lam, m.w)
+        state = self._state()
+        n = state.padded.num_items
+        return state.obs.W_dense(n, state.mode.weights).reshape(*self.batch_shape, n, n)
 
     def log_marginal_likelihood(self) -> Tensor:
         r"""Laplace evidence ``log q(Y) = log p(Y|f) - f^T K^-1 f / 2 - log|I + W K| / 2`` at the
-        mode, a differentiable scalar whose gradient includes the mode's implicit dependence on
-        the hyperparameters. Hyperparameter priors are not included (the MLL adds them)."""
+        mode (``batch_shape``), differentiable, with a gradient that includes the mode's implicit
+        dependence on the hyperparameters. Hyperparameter priors are not included (the MLL adds them)."""
         state = self._state()
-        K = self._kernel(self._transformed_train_X())
-        return laplace_evidence(K, self._observations(), state["mode"], L=state["pred"].L, jitter=state["jitter"])
+        padded = state.padded
+        K = padded.prior_covariance(self._kernel(self._transformed_train_X()))
+        N = padded.num_items
+        value = laplace_evidence(K.reshape(-1, N, N), state.obs, state.mode, L=state.pred.L, jitter=state.jitter)
+        return value.reshape(self.batch_shape)
+
+    def _predict(self, X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
+        """Posterior moments at transformed ``X``: :meth:`PosteriorState.moments`."""
+        return self._state().moments(self._kernel, X, diag)
 
     def forward(self, X: Tensor) -> MultivariateNormal:
         """The Laplace posterior of the latent utility at ``X`` (``batch x q x d``, transformed)."""
-        state = self._state()
-        pred: PredictiveCache = state["pred"]
-        Xt = state["Xt"]
-        batch = X.shape[:-2]
-        q, d = X.shape[-2:]
-        Xf = X.reshape(-1, q, d)
-        k_ss = self._kernel(Xf)
-        if Xt.shape[0] == 0:  # no items yet: the prior
-            mean, cov = k_ss.new_zeros(k_ss.shape[:-1]), k_ss
-        else:
-            K_xs = self._kernel(Xt, Xf.reshape(-1, d)).reshape(Xt.shape[0], -1, q)
-            mean, cov = predict(pred, K_xs, k_ss)
+        mean, cov = self._predict(X)
         # a lazy covariance: no Cholesky at construction (pairs of equal points are singular)
-        return MultivariateNormal(mean.reshape(*batch, q), DenseLinearOperator(cov.reshape(*batch, q, q)))
+        return MultivariateNormal(mean, DenseLinearOperator(cov))
 
     def posterior(
         self,
@@ -384,14 +387,12 @@ class PreferenceGP(Model, GP):
     def marginals(self, X: Tensor) -> tuple[Tensor, Tensor]:
         r"""Posterior mean and variance of the latent utility at each row of ``X`` (``... x d``),
         each of ``X``'s shape without its last dimension: what ``posterior(X.unsqueeze(-2))``
-        gives, without building a batch of ``1 x 1`` covariances and distribution objects."""
-        Xf = self._prediction_inputs(X).reshape(-1, X.shape[-1])
-        state = self._state()
-        k_ss = self._kernel(Xf, diag=True).reshape(-1, 1, 1)
-        if state["Xt"].shape[0] == 0:  # no items yet: the prior
-            mean, var = k_ss.new_zeros(k_ss.shape[0]), k_ss
-        else:
-            mean, var = predict(state["pred"], self._kernel(state["Xt"], Xf).unsqueeze(-1), k_ss)
+        gives, without building a batch of ``1 x 1`` covariances and distribution objects. For a
+        batched model, ``X`` is ``... x batch_shape x m x d``."""
+        Xt = self._prediction_inputs(X)
+        if not self.batch_shape:  # one problem: all rows as one block
+            Xt = Xt.reshape(-1, X.shape[-1])
+        mean, var = self._predict(Xt, diag=True)
         return mean.reshape(X.shape[:-1]), var.reshape(X.shape[:-1])
 
     def expected_rating(self, X: Tensor) -> Tensor:
@@ -410,11 +411,36 @@ class PreferenceGP(Model, GP):
         var = S[..., 0, 0] + S[..., 1, 1] - 2 * S[..., 0, 1]
         return self.likelihood.comparison.preference_probability(m[..., 0] - m[..., 1], var)
 
+    def best_item(self, X: Tensor | None = None) -> tuple[int, Tensor]:
+        r"""The item of highest posterior mean utility among the rows of ``X`` (``n x d``;
+        default :attr:`train_X`), in ``X``'s own coordinates (an input transform is applied as in
+        :meth:`posterior`).
+
+        Returns:
+            ``(row, item)``: the row of ``X`` (the first on a tie) and that ``d`` item.
+
+        Raises:
+            ValueError: a batched model, or ``X`` not ``n x d`` with ``n >= 1``.
+        """
+        if self.batch_shape:
+            raise ValueError(f"best_item needs a single model, this one has batch shape {tuple(self.batch_shape)}.")
+        X = self.train_X if X is None else X
+        d = self.train_X.shape[-1]
+        if not isinstance(X, Tensor) or X.dim() != 2 or X.shape[0] < 1 or X.shape[-1] != d:
+            raise ValueError(f"X must be an n x {d} tensor with n >= 1, got {getattr(X, 'shape', type(X).__name__)}.")
+        with torch.no_grad():
+            mean, _ = self.marginals(X)
+        i = int(mean.argmax())
+        return i, X[i]
+
     def _apply(self, fn, *args, **kwargs):
         super()._apply(fn, *args, **kwargs)
         data = getattr(self, "_data", None)
-        if data is not None:
+        if isinstance(data, PreferenceData):
             self._data = PreferenceData(*(fn(t) for t in (data.train_X, data.comparisons, data.ratings, data.rating_index)))
+        elif data is not None:
+            self._data = data.map(fn)
+        if data is not None:
             self._cache, self._warm_f = None, None
         return self
 
