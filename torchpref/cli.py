@@ -26,7 +26,7 @@ from pathlib import Path
 from torchpref.version import __version__
 
 # subcommand -> module with ``run(args) -> int``
-REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.lake.experiment"}
+REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.experiments.lake"}
 ELICIT = "torchpref.elicit"
 RESULTS = "torchpref-results"
 """The folder (in the current one) that holds a fresh folder per ``reproduce`` run by default."""
