@@ -2,6 +2,7 @@ r"""The ``torchpref`` command line.
 
     torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR]
     torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR]
+    torchpref reproduce suite [--families F ...] [--trials N] [--queries Q] [--seed S] [--out DIR]
     torchpref elicit lake [--session FILE]
     torchpref elicit --features items.csv [--session FILE]
 
@@ -15,7 +16,8 @@ import importlib
 import sys
 
 # subcommand -> module with ``add_arguments(parser)`` and ``run(args) -> int``
-REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.lake.experiment"}
+REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.lake.experiment",
+             "suite": "torchpref.experiments.suite"}
 ELICIT = "torchpref.elicit"
 
 
@@ -34,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     rep_sub = rep.add_subparsers(dest="experiment", required=True)
     _experiment_args(rep_sub.add_parser("wave", help="the 1-D wave-function experiment (Fig. 6)"), 100, 20)
     _experiment_args(rep_sub.add_parser("lake", help="the lake-monitoring experiment (Fig. 9)"), 20, 14)
+    suite = rep_sub.add_parser("suite", help="every strategy on the user-family benchmark suite (docs/suite.md)")
+    _experiment_args(suite, 50, 20)
+    suite.add_argument("--families", nargs="+", default=None, help="families to run (default: all)")
     el = sub.add_parser("elicit", help="learn your preferences in the terminal")
     el.add_argument("world", nargs="?", choices=["lake"], help="a built-in world to elicit over")
     el.add_argument("--features", help="CSV of items' objective values (one row per item, a header row)")
