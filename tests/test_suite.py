@@ -73,3 +73,18 @@ def test_small_suite_run(tmp_path):
     for c in ("fixed", "learned"):
         assert (tmp_path / f"suite_{c}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not math.isnan(summary["wall_time_s"])
+
+
+def test_suite_on_a_dask_cluster():
+    """The suite on a ``dask.distributed`` local cluster gives what the local run gives."""
+    distributed = pytest.importorskip("distributed")
+    kw = dict(families=["waves", "hartmann3"], trials=2, queries=3, seed=5, out=None, progress=False,
+              conditions=("fixed",), strategies=["UCBC", "info per effort"])
+    local = suite.run_suite(**kw, workers=1)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        with distributed.Client(cluster) as client:
+            remote = suite.run_suite(**kw, executor=client.get_executor())
+    for key, cv in local["summary"]["curves"].items():
+        for s in kw["strategies"]:
+            for m in ("wrms_mean", "tp_mean", "regret_mean"):
+                assert remote["summary"]["curves"][key]["queries"][s][m] == pytest.approx(cv["queries"][s][m], abs=1e-9)

@@ -52,7 +52,7 @@ RANKING_COST = 1.0 + (M - 1) / 4
 CONDITIONS = ("fixed", "learned")
 #: verdicts after these many queries (and the last) and at these efforts
 CHECKPOINTS = (10, 20)
-STRATEGIES = ["UCBC", "random ratings", "random rankings", "UCB ratings", "info per effort"]
+STRATEGIES = ["UCBC", "random ratings", "random rankings", "UCB ratings", "info per effort", "top & level info"]
 METRICS = ("wrms", "tp", "regret")
 #: the learned condition refits after these many queries
 REFIT_AFTER = (3, 6, 10, 15)
@@ -118,9 +118,11 @@ def run_batch(trial_seeds: tuple[int, ...], family_name: str, condition: str, qu
     r"""Trials of one family, condition and strategy at once (one batched model).
 
     Returns:
-        One ``{strategy: {"wrms", "tp", "regret", "cost": [Q + 1], "kinds": [Q]}}`` per seed.
+        One ``{strategy: {"wrms", "tp", "regret", "cost": [Q + 1], "kinds": [Q], "cpu_s"}}`` per
+        seed (``cpu_s``: the batch's CPU time of this process, per trial).
     """
     runner.single_threaded()
+    cpu0 = time.process_time()
     family = FAMILIES[family_name]
     setups = [setup(family, s) for s in trial_seeds]
     firsts = [s.user.choose(s.x0) for s in setups]
@@ -153,8 +155,9 @@ def run_batch(trial_seeds: tuple[int, ...], family_name: str, condition: str, qu
             model, [s.user for s in setups], candidates, make_selector(strategy), queries, generators=gens,
             metrics=metrics,
             costs={"rating": RATING_COST, "ranking": RANKING_COST}, refit=refit)
+    cpu = (time.process_time() - cpu0) / len(hists)
     return [{strategy: {**{k: h.metric(k) for k in METRICS}, "cost": h.cumulative_cost(),
-                        "kinds": [r.query.kind for r in h.records]}} for h in hists]
+                        "kinds": [r.query.kind for r in h.records], "cpu_s": cpu}} for h in hists]
 
 
 class _TrialPools:
@@ -229,7 +232,8 @@ def run_suite(
             results[f, c][i + k][s] = r[s]
     checkpoints = sorted({q for q in CHECKPOINTS if q <= queries} | {queries})
     summary = summarise(results, strategies, METRICS, budgets=CHECKPOINTS, checkpoints=checkpoints)
-    summary.update(trials=trials, queries=queries, seed=seed, wall_time_s=wall, workers=workers,
+    cpu = sum(r[s]["cpu_s"] for trials_ in results.values() for r in trials_ for s in strategies)
+    summary.update(trials=trials, queries=queries, seed=seed, wall_time_s=wall, cpu_time_s=cpu, workers=workers,
                    settings={"m": M, "gamma": GAMMA, "top_k": TOP_K, "refit_after": REFIT_AFTER,
                              "costs": {"rating": RATING_COST, "ranking": RANKING_COST},
                              "families": {f: {"dim": FAMILIES[f].dim, "description": FAMILIES[f].description,
@@ -247,7 +251,8 @@ def run(args) -> int:
                     out=args.out, workers=getattr(args, "workers", None))
     s = res["summary"]
     print(f"{len(res['families'])} families x {len(res['conditions'])} conditions x {args.trials} trials x "
-          f"{args.queries} queries in {s['wall_time_s']:.1f} s; files in {args.out}")
+          f"{args.queries} queries in {s['wall_time_s']:.1f} s ({s['cpu_time_s']:.0f} s of trial CPU time); "
+          f"files in {args.out}")
     for line in s["verdict_lines"]:
         print("  " + line)
     return 0
