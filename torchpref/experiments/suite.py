@@ -37,6 +37,7 @@ import torch
 from torchpref.active import run_active_learning_batch
 from torchpref.batch import BatchedPreferenceGP
 from torchpref.experiments import runner
+from torchpref.experiments.results import write_json
 from torchpref.experiments.families import FAMILIES, NUM_CANDIDATES, Family, model_settings, setup
 from torchpref.experiments.suite_report import summarise, write_suite_files
 from torchpref.kernels import FixedRBFKernel
@@ -240,6 +241,8 @@ def run_suite(
                                               "model": model_settings(FAMILIES[f]), "pool": FAMILIES[f].pool,
                                               "likert": FAMILIES[f].likert} for f in families}})
     if out is not None:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        write_json(Path(out) / "suite_trials.json", {f"{f}/{c}": v for (f, c), v in results.items()})
         write_suite_files(Path(out), summary, families, conditions, strategies, METRICS)
     return {"families": families, "conditions": list(conditions), "strategies": strategies, "trials": trials,
             "queries": queries, "summary": summary}
