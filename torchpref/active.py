@@ -140,6 +140,7 @@ def run_active_learning_batch(
     generators: Sequence[torch.Generator],
     metrics: Callable[[BatchedPreferenceGP], dict[str, Tensor]] | None = None,
     costs: dict[str, float] | None = None,
+    refit: Callable[[int, BatchedPreferenceGP], Any] | None = None,
 ) -> list[History]:
     r""":func:`run_active_learning` for ``T`` independent trials at once (fixed hyperparameters).
 
@@ -159,6 +160,9 @@ def run_active_learning_batch(
         generators: one per trial.
         metrics: ``model -> {name: T values}``, evaluated before the first query and after each.
         costs: effort of a ``"rating"`` and of a ``"ranking"`` query (default 1 each).
+        refit: called as ``refit(step, model)`` after each query's answers are recorded and
+            before the metrics, e.g. to set new hyperparameters learned from the answers (a
+            schedule of its own: it decides at which steps to change anything).
 
     Returns:
         One :class:`History` per trial (``model`` is ``None``: ``model`` holds all trials).
@@ -185,5 +189,7 @@ def run_active_learning_batch(
         for b, query in enumerate(queries):
             answer = record_answer(_Trial(model, b), query, ask_user(users[b], query))
             histories[b].records.append(QueryRecord(step, query, answer, costs[query.kind]))
+        if refit is not None:
+            refit(step, model)
         measure()
     return histories

@@ -2,6 +2,7 @@ r"""The ``torchpref`` command line.
 
     torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
     torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
+    torchpref reproduce suite [--families F ...] [--trials N] [--queries Q] [--seed S] [--out DIR]
     torchpref elicit lake [--session FILE]
     torchpref elicit --features items.csv [--id COLUMN] [--session FILE]
     torchpref --version
@@ -26,7 +27,8 @@ from pathlib import Path
 from torchpref.version import __version__
 
 # subcommand -> module with ``run(args) -> int``
-REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.experiments.lake"}
+REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.experiments.lake",
+             "suite": "torchpref.experiments.suite"}
 ELICIT = "torchpref.elicit"
 RESULTS = "torchpref-results"
 """The folder (in the current one) that holds a fresh folder per ``reproduce`` run by default."""
@@ -38,6 +40,8 @@ LEGEND = {
     "lake": "mean ± standard error over the trials; error5: mean |expected - true rating| on the test paths "
             "rated 5 (lower is better); WRMS: lower is better; chosen: the operator's level (1-5) of the path "
             "the model ranks best; share 5: fraction of trials whose chosen path is rated 5",
+    "suite": "mean ± standard error over the trials; WRMS and regret: lower is better; TP: true positives "
+             "among the 15 best items (higher is better); see docs/suite.md",
 }
 
 
@@ -76,6 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
     rep_sub = rep.add_subparsers(dest="experiment", required=True)
     _experiment_args(rep_sub.add_parser("wave", help="the 1-D wave-function experiment (Fig. 6)"), 100, 20)
     _experiment_args(rep_sub.add_parser("lake", help="the lake-monitoring experiment (Fig. 9)"), 20, 14)
+    suite = rep_sub.add_parser("suite", help="every strategy on the user-family benchmark suite (docs/suite.md)")
+    _experiment_args(suite, 50, 20)
+    suite.add_argument("--families", nargs="+", default=None, help="families to run (default: all)")
     el = sub.add_parser("elicit", help="learn your preferences in the terminal")
     el.add_argument("world", nargs="?", choices=["lake"], help="a built-in world to elicit over")
     el.add_argument("--features", help="CSV of items' objective values (a header row, one row per item)")
@@ -146,7 +153,8 @@ def _reproduce(args) -> int:
     args.out = str(output_folder(args.out, args.experiment))
     module = importlib.import_module(REPRODUCE[args.experiment])
     code = int(module.run(args) or 0)
-    print(f"({LEGEND[args.experiment]}{'; one trial has no standard error' if args.trials == 1 else ''})")
+    legend = LEGEND.get(args.experiment, "mean ± standard error over the trials")
+    print(f"({legend}{'; one trial has no standard error' if args.trials == 1 else ''})")
     print(f"Total wall time {seconds_since_start():.1f} s, start-up included; files in {args.out}")
     return code
 
