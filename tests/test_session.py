@@ -96,7 +96,8 @@ def test_out_of_turn_answers_and_no_preference(tmp_path):
     s.tell_choice(X[[0, 7]], 0)
     n_obs = s.model.data.num_observations
     s.tell_no_preference(X[[1, 2, 3]])
-    assert s.model.data.num_observations == n_obs  # recorded, not used
+    assert s.model.data.num_observations == n_obs + 3  # a tie between every two items shown
+    assert s.model.ties.shape == (3, 2) and s.model.ties_offered
     assert [h.kind for h in s.history] == ["rating", "choice", "no_preference"]
     assert all(h.step is None for h in s.history)
     assert s.ask() is not q  # the pending query is re-derived after any answer
@@ -110,7 +111,8 @@ def test_tell_none_to_ranking_is_no_preference():
     q = s.ask()
     s.tell(q, None)
     assert s.history[0].kind == "no_preference" and s.history[0].step == 0
-    assert s.model.data.num_observations == 0
+    m = q.items.shape[0]
+    assert s.model.data.num_observations == m * (m - 1) // 2  # ties between the items shown
 
 
 def _always_ranking():
@@ -163,7 +165,7 @@ def test_bad_items_are_rejected():
 
 
 def test_write_failure_leaves_file_and_model_unchanged(tmp_path, monkeypatch):
-    import torchpref.session as mod
+    import torchpref.journal as mod
 
     X = pool()
     path = tmp_path / "s.jsonl"
