@@ -40,7 +40,9 @@ from tqdm import tqdm
 
 from botorch.fit import fit_gpytorch_mll
 from torchpref.data import best_of_m, likert_to_unit, unit_to_likert
-from torchpref.experiments.runner import fixed_model, paired_tests, single_threaded, trial_seeds, write_json
+from torchpref.experiments.results import paired_tests, write_json
+from torchpref.experiments.runner import make_model as fixed_model
+from torchpref.experiments.runner import single_threaded, trial_seeds
 from torchpref.metrics import true_positives, wrms
 from torchpref.models import LaplaceMarginalLogLikelihood
 from torchpref.users import SimulatedUser

@@ -228,3 +228,24 @@ def test_batched_model_with_ties_and_levels_matches_single_models():
     with pytest.raises(ValueError, match=r"1\.\.5"):
         batch.condition_on_observations(rand(2, 1, generator=g), ratings=torch.tensor([0.5]),
                                         rating_index=torch.tensor([0]))
+
+
+def test_record_answer_ties_and_levels():
+    """The answer path: "equally best" rows become comparisons and ties, no preference a tie
+    between every two items shown, and a rating in [0, 1] the level of its bin."""
+    from torchpref.queries import RankingQuery, RatingQuery, record_answer
+
+    g = torch.Generator().manual_seed(8)
+    model = PreferenceGP(rand(2, 1, generator=g), torch.tensor([[0, 1]]), ties_offered=True)
+    X = rand(4, 1, generator=g)
+    assert record_answer(model, RankingQuery(X), [0, 2]) == [0, 2]
+    assert sorted(map(tuple, model.comparisons[1:].tolist())) == [(2, 3), (2, 5), (4, 3), (4, 5)]
+    assert model.ties.tolist() == [[2, 4]]
+    assert record_answer(model, RankingQuery(X[:3]), None) is None
+    assert model.ties.shape == (4, 2)
+    with pytest.raises(ValueError, match="index"):
+        record_answer(model, RankingQuery(X), [0, 9])
+    assert model.ties.shape == (4, 2)  # unchanged
+    levels = PreferenceGP(rand(2, 1, generator=g), rating_levels=5)
+    record_answer(levels, RatingQuery(X[0]), 0.7)
+    assert levels.ratings.tolist() == [4.0]
