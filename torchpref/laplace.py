@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
-from torchpref.numerics import NotPSDError, lower_t_matmul
+from torchpref.numerics import NotPSDError, default_tolerance, lower_t_matmul
 
 
 class LaplaceConvergenceWarning(UserWarning):
@@ -164,7 +164,7 @@ def find_mode(
     obs: Observations,
     f0: Tensor | None = None,
     max_iter: int = 100,
-    tol: float = 1e-11,
+    tol: float | None = None,
     max_chord: int = 3,
     single_precision_min_size: int = 256,
     chord_min_size: int = 128,
@@ -185,7 +185,8 @@ def find_mode(
         f0: ``n`` warm start (e.g. the previous mode); zeros by default.
         max_iter: iteration budget (factorisations).
         tol: stop when half the Newton decrement ``grad^T B^{-1} grad / 2`` (an estimate of the
-            distance to the optimum in log-posterior units) is below ``tol``.
+            distance to the optimum in log-posterior units) is below ``tol``; default
+            :func:`~torchpref.numerics.default_tolerance` of ``L``'s dtype.
         max_chord: chord steps per factorisation (0: plain Newton).
         chord_min_size: chord steps only from this ``n`` on: for small ``n`` a factorisation
             costs about as much as the gradient a chord step needs, and plain Newton takes fewer
@@ -194,6 +195,7 @@ def find_mode(
             from the mode (Newton decrement above 1) with ``B`` factorised in float32, falling
             back to float64 if that factorisation fails or its step does not increase ``Psi``.
     """
+    tol = default_tolerance(L.dtype) if tol is None else tol
     with torch.no_grad():
         L = L.detach()
         n = L.shape[-1]
