@@ -142,3 +142,105 @@ def test_interrupt_inside_add_observations_leaves_the_model_unchanged(generator,
     monkeypatch.setattr(lik, "derivatives", real)
     assert model.data is data and model.train_X.shape[0] == 6
     torch.testing.assert_close(model.posterior(X).mean.detach(), before, rtol=0, atol=0)
+
+
+# ------------------------------------------------------------- save and load
+
+
+def test_saved_model_gives_the_same_posterior_in_a_fresh_process(generator, tmp_path):
+    from botorch.models.transforms import Normalize
+
+    import torchpref
+
+    X = rand(9, 2, generator=generator, low=-3.0, high=5.0)
+    C = random_comparisons(9, 6, generator)
+    u, ri = rand(3, generator=generator, low=0.1, high=0.9), torch.tensor([0, 4, 4])
+    bounds = torch.tensor([[-3.0, -3.0], [5.0, 5.0]], dtype=F64)
+    model = PreferenceGP(X, C, u, ri, covar_module=kernel(2, [0.3, 0.6], 1.7), input_transform=Normalize(2, bounds=bounds),
+                         comparison_noise=0.3, rating_scale=0.7, learn_likelihood=True, max_newton_iter=40)
+    Xs = rand(5, 2, generator=generator, low=-3.0, high=5.0)
+    ref = model.posterior(Xs)
+    path = tmp_path / "model.pt"
+    torchpref.save_model(model, path)
+    torch.save({"mean": ref.mean.detach(), "var": ref.variance.detach(), "Xs": Xs}, tmp_path / "ref.pt")
+    script = f"""
+import torch, torchpref
+from botorch.models.transforms import Normalize
+from gpytorch.kernels import RBFKernel, ScaleKernel
+ref = torch.load({str(tmp_path / 'ref.pt')!r}, weights_only=True)
+ck = torch.load({str(path)!r}, weights_only=True)  # the safe default: tensors and plain values only
+k = ScaleKernel(RBFKernel(ard_num_dims=2)).to(torch.float64)
+model = torchpref.load_model(ck, covar_module=k, input_transform=Normalize(2, bounds=torch.tensor([[-3.0, -3.0], [5.0, 5.0]], dtype=torch.float64)))
+assert model.max_newton_iter == 40 and model.likelihood.comparison.raw_comparison_noise.requires_grad
+assert model.comparisons.shape == (6, 2) and model.ratings.shape == (3,)
+p = model.posterior(ref["Xs"])
+torch.testing.assert_close(p.mean.detach(), ref["mean"], rtol=0, atol=1e-6)
+torch.testing.assert_close(p.variance.detach(), ref["var"], rtol=0, atol=1e-6)
+print("same posterior")
+"""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "same posterior" in out.stdout
+
+
+def test_load_model_names_a_wrong_file_or_kernel(generator, tmp_path):
+    import torchpref
+
+    model = PreferenceGP(rand(4, 2, generator=generator), random_comparisons(4, 3, generator))
+    path = tmp_path / "model.pt"
+    torchpref.save_model(model, path)
+    torch.save({"a": torch.zeros(1)}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="is not a torchpref.PreferenceGP checkpoint"):
+        torchpref.load_model(tmp_path / "other.pt")
+    from gpytorch.kernels import MaternKernel
+
+    with pytest.raises(ValueError, match="missing .*raw_lengthscale"):
+        torchpref.load_model(path, covar_module=MaternKernel(ard_num_dims=2).to(F64))
+    loaded = torchpref.load_model(path)
+    torch.testing.assert_close(loaded.train_X, model.train_X, rtol=0, atol=0)
+
+
+# ------------------------------------------------------------------ raw units
+
+
+RAW_LOW = torch.tensor([100.0, 0.5, 2.0], dtype=F64)  # price, weight, battery hours
+RAW_HIGH = torch.tensor([2000.0, 3.5, 20.0], dtype=F64)
+
+
+def raw_units_use(seed, input_transform):
+    """Issue 12's use: 50 items with 3 features in raw units, 15 best-of-3 answers, the model's
+    best item; returns its true rank and the warnings raised."""
+    from botorch.fit import fit_gpytorch_mll
+
+    import torchpref
+
+    g = torch.Generator().manual_seed(seed)
+    Z = torch.rand(50, 3, generator=g, dtype=F64)
+    X = RAW_LOW + (RAW_HIGH - RAW_LOW) * Z
+    u = -1.5 * Z[:, 0] - 0.8 * Z[:, 1] + Z[:, 2].sqrt()  # cheap, light, long battery life
+    shown = [torch.randperm(50, generator=g)[:3] for _ in range(15)]
+    C = torch.cat([torchpref.best_of_m(int(s[u[s].argmax()]), s) for s in shown])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = PreferenceGP(X, C, input_transform=input_transform)
+        fit_gpytorch_mll(torchpref.LaplaceMarginalLogLikelihood(model))
+    best = int(model.posterior(X).mean.detach().reshape(-1).argmax())
+    return int((u > u[best]).sum()) + 1, [w for w in caught if issubclass(w.category, InputDataWarning)]
+
+
+def test_raw_units_warn_and_normalize_finds_the_best_item():
+    from botorch.models.transforms import Normalize
+
+    rank, caught = raw_units_use(0, None)
+    assert len(caught) == 1  # once per model, naming the columns and the remedy
+    assert "column 0: [1" in str(caught[0].message) and "Normalize(d=3" in str(caught[0].message)
+    ranks = []
+    for seed in range(6):
+        rank, caught = raw_units_use(seed, Normalize(3, bounds=torch.stack([RAW_LOW, RAW_HIGH])))
+        assert not caught
+        ranks.append(rank)
+    # in raw units the model's best was truly ranked 8, 5, 4, 5, 2, 3 on these seeds
+    assert max(ranks) <= 2 and ranks.count(1) >= 4, ranks

@@ -7,6 +7,7 @@ comparisons (eq. 3) and bounded ratings (eqs. 4-7) at once, as a BoTorch ``Model
 from torchpref.acquisition import QueryInformation, QueryUCB, latent_ucb
 from torchpref.active import History, QueryRecord, fit_model, run_active_learning, run_active_learning_batch
 from torchpref.batch import BatchedPreferenceGP
+from torchpref.checkpoint import load_model, model_checkpoint, save_model
 from torchpref.data import (
     PreferenceData,
     RatingBoundaryWarning,
@@ -64,11 +65,14 @@ __all__ = [
     "expected_rating",
     "fit_model",
     "latent_ucb",
+    "load_model",
     "likert_to_unit",
+    "model_checkpoint",
     "prepare_ratings",
     "rating_from_latent",
     "run_active_learning",
     "run_active_learning_batch",
+    "save_model",
     "true_positives",
     "unit_to_likert",
     "wrms",
