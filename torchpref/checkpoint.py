@@ -36,6 +36,8 @@ VERSION = 1
 def model_checkpoint(model: PreferenceGP) -> dict[str, Any]:
     """The model's data, hyperparameters and settings as a dictionary of tensors and plain
     values (see the module docstring)."""
+    if model.batch_shape:
+        raise ValueError(f"save_model saves a model of one problem; this one has batch_shape {tuple(model.batch_shape)}.")
     d = model.data
     learn = bool(model.likelihood.comparison.raw_comparison_noise.requires_grad)
     return {

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from torchpref.acquisition import (
     greedy_choice_set,
+    item_ucb,
     membership_information,
     rating_bin_probabilities,
     sample_information,
@@ -107,16 +108,10 @@ class RandomMixed(Selector):
         return out
 
 
-def _ucb(model, X: Tensor, gamma: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Eq. 12's ``mean + gamma * std`` at ``X`` (``T x N x d``), with the mean and std (``T x N``)."""
+def _ucb(model, X: Tensor, gamma: float) -> Tensor:
+    """Eq. 12's UCB at ``X`` (``T x N x d``): ``T x N`` (:func:`~torchpref.acquisition.item_ucb`)."""
     with torch.no_grad():
-        if hasattr(model, "marginals"):
-            mean, var = model.marginals(X)
-        else:  # any BoTorch model
-            post = model.posterior(X.unsqueeze(-2))
-            mean, var = post.mean[..., 0, 0], post.variance[..., 0, 0]
-    std = var.clamp_min(0).sqrt()
-    return mean + gamma * std, mean, std
+        return item_ucb(model, X, gamma)[0]
 
 
 def _joint(model, X: Tensor) -> tuple[Tensor, Tensor]:
@@ -137,7 +132,7 @@ class UCBRatings(Selector):
         self.gamma = gamma
 
     def select_batch(self, model, X, indices, step, num_steps, generators):
-        best = _ucb(model, X, self.gamma)[0].argmax(-1).tolist()
+        best = _ucb(model, X, self.gamma).argmax(-1).tolist()
         return [_rating(X[b], indices[b], i) for b, i in enumerate(best)]
 
 
@@ -167,7 +162,7 @@ class UCBC(Selector):
         return max(0.0, (num_steps - step) / num_steps)
 
     def select_batch(self, model, X, indices, step, num_steps, generators):
-        ucb = _ucb(model, X, self.gamma)[0]
+        ucb = _ucb(model, X, self.gamma)
         out = []
         for b, g in enumerate(generators):
             coin = float(torch.rand((), generator=g, dtype=torch.float64))
