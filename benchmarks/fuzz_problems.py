@@ -54,8 +54,9 @@ def _log_uniform(lo: float, hi: float, g: torch.Generator) -> float:
     return math.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * float(torch.rand((), generator=g, dtype=F64)))
 
 
-def make_problem(seed: int, max_n: int = 1500) -> Problem:
-    """The hostile problem of ``seed`` (see the module docstring)."""
+def make_problem(seed: int, max_n: int = 1500, pairwise_likelihood: bool = True) -> Problem:
+    """The hostile problem of ``seed`` (see the module docstring); with ``pairwise_likelihood=False``
+    comparisons-only problems get hostile likelihood parameters too."""
     g = torch.Generator().manual_seed(seed)
     n = max(1, min(max_n, round(_log_uniform(1.0, max_n, g))))
     d = int(torch.randint(1, 5, (), generator=g))
@@ -81,7 +82,7 @@ def make_problem(seed: int, max_n: int = 1500) -> Problem:
         u, ri = torch.linspace(0.05, 0.95, q, dtype=F64), torch.zeros(q, dtype=torch.long)
     lengthscale, outputscale = _log_uniform(1e-3, 1e3, g), _log_uniform(1e-2, 1e2, g)
     lik = {"comparison_noise": 1.0}
-    if kind != "comparisons":
+    if kind != "comparisons" or not pairwise_likelihood:
         lik = {"comparison_noise": _log_uniform(1e-3, 10.0, g), "rating_scale": _log_uniform(0.1, 3.0, g),
                "rating_precision": _log_uniform(1.0, 1e3, g)}
     # float32-representable data: the float64 twin sees exactly the float32 model's inputs
