@@ -31,6 +31,7 @@ from typing import Callable
 
 import torch
 from botorch.acquisition import AcquisitionFunction, UpperConfidenceBound
+from botorch.models.model import Model
 from botorch.utils.transforms import t_batch_mode_transform
 from torch import Tensor
 from torch.distributions import Beta
@@ -38,7 +39,7 @@ from torch.distributions import Beta
 from torchpref.numerics import gauss_hermite, log_ndtr
 
 
-def latent_ucb(model, gamma: float = 3.0) -> UpperConfidenceBound:
+def latent_ucb(model: Model, gamma: float = 3.0) -> UpperConfidenceBound:
     r"""Eq. 12, ``mean + gamma * std`` of the latent utility, as BoTorch's UCB (``beta = gamma^2``)."""
     return UpperConfidenceBound(model, beta=gamma**2)
 
@@ -61,7 +62,7 @@ class QueryUCB(AcquisitionFunction):
     r"""``max_i mean(x_i) + gamma * std(x_i)`` over a query's ``q`` items (eq. 12 for ``q = 1``;
     :func:`item_ucb`)."""
 
-    def __init__(self, model, gamma: float = 3.0):
+    def __init__(self, model: Model, gamma: float = 3.0):
         super().__init__(model)
         self.gamma = gamma
 
@@ -88,7 +89,7 @@ class QueryInformation(AcquisitionFunction):
         generator: seeds those samples.
     """
 
-    def __init__(self, model, num_samples: int = 128, generator: torch.Generator | None = None,
+    def __init__(self, model: Model, num_samples: int = 128, generator: torch.Generator | None = None,
                  num_quadrature: int = 24, num_grid: int = 400):
         super().__init__(model)
         self.num_samples = num_samples

@@ -69,6 +69,7 @@ class BatchedPreferenceGP:
     # ------------------------------------------------------------------ data
     @property
     def num_trials(self) -> int:
+        """The number ``T`` of independent trials."""
         return len(self._data)
 
     def data(self, trial: int) -> PreferenceData:

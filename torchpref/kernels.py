@@ -41,10 +41,12 @@ class FixedRBFKernel(Kernel):
     # set the values: ``k.outputscale``, ``k.base_kernel.lengthscale`` (the kernel itself).
     @property
     def base_kernel(self) -> "FixedRBFKernel":
+        """The kernel itself, so ``kernel.base_kernel.lengthscale`` reads as for ``ScaleKernel(RBFKernel())``."""
         return self
 
     @property
     def lengthscale(self) -> Tensor:
+        """The fixed lengthscale (``1 x 1``)."""
         return self.lengthscale_value
 
     @lengthscale.setter
@@ -53,6 +55,7 @@ class FixedRBFKernel(Kernel):
 
     @property
     def outputscale(self) -> Tensor:
+        """The fixed kernel variance ``sigma_f^2`` (a scalar)."""
         return self.outputscale_value
 
     @outputscale.setter

@@ -253,6 +253,7 @@ class PredictiveCache:
 
     @classmethod
     def from_mode(cls, L: Tensor, mode: ModeResult) -> "PredictiveCache":
+        """The cache for ``mode``, the Laplace mode of the problems whose prior factors are ``L``."""
         mode = mode.batched()
         L = L.reshape(mode.B_chol.shape)
         return cls(L, _solve_t(L, mode.a), mode.B_chol)
@@ -267,6 +268,7 @@ class PredictiveCache:
 
 
 def predictive_cache(L: Tensor, mode: ModeResult) -> PredictiveCache:
+    """The prediction cache of ``mode`` (:meth:`PredictiveCache.from_mode`)."""
     return PredictiveCache.from_mode(L, mode)
 
 

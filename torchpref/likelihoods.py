@@ -18,6 +18,7 @@ import math
 
 import torch
 from gpytorch.constraints import Interval, Positive
+from gpytorch.priors import Prior
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.likelihoods import Likelihood
 from torch import Tensor
@@ -78,14 +79,15 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
             comparisons only it is not identifiable separately from the kernel's outputscale).
     """
 
-    def __init__(self, comparison_noise: float = 0.1, *, learn: bool = False, comparison_noise_prior=None,
-                 comparison_noise_constraint=None):
+    def __init__(self, comparison_noise: float = 0.1, *, learn: bool = False,
+                 comparison_noise_prior: Prior | None = None, comparison_noise_constraint: Interval | None = None):
         super().__init__()
         self._register("comparison_noise", comparison_noise, comparison_noise_constraint or Positive(),
                        comparison_noise_prior, learn)
 
     @property
     def comparison_noise(self) -> Tensor:
+        """``sigma_R`` (eq. 3): the noise of a comparison."""
         return self._get("comparison_noise")
 
     @comparison_noise.setter
@@ -170,8 +172,8 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
     """
 
     def __init__(self, rating_scale: float = 1.0, rating_precision: float = 80.0, *, learn: bool = False,
-                 rating_scale_prior=None, rating_precision_prior=None,
-                 rating_scale_constraint=None, rating_precision_constraint=None):
+                 rating_scale_prior: Prior | None = None, rating_precision_prior: Prior | None = None,
+                 rating_scale_constraint: Interval | None = None, rating_precision_constraint: Interval | None = None):
         super().__init__()
         self._register("rating_scale", rating_scale, rating_scale_constraint or Positive(), rating_scale_prior, learn)
         self._register("rating_precision", rating_precision, rating_precision_constraint or Interval(1e-2, 1e6),
@@ -179,6 +181,7 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
 
     @property
     def rating_scale(self) -> Tensor:
+        """``sigma_B`` (eq. 7): how the latent utility maps onto the rating scale."""
         return self._get("rating_scale")
 
     @rating_scale.setter
@@ -187,6 +190,7 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
 
     @property
     def rating_precision(self) -> Tensor:
+        """``nu`` (eqs. 4-7): the precision of a rating's Beta distribution (larger: less noisy ratings)."""
         return self._get("rating_precision")
 
     @rating_precision.setter

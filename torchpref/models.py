@@ -89,6 +89,7 @@ class PosteriorState:
     pred: PredictiveCache
 
     def is_current(self, data: object, fingerprint: Tensor) -> bool:
+        """Whether this state was computed for ``data`` with the hyperparameters ``fingerprint``."""
         return self.data is data and torch.equal(self.fingerprint, fingerprint)
 
 
@@ -211,14 +212,17 @@ class PreferenceGP(Model, GP):
 
     @property
     def ratings(self) -> Tensor:
+        """``batch_shape x r`` ratings in ``(0, 1)``."""
         return self._padded().ratings
 
     @property
     def rating_index(self) -> Tensor:
+        """``batch_shape x r`` rows of :attr:`train_X` the :attr:`ratings` are of."""
         return self._padded().rating_index
 
     @property
     def train_inputs(self) -> tuple[Tensor]:
+        """``(train_X,)``, as GPyTorch models hold their inputs."""
         return (self.train_X,)
 
     @property
@@ -232,10 +236,12 @@ class PreferenceGP(Model, GP):
 
     @property
     def comparison_likelihood(self) -> PairwiseProbitLikelihood:
+        """The comparisons' likelihood (eq. 3), a :class:`~torchpref.PairwiseProbitLikelihood`."""
         return self.likelihood.comparison
 
     @property
     def rating_likelihood(self) -> BetaRatingLikelihood:
+        """The ratings' likelihood (eqs. 4-7), a :class:`~torchpref.BetaRatingLikelihood`."""
         return self.likelihood.rating
 
     # The model applies its input transform itself (``_transformed_train_X``): BoTorch's
@@ -337,7 +343,8 @@ class PreferenceGP(Model, GP):
         self._set_data(new, warm)
         return self
 
-    def set_train_data(self, train_X, comparisons=None, ratings=None, rating_index=None, strict: bool = False):
+    def set_train_data(self, train_X: Tensor, comparisons: Tensor | None = None, ratings: Tensor | None = None,
+                       rating_index: Tensor | None = None, strict: bool = False) -> None:
         """Replace all data (validated first; the model is unchanged on error)."""
         new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
         new = new.to(device=self.train_X.device, dtype=self.train_X.dtype)
@@ -567,6 +574,28 @@ class PreferenceGP(Model, GP):
         m, S = mvn.mean, mvn.covariance_matrix
         var = S[..., 0, 0] + S[..., 1, 1] - 2 * S[..., 0, 1]
         return self.likelihood.comparison.preference_probability(m[..., 0] - m[..., 1], var)
+
+    def best_item(self, X: Tensor | None = None) -> tuple[int, Tensor]:
+        r"""The item of highest posterior mean utility among the rows of ``X`` (``n x d``;
+        default :attr:`train_X`), in ``X``'s own coordinates (an input transform is applied as in
+        :meth:`posterior`).
+
+        Returns:
+            ``(row, item)``: the row of ``X`` (the first on a tie) and that ``d`` item.
+
+        Raises:
+            ValueError: a batched model, or ``X`` not ``n x d`` with ``n >= 1``.
+        """
+        if self.batch_shape:
+            raise ValueError(f"best_item needs a single model, this one has batch shape {tuple(self.batch_shape)}.")
+        X = self.train_X if X is None else X
+        d = self.train_X.shape[-1]
+        if not isinstance(X, Tensor) or X.dim() != 2 or X.shape[0] < 1 or X.shape[-1] != d:
+            raise ValueError(f"X must be an n x {d} tensor with n >= 1, got {getattr(X, 'shape', type(X).__name__)}.")
+        with torch.no_grad():
+            mean, _ = self.marginals(X)
+        i = int(mean.argmax())
+        return i, X[i]
 
     def _apply(self, fn, *args, **kwargs):
         super()._apply(fn, *args, **kwargs)

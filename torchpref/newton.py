@@ -69,6 +69,7 @@ class Factor:
     fisher: Tensor
 
     def where(self, take: Tensor, other: "Factor") -> "Factor":
+        """Problem by problem: this factor where ``take`` (``B``) is true, ``other`` elsewhere."""
         t1, t2 = take.reshape(-1, 1), take.reshape(-1, 1, 1)
         return Factor(torch.where(t2, self.M, other.M),
                       tuple(torch.where(t1, x, y) for x, y in zip(self.weights, other.weights)),

@@ -50,6 +50,7 @@ def inv_mills(z: Tensor) -> Tensor:
 
 
 def normal_pdf(z: Tensor) -> Tensor:
+    """The standard normal density ``phi(z)``, elementwise."""
     return torch.exp(-0.5 * z * z - LOG_2PI_HALF)
 
 

@@ -64,6 +64,7 @@ class Term:
 
     @property
     def size(self) -> int:
+        """The number ``m`` of observations in this term."""
         return self.index.shape[-2]
 
     def _args(self) -> tuple[Tensor, ...]:
@@ -182,6 +183,7 @@ class Observations:
 
     @property
     def num_observations(self) -> int:
+        """The number of observations over all terms."""
         return sum(t.size for t in self.terms)
 
     def evaluate(self, f: Tensor, fisher: Tensor | None = None) -> LikelihoodTerms:
@@ -201,6 +203,7 @@ class Observations:
         return out if self.terms else torch.zeros(self.batch, n)
 
     def curvature_slopes(self, f: Tensor) -> tuple[Tensor, ...]:
+        """Each term's :meth:`Term.curvature_slope` at ``f``."""
         return tuple(t.curvature_slope(f) for t in self.terms)
 
     def quadratic_forms(self, S: Tensor) -> tuple[Tensor, ...]:

@@ -74,10 +74,12 @@ class PaddedData:
 
     @property
     def batch_shape(self) -> torch.Size:
+        """The problems' batch shape (``X``'s shape without ``n x d``)."""
         return self.X.shape[:-2]
 
     @property
     def num_problems(self) -> int:
+        """The number of problems: the product of :attr:`batch_shape`."""
         return self.batch_shape.numel()
 
     @property
@@ -89,6 +91,7 @@ class PaddedData:
 
     @property
     def dim(self) -> int:
+        """The items' dimension ``d``."""
         return self.X.shape[-1]
 
     @property

@@ -33,6 +33,7 @@ from typing import Any, Callable
 
 from torch import Tensor
 
+from torchpref.lake.scenario import LakeScenario
 from torchpref.queries import Query, RankingQuery
 from torchpref.session import PreferenceSession
 
@@ -112,7 +113,7 @@ def as_picture(picture: Any, width: str = "100%"):
                     f"got {type(picture).__name__}.")
 
 
-def lake_renderer(scenario) -> RenderHook:
+def lake_renderer(scenario: LakeScenario) -> RenderHook:
     """A render hook for a session over a lake scenario's training paths: path ``index`` drawn on
     the information field over the lake (:mod:`torchpref.lake`'s map).
 

@@ -69,9 +69,11 @@ class NormalisedOperator:
         self.operator, self.bounds = operator, bounds
 
     def rate(self, z) -> float:
+        """The operator's rating of the normalised item ``z`` (``d``)."""
         return self.operator.rate(unnormalise(torch.as_tensor(z, dtype=torch.float64), self.bounds))
 
     def choose(self, Z) -> int:
+        """The operator's choice among the normalised items ``Z`` (``m x d``)."""
         return self.operator.choose(unnormalise(torch.as_tensor(Z, dtype=torch.float64), self.bounds))
 
 
