@@ -90,6 +90,18 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> dict:
+    """``fuzz.csv`` and ``fuzz.json`` for the problems done so far; returns the summary."""
+    with open(args.out / "fuzz.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    summary = summarise(rows) | {"seeds": [args.start, args.start + len(rows) - 1], "max_n": args.max_n,
+                                 "seconds": round(seconds, 1), "torch": torch.__version__}
+    (args.out / "fuzz.json").write_text(json.dumps(summary, indent=1, default=lambda x: None if math.isnan(x) else x))
+    return summary
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--num", type=int, default=1000, help="problems (default 1000)")
@@ -107,13 +119,9 @@ def main(argv: list[str] | None = None) -> dict:
         t = time.perf_counter()
         rows.append(fp.check(fp.make_problem(seed, args.max_n), pairwisegp=not args.no_pairwisegp))
         rows[-1]["seconds"] = time.perf_counter() - t
-    with open(args.out / "fuzz.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    summary = summarise(rows) | {"seeds": [args.start, args.start + args.num - 1], "max_n": args.max_n,
-                                 "seconds": round(time.perf_counter() - t0, 1), "torch": torch.__version__}
-    (args.out / "fuzz.json").write_text(json.dumps(summary, indent=1, default=lambda x: None if math.isnan(x) else x))
+        if len(rows) % 100 == 0 and len(rows) < args.num:  # a stopped run keeps what it has done
+            write(rows, args, time.perf_counter() - t0)
+    summary = write(rows, args, time.perf_counter() - t0)
     plot(rows, args.out / "fuzz.png")
     print(json.dumps({k: summary[k] for k in ("problems", "f64", "f32", "comparisons_only")}, indent=1))
     return summary
