@@ -249,3 +249,13 @@ def test_record_answer_ties_and_levels():
     levels = PreferenceGP(rand(2, 1, generator=g), rating_levels=5)
     record_answer(levels, RatingQuery(X[0]), 0.7)
     assert levels.ratings.tolist() == [4.0]
+
+
+def test_checkpoint_keeps_ties_levels_and_settings(tmp_path):
+    from torchpref.checkpoint import load_model, save_model
+
+    model = build("levels", seed=6, offered=True)
+    save_model(model, tmp_path / "m.pt")
+    back = load_model(tmp_path / "m.pt", covar_module=kernel(0.4, 1.3, 2))
+    assert back.rating_levels == 5 and back.ties_offered and torch.equal(back.ties, model.ties)
+    torch.testing.assert_close(back.mode.f, model.mode.f, rtol=0, atol=1e-6)
