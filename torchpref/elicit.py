@@ -111,21 +111,22 @@ class LakeWorld(FeaturesWorld):
         plan = plan_for_model(self.scenario, session.model, session.bounds, rows)
         d, info = plan["planned_objectives"]
         shown = plan["shown_row"]
-        sure = 100 * 0.5 * (1 + math.erf(PLAN_SETTINGS["beta"] / math.sqrt(2)))
+        sure = 100 * float(torch.special.ndtr(torch.tensor(float(PLAN_SETTINGS["beta"]))))
         if plan["source"] == "fallback":
             text = (f"Recommended: path {shown} (the best path you answered about): no planned path is at least "
                     f"{sure:.0f} % sure to be better.")
         else:
             text = (f"Recommended: a planned path, distance {d:.1f}, information {info:.1f}: the learned utility is "
                     f"at least {sure:.0f} % sure it beats path {shown}, the best path you answered about.")
-        paths = [self.scenario.train_paths[i], self.scenario.train_paths[shown], torch.tensor(plan["path"])]
+        paths = [self.scenario.train_paths[i], self.scenario.train_paths[shown]]
         labels = [f"pool's best (path {i}): d={float(x[0]):.0f}, I={float(x[1]):.0f}",
-                  f"best answered (path {shown}): d={plan['shown_objectives'][0]:.0f}, "
-                  f"I={plan['shown_objectives'][1]:.0f}",
-                  f"planned ({'recommended' if plan['source'] != 'fallback' else 'not recommended'}): d={d:.0f}, "
-                  f"I={info:.0f}"]
+                  f"best answered (path {shown}{', recommended' if plan['source'] == 'fallback' else ''}): "
+                  f"d={plan['shown_objectives'][0]:.0f}, I={plan['shown_objectives'][1]:.0f}"]
+        if plan["source"] != "fallback":
+            paths.append(torch.tensor(plan["path"]))
+            labels.append(f"planned (recommended): d={d:.0f}, I={info:.0f}")
         png = plot_map(self.scenario, paths, labels, self.out_dir / "best-path.png",
-                       title="The pool's best, the best answered and the planned path")
+                       title="The pool's best path, the best answered path and the planned path")
         print(f"{text} Map: {png}", file=out)
 
 
