@@ -15,7 +15,7 @@ import importlib
 import sys
 
 # subcommand -> module with ``add_arguments(parser)`` and ``run(args) -> int``
-REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.lake.experiment"}
+REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.experiments.lake"}
 ELICIT = "torchpref.elicit"
 
 

@@ -324,7 +324,7 @@ class PreferenceGP(Model, GP):
         (``mode.fisher_fallback``)."""
         state = self._state()
         n = state.padded.num_items
-        return state.obs.W_dense(n, state.mode.weights).reshape(*self.batch_shape, n, n)
+        return state.obs.W_dense(n, state.mode.weights, like=state.pred.L).reshape(*self.batch_shape, n, n)
 
     def log_marginal_likelihood(self) -> Tensor:
         r"""Laplace evidence ``log q(Y) = log p(Y|f) - f^T K^-1 f / 2 - log|I + W K| / 2`` at the

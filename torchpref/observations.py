@@ -199,12 +199,13 @@ class Observations:
             weights.append(w)
         return LikelihoodTerms(ll, grad, tuple(weights))
 
-    def adjoint(self, values: Sequence[Tensor], n: int) -> Tensor:
-        """``sum over terms and k of x_k d_k`` (``B x n``) for per-term values."""
-        out = 0.0
+    def adjoint(self, values: Sequence[Tensor], n: int, like: Tensor) -> Tensor:
+        """``sum over terms and k of x_k d_k`` (``B x n``, dtype and device of ``like``) for
+        per-term values."""
+        out = like.new_zeros(self.batch, n)
         for t, x in zip(self.terms, values):
             out = out + t.adjoint(x, n)
-        return out if self.terms else torch.zeros(self.batch, n)
+        return out
 
     def curvature_slopes(self, f: Tensor) -> tuple[Tensor, ...]:
         """Each term's :meth:`Term.curvature_slope` at ``f``."""
@@ -236,10 +237,12 @@ class Observations:
             return self.W_dense(n, weights) @ X
         return torch.sparse.mm(self.W_blocks(n, weights), X.reshape(B * n, k)).reshape(B, n, k)
 
-    def W_dense(self, n: int, weights: Sequence[Tensor]) -> Tensor:
-        """``W`` (``B x n x n``, eq. 8) densely, for the evidence's gradient, inspection and tests."""
-        W = torch.zeros(self.batch, n, n, dtype=weights[0].dtype if weights else torch.float64,
-                        device=weights[0].device if weights else None)
+    def W_dense(self, n: int, weights: Sequence[Tensor], like: Tensor | None = None) -> Tensor:
+        """``W`` (``B x n x n``, eq. 8) densely, for the evidence's gradient, inspection and tests
+        (dtype and device of the weights, or of ``like`` when there are no terms)."""
+        ref = weights[0] if weights else like
+        W = torch.zeros(self.batch, n, n, dtype=ref.dtype if ref is not None else torch.float64,
+                        device=ref.device if ref is not None else None)
         for t, w in zip(self.terms, weights):
             rows, cols = t.W_entries(n)
             W.view(-1).index_put_((rows * n + cols % n,), t.W_values(w), accumulate=True)
