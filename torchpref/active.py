@@ -107,8 +107,7 @@ def run_active_learning(
     for step in range(num_queries):
         X, indices = candidates.draw(generator)
         query = selector.select(model, X, indices, step, num_queries, generator)
-        answer = ask_user(user, query)
-        record_answer(model, query, answer)
+        answer = record_answer(model, query, ask_user(user, query))
         record = QueryRecord(step, query, answer, costs[query.kind])
         history.records.append(record)
         if refit_every is not None and (step + 1) % refit_every == 0:
@@ -188,8 +187,7 @@ def run_active_learning_batch(
         X = torch.stack([x for x, _ in draws])
         queries = selector.select_batch(model, X, [i for _, i in draws], step, num_queries, generators)
         for b, query in enumerate(queries):
-            answer = ask_user(users[b], query)
-            record_answer(_Trial(model, b), query, answer)
+            answer = record_answer(_Trial(model, b), query, ask_user(users[b], query))
             histories[b].records.append(QueryRecord(step, query, answer, costs[query.kind]))
         if refit is not None:
             refit(step, model)
