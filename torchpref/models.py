@@ -17,9 +17,10 @@ from gpytorch.mlls import MarginalLogLikelihood
 from gpytorch.models import GP
 from gpytorch.module import Module
 from gpytorch.priors import GammaPrior, LogNormalPrior
-from linear_operator.operators import DenseLinearOperator
+from linear_operator.operators import DenseLinearOperator, LinearOperator
 from torch import Tensor
 
+from torchpref.botorch_api import PairwiseGPInterface, prior_only_data
 from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.laplace import (
     ModeResult,
@@ -38,10 +39,11 @@ def default_covar_module(dim: int) -> ScaleKernel:
     r"""``ScaleKernel(RBFKernel(ard_num_dims=d))`` (eq. 1) with BoTorch's dimension-scaled
     lengthscale prior ``LogNormal(sqrt 2 + log(d) / 2, sqrt 3)`` (inputs in the unit cube) and a
     ``Gamma(2, 1)`` prior on the outputscale ``sigma_f^2`` (utilities of order one on the
-    rating link's scale)."""
+    rating link's scale). ``dim = 0`` (not known yet: a prior-only model) gives one shared
+    lengthscale with the ``d = 1`` prior."""
     base = RBFKernel(
-        ard_num_dims=dim,
-        lengthscale_prior=LogNormalPrior(math.sqrt(2) + 0.5 * math.log(dim), math.sqrt(3)),
+        ard_num_dims=dim or None,
+        lengthscale_prior=LogNormalPrior(math.sqrt(2) + 0.5 * math.log(max(dim, 1)), math.sqrt(3)),
     )
     return ScaleKernel(base, outputscale_prior=GammaPrior(2.0, 1.0))
 
@@ -55,15 +57,22 @@ class PreferenceLikelihood(Module):
         self.rating = rating
 
 
-class PreferenceGP(Model, GP):
+class PreferenceGP(PairwiseGPInterface, Model, GP):
     r"""A GP over the items' objective space, learned from comparisons and ratings together.
 
     The latent utility ``f ~ GP(0, k)`` (eq. 1) is observed through comparisons (eq. 3) and
     ratings on ``[0, 1]`` (eqs. 4-7); the posterior is the Laplace approximation (eqs. 2, 8-10).
     The mode is re-solved, warm-started, whenever the hyperparameters or the data change.
 
+    BoTorch's ``PairwiseGP`` interface is there too (``datapoints``, ``dim``, ``utility``,
+    ``construct_inputs``, prior-only ``PreferenceGP(None, None)``, comparisons as
+    ``condition_on_observations(X, Y)``): see :class:`~torchpref.botorch_api.PairwiseGPInterface`
+    and docs/botorch.md.
+
     Args:
-        train_X: ``n x d`` items (float64 recommended; dtype and device are followed).
+        train_X: ``n x d`` items (float64 recommended; dtype and device are followed), or
+            ``None`` for a prior-only model (then no observations; ``d`` is set by the first
+            data).
         comparisons: ``p x 2`` long, rows ``[preferred, other]`` (BoTorch's convention).
         ratings: ``q`` values in ``[0, 1]``; exact 0 and 1 are moved in to ``rating_eps``.
         rating_index: ``q`` long indices into ``train_X``: the item each rating rates.
@@ -89,7 +98,7 @@ class PreferenceGP(Model, GP):
 
     def __init__(
         self,
-        train_X: Tensor,
+        train_X: Tensor | None,
         comparisons: Tensor | None = None,
         ratings: Tensor | None = None,
         rating_index: Tensor | None = None,
@@ -104,7 +113,12 @@ class PreferenceGP(Model, GP):
         max_newton_iter: int = 100,
     ) -> None:
         super().__init__()
-        data = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
+        if train_X is None:  # BoTorch's prior-only model, PairwiseGP(None, None)
+            if ratings is not None or (comparisons is not None and len(comparisons)):
+                raise ValueError("a prior-only model (train_X=None) takes no comparisons or ratings.")
+            data = prior_only_data()
+        else:
+            data = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
         self.covar_module = covar_module if covar_module is not None else default_covar_module(data.dim)
         self.likelihood = PreferenceLikelihood(
             PairwiseProbitLikelihood(comparison_noise, learn=learn_likelihood),
@@ -173,7 +187,7 @@ class PreferenceGP(Model, GP):
 
     def _fit_input_transform(self) -> None:
         tf = getattr(self, "input_transform", None)
-        if tf is not None:
+        if tf is not None and self._data.n > 0:  # no items: nothing to learn bounds from
             was_training = tf.training
             tf.train()
             with torch.no_grad():
@@ -236,27 +250,6 @@ class PreferenceGP(Model, GP):
         self._set_data(new, warm)
         return self
 
-    def set_train_data(self, train_X, comparisons=None, ratings=None, rating_index=None, strict: bool = False):
-        """Replace all data (validated first; the model is unchanged on error)."""
-        new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
-        new = new.to(device=self._data.train_X.device, dtype=self._data.train_X.dtype)
-        self._set_data(new, None)
-
-    def condition_on_observations(self, X: Tensor, Y: Tensor | None = None, **kwargs: Any) -> "PreferenceGP":
-        r"""A new model with observations added; ``self`` is unchanged.
-
-        ``Y`` (``m`` or ``m x 1``), when given, are ratings of the rows of ``X``; comparisons
-        among the rows of ``X`` go in ``comparisons=`` (indices into ``X``).
-        """
-        if Y is not None:
-            if "ratings" in kwargs:
-                raise ValueError("give ratings either as Y or as ratings=, not both.")
-            Y = Y.reshape(-1)
-            kwargs["ratings"] = Y
-            kwargs["rating_index"] = torch.arange(Y.numel(), device=Y.device)
-        fantasy = copy.deepcopy(self)
-        return fantasy.add_observations(X, **kwargs)
-
     # ------------------------------------------------------------- inference
     def _fingerprint(self) -> Tensor:
         # all parameters, then all floating buffers (as parameters() / buffers()), in one module walk
@@ -284,8 +277,10 @@ class PreferenceGP(Model, GP):
         X2 = X1 if X2 is None else X2
         if any(getattr(m, "active_dims", None) is not None for m in k.modules()):
             out = k(X1, X2, diag=diag)
-            return out if diag else out.to_dense()
-        return k.forward(X1, X2, diag=diag)
+        else:
+            out = k.forward(X1, X2, diag=diag)
+        # kernels such as LinearKernel return a LinearOperator from forward: evaluate it densely
+        return out.to_dense() if isinstance(out, LinearOperator) else out
 
     def _kernel_chol(self, jitter: float | None = None) -> tuple[Tensor, float, Tensor]:
         Xt = self._transformed_train_X()
@@ -356,22 +351,33 @@ class PreferenceGP(Model, GP):
 
         The factorisations are cached: repeated calls with unchanged hyperparameters and data
         cost kernel evaluations and triangular solves only.
+
+        Args:
+            X: ``batch_shape x q x d`` inputs (untransformed).
+            output_indices: ``None`` or ``[0]`` (the one output).
+            observation_noise: ``False``: the latent utility ``f``. ``True``: the utility as
+                perceived in a comparison, ``f + eps`` with independent ``eps ~ N(0, sigma_R^2)``
+                per point (eq. 3; what ``qMaxValueEntropy`` asks for). A tensor
+                (``batch_shape x q x 1``): those noise variances instead. BoTorch's
+                ``PairwiseGP`` ignores this argument.
+            posterior_transform: applied to the result.
         """
-        if output_indices not in (None, [0]):
+        if output_indices is not None and [int(i) for i in output_indices] not in ([0], [-1]):
             raise ValueError(f"PreferenceGP has one output; got output_indices={output_indices}.")
-        if observation_noise is not False:
-            raise NotImplementedError("observation_noise is not defined for a latent utility model.")
         X = self._prediction_inputs(X)
         if X.dim() == 1:  # a single point
             X = X.unsqueeze(0)
-        post = GPyTorchPosterior(self(X))
+        mvn = self(X)
+        if observation_noise is not False:
+            mvn = self._add_observation_noise(mvn, observation_noise)
+        post = GPyTorchPosterior(mvn)
         if posterior_transform is not None:
             return posterior_transform(post)
         return post
 
     def _prediction_inputs(self, X: Tensor) -> Tensor:
         """``X`` checked (``... x d``), the model in eval mode, the input transform applied."""
-        if X.shape[-1] != self._data.dim:
+        if self._data.dim and X.shape[-1] != self._data.dim:  # dim 0: a prior-only model takes any d
             raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
         if self.training:
             self.eval()
