@@ -39,7 +39,6 @@ GAPS: dict[tuple[str, str], str] = {
     ("test_load_state_dict_strict", "PairwiseGP"): "PairwiseGP refuses load_state_dict(strict=True)",
     ("test_prior_model_with_ratings_keyword", "PairwiseGP"): "PairwiseGP has no ratings",
     ("test_observation_noise_adds_variance", "PairwiseGP"): "PairwiseGP ignores observation_noise",
-    ("test_max_value_entropy", "PairwiseGP"): "qMaxValueEntropy fails inside PairwiseGP's posterior",
     ("test_eubo_on_prior_model", "PairwiseGP"): "a prior-only PairwiseGP has datapoints None, which EUBO reads",
     ("test_ranking_with_three_items", "PairwiseGP"): "PairwiseGP reads only two-item rankings",
     ("test_hyperparameter_change_in_eval_mode", "PairwiseGP"):

@@ -15,6 +15,7 @@ from torchpref.data import (
     prepare_ratings,
     unit_to_likert,
 )
+from torchpref.botorch_api import TrainDataMismatchError
 from torchpref.laplace import LaplaceConvergenceWarning
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.metrics import error_on_best, expected_rating, rating_from_latent, true_positives, wrms, wrms_authors
@@ -52,6 +53,7 @@ __all__ = [
     "RatingBoundaryWarning",
     "RatingQuery",
     "SimulatedUser",
+    "TrainDataMismatchError",
     "UCBC",
     "UCBRatings",
     "User",
