@@ -19,7 +19,7 @@ from torchpref.botorch_api import TrainDataMismatchError
 from torchpref.laplace import LaplaceConvergenceWarning
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.metrics import error_on_best, expected_rating, rating_from_latent, true_positives, wrms, wrms_authors
-from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP, default_covar_module
+from torchpref.models import PAPER_FIG4_SETTINGS, LaplaceMarginalLogLikelihood, PreferenceGP, default_covar_module
 from torchpref.numerics import JitterWarning, NotPSDError
 from torchpref.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
 from torchpref.session import PreferenceSession
@@ -29,6 +29,7 @@ from torchpref.users import SimulatedUser, User
 from torchpref.version import __version__
 
 __all__ = [
+    "PAPER_FIG4_SETTINGS",
     "BatchedPreferenceGP",
     "BetaRatingLikelihood",
     "BoxCandidates",

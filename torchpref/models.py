@@ -16,6 +16,7 @@ from gpytorch.kernels import Kernel, RBFKernel, ScaleKernel
 from gpytorch.mlls import MarginalLogLikelihood
 from gpytorch.models import GP
 from gpytorch.module import Module
+from gpytorch.constraints import GreaterThan
 from gpytorch.priors import GammaPrior, LogNormalPrior
 from linear_operator.operators import DenseLinearOperator, LinearOperator
 from torch import Tensor
@@ -35,15 +36,26 @@ from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.numerics import cholesky_jittered
 
 
+#: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
+#: reproduce the paper: ``PreferenceGP(X, ..., **PAPER_FIG4_SETTINGS)`` (docs/botorch.md).
+PAPER_FIG4_SETTINGS = {"comparison_noise": 0.1, "rating_scale": 1.0, "rating_precision": 80.0}
+
+#: Lower bound of the default kernel's lengthscales (inputs in the unit cube).
+MIN_LENGTHSCALE = 1e-4
+
+
 def default_covar_module(dim: int) -> ScaleKernel:
     r"""``ScaleKernel(RBFKernel(ard_num_dims=d))`` (eq. 1) with BoTorch's dimension-scaled
     lengthscale prior ``LogNormal(sqrt 2 + log(d) / 2, sqrt 3)`` (inputs in the unit cube) and a
     ``Gamma(2, 1)`` prior on the outputscale ``sigma_f^2`` (utilities of order one on the
-    rating link's scale). ``dim = 0`` (not known yet: a prior-only model) gives one shared
-    lengthscale with the ``d = 1`` prior."""
+    rating link's scale). Lengthscales stay above ``1e-4`` (as ``PairwiseGP``'s): at exactly 0,
+    where an optimiser's long step can send a softplus-constrained one, the kernel matrix is NaN.
+    ``dim = 0`` (not known yet: a prior-only model) gives one shared lengthscale with the
+    ``d = 1`` prior."""
     base = RBFKernel(
         ard_num_dims=dim or None,
         lengthscale_prior=LogNormalPrior(math.sqrt(2) + 0.5 * math.log(max(dim, 1)), math.sqrt(3)),
+        lengthscale_constraint=GreaterThan(MIN_LENGTHSCALE),
     )
     return ScaleKernel(base, outputscale_prior=GammaPrior(2.0, 1.0))
 
@@ -77,9 +89,11 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         ratings: ``q`` values in ``[0, 1]``; exact 0 and 1 are moved in to ``rating_eps``.
         rating_index: ``q`` long indices into ``train_X``: the item each rating rates.
         covar_module: the kernel; default :func:`default_covar_module`.
-        comparison_noise: ``sigma_R`` of eq. 3 (default 0.1, the paper's Fig. 4).
-        rating_scale: ``sigma_B`` of eq. 7 (default 1.0, Fig. 4).
-        rating_precision: ``nu`` of eqs. 5-6 (default 80, Fig. 4).
+        comparison_noise: ``sigma_R`` of eq. 3 (default 1.0: BoTorch's ``PairwiseGP`` probit
+            ``Phi((f_i - f_j) / sqrt 2)``, which keeps EUBO-style loops from re-asking compared
+            pairs; the paper's Fig. 4 used 0.1, see :data:`PAPER_FIG4_SETTINGS`).
+        rating_scale: ``sigma_B`` of eq. 7 (default 1.0, as Fig. 4).
+        rating_precision: ``nu`` of eqs. 5-6 (default 80, as Fig. 4).
         learn_likelihood: make the three likelihood parameters trainable (default: fixed, as in
             the paper; with comparisons only, ``comparison_noise`` and the outputscale are not
             separately identifiable).
@@ -104,7 +118,7 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         rating_index: Tensor | None = None,
         covar_module: Kernel | None = None,
         *,
-        comparison_noise: float = 0.1,
+        comparison_noise: float = 1.0,
         rating_scale: float = 1.0,
         rating_precision: float = 80.0,
         learn_likelihood: bool = False,
