@@ -21,18 +21,8 @@ from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
 
 IMPLS = ("PreferenceGP", "PairwiseGP")
 
-_SOLVER = "batched training data / fantasies: needs the batch-first Laplace solver (issue 10 item 1, 3)"
-
 #: (check name, model) -> why that model fails the check.
 GAPS: dict[tuple[str, str], str] = {
-    ("test_batched_training_data_posterior_shapes", "PreferenceGP"): _SOLVER,
-    ("test_batched_training_data_fit", "PreferenceGP"): _SOLVER,
-    ("test_condition_on_fantasy_batch", "PreferenceGP"): _SOLVER,
-    ("test_condition_same_inputs_broadcast_over_fantasies", "PreferenceGP"): _SOLVER,
-    ("test_batched_fantasy_equals_unbatched", "PreferenceGP"): _SOLVER,
-    ("test_fantasize_returns_same_class", "PreferenceGP"): _SOLVER,
-    ("test_knowledge_gradient", "PreferenceGP"): _SOLVER,
-    ("test_integrated_posterior_variance", "PreferenceGP"): _SOLVER,
     ("test_output_indices_zero", "PairwiseGP"): "PairwiseGP raises RuntimeError for output_indices=[0]",
     ("test_subset_output_single", "PairwiseGP"): "PairwiseGP does not implement subset_output",
     ("test_non_scale_kernels", "PairwiseGP"): "PairwiseGP requires a ScaleKernel",

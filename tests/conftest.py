@@ -5,6 +5,15 @@ import torch
 
 SEED = 20170517
 DTYPE = torch.float64
+#: CPU always; CUDA where this machine has it (no GPU was lent to the sessions so far: the CUDA
+#: cases have not run yet).
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> torch.device:
+    """Each available device in turn."""
+    return torch.device(request.param)
 
 
 @pytest.fixture

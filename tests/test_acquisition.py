@@ -9,6 +9,7 @@ from scipy import integrate, stats
 
 from torchpref.acquisition import (
     QueryInformation,
+    QueryUCB,
     choice_probabilities,
     greedy_choice_set,
     latent_ucb,
@@ -113,6 +114,13 @@ def test_optimize_acqf_with_latent_ucb(model):
         ucb = latent_ucb(model, 3.0)(grid)
     assert 0 <= float(x) <= 1
     assert float(val) >= float(ucb.max()) - 1e-3
+
+
+def test_query_ucb_is_botorch_ucb_of_the_best_item(model):
+    X = torch.linspace(0, 1, 12, dtype=torch.float64).reshape(4, 3, 1)  # 4 queries of 3 items
+    with torch.no_grad():
+        per_item = latent_ucb(model, 3.0)(X.reshape(12, 1, 1)).reshape(4, 3)  # BoTorch's UCB
+        torch.testing.assert_close(QueryUCB(model, 3.0)(X), per_item.max(-1).values)
 
 
 def test_top_set_membership_counts():

@@ -52,7 +52,7 @@ def test_batch_matches_single_models(seed):
         assert torch.allclose(er[b], model.expected_rating(X[b]), atol=tol)
         assert torch.allclose(batch.mode()[b], model.mode.f, atol=tol)
     assert mean.abs().max() > 0.1
-    assert batch._state()["mode"]["converged"].all()
+    assert batch.converged.all()
 
 
 def test_trial_without_observations_is_the_prior():
@@ -194,7 +194,7 @@ def test_batch_random_extreme_problems(hyper_seed):
                   for _, X, C, u, ri in problems]
         batch = BatchedPreferenceGP.from_models(models)
         modes = batch.mode()
-        assert batch._state()["mode"]["converged"].all()
+        assert batch.converged.all()
         Xs = torch.rand(len(models), 5, d, generator=torch.Generator().manual_seed(hyper_seed), dtype=torch.float64)
         mean, var = batch.marginals(Xs)
         assert torch.isfinite(mean).all() and torch.isfinite(var).all()
@@ -218,7 +218,7 @@ def test_trial_model_is_independent():
 def test_fisher_steps_where_the_hessian_is_not_negative_definite():
     """Started where a Beta rating's log-likelihood is convex (nu = 2, u = 0.02, f = 2, prior
     variance 10: B = I + L^T W L < 0), the batched Newton takes Fisher-scoring steps and reaches
-    the same mode as laplace.find_mode from the same start."""
+    the same mode as each problem alone from the same start."""
     from gpytorch.kernels import RBFKernel, ScaleKernel
 
     from torchpref.laplace import find_mode
@@ -230,17 +230,17 @@ def test_fisher_steps_where_the_hessian_is_not_negative_definite():
     models = [PreferenceGP(X, ratings=[0.02, 0.6], rating_index=[0, 1], covar_module=k, rating_scale=1.0,
                            rating_precision=2.0) for _ in range(2)]
     batch = BatchedPreferenceGP.from_models(models)
-    s = batch._padded()
-    K = k.forward(s["X"], s["X"])
-    L = torch.linalg.cholesky(K)
+    padded = batch.model.data
+    obs = batch.model._observations()
+    L = torch.linalg.cholesky(k.forward(padded.X, padded.X))
     f0 = torch.tensor([[2.0, 0.0], [0.0, 0.0]], dtype=torch.float64)
-    lam, w = batch._terms(s, f0)[2:]
-    assert torch.linalg.cholesky_ex(batch._hessian(s, L, lam, w))[1][0] > 0  # not PD at the start
-    out = batch._find_modes(s, L, f0)
-    assert out["converged"].all()
+    weights = obs.evaluate(f0).weights
+    assert torch.linalg.cholesky_ex(obs.whitened_hessian(L, weights))[1][0] > 0  # not PD at the start
+    out = find_mode(L, obs, f0=f0)
+    assert out.converged.all()
     for b in range(2):
         ref = find_mode(L[b], models[b]._observations(), f0=f0[b])
-        assert torch.allclose(out["f"][b], ref.f, atol=1e-6)
+        assert torch.allclose(out.f[b], ref.f, atol=1e-6)
 
 
 def test_batch_copies_hyperparameters():

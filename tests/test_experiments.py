@@ -6,7 +6,8 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from torchpref.cli import main
-from torchpref.experiments.runner import mean_sem, paired_tests, run_trials
+from torchpref.experiments.results import mean_sem, paired_tests
+from torchpref.experiments.runner import run_trials
 from torchpref.experiments.wave import STRATEGIES
 
 
@@ -64,3 +65,27 @@ def test_wave_batched_run_equals_trial_by_trial():
     assert one["summary"]["fraction_ratings"] == two["summary"]["fraction_ratings"]
     with pytest.raises(ValueError, match="batch_size"):
         run_wave_experiment(**kw, batch_size=0)
+
+
+def test_registry_and_fixed_kernel():
+    import torch
+    from gpytorch.kernels import RBFKernel, ScaleKernel
+
+    from torchpref.experiments.runner import STRATEGIES as ALL, make_model, make_selector
+    from torchpref.kernels import fixed_rbf_kernel
+
+    for name in ALL:
+        assert make_selector(name, m=3).name == name
+    with pytest.raises(ValueError, match="no such"):
+        make_selector("no such")
+    X = torch.rand(7, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    ref = ScaleKernel(RBFKernel())
+    ref.base_kernel.lengthscale, ref.outputscale = 0.3, 0.5
+    ref = ref.to(X)
+    k = fixed_rbf_kernel(0.3, 0.5, X)
+    assert torch.equal(k(X, X[:3]).to_dense(), ref(X, X[:3]).to_dense())  # the same to the bit
+    assert torch.equal(k.forward(X, X, diag=True), ref.forward(X, X, diag=True))
+    settings = {"lengthscale": 0.3, "outputscale": 0.5, "comparison_noise": 0.2, "rating_scale": 0.8,
+                "rating_precision": 60.0}
+    model = make_model(X[:2], torch.tensor([[0, 1]]), settings)
+    assert float(model.likelihood.rating.rating_precision) == pytest.approx(60.0)

@@ -221,9 +221,9 @@ def test_evidence_gradient_is_not_the_fixed_mode_gradient():
     f_fixed = model.mode.f.clone()
     L = torch.linalg.cholesky(model.covar_module(model.train_X).to_dense())
     obs = model._observations()
-    ll, _, lam, w = obs.terms(f_fixed)
+    weights = obs.evaluate(f_fixed[None]).weights
     a = torch.linalg.solve_triangular(L, f_fixed.unsqueeze(-1), upper=False).squeeze(-1)
-    B = obs.whitened_hessian(L, lam.detach(), w.detach())
+    B = obs.whitened_hessian(L[None], [w.detach() for w in weights])[0]
     naive = -0.5 * (a * a).sum() - torch.log(torch.diagonal(torch.linalg.cholesky(B))).sum()
     (gn,) = torch.autograd.grad(naive, [p])
     assert abs(float(g) - float(gn)) > 1e-6 * abs(float(g))
@@ -273,11 +273,11 @@ def test_written_out_evidence_gradient_equals_traced(kind, d, learn):
     params = list(_raw_params(model, learn, kind).values())
     st, obs = model._state(), model._observations()
     K = model._kernel(model._transformed_train_X())
-    fast = laplace_evidence(K, obs, st["mode"], L=st["pred"].L, jitter=st["jitter"])
+    fast = laplace_evidence(K, obs, st.mode.select(0), L=st.pred.L[0], jitter=st.jitter)
     g_fast = torch.autograd.grad(fast, params)
     K = model._kernel(model._transformed_train_X())
-    L = torch.linalg.cholesky(K + st["jitter"] * torch.eye(K.shape[0], dtype=K.dtype))
-    traced = _laplace_evidence_traced(L, obs, st["mode"])
+    L = torch.linalg.cholesky(K + st.jitter * torch.eye(K.shape[0], dtype=K.dtype))
+    traced = _laplace_evidence_traced(L, obs, st.mode.select(0))
     g_traced = torch.autograd.grad(traced, params)
     assert abs(float(fast.detach()) - float(traced.detach())) < 1e-10
     for a, b in zip(g_fast, g_traced):
@@ -291,13 +291,23 @@ def test_whitened_hessian_sparse_and_row_forms_agree(generator):
     L = torch.linalg.cholesky(A @ A.T / n + torch.eye(n, dtype=torch.float64))
     C = random_comparisons(n, 20, generator)
     ri = torch.randint(0, n, (9,), generator=generator)
-    obs = Observations(C, rand(9, generator=generator, low=0.05, high=0.95), ri, PairwiseProbitLikelihood(0.3),
-                       BetaRatingLikelihood(0.8, 60.0))
-    lam, w = rand(20, generator=generator), randn(9, generator=generator)  # w may be negative
-    sparse = obs.whitened_hessian(L, lam, w)  # 2 (p + q) > n: the sparse path
+    obs = Observations.from_data(C, rand(9, generator=generator, low=0.05, high=0.95), ri,
+                                 PairwiseProbitLikelihood(0.3), BetaRatingLikelihood(0.8, 60.0))
+    weights = [rand(1, 20, generator=generator), randn(1, 9, generator=generator)]  # w may be negative
+    sparse = obs.whitened_hessian(L[None], weights)[0]  # 2 (p + q) > n: the sparse path
     Lg = L.clone().requires_grad_(True)  # a tracked L takes the row form
-    rows = obs.whitened_hessian(Lg, lam, w).detach()
-    dense = torch.eye(n, dtype=torch.float64) + L.T @ obs.W_dense(n, lam, w) @ L
+    rows = obs.whitened_hessian(Lg[None], weights)[0].detach()
+    # W written out from its definition (eq. 8)
+    W = torch.zeros(n, n, dtype=torch.float64)
+    for (i, j), lam in zip(C.tolist(), weights[0][0].tolist()):
+        W[i, i] += lam
+        W[j, j] += lam
+        W[i, j] -= lam
+        W[j, i] -= lam
+    for i, w in zip(ri.tolist(), weights[1][0].tolist()):
+        W[i, i] += w
+    torch.testing.assert_close(obs.W_dense(n, weights)[0], W, rtol=0, atol=1e-14)
+    dense = torch.eye(n, dtype=torch.float64) + L.T @ W @ L
     torch.testing.assert_close(sparse, dense, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(rows, dense, rtol=1e-12, atol=1e-12)
 
@@ -316,8 +326,8 @@ def test_mode_accelerations_reach_the_plain_newton_mode(sigma_R, lengthscale, nu
     K = kernel(torch.tensor([lengthscale, lengthscale], dtype=torch.float64), 1.0, 2)(X).to_dense()
     L = torch.linalg.cholesky(K + 1e-6 * torch.eye(n, dtype=torch.float64))
     ri = torch.randperm(n, generator=g)[:100]
-    obs = Observations(random_comparisons(n, 500, g), rand(100, generator=g, low=0.05, high=0.95), ri,
-                       PairwiseProbitLikelihood(sigma_R), BetaRatingLikelihood(0.8, nu))
+    obs = Observations.from_data(random_comparisons(n, 500, g), rand(100, generator=g, low=0.05, high=0.95), ri,
+                                 PairwiseProbitLikelihood(sigma_R), BetaRatingLikelihood(0.8, nu))
     fast = find_mode(L, obs)
     plain = find_mode(L, obs, max_chord=0, single_precision_min_size=10**9)
     assert fast.converged and plain.converged

@@ -39,3 +39,18 @@ def test_cholesky_batch_per_matrix_schedules():
     assert failed.tolist() == [False, False, True]
     assert jitter[:2].tolist() == [0.0, 0.1]  # the second matrix: its own schedule's first success
     assert torch.allclose(L[:2] @ L[:2].mT, A[:2] + jitter[:2].reshape(2, 1, 1) * eye)
+
+
+def test_gauss_hermite_moments():
+    import math
+
+    from torchpref.numerics import gauss_hermite
+
+    x, w = gauss_hermite(10, torch.zeros((), dtype=torch.float64))
+    m, v = 0.3, 2.0
+    z = m + math.sqrt(2 * v) * x
+    # E[Z^2] = m^2 + v and E[Z^4] = m^4 + 6 m^2 v + 3 v^2 under N(m, v): exact for 10 nodes
+    assert float((w * z**2).sum()) == pytest.approx(m**2 + v, rel=1e-12)
+    assert float((w * z**4).sum()) == pytest.approx(m**4 + 6 * m**2 * v + 3 * v**2, rel=1e-12)
+    x2, w2 = gauss_hermite(10, x, expectation=False)
+    assert float((w2 * x2**2).sum()) == pytest.approx(math.sqrt(math.pi) / 2, rel=1e-12)

@@ -21,3 +21,6 @@ def test_readme_code_runs(capsys):
     model = namespace["model"]
     assert model.train_X.shape[0] == 13  # the quick start's 12 items plus the UCB point
     assert model.ratings.shape[0] == 4
+    printed = capsys.readouterr().out
+    assert "tensor(" in printed and "grad_fn" not in printed  # the printed tensors are plain values
+    assert 0 <= namespace["row"] < 12 and namespace["best"].shape == (2,)

@@ -6,7 +6,8 @@ ranking query. So one acquisition function values both query types and a selecto
 
 * :func:`latent_ucb`: eq. 12's UCB on the latent utility, BoTorch's own
   ``UpperConfidenceBound`` with ``beta = gamma^2`` (the paper's ``gamma = 3`` is ``beta = 9``).
-* :class:`QueryUCB`: the largest UCB among a query's items (eq. 12 for ``q = 1``).
+* :func:`item_ucb`: eq. 12 at each point (with the posterior mean and std), what the UCB
+  selectors rank by; :class:`QueryUCB`: the largest UCB among a query's items.
 * :class:`QueryInformation`: the mutual information between a query's answer and the latent
   utility, ``I(y; f) = H[y] - E_f H[y | f]``, under the model's own noise: a Beta rating
   (eqs. 4-7) or a best-of-``q`` choice where each item's utility is seen with
@@ -25,37 +26,49 @@ ranking query. So one acquisition function values both query types and a selecto
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Callable
 
-import numpy as np
 import torch
 from botorch.acquisition import AcquisitionFunction, UpperConfidenceBound
+from botorch.models.model import Model
 from botorch.utils.transforms import t_batch_mode_transform
 from torch import Tensor
 from torch.distributions import Beta
 
-from torchpref.numerics import log_ndtr
+from torchpref.numerics import gauss_hermite, log_ndtr
 
 
-def latent_ucb(model, gamma: float = 3.0) -> UpperConfidenceBound:
+def latent_ucb(model: Model, gamma: float = 3.0) -> UpperConfidenceBound:
     r"""Eq. 12, ``mean + gamma * std`` of the latent utility, as BoTorch's UCB (``beta = gamma^2``)."""
     return UpperConfidenceBound(model, beta=gamma**2)
 
 
-class QueryUCB(AcquisitionFunction):
-    r"""``max_i mean(x_i) + gamma * std(x_i)`` over a query's ``q`` items (eq. 12 for ``q = 1``)."""
+def item_ucb(model, X: Tensor, gamma: float = 3.0) -> tuple[Tensor, Tensor, Tensor]:
+    r"""Eq. 12's ``mean + gamma * std`` of the latent utility at each point of ``X`` (``... x d``),
+    with the posterior mean and std (each ``...``). Uses ``model.marginals`` where the model has
+    it (:class:`~torchpref.PreferenceGP`, :class:`~torchpref.BatchedPreferenceGP` with ``T x N x d``
+    points), else any BoTorch model's posterior."""
+    if hasattr(model, "marginals"):
+        mean, var = model.marginals(X)
+    else:
+        post = model.posterior(X.unsqueeze(-2))
+        mean, var = post.mean[..., 0, 0], post.variance[..., 0, 0]
+    std = var.clamp_min(0).sqrt()
+    return mean + gamma * std, mean, std
 
-    def __init__(self, model, gamma: float = 3.0):
+
+class QueryUCB(AcquisitionFunction):
+    r"""``max_i mean(x_i) + gamma * std(x_i)`` over a query's ``q`` items (eq. 12 for ``q = 1``;
+    :func:`item_ucb`)."""
+
+    def __init__(self, model: Model, gamma: float = 3.0):
         super().__init__(model)
         self.gamma = gamma
 
     @t_batch_mode_transform()
     def forward(self, X: Tensor) -> Tensor:
-        post = self.model.posterior(X)
-        ucb = post.mean.squeeze(-1) + self.gamma * post.variance.squeeze(-1).clamp_min(0).sqrt()
-        return ucb.max(dim=-1).values
+        return item_ucb(self.model, X, self.gamma)[0].max(dim=-1).values
 
 
 class QueryInformation(AcquisitionFunction):
@@ -76,7 +89,7 @@ class QueryInformation(AcquisitionFunction):
         generator: seeds those samples.
     """
 
-    def __init__(self, model, num_samples: int = 128, generator: torch.Generator | None = None,
+    def __init__(self, model: Model, num_samples: int = 128, generator: torch.Generator | None = None,
                  num_quadrature: int = 24, num_grid: int = 400):
         super().__init__(model)
         self.num_samples = num_samples
@@ -84,10 +97,6 @@ class QueryInformation(AcquisitionFunction):
         self.num_grid = num_grid
         g = generator if generator is not None else torch.Generator().manual_seed(0)
         self._seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g))
-
-    def _gh(self, like: Tensor) -> tuple[Tensor, Tensor]:
-        x, w = np.polynomial.hermite.hermgauss(self.num_quadrature)
-        return like.new_tensor(x), like.new_tensor(w) / math.sqrt(math.pi)
 
     @t_batch_mode_transform()
     def forward(self, X: Tensor) -> Tensor:
@@ -99,7 +108,7 @@ class QueryInformation(AcquisitionFunction):
 
     def _rating_information(self, mean: Tensor, var: Tensor) -> Tensor:
         lik = self.model.likelihood.rating
-        x, w = self._gh(mean)
+        x, w = gauss_hermite(self.num_quadrature, mean)
         f = mean.unsqueeze(-1) + torch.sqrt(2 * var.clamp_min(0)).unsqueeze(-1) * x  # b x H
         _, _, nu, a, b = lik._shape(f)
         # far-out quadrature nodes can underflow a Beta shape to 0; its entropy term has weight ~0
@@ -112,19 +121,6 @@ class QueryInformation(AcquisitionFunction):
         entropy = -(torch.exp(log_mix) * log_mix).sum(-1) / self.num_grid
         return (entropy - cond_entropy).clamp_min(0)
 
-    def _choice_probabilities(self, f: Tensor) -> Tensor:
-        """``... x q`` utilities -> ``... x q`` probabilities that each is chosen."""
-        s = self.model.likelihood.comparison.comparison_noise
-        x, w = self._gh(f)
-        diff = (f.unsqueeze(-1) - f.unsqueeze(-2)) / s  # ... x j x k
-        z = diff.unsqueeze(-1) + math.sqrt(2) * x  # ... x j x k x H
-        lp = log_ndtr(z)
-        q = f.shape[-1]
-        eye = torch.eye(q, dtype=torch.bool, device=f.device).unsqueeze(-1)
-        lp = lp.masked_fill(eye, 0.0).sum(-2)  # ... x j x H
-        p = (torch.exp(lp) * w).sum(-1)
-        return p / p.sum(-1, keepdim=True)
-
     def _ranking_information(self, mean: Tensor, cov: Tensor) -> Tensor:
         q = mean.shape[-1]
         g = torch.Generator(device=mean.device).manual_seed(self._seed)
@@ -132,15 +128,9 @@ class QueryInformation(AcquisitionFunction):
         jitter = 1e-9 * torch.eye(q, dtype=mean.dtype, device=mean.device)
         L = torch.linalg.cholesky_ex(cov + jitter)[0]
         f = mean.unsqueeze(-2) + z @ L.mT  # b x S x q
-        p = self._choice_probabilities(f)
+        p = choice_probabilities(f, self.model.likelihood.comparison.comparison_noise, self.num_quadrature)
         ent = lambda P: -(P * torch.log(P.clamp_min(1e-300))).sum(-1)  # noqa: E731
         return (ent(p.mean(-2)) - ent(p).mean(-1)).clamp_min(0)
-
-
-@functools.lru_cache(maxsize=8)
-def _hermgauss(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    x, w = np.polynomial.hermite.hermgauss(n)
-    return tuple(x.tolist()), tuple(w.tolist())
 
 
 def _entropy(P: Tensor, dim: int = -1) -> Tensor:
@@ -151,8 +141,7 @@ def choice_probabilities(f: Tensor, comparison_noise: float | Tensor, num_quadra
     r"""``... x q`` utilities -> ``... x q`` probabilities that each item is chosen as the best when
     each utility is seen with ``N(0, sigma_R^2)`` noise (eq. 3):
     ``P(j | f) = E_eps prod_{k != j} Phi((f_j + eps - f_k) / sigma_R)``, Gauss-Hermite over eps."""
-    x, w = np.polynomial.hermite.hermgauss(num_quadrature)
-    x, w = f.new_tensor(x), f.new_tensor(w) / math.sqrt(math.pi)
+    x, w = gauss_hermite(num_quadrature, f)
     diff = (f.unsqueeze(-1) - f.unsqueeze(-2)) / comparison_noise  # ... x j x k
     lp = log_ndtr(diff.unsqueeze(-1) + math.sqrt(2) * x)  # ... x j x k x H
     q = f.shape[-1]
@@ -418,8 +407,7 @@ def _greedy_choice_set(F: Tensor, comparison_noise: float | Tensor, m: int, valu
     T, S, K = F.shape
     if not 2 <= m <= K:
         raise ValueError(f"need 2 <= m <= {K} items, got m={m}.")
-    x, w = _hermgauss(num_quadrature)
-    x, w = F.new_tensor(x), F.new_tensor(w) / math.sqrt(math.pi)
+    x, w = gauss_hermite(num_quadrature, F)
     noise = comparison_noise
     per_trial = isinstance(noise, Tensor) and noise.dim() > 0
     if per_trial:

@@ -13,6 +13,7 @@ from torchpref.batch import BatchedPreferenceGP
 from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
 from torchpref.queries import Candidates, Query, RatingQuery, ask_user, record_answer
 from torchpref.strategies import Selector
+from torchpref.users import User
 
 DEFAULT_COSTS = {"rating": 1.0, "ranking": 1.0}
 
@@ -54,6 +55,7 @@ class History:
 
     @property
     def num_ratings(self) -> int:
+        """How many of the recorded queries were ratings."""
         return sum(isinstance(r.query, RatingQuery) for r in self.records)
 
 
@@ -65,7 +67,7 @@ def fit_model(model: PreferenceGP) -> PreferenceGP:
 
 def run_active_learning(
     model: PreferenceGP,
-    user,
+    user: User,
     candidates: Candidates,
     selector: Selector,
     num_queries: int,
@@ -131,7 +133,7 @@ class _Trial:
 
 def run_active_learning_batch(
     model: BatchedPreferenceGP,
-    users: Sequence,
+    users: Sequence[User],
     candidates: Candidates,
     selector: Selector,
     num_queries: int,

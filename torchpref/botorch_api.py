@@ -21,6 +21,7 @@ from linear_operator.operators import DenseLinearOperator
 from torch import Tensor
 
 from torchpref.data import PreferenceData
+from torchpref.fantasy import condition_batch
 
 
 class TrainDataMismatchError(ValueError, RuntimeError):
@@ -41,16 +42,18 @@ class PairwiseGPInterface:
     r"""The part of BoTorch's ``PairwiseGP`` interface that BoTorch's preference tools use.
 
     Mixed into :class:`~torchpref.models.PreferenceGP`; relies on its ``_data`` (a
-    :class:`~torchpref.data.PreferenceData`), ``_set_data``, ``add_observations``, ``mode`` and
-    ``likelihood``.
+    :class:`~torchpref.data.PreferenceData` or, batched, a :class:`~torchpref.padding.PaddedData`),
+    ``train_X`` / ``comparisons`` / ``ratings``, ``_set_data``, ``add_observations``, ``mode``
+    and ``likelihood``.
     """
 
     # ------------------------------------------------------------ names read by BoTorch
     @property
     def datapoints(self) -> Tensor:
-        r"""``n x d`` items as given (before any input transform): ``PairwiseGP.datapoints``.
-        For a prior-only model an empty ``0 x 0`` tensor of the model's dtype and device."""
-        return self._data.train_X
+        r"""``batch_shape x n x d`` items as given (before any input transform):
+        ``PairwiseGP.datapoints``. For a prior-only model an empty ``0 x 0`` tensor of the
+        model's dtype and device."""
+        return self.train_X
 
     @property
     def dim(self) -> int | None:
@@ -60,13 +63,13 @@ class PairwiseGPInterface:
 
     @property
     def utility(self) -> Tensor:
-        r"""``n`` posterior-mode utilities of the items (``PairwiseGP.utility``)."""
-        return self.mode.f
+        r"""``batch_shape x n`` posterior-mode utilities of the items (``PairwiseGP.utility``)."""
+        return self.mode.f.reshape(*self.batch_shape, -1)
 
     @property
     def has_data(self) -> bool:
         """Whether the model holds any item (a prior-only model does not)."""
-        return self._data.n > 0
+        return self.train_X.shape[-2] > 0
 
     # ---------------------------------------------------------------- construction
     @classmethod
@@ -129,19 +132,20 @@ class PairwiseGPInterface:
         Raises:
             TrainDataMismatchError: ``strict`` and a shape, dtype or device differs.
         """
-        old = self._data
+        old_X = self.train_X
         if train_X is None:
             if comparisons is not None or ratings is not None:
                 raise ValueError("comparisons and ratings need the items they index: train_X is None.")
-            train_X = old.train_X[:0]
+            train_X = old_X[..., :0, :]
         if strict:
-            _check_strict(old, train_X, comparisons, ratings)
-        if old.dim == 0 and train_X.shape[-1] == 0:
-            new = old
-        else:
-            new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
-        new = new.to(device=old.train_X.device, dtype=old.train_X.dtype)
-        self._set_data(new, None)
+            _check_strict(self, train_X, comparisons, ratings)
+        if train_X.dim() != 2:
+            raise UnsupportedError(f"set_train_data takes n x d items, got shape {tuple(train_X.shape)}; "
+                                   "a batched model is built by the constructor or condition_on_observations.")
+        if self._data.dim == 0 and train_X.shape[-1] == 0:
+            return
+        new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
+        self._set_data(new.to(device=old_X.device, dtype=old_X.dtype), None)
 
     def condition_on_observations(
         self,
@@ -162,6 +166,10 @@ class PairwiseGPInterface:
         * Ratings go in by keyword only: ``ratings=`` (``q`` values in ``[0, 1]``) with
           ``rating_index=`` (rows of ``X``; by default one rating per row of ``X``).
 
+        Batched ``X`` (``batch x m x d``), batched observations (``batch x m x 2`` comparisons,
+        ``batch x q`` ratings) or a batched model give a batched model, one problem per batch
+        element (:func:`~torchpref.fantasy.condition_batch`): fantasies.
+
         Args:
             X: ``m x d`` items (a row equal to an existing item reuses its index).
             Y: comparisons as above, or ``None``.
@@ -175,12 +183,20 @@ class PairwiseGPInterface:
             if comparisons is not None:
                 raise ValueError("give comparisons either as Y or as comparisons=, not both.")
             comparisons = _comparisons_from_Y(Y)
-        if ratings is not None and rating_index is None:
-            rating_index = torch.arange(torch.as_tensor(ratings).numel(), device=X.device)
+        if ratings is not None:
+            ratings = torch.as_tensor(ratings)
+            if ratings.dim() > 1 and ratings.shape[-1] == 1:  # BoTorch's m x 1 outcomes
+                ratings = ratings.squeeze(-1)
+            if rating_index is None:
+                rating_index = torch.arange(ratings.shape[-1], device=X.device).expand(ratings.shape)
         if not self.has_data and self._data.dim == 0:  # prior-only: these become the data
             new = copy.deepcopy(self)
             new.set_train_data(X, comparisons, ratings, rating_index)
             return new
+        batched = (self.batch_shape or X.dim() > 2 or (comparisons is not None and comparisons.dim() > 2)
+                   or (ratings is not None and ratings.dim() > 1))
+        if batched:
+            return condition_batch(self, X, comparisons, ratings, rating_index)
         return copy.deepcopy(self).add_observations(X, comparisons, ratings, rating_index)
 
     # ------------------------------------------------------------ observation noise
@@ -229,15 +245,12 @@ def _comparisons_from_Y(Y: Tensor) -> Tensor:
         )
     if Y.dim() < 2 or Y.shape[-1] != 2:
         raise ValueError(f"comparisons Y must have shape m x 2 (rows [preferred, other]), got {tuple(Y.shape)}.")
-    if Y.dim() > 2:
-        raise UnsupportedError(
-            f"conditioning on a batch of comparisons (Y of shape {tuple(Y.shape)}) needs a batched model."
-        )
     return Y.long()
 
 
-def _check_strict(old: PreferenceData, train_X: Tensor, comparisons, ratings) -> None:
-    """Raise :class:`TrainDataMismatchError` where the new data's layout differs from ``old``'s."""
+def _check_strict(old, train_X: Tensor, comparisons, ratings) -> None:
+    """Raise :class:`TrainDataMismatchError` where the new data's layout differs from the model
+    ``old``'s."""
     pairs = [("train_X", train_X, old.train_X)]
     if comparisons is not None or old.comparisons.shape[0]:
         pairs.append(("comparisons", comparisons, old.comparisons))

@@ -28,7 +28,9 @@ def _experiment_args(p: argparse.ArgumentParser, trials: int, queries: int) -> N
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="torchpref", description=__doc__.split("\n")[0])
+    """The parser of ``torchpref``'s arguments (its help texts are plain text, no markup)."""
+    parser = argparse.ArgumentParser(
+        prog="torchpref", description="Reproduce the paper's experiments, or learn your preferences in the terminal.")
     sub = parser.add_subparsers(dest="command", required=True)
     rep = sub.add_parser("reproduce", help="reproduce one of the paper's experiments")
     rep_sub = rep.add_subparsers(dest="experiment", required=True)
@@ -45,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``torchpref`` with the arguments ``argv`` (default ``sys.argv[1:]``); return the exit status."""
     args = build_parser().parse_args(argv)
     if args.command == "reproduce":
         module = importlib.import_module(REPRODUCE[args.experiment])

@@ -15,12 +15,15 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import torch
 from torch import Tensor
 
 DEFAULT_RATING_EPS = 1e-3
+
+TensorLike = Tensor | Sequence[Any] | float
+"""What ``torch.as_tensor`` takes: a tensor, a (nested) sequence or array of numbers, or a number."""
 
 
 class RatingBoundaryWarning(UserWarning):
@@ -44,7 +47,7 @@ def _check_finite(name: str, t: Tensor) -> None:
         raise ValueError(f"{name} must be finite, got non-finite values such as {bad}.")
 
 
-def likert_to_unit(levels, num_levels: int = 5, mode: str = "centre") -> Tensor:
+def likert_to_unit(levels: TensorLike, num_levels: int = 5, mode: str = "centre") -> Tensor:
     r"""Map Likert levels ``1..K`` to ratings in ``[0, 1]``.
 
     Args:
@@ -72,7 +75,7 @@ def likert_to_unit(levels, num_levels: int = 5, mode: str = "centre") -> Tensor:
     raise ValueError(f"mode must be 'centre' or 'linear', got {mode!r}.")
 
 
-def unit_to_likert(values, num_levels: int = 5) -> Tensor:
+def unit_to_likert(values: TensorLike, num_levels: int = 5) -> Tensor:
     """Inverse of :func:`likert_to_unit` in ``"centre"`` mode: the bin each value falls in."""
     v = _as_tensor(values, dtype=torch.float64)
     return (v * num_levels).floor().clamp(0, num_levels - 1).long() + 1
@@ -100,7 +103,8 @@ def best_of_m(chosen: int, shown: Sequence[int] | Tensor) -> Tensor:
     return torch.stack([torch.full_like(others, chosen), others], dim=-1)
 
 
-def prepare_ratings(ratings, eps: float = DEFAULT_RATING_EPS, dtype=torch.float64, device=None) -> Tensor:
+def prepare_ratings(ratings: TensorLike, eps: float = DEFAULT_RATING_EPS, dtype: torch.dtype = torch.float64,
+                    device: torch.device | str | None = None) -> Tensor:
     """Validate ratings and move exact 0 and 1 in to ``eps`` and ``1 - eps`` (with a warning)."""
     r = _as_tensor(ratings, dtype=dtype, device=device).flatten()
     _check_finite("ratings", r)
@@ -140,12 +144,19 @@ class PreferenceData:
     @classmethod
     def create(
         cls,
-        train_X,
-        comparisons=None,
-        ratings=None,
-        rating_index=None,
+        train_X: TensorLike,
+        comparisons: TensorLike | None = None,
+        ratings: TensorLike | None = None,
+        rating_index: TensorLike | None = None,
         rating_eps: float = DEFAULT_RATING_EPS,
     ) -> "PreferenceData":
+        """Validated data: ``train_X`` (``n x d``; integers become float64), ``comparisons``
+        (``p x 2`` rows ``[preferred, other]``), ``ratings`` in ``[0, 1]`` (moved in to ``rating_eps``
+        from the bounds) of the rows ``rating_index`` (given together with ``ratings``).
+
+        Raises:
+            ValueError: a bad shape, index or value (naming it).
+        """
         X = _as_tensor(train_X)
         if not X.is_floating_point():
             X = X.to(torch.float64)
@@ -173,17 +184,20 @@ class PreferenceData:
 
     @property
     def n(self) -> int:
+        """The number of items ``n``."""
         return self.train_X.shape[0]
 
     @property
     def dim(self) -> int:
+        """The items' dimension ``d``."""
         return self.train_X.shape[-1]
 
     @property
     def num_observations(self) -> int:
+        """Comparisons plus ratings."""
         return self.comparisons.shape[0] + self.ratings.shape[0]
 
-    def index_items(self, X, atol: float = 0.0) -> tuple["PreferenceData", Tensor]:
+    def index_items(self, X: TensorLike, atol: float = 0.0) -> tuple["PreferenceData", Tensor]:
         r"""Indices of the rows of ``X`` (``m x d``), adding those not already present.
 
         An item already in ``train_X`` (same coordinates, within ``atol``) reuses its index, and
@@ -216,10 +230,10 @@ class PreferenceData:
 
     def add(
         self,
-        X=None,
-        comparisons=None,
-        ratings=None,
-        rating_index=None,
+        X: TensorLike | None = None,
+        comparisons: TensorLike | None = None,
+        ratings: TensorLike | None = None,
+        rating_index: TensorLike | None = None,
         rating_eps: float = DEFAULT_RATING_EPS,
     ) -> "PreferenceData":
         """New data with items appended (by coordinates: duplicates reuse their index) and
@@ -258,6 +272,7 @@ class PreferenceData:
         )
 
     def to(self, *args, **kwargs) -> "PreferenceData":
+        """A copy with the items and ratings converted as by ``Tensor.to`` (the indices follow the device)."""
         X = self.train_X.to(*args, **kwargs)
         return PreferenceData(X, self.comparisons.to(X.device), self.ratings.to(X), self.rating_index.to(X.device))
 

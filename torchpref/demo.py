@@ -52,6 +52,7 @@ def fit_demo(seed: int = 0, num_ratings: int = 5, num_comparisons: int = 5) -> t
 
 
 def plot_demo(model: PreferenceGP, path: Path) -> None:
+    """Figs. 4-5 of the fitted ``model`` (posterior, rating density, preference probability), written to ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -93,6 +94,7 @@ def plot_demo(model: PreferenceGP, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Fit the demo model and write its figure and summary to ``--out``; return the exit status."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", default="benchmarks/results")
     p.add_argument("--seed", type=int, default=0)

@@ -100,14 +100,17 @@ class FeaturesWorld:
         self.X, self.names, self.labels = X, names, labels
 
     def label(self, i: int | None) -> str:
+        """How item ``i`` (a pool row) is named to the person (``-`` for none)."""
         if i is None:
             return "-"
         return self.labels[i] if self.labels is not None else f"#{i + 1}"
 
     def show(self, query: Query, number: int, out: TextIO) -> None:
+        """Show query ``number`` beyond its table (plain features: nothing more)."""
         pass
 
     def finish(self, session: PreferenceSession, out: TextIO) -> None:
+        """Say what was learned beyond the top items (plain features: nothing more)."""
         pass
 
 

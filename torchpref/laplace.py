@@ -1,4 +1,4 @@
-r"""Laplace inference for the mixed ratings + comparisons GP: pure functions of tensors.
+r"""Laplace inference for the mixed ratings + comparisons GP: pure functions of tensors, batch-first.
 
 Notation (paper Sec. III.B): ``K`` the kernel matrix of the ``n`` items, ``L L^T = K + jitter I``
 its Cholesky factor, ``f`` the latent utilities. We work in whitened coordinates ``f = L a``,
@@ -17,146 +17,58 @@ using ``f^T K^{-1} f = a^T a`` and ``|I + W K| = |B|`` (Sylvester). The whitened
 square root of ``W``, so it stays valid where the Beta part of ``W`` is negative (far from
 the data); it only needs ``B`` positive definite, which holds at a mode.
 
-``W`` is never formed: a comparison ``[i, j]`` contributes ``lambda_k (e_i - e_j)(e_i - e_j)^T``
-and a rating of item ``i`` contributes ``w_k e_i e_i^T``, so
-``L^T W L = (D L)^T diag(lambda) (D L) + (R L)^T diag(w) (R L)``.
+``W`` is never formed on the solver's path: each observation ``k`` with row ``d_k`` adds
+``w_k d_k^T d_k`` (:mod:`torchpref.observations`), so ``L^T W L = sum_k w_k (d_k L)^T (d_k L)``.
+
+Batch-first: every function takes ``B`` independent problems, ``L`` of shape ``B x n x n`` and
+:class:`~torchpref.observations.Observations` for ``B`` problems; a single problem is ``B = 1``
+(or an unbatched ``n x n`` ``L``, which returns unbatched results). Problems of different sizes
+are padded to common ones: a padded item has prior variance 1, no correlation and no
+observation (its mode is 0 and it changes nothing), a padded observation has ``mask`` false.
 """
 
 from __future__ import annotations
 
-import functools
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import torch
 from torch import Tensor
 
-from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
-from torchpref.numerics import NotPSDError, lower_t_matmul
+from torchpref.newton import NewtonOptions, newton_mode
+from torchpref.numerics import NotPSDError
+from torchpref.observations import Observations, Term, item_term, pairwise_term  # noqa: F401  (re-exported)
 
 
 class LaplaceConvergenceWarning(UserWarning):
     """Newton's method for the posterior mode did not converge within its iteration budget."""
 
 
-@dataclass(frozen=True)
-class Observations:
-    """Index structure of the observations and the likelihoods that score them."""
-
-    comparisons: Tensor  # p x 2 long
-    ratings: Tensor  # q
-    rating_index: Tensor  # q long
-    comparison_likelihood: PairwiseProbitLikelihood
-    rating_likelihood: BetaRatingLikelihood
-
-    def adjoint(self, n: int, x: Tensor | None = None, y: Tensor | None = None) -> Tensor:
-        r"""``D^T x + R^T y`` (``n``): per-comparison values ``x`` (``p``) added at the preferred
-        item and subtracted at the other, per-rating values ``y`` (``q``) added at the rated item."""
-        C, ri = self.comparisons, self.rating_index
-        ref = x if x is not None else y
-        out = ref.new_zeros(n)
-        if x is not None and C.shape[0]:
-            out = out.index_add(0, C[:, 0], x).index_add(0, C[:, 1], -x)
-        if y is not None and ri.shape[0]:
-            out = out.index_add(0, ri, y)
-        return out
-
-    def terms(self, f: Tensor, fisher: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        r"""Log-likelihood and its derivatives at ``f`` (``n``).
-
-        Returns:
-            ``(log p(Y|f), grad_f log p, lambda (p), w (q))`` where ``W = D^T diag(lambda) D +
-            R^T diag(w) R`` is the negative Hessian (eq. 8); with ``fisher=True`` the rating
-            weights are their expected (Fisher) values, which are never negative.
-        """
-        C, u, ri = self.comparisons, self.ratings, self.rating_index
-        ll = f.new_zeros(())
-        d1c, lam = f.new_zeros(C.shape[0]), f.new_zeros(C.shape[0])
-        d1r, w = f.new_zeros(u.shape[0]), f.new_zeros(u.shape[0])
-        if C.shape[0]:
-            lp, d1c, d2 = self.comparison_likelihood.derivatives(f[C[:, 0]] - f[C[:, 1]])
-            ll = ll + lp.sum()
-            lam = -d2
-        if u.shape[0]:
-            lp, d1r, d2 = self.rating_likelihood.derivatives(f[ri], u)
-            ll = ll + lp.sum()
-            w = self.rating_likelihood.fisher(f[ri]) if fisher else -d2
-        return ll, self.adjoint(f.shape[0], d1c, d1r), lam, w
-
-    def curvature_slopes(self, f: Tensor) -> tuple[Tensor, Tensor]:
-        r"""``(d lambda / d eta, d w / d eta)``: how each term's weight in ``W`` changes with its
-        predictor (minus the likelihoods' third derivatives), for the evidence's gradient."""
-        C, u, ri = self.comparisons, self.ratings, self.rating_index
-        dlam, dw = f.new_zeros(C.shape[0]), f.new_zeros(u.shape[0])
-        if C.shape[0]:
-            dlam = -self.comparison_likelihood.third_derivative(f[C[:, 0]] - f[C[:, 1]])
-        if u.shape[0]:
-            dw = -self.rating_likelihood.third_derivative(f[ri], u)
-        return dlam, dw
-
-    def pair_variances(self, S: Tensor) -> tuple[Tensor, Tensor]:
-        r"""``(d_k^T S d_k, S_{ii})`` per comparison and per rating, for an ``n x n`` ``S``."""
-        C, ri = self.comparisons, self.rating_index
-        diag = S.diagonal()
-        i, j = C[:, 0], C[:, 1]
-        return diag[i] + diag[j] - 2 * S[i, j], diag[ri]
-
-    @functools.cached_property
-    def _W_pattern(self) -> tuple[Tensor, Tensor]:
-        """``W``'s nonzero pattern, computed once: ``(2 x nnz indices, slot of each term)``."""
-        C, ri = self.comparisons, self.rating_index
-        i, j = C[:, 0], C[:, 1]
-        rows, cols = torch.cat([i, j, i, j, ri]), torch.cat([i, j, j, i, ri])
-        n = int(torch.cat([rows, cols.new_zeros(1)]).max()) + 1
-        keys, slot = torch.unique(rows * n + cols, return_inverse=True)  # sorted: coalesced order
-        return torch.stack([keys // n, keys % n]), slot
-
-    def W_sparse(self, n: int, lam: Tensor, w: Tensor) -> Tensor:
-        """The ``n x n`` matrix ``W`` (eq. 8) as a coalesced sparse COO tensor."""
-        index, slot = self._W_pattern
-        vals = lam.new_zeros(index.shape[-1]).index_add(0, slot, torch.cat([lam, lam, -lam, -lam, w]))
-        return torch.sparse_coo_tensor(index, vals, (n, n), is_coalesced=True, check_invariants=False)
-
-    def W_dense(self, n: int, lam: Tensor, w: Tensor) -> Tensor:
-        """The ``n x n`` matrix ``W`` (eq. 8), for inspection and tests."""
-        return self.W_sparse(n, lam, w).to_dense()
-
-    def whitened_hessian(self, L: Tensor, lam: Tensor, w: Tensor) -> Tensor:
-        r"""``B = I + L^T W L``.
-
-        With many observations per item and no gradient to track, ``L^T (W L)`` with a sparse
-        ``W`` (one ``n^3`` product); otherwise ``(D L)^T diag(lambda) (D L) + (R L)^T diag(w) (R L)``
-        (``(p + q) n^2``, differentiable).
-        """
-        C, ri = self.comparisons, self.rating_index
-        n = L.shape[-1]
-        tracked = torch.is_grad_enabled() and (L.requires_grad or lam.requires_grad or w.requires_grad)
-        if not tracked and 2 * (C.shape[0] + ri.shape[0]) > n:
-            B = lower_t_matmul(L, torch.sparse.mm(self.W_sparse(n, lam, w), L))
-        else:
-            B = L.new_zeros(n, n)
-            if C.shape[0]:
-                DL = L[C[:, 0]] - L[C[:, 1]]  # p x n
-                B = B + DL.mT @ (lam.unsqueeze(-1) * DL)
-            if ri.shape[0]:
-                RL = L[ri]  # q x n
-                B = B + RL.mT @ (w.unsqueeze(-1) * RL)
-        B.diagonal().add_(1.0)
-        return B
-
-
 @dataclass
 class ModeResult:
-    """Output of :func:`find_mode` (all detached)."""
+    """Output of :func:`find_mode` (all detached), with the shapes of a batch of ``B``."""
 
-    a: Tensor  # whitened mode, n
-    f: Tensor  # mode, n
-    B_chol: Tensor  # Cholesky factor of B = I + L^T W L at the mode (exact W)
-    lam: Tensor
-    w: Tensor
+    a: Tensor  # B x n whitened mode
+    f: Tensor  # B x n mode
+    B_chol: Tensor  # B x n x n Cholesky factor of B = I + L^T W L at the mode (exact W)
+    weights: tuple[Tensor, ...]  # per term, B x m: W = sum_k w_k d_k^T d_k at the mode
     iterations: int
-    converged: bool
-    fisher_fallback: bool  # True when the exact B was not PD at the mode and Fisher W was used
+    converged: Tensor  # B bool
+    fisher_fallback: Tensor  # B bool: exact B not PD at the mode, the Fisher W used instead
+
+    def select(self, index) -> "ModeResult":
+        """The problems ``index`` (an int drops the batch dimension)."""
+        def pick(v):
+            return tuple(w[index] for w in v) if isinstance(v, tuple) else v[index] if isinstance(v, Tensor) else v
+        return replace(self, **{fl.name: pick(getattr(self, fl.name)) for fl in fields(self)})
+
+    def batched(self) -> "ModeResult":
+        """With a batch dimension (a no-op for a batched result)."""
+        if self.f.dim() == 2:
+            return self
+        def add(v):
+            return tuple(w[None] for w in v) if isinstance(v, tuple) else v[None] if isinstance(v, Tensor) else v
+        return replace(self, **{fl.name: add(getattr(self, fl.name)) for fl in fields(self)})
 
 
 def find_mode(
@@ -169,168 +81,79 @@ def find_mode(
     single_precision_min_size: int = 256,
     chord_min_size: int = 128,
 ) -> ModeResult:
-    r"""Newton's method with a backtracking line search for the posterior mode (eq. 2).
+    r"""Newton's method with a backtracking line search for the posterior modes (eq. 2).
 
     Steps use the exact Hessian where ``B`` is positive definite and Fisher scoring for the
-    rating terms where it is not; the Armijo line search makes every step increase ``Psi``.
-    Near the mode each factorisation of ``B`` also serves up to ``max_chord`` further steps
-    (the chord, or Shamanskii, method: a new gradient, the old ``B``), which cost a triangular
-    solve instead of an ``n^3`` product and factorisation; they are taken while they contract
-    the Newton decrement at least fourfold. Convergence is always judged, and the returned
-    factor computed, at the final point with its own exact ``B``.
+    terms that are not log-concave where it is not; the Armijo line search makes every step
+    increase ``Psi``. Near the mode each factorisation of ``B`` also serves up to ``max_chord``
+    further steps (the chord, or Shamanskii, method: a new gradient, the old ``B``), taken while
+    they contract the Newton decrement at least fourfold. Large float64 problems take their
+    steps far from the mode with ``B`` factorised in float32. Each problem stops moving once
+    converged; convergence is judged, and the returned factor computed, at the final point with
+    its own exact ``B``. See :mod:`torchpref.newton` for the steps.
 
     Args:
-        L: ``n x n`` lower Cholesky factor of the (jittered) kernel matrix.
-        obs: the observations.
-        f0: ``n`` warm start (e.g. the previous mode); zeros by default.
+        L: ``B x n x n`` (or ``n x n``) lower Cholesky factors of the (jittered) kernel matrices.
+        obs: the observations of the ``B`` problems.
+        f0: ``B x n`` (or ``n``) warm start (e.g. the previous mode); zeros by default.
         max_iter: iteration budget (factorisations).
-        tol: stop when half the Newton decrement ``grad^T B^{-1} grad / 2`` (an estimate of the
-            distance to the optimum in log-posterior units) is below ``tol``.
+        tol: a problem has converged when half its Newton decrement ``grad^T B^{-1} grad / 2``
+            (an estimate of the distance to the optimum in log-posterior units) is below ``tol``.
         max_chord: chord steps per factorisation (0: plain Newton).
-        chord_min_size: chord steps only from this ``n`` on: for small ``n`` a factorisation
-            costs about as much as the gradient a chord step needs, and plain Newton takes fewer
-            steps.
         single_precision_min_size: from this ``n`` on, float64 problems take their steps far
-            from the mode (Newton decrement above 1) with ``B`` factorised in float32, falling
-            back to float64 if that factorisation fails or its step does not increase ``Psi``.
+            from the mode (Newton decrement above 1) in float32, falling back to float64 if that
+            factorisation fails or its step does not increase ``Psi``.
+        chord_min_size: chord steps only from this ``n`` on (for small ``n`` a factorisation
+            costs about as much as the gradient a chord step needs).
     """
+    single = L.dim() == 2
+    if single:
+        L, f0 = L[None], None if f0 is None else f0[None]
+    n = L.shape[-1]
+    opts = NewtonOptions(max_iter, tol, max_chord if n >= chord_min_size else 0,
+                         L.dtype == torch.float64 and n >= single_precision_min_size)
     with torch.no_grad():
-        L = L.detach()
-        n = L.shape[-1]
-        if f0 is None:
-            a = L.new_zeros(n)
-        else:
-            a = torch.linalg.solve_triangular(L, f0.detach().to(L).unsqueeze(-1), upper=False).squeeze(-1)
-            if not torch.isfinite(a).all():
-                a = L.new_zeros(n)
+        out = newton_mode(L.detach(), obs, None if f0 is None else f0.detach().to(L), opts)
+    mode = ModeResult(out.point.a, out.point.f, out.factor.M, out.factor.weights, out.iterations,
+                      out.converged, out.factor.fisher)
+    _warn(mode, out.decrement)
+    return mode.select(0) if single else mode
 
-        def evaluate(a_: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-            """``(a, Psi(a), f, grad Psi(a), lambda, w)``: one likelihood pass serves the line
-            search's test and, if the point is accepted, the next Newton step."""
-            f_ = L @ a_
-            ll_, g_, lam_, w_ = obs.terms(f_)
-            return a_, ll_ - 0.5 * (a_ * a_).sum(), f_, L.mT @ g_ - a_, lam_, w_
 
-        def search(point_, step_: Tensor, decrement_: Tensor):
-            """Armijo backtracking from ``point_`` along ``step_``: the accepted point or ``None``."""
-            t = 1.0
-            while t > 1e-12:
-                new = evaluate(point_[0] + t * step_)
-                if torch.isfinite(new[1]) and new[1] >= point_[1] + 1e-4 * t * decrement_:
-                    return new
-                t *= 0.5
-            return None
+def _warn(mode: ModeResult, decrement: Tensor) -> None:
+    def which(mask: Tensor) -> str:
+        return "" if mask.numel() == 1 else f" of problems {mask.nonzero().reshape(-1).tolist()}"
 
-        def single_precision_step(point_):
-            """A Newton step factorised in float32: ``(new point, decrement)`` or ``None``."""
-            nonlocal L32
-            if L32 is None:
-                L32 = L.float()
-            _, _, _, grad_, lam_, w_ = point_
-            M32, info32 = torch.linalg.cholesky_ex(obs.whitened_hessian(L32, lam_.float(), w_.float()))
-            if info32:
-                return None
-            step_ = torch.cholesky_solve(grad_.float().unsqueeze(-1), M32).squeeze(-1).to(L.dtype)
-            decrement_ = (grad_ * step_).sum()
-            if not (torch.isfinite(decrement_) and decrement_ / 2 >= tol):
-                return None
-            found_ = search(point_, step_, decrement_)
-            return None if found_ is None else (found_, decrement_)
+    if bool(mode.fisher_fallback.any()):
+        warnings.warn(
+            f"the Laplace Hessian is not positive definite at the returned mode{which(mode.fisher_fallback)}; "
+            "the predictive covariance uses the Fisher (expected) W instead",
+            LaplaceConvergenceWarning, stacklevel=3)
+    if not bool(mode.converged.all()):
+        bad = ~mode.converged
+        warnings.warn(
+            f"Newton's method for the Laplace mode{which(bad)} did not converge in {mode.iterations} "
+            f"iterations (Newton decrement {float(decrement[bad].max()):.3g})",
+            LaplaceConvergenceWarning, stacklevel=3)
 
-        converged = False
-        it = 0
-        point = evaluate(a)
-        last = None  # (f, lam, w, M, fisher) factorised at the current point
-        # far from the mode (no step yet, or a Newton decrement above 1) a step's direction need
-        # not be accurate: large float64 problems factorise B in float32 there, at half the cost
-        far_allowed = L.dtype == torch.float64 and n >= single_precision_min_size
-        far = far_allowed
-        L32 = None
-        for it in range(1, max_iter + 1):
-            if far:
-                taken = single_precision_step(point)
-                if taken is not None:
-                    point, decrement = taken
-                    far = bool(decrement > 1.0)
-                    continue
-                far = far_allowed = False  # float32 does not suffice for this problem
-            _, _, f, grad, lam, w = point
-            M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, lam, w))
-            fisher = bool(info)
-            if fisher:  # exact Hessian not negative definite here: Fisher scoring step
-                _, _, lam, w = obs.terms(f, fisher=True)
-                M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, lam, w))
-                if info:
-                    raise NotPSDError("the Fisher-scoring Newton matrix B is not positive definite")
-            step = torch.cholesky_solve(grad.unsqueeze(-1), M).squeeze(-1)
-            decrement = (grad * step).sum()
-            if not torch.isfinite(decrement):
-                raise FloatingPointError("non-finite Newton step while finding the Laplace mode")
-            if decrement / 2 < tol:
-                converged = True
-                last = (f, lam, w, M, fisher)  # the point is unchanged: reuse this factorisation
-                break
-            found = search(point, step, decrement)
-            if found is None:
-                # no ascent possible in floating point: at the optimum up to round-off
-                converged = bool(decrement / 2 < 1e-6)
-                break
-            point = found
-            if decrement > 1.0:  # far from the mode the old B is a poor model: refactorise
-                far = far_allowed
-                continue
-            for _ in range(max_chord if n >= chord_min_size else 0):
-                grad_c = point[3]
-                step_c = torch.cholesky_solve(grad_c.unsqueeze(-1), M).squeeze(-1)
-                decrement_c = (grad_c * step_c).sum()
-                if not decrement_c < 0.25 * decrement:
-                    break  # not contracting fast enough (or not finite): refactorise
-                if decrement_c < 1e-8:  # Psi would change by less than its round-off: full step
-                    found = evaluate(point[0] + step_c)
-                else:
-                    found = search(point, step_c, decrement_c)
-                if found is None:
-                    break
-                point, decrement = found, decrement_c
-                if decrement / 2 < tol:
-                    break  # converged, to be confirmed with a fresh B
-        a = point[0]
-        if last is not None:
-            f, lam, w, M, fisher_fallback = last
-        else:
-            _, _, f, _, lam, w = point
-            M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, lam, w))
-            fisher_fallback = bool(info)
-            if fisher_fallback:
-                _, _, lam, w = obs.terms(f, fisher=True)
-                M = torch.linalg.cholesky(obs.whitened_hessian(L, lam, w))
-        if fisher_fallback:
-            warnings.warn(
-                "the Laplace Hessian is not positive definite at the returned mode; the predictive "
-                "covariance uses the Fisher (expected) W for the ratings instead",
-                LaplaceConvergenceWarning,
-                stacklevel=2,
-            )
-        if not converged:
-            warnings.warn(
-                f"Newton's method for the Laplace mode did not converge in {it} iterations "
-                f"(Newton decrement {float(decrement):.3g})",
-                LaplaceConvergenceWarning,
-                stacklevel=2,
-            )
-    return ModeResult(a, f, M, lam, w, it, converged, fisher_fallback)
+
+def _eye(n: int, like: Tensor) -> Tensor:
+    return torch.eye(n, dtype=like.dtype, device=like.device)
 
 
 def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor | None = None,
-                     jitter: float = 0.0) -> Tensor:
-    r"""The Laplace evidence ``log q(Y)``, differentiable in the hyperparameters.
+                     jitter: float | Tensor = 0.0) -> Tensor:
+    r"""The Laplace evidence ``log q(Y)`` per problem, differentiable in the hyperparameters.
 
     Args:
-        K: ``n x n`` kernel matrix; may carry gradients (the kernel's hyperparameters).
+        K: ``B x n x n`` (or ``n x n``) kernel matrices; may carry gradients.
         obs: the observations; the likelihoods' parameters may carry gradients.
-        mode: the detached mode for the same values.
+        mode: the detached modes for the same values.
         L: ``chol(K + jitter I)`` (detached), if already computed.
-        jitter: the diagonal jitter of ``L``.
+        jitter: the diagonal jitter of ``L`` (a float or ``B`` values).
+
+    Returns:
+        ``B`` values (a scalar for an unbatched ``K``).
 
     The value is ``log p(Y|f) - a^T a / 2 - log|B| / 2`` at the mode. Its gradient is written
     out rather than traced through the factorisations: with ``Sigma = (K^-1 + W)^-1 = L B^-1 L^T``,
@@ -348,111 +171,125 @@ def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor |
     fell back to Fisher weights (``B`` not positive definite at the mode), the evidence is
     traced through the factorisations instead (:func:`_laplace_evidence_traced`).
     """
+    single = K.dim() == 2
+    K, mode = (K[None], mode.batched()) if single else (K, mode)
     n = K.shape[-1]
-    if mode.fisher_fallback:
-        eye = torch.eye(n, dtype=K.dtype, device=K.device)
-        return _laplace_evidence_traced(torch.linalg.cholesky(K + jitter * eye), obs, mode)
-    ll, g, lam, w = obs.terms(mode.f)  # the likelihood parameters may carry gradients
+    jit = torch.as_tensor(jitter, dtype=K.dtype, device=K.device).reshape(-1, 1, 1)
+    if bool(mode.fisher_fallback.any()):
+        out = _laplace_evidence_traced(torch.linalg.cholesky(K + jit * _eye(n, K)), obs, mode)
+        return out[0] if single else out
+    ll, g, weights = obs.evaluate(mode.f)  # the likelihood parameters may carry gradients
     with torch.no_grad():
-        if L is None:
-            L = torch.linalg.cholesky(K.detach() + jitter * torch.eye(n, dtype=K.dtype, device=K.device))
-        L, a, f, M = L.detach(), mode.a, mode.f, mode.B_chol
-        alpha = torch.linalg.solve_triangular(L.mT, a.unsqueeze(-1), upper=True).squeeze(-1)
+        L = torch.linalg.cholesky(K.detach() + jit * _eye(n, K)) if L is None else L.detach().reshape(K.shape)
+        a, f, M = mode.a, mode.f, mode.B_chol
+        alpha = _solve_t(L, a)
         V = torch.linalg.solve_triangular(M, L.mT, upper=False)  # M^-1 L^T
         Sigma = V.mT @ V
-        s_c, s_r = obs.pair_variances(Sigma)
-        dlam, dw = obs.curvature_slopes(f)
-        h = obs.adjoint(n, dlam * s_c, dw * s_r)
-        W = obs.W_sparse(n, mode.lam, mode.w)
-        Sigma_h = Sigma @ h
-        b = h - torch.sparse.mm(W, Sigma_h.unsqueeze(-1)).squeeze(-1)  # (I - W Sigma) h
-        W_Sigma_W = torch.sparse.mm(W, torch.sparse.mm(W, Sigma).mT)
-        G = 0.5 * torch.outer(alpha, alpha) - 0.5 * (W.to_dense() - W_Sigma_W) - 0.5 * torch.outer(b, alpha)
+        s = obs.quadratic_forms(Sigma)
+        h = obs.adjoint([dw * sk for dw, sk in zip(obs.curvature_slopes(f), s)], n).to(K)
+        Sigma_h = (Sigma @ h.unsqueeze(-1)).squeeze(-1)
+        b = h - obs.W_times(mode.weights, Sigma_h.unsqueeze(-1)).squeeze(-1)  # (I - W Sigma) h
+        WS = obs.W_times(mode.weights, Sigma)
+        W_Sigma_W = obs.W_times(mode.weights, WS.mT.contiguous()).mT  # W (W Sigma)^T = W Sigma W
+        G = 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - obs.W_dense(n, mode.weights) + W_Sigma_W
+                   - b.unsqueeze(-1) * alpha.unsqueeze(-2))
         # the mode is exact only to the solver's tolerance: one more Newton step's first-order
         # change of the value makes it second-order accurate (smooth in the hyperparameters)
-        grad_a = L.mT @ g.detach() - a
+        grad_a = (L.mT @ g.detach().unsqueeze(-1)).squeeze(-1) - a
         step = torch.cholesky_solve(grad_a.unsqueeze(-1), M).squeeze(-1)
-        value = (ll.detach() - 0.5 * (a * a).sum() - torch.log(torch.diagonal(M)).sum()
-                 + 0.5 * (grad_a * step).sum() - 0.5 * (h * (L @ step)).sum())
+        value = (ll.detach() - 0.5 * (a * a).sum(-1) - torch.log(torch.diagonal(M, dim1=-2, dim2=-1)).sum(-1)
+                 + 0.5 * (grad_a * step).sum(-1) - 0.5 * (h * (L @ step.unsqueeze(-1)).squeeze(-1)).sum(-1))
     # the likelihood parameters' part, at the fixed mode (constants unless they carry gradients)
-    surrogate = (G * K).sum() + ll - 0.5 * (lam * s_c).sum() - 0.5 * (w * s_r).sum() - 0.5 * (Sigma_h * g).sum()
-    return value + (surrogate - surrogate.detach())
+    surrogate = (G * K).sum((-2, -1)) + ll - 0.5 * (Sigma_h * g).sum(-1)
+    for w, sk in zip(weights, s):
+        surrogate = surrogate - 0.5 * (w * sk).sum(-1)
+    out = value + (surrogate - surrogate.detach())
+    return out[0] if single else out
+
+
+def _solve_t(L: Tensor, a: Tensor) -> Tensor:
+    """``L^-T a`` for ``B x n`` ``a``."""
+    return torch.linalg.solve_triangular(L.mT, a.unsqueeze(-1), upper=True).squeeze(-1)
 
 
 def _laplace_evidence_traced(L: Tensor, obs: Observations, mode: ModeResult) -> Tensor:
-    r"""The evidence with its gradient traced by autograd (``L`` carries the gradients).
+    r"""The evidence with its gradient traced by autograd (``L``, ``B x n x n``, carries them).
 
     One Newton step from the detached mode, ``a~ = a + B^{-1} grad Psi(a)``, leaves the value
     unchanged (the gradient is zero at the mode) while its derivative is exactly the
     implicit-function derivative ``d a / d theta``, so autograd of the result includes the
     dependence of the mode on the hyperparameters, including through ``W``.
     """
+    single = L.dim() == 2
+    L, mode = (L[None], mode.batched()) if single else (L, mode)
     a = mode.a
-    _, g, _, _ = obs.terms(L @ a)
-    grad = L.mT @ g - a
+    g = obs.evaluate((L @ a.unsqueeze(-1)).squeeze(-1)).grad
+    grad = (L.mT @ g.unsqueeze(-1)).squeeze(-1) - a
     a_t = a + torch.cholesky_solve(grad.unsqueeze(-1), mode.B_chol).squeeze(-1)
-    f_t = L @ a_t
-    ll, _, lam, w = obs.terms(f_t, fisher=mode.fisher_fallback)
-    B = obs.whitened_hessian(L, lam, w)
-    M, info = torch.linalg.cholesky_ex(B)
-    if info:
+    ll, _, weights = obs.evaluate((L @ a_t.unsqueeze(-1)).squeeze(-1), fisher=mode.fisher_fallback)
+    M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, weights))
+    if bool((info > 0).any()):
         raise NotPSDError("B = I + L^T W L is not positive definite at the Laplace mode")
-    return ll - 0.5 * (a_t * a_t).sum() - torch.log(torch.diagonal(M)).sum()
+    out = ll - 0.5 * (a_t * a_t).sum(-1) - torch.log(torch.diagonal(M, dim1=-2, dim2=-1)).sum(-1)
+    return out[0] if single else out
 
 
 class PredictiveCache:
-    """What prediction needs, computed once per mode (eqs. 9-10).
+    """What prediction needs, computed once per mode (eqs. 9-10), for ``B`` problems.
 
-    ``A = I - B^-1`` (an ``n x n`` inverse) is formed on first use only, so that re-solving the
+    ``A = I - B^-1`` (``B x n x n`` inverses) is formed on first use only, so that re-solving the
     mode during a hyperparameter fit, where no prediction is made, does not pay for it.
 
     Args:
-        L: ``n x n`` ``chol(K + jitter I)``.
-        alpha: ``n`` vector ``K^-1 f_hat``.
-        A: ``n x n`` matrix ``I - B^-1`` (``cov = K** - v^T A v`` with ``v = L^-1 K_X*``); or
-            ``None`` with ``B_chol`` given, to compute it lazily.
-        B_chol: ``n x n`` Cholesky factor of ``B`` at the mode.
+        L: ``B x n x n`` ``chol(K + jitter I)``.
+        alpha: ``B x n`` vectors ``K^-1 f_hat``.
+        B_chol: ``B x n x n`` Cholesky factors of ``B`` at the modes.
     """
 
-    def __init__(self, L: Tensor, alpha: Tensor, A: Tensor | None = None, *, B_chol: Tensor | None = None):
-        if A is None and B_chol is None:
-            raise ValueError("give A or B_chol.")
-        self.L, self.alpha, self.B_chol, self._A = L, alpha, B_chol, A
+    def __init__(self, L: Tensor, alpha: Tensor, B_chol: Tensor):
+        self.L, self.alpha, self.B_chol, self._A = L, alpha, B_chol, None
+
+    @classmethod
+    def from_mode(cls, L: Tensor, mode: ModeResult) -> "PredictiveCache":
+        """The cache for ``mode``, the Laplace mode of the problems whose prior factors are ``L``."""
+        mode = mode.batched()
+        L = L.reshape(mode.B_chol.shape)
+        return cls(L, _solve_t(L, mode.a), mode.B_chol)
 
     @property
     def A(self) -> Tensor:
+        """``I - B^-1`` (``B x n x n``), so that ``cov = K** - v^T A v`` with ``v = L^-1 K_X*``."""
         if self._A is None:
-            n = self.L.shape[-1]
-            Binv = torch.cholesky_inverse(self.B_chol)
-            A = torch.eye(n, dtype=self.L.dtype, device=self.L.device) - Binv
+            A = _eye(self.L.shape[-1], self.L) - torch.cholesky_inverse(self.B_chol)
             self._A = 0.5 * (A + A.mT)
         return self._A
 
 
 def predictive_cache(L: Tensor, mode: ModeResult) -> PredictiveCache:
-    alpha = torch.linalg.solve_triangular(L.mT, mode.a.unsqueeze(-1), upper=True).squeeze(-1)
-    return PredictiveCache(L, alpha, B_chol=mode.B_chol)
+    """The prediction cache of ``mode`` (:meth:`PredictiveCache.from_mode`)."""
+    return PredictiveCache.from_mode(L, mode)
 
 
 def predict(cache: PredictiveCache, K_xs: Tensor, k_ss: Tensor) -> tuple[Tensor, Tensor]:
-    r"""Predictive mean and covariance (eqs. 9-10).
+    r"""Predictive mean and covariance (eqs. 9-10) of ``t`` blocks of ``q`` test points per problem.
 
     Args:
-        cache: from :func:`predictive_cache`.
-        K_xs: ``n x b x q`` cross-covariances between the training items and ``b`` batches of
-            ``q`` test points.
-        k_ss: ``b x q x q`` prior covariance of each batch.
+        cache: from :func:`predictive_cache` (``B`` problems).
+        K_xs: ``B x n x t x q`` cross-covariances between each problem's items and its test points.
+        k_ss: ``B x t x q x q`` prior covariance of each block, or ``B x t x q`` prior variances
+            (then the posterior variances are returned instead of the covariances).
 
     Returns:
-        mean ``b x q`` and covariance ``b x q x q``:
+        mean ``B x t x q`` and covariance ``B x t x q x q`` (or variance ``B x t x q``):
         ``mean = K_*X K^-1 f_hat`` (eq. 9) and ``cov = K_** - K_*X (I + W K)^-1 W K_X*`` (eq. 10),
         computed as ``K_** - v^T (I - B^-1) v`` with ``v = L^-1 K_X*``.
     """
-    n, b, q = K_xs.shape
-    flat = K_xs.reshape(n, b * q)
-    mean = (cache.alpha @ flat).reshape(b, q)
+    B, n, t, q = K_xs.shape
+    flat = K_xs.reshape(B, n, t * q)
+    mean = (cache.alpha.unsqueeze(-2) @ flat).reshape(B, t, q)
     v = torch.linalg.solve_triangular(cache.L, flat, upper=False)
-    Av = (cache.A @ v).reshape(n, b, q)
-    v = v.reshape(n, b, q)
-    cov = k_ss - torch.einsum("nbq,nbr->bqr", v, Av)
+    Av = cache.A @ v
+    if k_ss.dim() == 3:
+        return mean, k_ss - (v * Av).sum(-2).reshape(B, t, q)
+    cov = k_ss - torch.einsum("bntq,bntr->btqr", v.reshape(B, n, t, q), Av.reshape(B, n, t, q))
     return mean, cov

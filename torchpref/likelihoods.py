@@ -18,14 +18,28 @@ import math
 
 import torch
 from gpytorch.constraints import Interval, Positive
+from gpytorch.priors import Prior
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.likelihoods import Likelihood
 from torch import Tensor
 from torch.distributions import Bernoulli, Beta
 
-from torchpref.numerics import inv_mills, log_ndtr, normal_pdf
+from torchpref.numerics import gauss_hermite, inv_mills, log_ndtr, normal_pdf
 
 SQRT2 = math.sqrt(2.0)
+
+
+def rating_link(f: Tensor, rating_scale: float | Tensor) -> Tensor:
+    r"""Eq. 7's probit mean link ``mu = Phi(f / (sqrt 2 sigma_B))``: the mean rating of an item
+    of latent utility ``f`` (any shape; ``rating_scale`` ``sigma_B`` broadcastable with it)."""
+    return torch.special.ndtr(f / (SQRT2 * rating_scale))
+
+
+def predictive_rating(mean: Tensor, var: Tensor, rating_scale: float | Tensor) -> Tensor:
+    r"""Predictive mean rating under ``f ~ N(mean, var)`` (eq. 11 for the Beta mean):
+    ``E[Phi(f / (sqrt 2 sigma_B))] = Phi(m / sqrt(2 sigma_B^2 + v))`` (negative ``var`` counts as 0)."""
+    scale = torch.as_tensor(rating_scale, dtype=mean.dtype, device=mean.device)
+    return torch.special.ndtr(mean / torch.sqrt(2 * scale.square() + var.clamp_min(0)))
 
 
 class _ScalarParamsMixin:
@@ -65,14 +79,15 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
             comparisons only it is not identifiable separately from the kernel's outputscale).
     """
 
-    def __init__(self, comparison_noise: float = 0.1, *, learn: bool = False, comparison_noise_prior=None,
-                 comparison_noise_constraint=None):
+    def __init__(self, comparison_noise: float = 0.1, *, learn: bool = False,
+                 comparison_noise_prior: Prior | None = None, comparison_noise_constraint: Interval | None = None):
         super().__init__()
         self._register("comparison_noise", comparison_noise, comparison_noise_constraint or Positive(),
                        comparison_noise_prior, learn)
 
     @property
     def comparison_noise(self) -> Tensor:
+        """``sigma_R`` (eq. 3): the noise of a comparison."""
         return self._get("comparison_noise")
 
     @comparison_noise.setter
@@ -157,8 +172,8 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
     """
 
     def __init__(self, rating_scale: float = 1.0, rating_precision: float = 80.0, *, learn: bool = False,
-                 rating_scale_prior=None, rating_precision_prior=None,
-                 rating_scale_constraint=None, rating_precision_constraint=None):
+                 rating_scale_prior: Prior | None = None, rating_precision_prior: Prior | None = None,
+                 rating_scale_constraint: Interval | None = None, rating_precision_constraint: Interval | None = None):
         super().__init__()
         self._register("rating_scale", rating_scale, rating_scale_constraint or Positive(), rating_scale_prior, learn)
         self._register("rating_precision", rating_precision, rating_precision_constraint or Interval(1e-2, 1e6),
@@ -166,6 +181,7 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
 
     @property
     def rating_scale(self) -> Tensor:
+        """``sigma_B`` (eq. 7): how the latent utility maps onto the rating scale."""
         return self._get("rating_scale")
 
     @rating_scale.setter
@@ -174,6 +190,7 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
 
     @property
     def rating_precision(self) -> Tensor:
+        """``nu`` (eqs. 4-7): the precision of a rating's Beta distribution (larger: less noisy ratings)."""
         return self._get("rating_precision")
 
     @rating_precision.setter
@@ -181,8 +198,8 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         self._set("rating_precision", value)
 
     def mean_link(self, f: Tensor) -> Tensor:
-        r"""``mu = Phi(f / (sqrt 2 sigma_B))``, eq. 7."""
-        return torch.special.ndtr(f / (SQRT2 * self.rating_scale))
+        r"""``mu = Phi(f / (sqrt 2 sigma_B))``, eq. 7 (:func:`rating_link`)."""
+        return rating_link(f, self.rating_scale)
 
     def forward(self, function_samples: Tensor) -> Beta:
         """The distribution of a rating given latent values ``function_samples`` (any shape)."""
@@ -243,8 +260,9 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         return nu**2 * (torch.polygamma(1, a) + torch.polygamma(1, b)) * dmu**2
 
     def expected_rating(self, mean: Tensor, var: Tensor) -> Tensor:
-        r"""Predictive mean rating (eq. 11 for the Beta mean): ``Phi(m / sqrt(2 sigma_B^2 + v))``."""
-        return torch.special.ndtr(mean / torch.sqrt(2 * self.rating_scale**2 + var.clamp_min(0)))
+        r"""Predictive mean rating (eq. 11 for the Beta mean): ``Phi(m / sqrt(2 sigma_B^2 + v))``
+        (:func:`predictive_rating`)."""
+        return predictive_rating(mean, var, self.rating_scale)
 
     def predictive_log_density(self, u: Tensor, mean: Tensor, var: Tensor, num_points: int = 40) -> Tensor:
         r"""``log p(u | data) = log \int Beta(u; f) N(f; m, v) df`` (eq. 11) by adaptive Gauss-Hermite.
@@ -256,7 +274,7 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         Gaussian integrand. ``u``, ``mean`` and ``var`` broadcast together; ``num_points`` nodes;
         ``var == 0`` gives ``log Beta(u; mean)``.
         """
-        x, w = _gauss_hermite(num_points, mean.dtype, mean.device)
+        x, w = gauss_hermite(num_points, mean, expectation=False)
         u, mean, var = torch.broadcast_tensors(u, mean, var)
         v = var.clamp_min(1e-200)
 
@@ -307,10 +325,3 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         mu = self.expected_rating(function_dist.mean, function_dist.variance)
         nu = self.rating_precision
         return Beta(nu * mu, nu * (1 - mu))
-
-
-def _gauss_hermite(n: int, dtype, device) -> tuple[Tensor, Tensor]:
-    import numpy as np
-
-    x, w = np.polynomial.hermite.hermgauss(n)
-    return torch.as_tensor(x, dtype=dtype, device=device), torch.as_tensor(w, dtype=dtype, device=device)

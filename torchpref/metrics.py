@@ -11,15 +11,17 @@ dimensions, so ``trials x points`` tensors give one value per trial.
 * :func:`error_on_best`: mean absolute rating error on the best items (Fig. 9a: the lake
   paths the user rates 5).
 * :func:`rating_from_latent` / :func:`expected_rating`: latent values to the rating scale,
-  through eq. 7's probit link, without and with posterior uncertainty (eq. 11).
+  through eq. 7's probit link, without and with posterior uncertainty (eq. 11): the
+  likelihood's own link (:func:`torchpref.likelihoods.rating_link`,
+  :func:`~torchpref.likelihoods.predictive_rating`) with the inputs checked.
 """
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
+
+from torchpref.likelihoods import predictive_rating, rating_link
 
 __all__ = [
     "wrms",
@@ -223,7 +225,7 @@ def rating_from_latent(f: Tensor, rating_scale: float | Tensor) -> Tensor:
     f = torch.as_tensor(f)
     if not f.is_floating_point():
         f = f.to(torch.float64)
-    return torch.special.ndtr(f / (rating_scale * math.sqrt(2.0)))
+    return rating_link(f, rating_scale)
 
 
 def expected_rating(mean: Tensor, var: Tensor, rating_scale: float | Tensor) -> Tensor:
@@ -255,4 +257,4 @@ def expected_rating(mean: Tensor, var: Tensor, rating_scale: float | Tensor) -> 
         mean = mean.to(torch.float64)
     if (var < 0).any():
         raise ValueError(f"var must be non-negative, got a minimum of {var.min().item()}.")
-    return torch.special.ndtr(mean / torch.sqrt(2.0 * torch.as_tensor(rating_scale, dtype=mean.dtype).square() + var))
+    return predictive_rating(mean, var, rating_scale)

@@ -2,14 +2,15 @@ r"""``PreferenceGP``: a BoTorch model of a latent utility learned from ratings a
 
 from __future__ import annotations
 
-import copy
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from botorch.acquisition.objective import PosteriorTransform
 from botorch.models.model import Model
 from botorch.models.transforms.input import InputTransform
+from botorch.sampling.base import MCSampler
 from botorch.posteriors.gpytorch import GPyTorchPosterior
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.kernels import Kernel, RBFKernel, ScaleKernel
@@ -23,17 +24,11 @@ from torch import Tensor
 
 from torchpref.botorch_api import PairwiseGPInterface, prior_only_data
 from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
-from torchpref.laplace import (
-    ModeResult,
-    Observations,
-    PredictiveCache,
-    find_mode,
-    laplace_evidence,
-    predict,
-    predictive_cache,
-)
+from torchpref.fantasy import fantasize
+from torchpref.laplace import ModeResult, Observations, PredictiveCache, find_mode, laplace_evidence, predict
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
-from torchpref.numerics import cholesky_jittered
+from torchpref.numerics import batched_cholesky, cholesky_jittered
+from torchpref.padding import PaddedData
 
 
 #: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
@@ -67,6 +62,48 @@ class PreferenceLikelihood(Module):
         super().__init__()
         self.comparison = comparison
         self.rating = rating
+
+
+def _create_data(train_X, comparisons, ratings, rating_index, rating_eps: float) -> PreferenceData | PaddedData:
+    """Validated data: one problem for ``n x d`` items; for ``b x n x d`` items one problem per
+    batch element, with ``comparisons`` ``b x p x 2`` and ``ratings`` / ``rating_index`` ``b x q``
+    (or sequences of per-problem tensors of any lengths)."""
+    if not (isinstance(train_X, Tensor) and train_X.dim() == 3):
+        return PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
+    b = train_X.shape[0]
+
+    def part(value, k: int):
+        if value is None:
+            return None
+        if len(value) != b:
+            raise ValueError(f"batched training data: expected {b} per-problem entries, got {len(value)}.")
+        return value[k]
+
+    return PaddedData.stack([
+        PreferenceData.create(train_X[k], part(comparisons, k), part(ratings, k), part(rating_index, k),
+                              rating_eps=rating_eps) for k in range(b)])
+
+
+@dataclass(frozen=True)
+class PosteriorState:
+    """Everything prediction and the evidence need, for one data object and one set of
+    hyperparameter values (the model's prediction strategy, as GPyTorch's ``prediction_strategy``):
+    built lazily by :meth:`PreferenceGP._state`, replaced when either changes."""
+
+    data: object  # the model's data object it was computed for (compared by identity)
+    fingerprint: Tensor  # the hyperparameter values it was computed for
+    padded: PaddedData  # the problems, items transformed by the input transform
+    jitter: float | Tensor  # diagonal jitter of L (one per problem for a batch)
+    obs: Observations
+    mode: ModeResult  # batched: B = number of problems
+    pred: PredictiveCache
+
+    def is_current(self, data: object, fingerprint: Tensor) -> bool:
+        """Whether this state was computed for ``data`` with the hyperparameters ``fingerprint``."""
+        return self.data is data and torch.equal(self.fingerprint, fingerprint)
+
+
+_PADDED_REST = ("comparisons", "ratings", "rating_index", "item_mask", "comparison_mask", "rating_mask")
 
 
 class PreferenceGP(PairwiseGPInterface, Model, GP):
@@ -132,8 +169,9 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
                 raise ValueError("a prior-only model (train_X=None) takes no comparisons or ratings.")
             data = prior_only_data()
         else:
-            data = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
-        self.covar_module = covar_module if covar_module is not None else default_covar_module(data.dim)
+            data = _create_data(train_X, comparisons, ratings, rating_index, rating_eps)
+        X = data.train_X if isinstance(data, PreferenceData) else data.X
+        self.covar_module = covar_module if covar_module is not None else default_covar_module(X.shape[-1])
         self.likelihood = PreferenceLikelihood(
             PairwiseProbitLikelihood(comparison_noise, learn=learn_likelihood),
             BetaRatingLikelihood(rating_scale, rating_precision, learn=learn_likelihood),
@@ -142,38 +180,48 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
             self.input_transform = input_transform
         self.rating_eps = rating_eps
         self.max_newton_iter = max_newton_iter
-        self.to(device=data.train_X.device, dtype=data.train_X.dtype)
-        self._data = data
-        self._cache: dict[str, Any] | None = None
+        self.to(device=X.device, dtype=X.dtype)
+        self._data: PreferenceData | PaddedData = data
+        self._cache: PosteriorState | None = None
         self._warm_f: Tensor | None = None
         self._fit_input_transform()
         self.eval()
 
     # ------------------------------------------------------------------ data
     @property
-    def data(self) -> PreferenceData:
-        """The observations (immutable)."""
+    def data(self) -> PreferenceData | PaddedData:
+        """The observations (immutable): a :class:`~torchpref.data.PreferenceData`, or for a
+        batched model (``batch_shape`` not empty) a :class:`~torchpref.padding.PaddedData`."""
         return self._data
+
+    def _padded(self) -> PaddedData:
+        d = self._data
+        return PaddedData.single(d) if isinstance(d, PreferenceData) else d
 
     @property
     def train_X(self) -> Tensor:
-        return self._data.train_X
+        """``batch_shape x n x d`` items."""
+        return self._padded().X
 
     @property
     def comparisons(self) -> Tensor:
-        return self._data.comparisons
+        """``batch_shape x p x 2`` comparisons (rows ``[preferred, other]``)."""
+        return self._padded().comparisons
 
     @property
     def ratings(self) -> Tensor:
-        return self._data.ratings
+        """``batch_shape x r`` ratings in ``(0, 1)``."""
+        return self._padded().ratings
 
     @property
     def rating_index(self) -> Tensor:
-        return self._data.rating_index
+        """``batch_shape x r`` rows of :attr:`train_X` the :attr:`ratings` are of."""
+        return self._padded().rating_index
 
     @property
     def train_inputs(self) -> tuple[Tensor]:
-        return (self._data.train_X,)
+        """``(train_X,)``, as GPyTorch models hold their inputs."""
+        return (self.train_X,)
 
     @property
     def num_outputs(self) -> int:
@@ -181,14 +229,17 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
 
     @property
     def batch_shape(self) -> torch.Size:
-        return torch.Size([])
+        """``torch.Size([])`` for one problem; ``[b]`` for batched training data (BoTorch's meaning)."""
+        return self._padded().batch_shape
 
     @property
     def comparison_likelihood(self) -> PairwiseProbitLikelihood:
+        """The comparisons' likelihood (eq. 3), a :class:`~torchpref.PairwiseProbitLikelihood`."""
         return self.likelihood.comparison
 
     @property
     def rating_likelihood(self) -> BetaRatingLikelihood:
+        """The ratings' likelihood (eqs. 4-7), a :class:`~torchpref.BetaRatingLikelihood`."""
         return self.likelihood.rating
 
     # The model applies its input transform itself (``_transformed_train_X``): BoTorch's
@@ -201,28 +252,28 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
 
     def _fit_input_transform(self) -> None:
         tf = getattr(self, "input_transform", None)
-        if tf is not None and self._data.n > 0:  # no items: nothing to learn bounds from
+        if tf is not None and self.train_X.shape[-2] > 0:  # no items: nothing to learn bounds from
             was_training = tf.training
             tf.train()
             with torch.no_grad():
-                tf(self._data.train_X)
+                tf(self.train_X)
             tf.train(was_training)
 
     def _transformed_train_X(self) -> Tensor:
         tf = getattr(self, "input_transform", None)
         if tf is None:
-            return self._data.train_X
+            return self.train_X
         was_training = tf.training
         tf.eval()  # bounds were learned from train_X when the data was set
-        X = tf(self._data.train_X)
+        X = tf(self.train_X)
         tf.train(was_training)
         return X
 
     def _observations(self) -> Observations:
-        d = self._data
-        return Observations(d.comparisons, d.ratings, d.rating_index, self.likelihood.comparison, self.likelihood.rating)
+        """The observations of the ``B`` problems (flattened batch) as likelihood terms."""
+        return self._padded().observations(self.likelihood.comparison, self.likelihood.rating)
 
-    def _set_data(self, data: PreferenceData, warm_f: Tensor | None) -> None:
+    def _set_data(self, data: PreferenceData | PaddedData, warm_f: Tensor | None) -> None:
         """Swap in new data; re-solve the mode first and keep the old state if that fails."""
         old = (self._data, self._cache, self._warm_f)
         self._data, self._cache, self._warm_f = data, None, warm_f
@@ -251,10 +302,13 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         Returns:
             ``self``.
         """
+        if not isinstance(self._data, PreferenceData):
+            raise NotImplementedError("add_observations needs a model of one problem; a batched model is "
+                                      "conditioned with condition_on_observations.")
         new = self._data.add(X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
         warm = None
         if self._cache is not None or self._data.num_observations:
-            f_old = self._state()["mode"].f
+            f_old = self._state().mode.f[0]
             if new.n > self._data.n:
                 with torch.no_grad():
                     extra = self.posterior(new.train_X[self._data.n:].unsqueeze(-2)).mean.reshape(-1)
@@ -263,6 +317,14 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
                 warm = f_old
         self._set_data(new, warm)
         return self
+
+    def fantasize(self, X: Tensor, sampler: MCSampler, observation_noise: Tensor | None = None,
+                  kind: str | None = None, **kwargs: Any) -> "PreferenceGP":
+        r"""A batched fantasy model (see :func:`~torchpref.fantasy.fantasize`): comparisons among
+        the ``q`` points of ``X`` (``batch x q x d``) with a ``PairwiseMCSampler``, ratings of them
+        with any other sampler (or as ``kind`` says). ``observation_noise`` is not used: the
+        answers' noise is the likelihoods'."""
+        return fantasize(self, X, sampler, kind)
 
     # ------------------------------------------------------------- inference
     def _fingerprint(self) -> Tensor:
@@ -296,62 +358,91 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         # kernels such as LinearKernel return a LinearOperator from forward: evaluate it densely
         return out.to_dense() if isinstance(out, LinearOperator) else out
 
-    def _kernel_chol(self, jitter: float | None = None) -> tuple[Tensor, float, Tensor]:
-        Xt = self._transformed_train_X()
-        K = self._kernel(Xt)
-        L, j = cholesky_jittered(K, jitter=jitter, name="kernel matrix")
-        return L, j, Xt
+    def _prior_factor(self, padded: PaddedData, jitter: float | None) -> tuple[Tensor, float | Tensor]:
+        """``L`` (``B x N x N``) with ``L L^T = K + jitter I`` per problem, and the jitter used."""
+        K = padded.prior_covariance(self._kernel(padded.X))
+        N = padded.num_items
+        if padded.num_problems == 1:  # one problem: start from the jitter that worked last time
+            L, j = cholesky_jittered(K.reshape(N, N), jitter=jitter, name="kernel matrix")
+            return L.reshape(1, N, N), j
+        return batched_cholesky(K.reshape(-1, N, N), name="kernel matrix")
 
-    def _state(self) -> dict[str, Any]:
+    def _state(self) -> PosteriorState:
         """The mode and prediction cache for the current hyperparameters and data (cached)."""
         fp = self._fingerprint()
         c = self._cache
-        if c is not None and c["data"] is self._data and torch.equal(c["fp"], fp):
+        if c is not None and c.is_current(self._data, fp):
             return c
         with torch.no_grad():
-            L, jitter, Xt = self._kernel_chol(c["jitter"] if c is not None else None)
-            warm = c["mode"].f if (c is not None and c["mode"].f.shape[0] == self._data.n) else self._warm_f
-            mode = find_mode(L, self._observations(), f0=warm, max_iter=self.max_newton_iter)
-            pred = predictive_cache(L, mode)
-        self._cache = {"data": self._data, "fp": fp, "jitter": jitter, "mode": mode, "pred": pred, "Xt": Xt}
+            padded = self._padded()
+            padded = PaddedData(self._transformed_train_X(), *(getattr(padded, k) for k in _PADDED_REST))
+            prev = c.jitter if (c is not None and isinstance(c.jitter, float)) else None
+            L, jitter = self._prior_factor(padded, prev)
+            same_size = c is not None and c.mode.f.shape == L.shape[:-1]
+            warm = c.mode.f if same_size else self._warm_f
+            obs = self._observations()
+            mode = find_mode(L, obs, f0=warm, max_iter=self.max_newton_iter)
+            pred = PredictiveCache.from_mode(L, mode)
+        self._cache = PosteriorState(self._data, fp, padded, jitter, obs, mode, pred)
         return self._cache
 
     @property
     def mode(self) -> ModeResult:
-        """The Laplace mode (``.f``), ``W``'s factors and solver diagnostics, for the current state."""
-        return self._state()["mode"]
+        """The Laplace mode (``.f``), ``W``'s factors and solver diagnostics, for the current state
+        (with a leading dimension over the flattened batch for a batched model)."""
+        mode = self._state().mode
+        return mode.select(0) if not self.batch_shape else mode
 
     def W(self) -> Tensor:
-        r"""``n x n`` negative Hessian of the log-likelihood at the mode (eq. 8): the exact one,
-        or the Fisher one for the ratings if the exact ``B`` was not positive definite there
+        r"""``batch_shape x n x n`` negative Hessian of the log-likelihood at the mode (eq. 8): the
+        exact one, or the Fisher one if the exact ``B`` was not positive definite there
         (``mode.fisher_fallback``)."""
-        m = self.mode
-        return self._observations().W_dense(self._data.n, m.lam, m.w)
+        state = self._state()
+        n = state.padded.num_items
+        return state.obs.W_dense(n, state.mode.weights).reshape(*self.batch_shape, n, n)
 
     def log_marginal_likelihood(self) -> Tensor:
         r"""Laplace evidence ``log q(Y) = log p(Y|f) - f^T K^-1 f / 2 - log|I + W K| / 2`` at the
-        mode, a differentiable scalar whose gradient includes the mode's implicit dependence on
-        the hyperparameters. Hyperparameter priors are not included (the MLL adds them)."""
+        mode (``batch_shape``), differentiable, with a gradient that includes the mode's implicit
+        dependence on the hyperparameters. Hyperparameter priors are not included (the MLL adds them)."""
         state = self._state()
-        K = self._kernel(self._transformed_train_X())
-        return laplace_evidence(K, self._observations(), state["mode"], L=state["pred"].L, jitter=state["jitter"])
+        padded = state.padded
+        K = padded.prior_covariance(self._kernel(self._transformed_train_X()))
+        N = padded.num_items
+        value = laplace_evidence(K.reshape(-1, N, N), state.obs, state.mode, L=state.pred.L, jitter=state.jitter)
+        return value.reshape(self.batch_shape)
+
+    def _predict(self, X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
+        r"""Posterior mean ``... x q`` and covariance ``... x q x q`` (eqs. 9-10) at transformed
+        ``X`` (``... x q x d``, its batch dimensions ending in, or broadcasting to, the model's
+        ``batch_shape``); with ``diag``, the variances ``... x q`` instead of the covariance."""
+        state = self._state()
+        S, padded = self.batch_shape, state.padded
+        q, d = X.shape[-2:]
+        shape = torch.broadcast_shapes(X.shape[:-2], S)
+        extra = shape[: len(shape) - len(S)]
+        E = extra.numel()
+        Xe = X.expand(*shape, q, d).reshape(E, *S, q, d)  # test blocks first, then the problems
+        k_ss = self._kernel(Xe, diag=diag)  # E x S x q (x q)
+        tail = k_ss.shape[len(S) + 2:]  # () for variances, (q,) for covariances
+        if padded.num_items == 0:  # no items yet: the prior
+            mean, cov = k_ss.new_zeros(Xe.shape[:-1]), k_ss
+        else:
+            if not S:  # one problem: one kernel call for all test points
+                K_xs = self._kernel(padded.X, Xe.reshape(E * q, d)).reshape(1, -1, E, q)
+            else:
+                K_xs = self._kernel(padded.X.expand(E, *padded.X.shape), Xe)  # E x S x N x q
+                K_xs = padded.cross_covariance(K_xs).movedim(0, -2).reshape(S.numel(), -1, E, q)
+            mean, cov = predict(state.pred, K_xs, k_ss.movedim(0, len(S)).reshape(S.numel(), E, q, *tail))
+            mean = mean.reshape(*S, E, q).movedim(len(S), 0)
+            cov = cov.reshape(*S, E, q, *tail).movedim(len(S), 0)
+        return mean.reshape(*shape, q), cov.reshape(*shape, q, *tail)
 
     def forward(self, X: Tensor) -> MultivariateNormal:
         """The Laplace posterior of the latent utility at ``X`` (``batch x q x d``, transformed)."""
-        state = self._state()
-        pred: PredictiveCache = state["pred"]
-        Xt = state["Xt"]
-        batch = X.shape[:-2]
-        q, d = X.shape[-2:]
-        Xf = X.reshape(-1, q, d)
-        k_ss = self._kernel(Xf)
-        if Xt.shape[0] == 0:  # no items yet: the prior
-            mean, cov = k_ss.new_zeros(k_ss.shape[:-1]), k_ss
-        else:
-            K_xs = self._kernel(Xt, Xf.reshape(-1, d)).reshape(Xt.shape[0], -1, q)
-            mean, cov = predict(pred, K_xs, k_ss)
+        mean, cov = self._predict(X)
         # a lazy covariance: no Cholesky at construction (pairs of equal points are singular)
-        return MultivariateNormal(mean.reshape(*batch, q), DenseLinearOperator(cov.reshape(*batch, q, q)))
+        return MultivariateNormal(mean, DenseLinearOperator(cov))
 
     def posterior(
         self,
@@ -404,14 +495,12 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
     def marginals(self, X: Tensor) -> tuple[Tensor, Tensor]:
         r"""Posterior mean and variance of the latent utility at each row of ``X`` (``... x d``),
         each of ``X``'s shape without its last dimension: what ``posterior(X.unsqueeze(-2))``
-        gives, without building a batch of ``1 x 1`` covariances and distribution objects."""
-        Xf = self._prediction_inputs(X).reshape(-1, X.shape[-1])
-        state = self._state()
-        k_ss = self._kernel(Xf, diag=True).reshape(-1, 1, 1)
-        if state["Xt"].shape[0] == 0:  # no items yet: the prior
-            mean, var = k_ss.new_zeros(k_ss.shape[0]), k_ss
-        else:
-            mean, var = predict(state["pred"], self._kernel(state["Xt"], Xf).unsqueeze(-1), k_ss)
+        gives, without building a batch of ``1 x 1`` covariances and distribution objects. For a
+        batched model, ``X`` is ``... x batch_shape x m x d``."""
+        Xt = self._prediction_inputs(X)
+        if not self.batch_shape:  # one problem: all rows as one block
+            Xt = Xt.reshape(-1, X.shape[-1])
+        mean, var = self._predict(Xt, diag=True)
         return mean.reshape(X.shape[:-1]), var.reshape(X.shape[:-1])
 
     def expected_rating(self, X: Tensor) -> Tensor:
@@ -430,11 +519,37 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         var = S[..., 0, 0] + S[..., 1, 1] - 2 * S[..., 0, 1]
         return self.likelihood.comparison.preference_probability(m[..., 0] - m[..., 1], var)
 
+    def best_item(self, X: Tensor | None = None) -> tuple[int, Tensor]:
+        r"""The item of highest posterior mean utility among the rows of ``X`` (``n x d``;
+        default :attr:`train_X`), in ``X``'s own coordinates (an input transform is applied as in
+        :meth:`posterior`).
+
+        Returns:
+            ``(row, item)``: the row of ``X`` (the first on a tie) and that ``d`` item.
+
+        Raises:
+            ValueError: a batched model, or ``X`` not ``n x d`` with ``n >= 1``.
+        """
+        if self.batch_shape:
+            raise ValueError(f"best_item needs a single model, this one has batch shape {tuple(self.batch_shape)}.")
+        X = self.train_X if X is None else X
+        d = self.train_X.shape[-1]
+        if not isinstance(X, Tensor) or X.dim() != 2 or X.shape[0] < 1 or X.shape[-1] != d:
+            raise ValueError(f"X must be an n x {d} tensor with n >= 1, got {getattr(X, 'shape', type(X).__name__)}.")
+        with torch.no_grad():
+            mean, _ = self.marginals(X)
+        i = int(mean.argmax())
+        return i, X[i]
+
     def _apply(self, fn, *args, **kwargs):
         super()._apply(fn, *args, **kwargs)
         data = getattr(self, "_data", None)
-        if data is not None:
+        if isinstance(data, PreferenceData):
             self._data = PreferenceData(*(fn(t) for t in (data.train_X, data.comparisons, data.ratings, data.rating_index)))
+        elif data is not None:
+            self._data = PaddedData(*(None if t is None else fn(t) for t in
+                                      (getattr(data, k) for k in ("X",) + _PADDED_REST)))
+        if data is not None:
             self._cache, self._warm_f = None, None
         return self
 

@@ -2,6 +2,7 @@ r"""Fragile numerics in one place: log-space normal ratios and a guarded Cholesk
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from typing import Sequence
@@ -40,7 +41,28 @@ def inv_mills(z: Tensor) -> Tensor:
 
 
 def normal_pdf(z: Tensor) -> Tensor:
+    """The standard normal density ``phi(z)``, elementwise."""
     return torch.exp(-0.5 * z * z - LOG_2PI_HALF)
+
+
+@functools.lru_cache(maxsize=16)
+def _hermgauss(n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    import numpy as np
+
+    x, w = np.polynomial.hermite.hermgauss(n)
+    return tuple(x.tolist()), tuple(w.tolist())
+
+
+def gauss_hermite(n: int, like: Tensor, expectation: bool = True) -> tuple[Tensor, Tensor]:
+    r"""Gauss-Hermite nodes ``x`` and weights ``w`` (``n`` each, ``like``'s dtype and device).
+
+    ``expectation=True``: ``E[g(Z)]``, ``Z ~ N(m, v)``, is ``sum_k w_k g(m + sqrt(2 v) x_k)``
+    (the weights sum to 1). ``expectation=False``: the physicists' rule,
+    ``int exp(-x^2) g(x) dx ~ sum_k w_k g(x_k)``.
+    """
+    x, w = _hermgauss(int(n))
+    x, w = like.new_tensor(x), like.new_tensor(w)
+    return (x, w / math.sqrt(math.pi)) if expectation else (x, w)
 
 
 def jitter_schedule(max_jitter: float = MAX_JITTER) -> list[float]:

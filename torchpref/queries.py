@@ -32,7 +32,12 @@ class RatingQuery:
         """``1 x d``: the items shown."""
         return self.item.unsqueeze(0)
 
-    def validate_answer(self, answer) -> float:
+    def validate_answer(self, answer: object) -> float:
+        """The answer as a rating in ``[0, 1]``.
+
+        Raises:
+            ValueError: not a number in ``[0, 1]`` (naming it).
+        """
         try:
             u = float(answer)
         except (TypeError, ValueError):
@@ -52,9 +57,15 @@ class RankingQuery:
 
     @property
     def m(self) -> int:
+        """The number of items shown."""
         return self.items.shape[0]
 
-    def validate_answer(self, answer) -> int:
+    def validate_answer(self, answer: object) -> int:
+        """The answer as a row index of :attr:`items`.
+
+        Raises:
+            ValueError: not a whole number in ``0..m-1`` (naming it).
+        """
         try:
             j = int(answer)
         except (TypeError, ValueError):

@@ -468,7 +468,7 @@ class PreferenceSession:
                                        f"{tuple(items.shape)}, not m x {self.dim}.")
 
     @classmethod
-    def load(cls, path, candidates: Tensor | Candidates | None = None, **kwargs: Any) -> "PreferenceSession":
+    def load(cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Any) -> "PreferenceSession":
         """Resume the session in ``path`` with the settings in its header (seed, levels, bounds,
         candidates, names); ``selector``, ``model_factory``, ``repair`` and ``num_queries`` may be given.
 
@@ -634,7 +634,7 @@ class PreferenceSession:
         self._pending, self._pending_step = query, step
         return query
 
-    def tell(self, query: Query, answer) -> None:
+    def tell(self, query: Query, answer: int | float | None) -> None:
         """Record ``answer`` to ``query``: a Likert level (or a ``[0, 1]`` rating if the session has
         no levels) for a :class:`~torchpref.RatingQuery`; the index of the chosen row of
         ``query.items`` for a :class:`~torchpref.RankingQuery`, or ``None`` for no preference.
@@ -659,7 +659,7 @@ class PreferenceSession:
         else:
             raise TypeError(f"query must be a RatingQuery or RankingQuery, got {type(query).__name__}.")
 
-    def tell_rating(self, x: Tensor, rating) -> None:
+    def tell_rating(self, x: Tensor, rating: int | float) -> None:
         """A rating of any item ``x`` (``d``), given out of turn: a Likert level (or ``[0, 1]``)."""
         self._tell_rating(x, rating, None)
 

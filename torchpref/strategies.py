@@ -13,10 +13,12 @@ import math
 from typing import Sequence
 
 import torch
+from botorch.models.model import Model
 from torch import Tensor
 
 from torchpref.acquisition import (
     greedy_choice_set,
+    item_ucb,
     membership_information,
     rating_bin_probabilities,
     sample_information,
@@ -33,6 +35,13 @@ def _rating(X: Tensor, indices: Tensor | None, i: int) -> RatingQuery:
 def _ranking(X: Tensor, indices: Tensor | None, rows: Tensor) -> RankingQuery:
     rows = rows.reshape(-1)
     return RankingQuery(X[rows], None if indices is None else tuple(int(indices[r]) for r in rows))
+
+
+def _ranking_size(m: int) -> int:
+    """``m`` checked at construction: a whole number of items per ranking, at least 2."""
+    if isinstance(m, bool) or int(m) != m or m < 2:
+        raise ValueError(f"a ranking query needs m >= 2 items (a whole number), got m={m!r}.")
+    return int(m)
 
 
 def _check_m(m: int, X: Tensor) -> None:
@@ -55,12 +64,12 @@ class Selector:
 
     name = "selector"
 
-    def select(self, model, X: Tensor, indices: Tensor | None, step: int, num_steps: int,
+    def select(self, model: Model, X: Tensor, indices: Tensor | None, step: int, num_steps: int,
                generator: torch.Generator) -> Query:
         """The next query for ``model`` among the candidates ``X`` (``N x d``)."""
         return self.select_batch(model, X.unsqueeze(0), [indices], step, num_steps, [generator])[0]
 
-    def select_batch(self, model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
         """One query per trial: ``X`` is ``T x N x d``, ``indices`` and ``generators`` one per trial."""
         raise NotImplementedError(f"{type(self).__name__} implements no select_batch: it runs one trial at a time.")
@@ -71,7 +80,8 @@ class RandomRatings(Selector):
 
     name = "random ratings"
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
         return [_rating(X[b], indices[b], int(torch.randint(X.shape[1], (1,), generator=g)))
                 for b, g in enumerate(generators)]
 
@@ -82,9 +92,10 @@ class RandomRankings(Selector):
     name = "random rankings"
 
     def __init__(self, m: int = 5):
-        self.m = m
+        self.m = _ranking_size(m)
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
         _check_m(self.m, X[0])
         return [_ranking(X[b], indices[b], torch.randperm(X.shape[1], generator=g)[: self.m])
                 for b, g in enumerate(generators)]
@@ -96,9 +107,10 @@ class RandomMixed(Selector):
     name = "random mixed"
 
     def __init__(self, m: int = 5, p_ranking: float = 0.5):
-        self.m, self.p_ranking = m, p_ranking
+        self.m, self.p_ranking = _ranking_size(m), p_ranking
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
         out = []
         for b, g in enumerate(generators):
             coin = float(torch.rand((), generator=g, dtype=torch.float64))
@@ -107,16 +119,10 @@ class RandomMixed(Selector):
         return out
 
 
-def _ucb(model, X: Tensor, gamma: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Eq. 12's ``mean + gamma * std`` at ``X`` (``T x N x d``), with the mean and std (``T x N``)."""
+def _ucb(model, X: Tensor, gamma: float) -> Tensor:
+    """Eq. 12's UCB at ``X`` (``T x N x d``): ``T x N`` (:func:`~torchpref.acquisition.item_ucb`)."""
     with torch.no_grad():
-        if hasattr(model, "marginals"):
-            mean, var = model.marginals(X)
-        else:  # any BoTorch model
-            post = model.posterior(X.unsqueeze(-2))
-            mean, var = post.mean[..., 0, 0], post.variance[..., 0, 0]
-    std = var.clamp_min(0).sqrt()
-    return mean + gamma * std, mean, std
+        return item_ucb(model, X, gamma)[0]
 
 
 def _joint(model, X: Tensor) -> tuple[Tensor, Tensor]:
@@ -136,8 +142,9 @@ class UCBRatings(Selector):
     def __init__(self, gamma: float = 3.0):
         self.gamma = gamma
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
-        best = _ucb(model, X, self.gamma)[0].argmax(-1).tolist()
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        best = _ucb(model, X, self.gamma).argmax(-1).tolist()
         return [_rating(X[b], indices[b], i) for b, i in enumerate(best)]
 
 
@@ -161,13 +168,15 @@ class UCBC(Selector):
     name = "UCBC"
 
     def __init__(self, gamma: float = 3.0, m: int = 5, temperatures: tuple[float, float] = (5.0, 25.0)):
-        self.gamma, self.m, self.temperatures = gamma, m, temperatures
+        self.gamma, self.m, self.temperatures = gamma, _ranking_size(m), temperatures
 
     def ranking_probability(self, step: int, num_steps: int) -> float:
+        """The probability ``max(0, (T - t) / T)`` of a ranking at zero-based query ``step`` of ``num_steps``."""
         return max(0.0, (num_steps - step) / num_steps)
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
-        ucb = _ucb(model, X, self.gamma)[0]
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        ucb = _ucb(model, X, self.gamma)
         out = []
         for b, g in enumerate(generators):
             coin = float(torch.rand((), generator=g, dtype=torch.float64))
@@ -244,6 +253,7 @@ class InformationPerEffort(Selector):
     def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
                  gamma: float = 3.0, num_samples: int = 128, target: str = "top", top_fraction: float = 0.2,
                  num_plausible: int = 15, num_bins: int = 10, min_count: int = 8, bias_correction: bool = True):
+        m = _ranking_size(m)
         if ranking_cost is None:
             ranking_cost = 1.0 + (m - 1) / 4
         if not (rating_cost > 0 and ranking_cost > 0):
@@ -274,7 +284,8 @@ class InformationPerEffort(Selector):
                          for g in generators])
         return mean.unsqueeze(-2) + z @ L.mT, mean, std
 
-    def select_batch(self, model, X, indices, step, num_steps, generators):
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
         with torch.no_grad():
             F, mean, std = self._samples(model, X, generators)  # T x S x N
             T, S, N = F.shape

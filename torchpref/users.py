@@ -30,6 +30,8 @@ from typing import Callable, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from torchpref.likelihoods import rating_link
+
 __all__ = ["User", "SimulatedUser", "sample_beta", "sample_log_gamma", "RATING_CLAMP"]
 
 #: Simulated ratings are clamped to ``[RATING_CLAMP, 1 - RATING_CLAMP]`` so that they lie
@@ -314,7 +316,7 @@ class SimulatedUser:
             A ``n`` tensor in ``(0, 1)``.
         """
         f = self.latent(X)
-        return torch.special.ndtr(f / (self.rating_scale * math.sqrt(2.0)))
+        return rating_link(f, self.rating_scale)
 
     # -- the user protocol ---------------------------------------------------------------
     def rate(self, x: Tensor) -> float:

@@ -23,7 +23,7 @@ from Python: :func:`run_wave_experiment`.
 
 from __future__ import annotations
 
-import math
+import functools
 import time
 from concurrent.futures import Executor
 from pathlib import Path
@@ -33,24 +33,21 @@ import torch
 
 from torchpref.active import run_active_learning, run_active_learning_batch
 from torchpref.batch import BatchedPreferenceGP
-from torchpref.experiments.runner import (
-    fixed_model,
+from torchpref.experiments import runner
+from torchpref.experiments.results import (
+    curves,
+    effort_budgets,
+    final_values,
     fraction_ratings,
-    mean_sem,
+    metric_panels,
     paired_tests,
-    plot_mean_sem,
-    run_trials,
-    single_threaded,
-    write_json,
-    write_summary_csv,
+    at_budgets,
+    write_experiment_files,
 )
-from torchpref.experiments.runner import trial_seeds as _trial_seeds
 from torchpref.metrics import rating_from_latent, true_positives, wrms
-from torchpref.models import PreferenceGP
 from torchpref.queries import BoxCandidates
-from torchpref.strategies import UCBC, InformationPerEffort, RandomRankings, RandomRatings, UCBRatings
-from torchpref.utility_functions import WaveFunction, evaluation_grid
 from torchpref.users import SimulatedUser
+from torchpref.utility_functions import WaveFunction, evaluation_grid
 
 #: the authors' model hyperparameters for this experiment (docs/decisions.md): their 1-D run's
 #: ``log_hyp = log([0.02, 0.6, 0.2, 0.8, 60])`` is ``[lengthscale, sigma_f, sigma_R, sigma_B, nu]``,
@@ -70,31 +67,14 @@ RANKING_COST = 1.0 + (M - 1) / 4
 SELECTOR_RANKING_COST = 1.0
 
 STRATEGIES = ["UCBC", "random ratings", "random rankings", "UCB ratings", "info per effort"]
+METRICS = ("wrms", "tp")
 
 
-def make_selector(name: str):
-    """The selector called ``name`` (one of :data:`STRATEGIES`) with this experiment's settings."""
-    if name == "UCBC":
-        return UCBC(gamma=GAMMA, m=M)
-    if name == "random ratings":
-        return RandomRatings()
-    if name == "random rankings":
-        return RandomRankings(m=M)
-    if name == "UCB ratings":
-        return UCBRatings(gamma=GAMMA)
-    if name == "info per effort":
-        return InformationPerEffort(m=M, rating_cost=RATING_COST, ranking_cost=SELECTOR_RANKING_COST, gamma=GAMMA)
-    raise ValueError(f"unknown strategy {name!r}; choose from {STRATEGIES}.")
-
-
-def make_model(X: torch.Tensor, comparisons: torch.Tensor) -> PreferenceGP:
-    """A :class:`PreferenceGP` with the authors' fixed hyperparameters (:data:`MODEL_SETTINGS`)."""
-    return fixed_model(X, comparisons, MODEL_SETTINGS)
-
-
-def trial_seeds(seed: int, trials: int) -> list[int]:
-    """``trials`` per-trial seeds derived from the run's ``seed``."""
-    return _trial_seeds(int(seed), trials)
+#: the selector as this experiment runs it (``runner.make_selector``'s keywords)
+SELECTOR_OPTIONS = {"m": M, "gamma": GAMMA, "rating_cost": RATING_COST, "ranking_cost": SELECTOR_RANKING_COST}
+make_selector = functools.partial(runner.make_selector, **SELECTOR_OPTIONS)
+make_model = functools.partial(runner.make_model, settings=MODEL_SETTINGS)
+trial_seeds = runner.trial_seeds
 
 
 def _setup(trial_seed: int) -> tuple[WaveFunction, list[int], torch.Tensor, torch.Tensor]:
@@ -139,7 +119,7 @@ def run_trial(trial_seed: int, queries: int, strategies: tuple[str, ...] = tuple
     Returns:
         ``{strategy: {"wrms": [Q + 1], "tp": [Q + 1], "cost": [Q + 1], "kinds": [Q]}}``.
     """
-    single_threaded()
+    runner.single_threaded()
     truth, seeds, u_true, x0 = _setup(trial_seed)
     grid = evaluation_grid(GRID_POINTS)
 
@@ -165,7 +145,7 @@ def run_trial_batch(trial_seeds: tuple[int, ...], queries: int, strategy: str) -
     Returns:
         One ``{strategy: {...}}`` per trial, as :func:`run_trial` for this strategy.
     """
-    single_threaded()
+    runner.single_threaded()
     setups = [_setup(s) for s in trial_seeds]
     u_true = torch.stack([u for _, _, u, _ in setups])
     grid = evaluation_grid(GRID_POINTS).expand(len(setups), -1, -1)
@@ -182,35 +162,13 @@ def run_trial_batch(trial_seeds: tuple[int, ...], queries: int, strategy: str) -
     return [{strategy: _record(h)} for h in hists]
 
 
-def _at_budgets(values: list[float], cost: list[float], budgets: list[float]) -> list[float]:
-    """A trial's metric after the last query whose cumulative cost is within each budget."""
-    out, j = [], 0
-    for b in budgets:
-        while j + 1 < len(cost) and cost[j + 1] <= b + 1e-9:
-            j += 1
-        out.append(values[j])
-    return out
-
-
 def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str, Any]:
     r"""Mean ± SEM curves per query count and per unit of effort, and the paired tests at the end."""
-    queries = len(results[0][strategies[0]]["wrms"]) - 1
-    per_query, per_effort = {}, {}
-    max_budget = min(r[s]["cost"][-1] for r in results for s in strategies)
-    budgets = [float(b) for b in range(int(math.floor(max_budget)) + 1)]
-    for s in strategies:
-        entry = {}
-        for key, short in (("wrms", "wrms"), ("tp", "tp")):
-            m, e = mean_sem([r[s][key] for r in results])
-            entry[f"{short}_mean"], entry[f"{short}_sem"] = m, e
-        per_query[s] = entry
-        eff = {}
-        for key in ("wrms", "tp"):
-            m, e = mean_sem([_at_budgets(r[s][key], r[s]["cost"], budgets) for r in results])
-            eff[f"{key}_mean"], eff[f"{key}_sem"] = m, e
-        per_effort[s] = eff
-    final = {s: {k: [r[s][k][-1] for r in results] for k in ("wrms", "tp")} for s in strategies}
-    at_budget = {s: {k: [_at_budgets(r[s][k], r[s]["cost"], budgets)[-1] for r in results] for k in ("wrms", "tp")}
+    budgets = effort_budgets(results, strategies)
+    per_query = curves(results, strategies, METRICS)
+    per_effort = curves(results, strategies, METRICS, budgets)
+    final = {s: {k: [r[s][k][-1] for r in results] for k in METRICS} for s in strategies}
+    at_budget = {s: {k: [at_budgets(r[s][k], r[s]["cost"], budgets)[-1] for r in results] for k in METRICS}
                  for s in strategies}
     pairs = []
     if "UCBC" in strategies:
@@ -221,10 +179,10 @@ def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str,
     if len(results) >= 2:
         for a, b in pairs:
             key = f"{a} vs {b}"
-            tests["queries"][key] = {k: paired_tests(final[a][k], final[b][k]) for k in ("wrms", "tp")}
-            tests["effort"][key] = {k: paired_tests(at_budget[a][k], at_budget[b][k]) for k in ("wrms", "tp")}
-    return {"queries": queries, "per_query": per_query, "per_effort": per_effort, "budgets": budgets,
-            "final": {s: {k: mean_sem([[v] for v in final[s][k]]) for k in ("wrms", "tp")} for s in strategies},
+            tests["queries"][key] = {k: paired_tests(final[a][k], final[b][k]) for k in METRICS}
+            tests["effort"][key] = {k: paired_tests(at_budget[a][k], at_budget[b][k]) for k in METRICS}
+    return {"queries": len(results[0][strategies[0]]["wrms"]) - 1, "per_query": per_query,
+            "per_effort": per_effort, "budgets": budgets, "final": final_values(per_query, METRICS),
             "paired_tests": tests, "fraction_ratings": fraction_ratings(results, strategies)}
 
 
@@ -264,29 +222,15 @@ def run_wave_experiment(
     Returns:
         The ``wave.json`` content, with ``"summary"`` (the ``wave_summary.json`` content) added.
     """
-    if queries < 1:
-        raise ValueError(f"queries must be a positive integer, got {queries}.")
-    strategies = list(STRATEGIES if strategies is None else strategies)
-    for s in strategies:
-        make_selector(s)  # validates the name
-    if batch_size is not None and batch_size < 1:
-        raise ValueError(f"batch_size must be a positive integer or None, got {batch_size}.")
+    strategies = runner.check_run(queries, strategies, STRATEGIES, batch_size)
     t0 = time.perf_counter()
     seeds = trial_seeds(seed, trials)
+    run_kw = dict(executor=executor, progress=progress, workers=workers, description="wave trials")
     if batch_size is None:
-        results = run_trials(run_trial, [(s, queries, tuple(strategies)) for s in seeds], executor=executor,
-                             progress=progress, workers=workers, description="wave trials")
+        results = runner.run_trials(run_trial, [(s, queries, tuple(strategies)) for s in seeds], **run_kw)
     else:
-        # the costliest strategy first, so that the last calls to finish are short ones
-        order = sorted(strategies, key=lambda s: s != "info per effort")
-        starts = [(s, i) for s in order for i in range(0, trials, batch_size)]
-        tasks = [(tuple(seeds[i : i + batch_size]), queries, s) for s, i in starts]
-        parts = run_trials(run_trial_batch, tasks, executor=executor, progress=progress, workers=workers,
-                           description="wave trials", sizes=[len(t[0]) for t in tasks])
-        results = [{} for _ in seeds]
-        for (s, i), part in zip(starts, parts):
-            for k, r in enumerate(part):
-                results[i + k][s] = r[s]
+        results = runner.run_by_strategy(run_trial_batch, seeds, strategies, batch_size, (queries,),
+                                         first=("info per effort",), **run_kw)
     wall = time.perf_counter() - t0
     summary = summarise(results, strategies)
     summary.update(trials=trials, seed=seed, wall_time_s=wall, workers=workers,
@@ -295,34 +239,19 @@ def run_wave_experiment(
                              "costs": {"rating": RATING_COST, "ranking": RANKING_COST}})
     result = {"trials": trials, "queries": queries, "strategies": summary["per_query"]}
     if out is not None:
-        out = Path(out)
-        write_json(out / "wave.json", result)
-        write_summary_csv(out / "wave.csv", summary["per_query"], x_name="queries")
-        write_summary_csv(out / "wave_effort.csv", summary["per_effort"], x_name="effort")
-        write_json(out / "wave_summary.json", summary)
-        x = list(range(queries + 1))
-        pq = summary["per_query"]
-        plot_mean_sem(out / "wave.png", [
-            ("WRMS (eq. 14)", {s: (x, pq[s]["wrms_mean"], pq[s]["wrms_sem"]) for s in strategies}),
-            (f"true positives (top {TOP_K})", {s: (x, pq[s]["tp_mean"], pq[s]["tp_sem"]) for s in strategies}),
-        ], title=f"Wave functions, {trials} trials (mean ± s.e.)")
-        pe, b = summary["per_effort"], summary["budgets"]
-        plot_mean_sem(out / "wave_effort.png", [
-            ("WRMS (eq. 14)", {s: (b, pe[s]["wrms_mean"], pe[s]["wrms_sem"]) for s in strategies}),
-            (f"true positives (top {TOP_K})", {s: (b, pe[s]["tp_mean"], pe[s]["tp_sem"]) for s in strategies}),
-        ], xlabel=f"effort (rating {RATING_COST:g}, best-of-{M} {RANKING_COST:g})",
-            title=f"At equal effort, {trials} trials (mean ± s.e.)")
+        labels = {"wrms": "WRMS (eq. 14)", "tp": f"true positives (top {TOP_K})"}
+        figures = {
+            "wave.png": dict(panels=metric_panels(summary["per_query"], list(range(queries + 1)), labels),
+                             title=f"Wave functions, {trials} trials (mean ± s.e.)"),
+            "wave_effort.png": dict(panels=metric_panels(summary["per_effort"], summary["budgets"], labels),
+                                    xlabel=f"effort (rating {RATING_COST:g}, best-of-{M} {RANKING_COST:g})",
+                                    title=f"At equal effort, {trials} trials (mean ± s.e.)"),
+        }
+        write_experiment_files(out, "wave", result, summary, figures, effort=summary["per_effort"])
     result["summary"] = summary
     return result
 
 
 def run(args) -> int:
     """``torchpref reproduce wave``: run and report where the files went."""
-    res = run_wave_experiment(trials=args.trials, queries=args.queries, seed=args.seed, out=args.out,
-                              workers=getattr(args, "workers", None))
-    s = res["summary"]
-    print(f"{args.trials} trials x {args.queries} queries in {s['wall_time_s']:.1f} s; files in {args.out}")
-    for name, v in s["final"].items():
-        print(f"  {name:16s} WRMS {v['wrms'][0][0]:.4f} ± {v['wrms'][1][0]:.4f}   "
-              f"TP {v['tp'][0][0]:.2f} ± {v['tp'][1][0]:.2f}")
-    return 0
+    return runner.run_cli(args, run_wave_experiment)

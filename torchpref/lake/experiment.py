@@ -28,6 +28,7 @@ from Python: :func:`run_lake_experiment`.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from concurrent.futures import Executor
@@ -38,25 +39,14 @@ import torch
 
 from torchpref.active import run_active_learning
 from torchpref.data import likert_to_unit
-from torchpref.experiments.runner import (
-    fixed_model,
-    fraction_ratings,
-    mean_sem,
-    paired_tests,
-    plot_mean_sem,
-    run_trials,
-    single_threaded,
-    write_json,
-    write_summary_csv,
-)
-from torchpref.experiments.runner import trial_seeds as _trial_seeds
+from torchpref.experiments import runner
+from torchpref.experiments.results import fraction_ratings, mean_sem, paired_tests, plot_mean_sem, write_json, write_summary_csv
+from torchpref.experiments.runner import run_trials, single_threaded
 from torchpref.lake.operator import LakeOperator
 from torchpref.lake.plan import normalise, plan_with_utility, unnormalise
 from torchpref.lake.scenario import LakeScenario, make_scenario
 from torchpref.metrics import wrms
-from torchpref.models import PreferenceGP
 from torchpref.queries import FinitePool, first_unique_rows
-from torchpref.strategies import UCBC, InformationPerEffort, RandomRatings, UCBRatings
 
 #: fixed model hyperparameters (see the module docstring)
 MODEL_SETTINGS = {"lengthscale": 0.15, "outputscale": 1.0, "comparison_noise": 0.1, "rating_scale": 1.0,
@@ -68,22 +58,8 @@ PLAN_TRIALS = 5
 PLAN_OPTIONS = {"num_starts": 3, "steps": 100, "lr": 1.0}
 
 
-def make_selector(name: str):
-    """The selector called ``name`` (one of :data:`STRATEGIES`)."""
-    if name == "UCBC":
-        return UCBC(gamma=GAMMA, m=M)
-    if name == "random ratings":
-        return RandomRatings()
-    if name == "UCB ratings":
-        return UCBRatings(gamma=GAMMA)
-    if name == "info per effort":
-        return InformationPerEffort(m=M, gamma=GAMMA)
-    raise ValueError(f"unknown strategy {name!r}; choose from {STRATEGIES}.")
-
-
-def make_model(X: torch.Tensor, comparisons: torch.Tensor) -> PreferenceGP:
-    """A :class:`PreferenceGP` with :data:`MODEL_SETTINGS` on normalised inputs."""
-    return fixed_model(X, comparisons, MODEL_SETTINGS)
+make_selector = functools.partial(runner.make_selector, m=M, gamma=GAMMA)
+make_model = functools.partial(runner.make_model, settings=MODEL_SETTINGS)
 
 
 class NormalisedOperator:
@@ -93,9 +69,11 @@ class NormalisedOperator:
         self.operator, self.bounds = operator, bounds
 
     def rate(self, z) -> float:
+        """The operator's rating of the normalised item ``z`` (``d``)."""
         return self.operator.rate(unnormalise(torch.as_tensor(z, dtype=torch.float64), self.bounds))
 
     def choose(self, Z) -> int:
+        """The operator's choice among the normalised items ``Z`` (``m x d``)."""
         return self.operator.choose(unnormalise(torch.as_tensor(Z, dtype=torch.float64), self.bounds))
 
 
@@ -107,7 +85,7 @@ def pool_bounds(scenario: LakeScenario) -> torch.Tensor:
 
 def trial_seeds(seed: int, trials: int) -> list[int]:
     """``trials`` per-trial seeds derived from the run's ``seed``."""
-    return _trial_seeds(int(seed) + 1, trials)
+    return runner.trial_seeds(int(seed) + 1, trials)
 
 
 def run_trial(scenario: LakeScenario, trial_seed: int, queries: int, strategies: tuple[str, ...],
@@ -241,11 +219,7 @@ def run_lake_experiment(
     Returns:
         The ``lake.json`` content with ``"summary"`` added.
     """
-    if queries < 1:
-        raise ValueError(f"queries must be a positive integer, got {queries}.")
-    strategies = list(STRATEGIES if strategies is None else strategies)
-    for s in strategies:
-        make_selector(s)
+    strategies = runner.check_run(queries, strategies, STRATEGIES)
     t0 = time.perf_counter()
     if scenario is None:
         scenario = make_scenario(seed)

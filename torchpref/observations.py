@@ -1,0 +1,260 @@
+r"""Observations as likelihood terms on linear predictors of the latent utilities, batch-first.
+
+Every kind of observation the model knows scores one scalar *predictor* per observation,
+``eta_k = sum_c coef_c f[index_{k, c}]``: a comparison ``[i, j]`` has ``eta = f_i - f_j``
+(``coef = (1, -1)``, eq. 3), a rating of item ``i`` has ``eta = f_i`` (``coef = (1,)``,
+eqs. 4-7). A :class:`Term` holds one kind (its likelihood, indices, targets and padding mask)
+for a batch of ``B`` independent problems; :class:`Observations` is a tuple of terms. Adding a
+likelihood kind (ties, ordinal ratings) is adding a :class:`Term` with its likelihood; the
+solver (:mod:`torchpref.laplace`) only ever sees the terms.
+
+With ``d_k`` the row vector of observation ``k`` (``coef`` at its indices), the log-likelihood's
+gradient is ``sum_k l'(eta_k) d_k`` and its negative Hessian is ``W = sum_k w_k d_k^T d_k``
+(eq. 8) with ``w_k = -l''(eta_k)``; ``W`` is never formed densely on the solver's path.
+
+Padding is exact: a padded observation (``mask`` false) contributes nothing (zero log-likelihood,
+gradient and weight). Its index and target must still be values the likelihood can evaluate
+(e.g. index 0, rating 0.5), so that no NaN reaches a gradient through ``torch.where``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple, Protocol, Sequence
+
+import torch
+from torch import Tensor
+
+from torchpref.numerics import lower_t_matmul
+
+
+class TermLikelihood(Protocol):
+    """What a :class:`Term` asks of its likelihood: closed-form derivatives in the predictor."""
+
+    def derivatives(self, eta: Tensor, *target: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(log p, d log p / d eta, d^2 log p / d eta^2)``, elementwise."""
+
+    def third_derivative(self, eta: Tensor, *target: Tensor) -> Tensor:
+        """``d^3 log p / d eta^3``, elementwise."""
+
+    def fisher(self, eta: Tensor) -> Tensor:
+        """The expected negative second derivative (never negative); needed unless log-concave."""
+
+
+@dataclass(frozen=True, eq=False)
+class Term:
+    r"""One kind of observation for ``B`` problems: ``m`` predictors each, scored by ``likelihood``.
+
+    Args:
+        likelihood: a :class:`TermLikelihood`.
+        index: ``B x m x c`` long, the items each predictor combines.
+        coef: the ``c`` coefficients, ``(1.0, -1.0)`` for ``f_i - f_j``, ``(1.0,)`` for ``f_i``.
+        target: ``B x m`` observed values passed to the likelihood after ``eta``, or ``None``.
+        mask: ``B x m`` bool, false for padding; ``None``: all observations are real.
+        log_concave: the exact weights ``-l''`` are never negative, so Fisher scoring keeps them.
+    """
+
+    likelihood: TermLikelihood
+    index: Tensor
+    coef: tuple[float, ...]
+    target: Tensor | None = None
+    mask: Tensor | None = None
+    log_concave: bool = False
+    _patterns: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def size(self) -> int:
+        """The number ``m`` of observations in this term."""
+        return self.index.shape[-2]
+
+    def _args(self) -> tuple[Tensor, ...]:
+        return () if self.target is None else (self.target,)
+
+    def _masked(self, x: Tensor) -> Tensor:
+        return x if self.mask is None else torch.where(self.mask, x, 0.0)
+
+    def predictor(self, f: Tensor) -> Tensor:
+        """``eta`` (``B x m``) at ``f`` (``B x n``)."""
+        eta = 0.0
+        for c, coef in enumerate(self.coef):
+            eta = eta + coef * f.gather(-1, self.index[..., c])
+        return eta
+
+    def adjoint(self, x: Tensor, n: int) -> Tensor:
+        """``sum_k x_k d_k`` (``B x n``) for per-observation values ``x`` (``B x m``)."""
+        out = x.new_zeros(x.shape[0], n)
+        for c, coef in enumerate(self.coef):
+            out = out.scatter_add(-1, self.index[..., c], coef * x)
+        return out
+
+    def rows(self, L: Tensor) -> Tensor:
+        """``D L`` (``B x m x n``): each observation's row ``d_k`` times ``L`` (``B x n x n``)."""
+        n = L.shape[-1]
+        out = 0.0
+        for c, coef in enumerate(self.coef):
+            out = out + coef * L.gather(-2, self.index[..., c : c + 1].expand(-1, -1, n))
+        return out
+
+    def quadratic_forms(self, S: Tensor) -> Tensor:
+        """``d_k^T S d_k`` (``B x m``) for ``B x n x n`` matrices ``S``."""
+        n = S.shape[-1]
+        flat = S.reshape(S.shape[0], n * n)
+        out = 0.0
+        for c, ci in enumerate(self.coef):
+            for e, ce in enumerate(self.coef):
+                out = out + ci * ce * flat.gather(-1, self.index[..., c] * n + self.index[..., e])
+        return out
+
+    def evaluate(self, f: Tensor, fisher: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """``(log p summed per problem (B), d log p / d eta (B x m), weights w (B x m))``;
+        ``fisher`` (``B`` bool) swaps in the Fisher weights for those problems."""
+        eta = self.predictor(f)
+        lp, d1, d2 = self.likelihood.derivatives(eta, *self._args())
+        w = -d2
+        if fisher is not None and not self.log_concave and bool(fisher.any()):
+            w = torch.where(fisher.unsqueeze(-1), self.likelihood.fisher(eta), w)
+        return self._masked(lp).sum(-1), self._masked(d1), self._masked(w)
+
+    def curvature_slope(self, f: Tensor) -> Tensor:
+        """``d w / d eta = -l'''(eta)`` (``B x m``), for the evidence's gradient."""
+        return self._masked(-self.likelihood.third_derivative(self.predictor(f), *self._args()))
+
+    def W_entries(self, n: int) -> tuple[Tensor, Tensor]:
+        """``W``'s nonzero pattern over the block-diagonal ``Bn x Bn`` matrix: ``(rows, cols)``
+        of each of the ``c^2`` entries per observation (flattened in :meth:`W_values`' order)."""
+        if n not in self._patterns:
+            offset = (torch.arange(self.index.shape[0], device=self.index.device) * n).reshape(-1, 1)
+            rows, cols = [], []
+            for c in range(len(self.coef)):
+                for e in range(len(self.coef)):
+                    rows.append((self.index[..., c] + offset).reshape(-1))
+                    cols.append((self.index[..., e] + offset).reshape(-1))
+            self._patterns[n] = (torch.cat(rows), torch.cat(cols))
+        return self._patterns[n]
+
+    def W_values(self, w: Tensor) -> Tensor:
+        """The values matching :meth:`W_entries`: ``coef_c coef_e w_k``."""
+        return torch.cat([ci * ce * w.reshape(-1) for ci in self.coef for ce in self.coef])
+
+
+def pairwise_term(likelihood, comparisons: Tensor, mask: Tensor | None = None, **kw) -> Term:
+    """A term on ``f_i - f_j`` for comparisons ``B x p x 2`` (rows ``[i, j]``)."""
+    return Term(likelihood, comparisons, (1.0, -1.0), mask=mask, **kw)
+
+
+def item_term(likelihood, index: Tensor, target: Tensor | None = None, mask: Tensor | None = None, **kw) -> Term:
+    """A term on ``f_i`` for items ``index`` (``B x q``) with observed values ``target``."""
+    return Term(likelihood, index.unsqueeze(-1), (1.0,), target=target, mask=mask, **kw)
+
+
+class LikelihoodTerms(NamedTuple):
+    """The log-likelihood and its derivatives at one ``f``, per problem."""
+
+    log_lik: Tensor  # B
+    grad: Tensor  # B x n, d log p / d f
+    weights: tuple[Tensor, ...]  # per term, B x m: W = sum_k w_k d_k^T d_k
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """The observations of ``batch`` independent problems, as a tuple of :class:`Term`."""
+
+    terms: tuple[Term, ...]
+    batch: int
+    _sparse: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_data(cls, comparisons: Tensor, ratings: Tensor, rating_index: Tensor, comparison_likelihood,
+                  rating_likelihood, comparison_mask: Tensor | None = None,
+                  rating_mask: Tensor | None = None) -> "Observations":
+        """Comparisons (``p x 2`` or ``B x p x 2``) and ratings (``q`` or ``B x q``, of items
+        ``rating_index``) as two terms; empty kinds are left out."""
+        batched = comparisons.dim() == 3
+        if not batched:
+            comparisons, ratings, rating_index = comparisons[None], ratings[None], rating_index[None]
+            comparison_mask = None if comparison_mask is None else comparison_mask[None]
+            rating_mask = None if rating_mask is None else rating_mask[None]
+        terms = []
+        if comparisons.shape[-2]:
+            terms.append(pairwise_term(comparison_likelihood, comparisons, comparison_mask, log_concave=True))
+        if ratings.shape[-1]:
+            terms.append(item_term(rating_likelihood, rating_index, ratings, rating_mask))
+        return cls(tuple(terms), comparisons.shape[0])
+
+    @property
+    def num_observations(self) -> int:
+        """The number of observations over all terms."""
+        return sum(t.size for t in self.terms)
+
+    def evaluate(self, f: Tensor, fisher: Tensor | None = None) -> LikelihoodTerms:
+        """Log-likelihood, gradient and weights at ``f`` (``B x n``); ``fisher`` as :meth:`Term.evaluate`."""
+        ll, grad, weights = f.new_zeros(f.shape[0]), torch.zeros_like(f), []
+        for t in self.terms:
+            lp, d1, w = t.evaluate(f, fisher)
+            ll, grad = ll + lp, grad + t.adjoint(d1, f.shape[-1])
+            weights.append(w)
+        return LikelihoodTerms(ll, grad, tuple(weights))
+
+    def adjoint(self, values: Sequence[Tensor], n: int) -> Tensor:
+        """``sum over terms and k of x_k d_k`` (``B x n``) for per-term values."""
+        out = 0.0
+        for t, x in zip(self.terms, values):
+            out = out + t.adjoint(x, n)
+        return out if self.terms else torch.zeros(self.batch, n)
+
+    def curvature_slopes(self, f: Tensor) -> tuple[Tensor, ...]:
+        """Each term's :meth:`Term.curvature_slope` at ``f``."""
+        return tuple(t.curvature_slope(f) for t in self.terms)
+
+    def quadratic_forms(self, S: Tensor) -> tuple[Tensor, ...]:
+        """``d_k^T S d_k`` per term (each ``B x m``)."""
+        return tuple(t.quadratic_forms(S) for t in self.terms)
+
+    def W_blocks(self, n: int, weights: Sequence[Tensor]) -> Tensor:
+        """``W`` of all problems as one block-diagonal sparse ``Bn x Bn`` COO matrix (coalesced)."""
+        if n not in self._sparse:
+            rows = torch.cat([t.W_entries(n)[0] for t in self.terms])
+            cols = torch.cat([t.W_entries(n)[1] for t in self.terms])
+            N = self.batch * n
+            keys, slot = torch.unique(rows * N + cols, return_inverse=True)  # sorted: coalesced order
+            self._sparse[n] = (torch.stack([keys // N, keys % N]), slot, N)
+        index, slot, N = self._sparse[n]
+        vals = torch.cat([t.W_values(w) for t, w in zip(self.terms, weights)])
+        vals = vals.new_zeros(index.shape[-1]).index_add(0, slot, vals)
+        return torch.sparse_coo_tensor(index, vals, (N, N), is_coalesced=True, check_invariants=False)
+
+    def W_times(self, weights: Sequence[Tensor], X: Tensor) -> Tensor:
+        """``W X`` (``B x n x k``) for ``B x n x k`` ``X``, by the block-sparse ``W``."""
+        B, n, k = X.shape
+        if not self.terms:
+            return torch.zeros_like(X)
+        return torch.sparse.mm(self.W_blocks(n, weights), X.reshape(B * n, k)).reshape(B, n, k)
+
+    def W_dense(self, n: int, weights: Sequence[Tensor]) -> Tensor:
+        """``W`` (``B x n x n``, eq. 8) densely, for the evidence's gradient, inspection and tests."""
+        W = torch.zeros(self.batch, n, n, dtype=weights[0].dtype if weights else torch.float64,
+                        device=weights[0].device if weights else None)
+        for t, w in zip(self.terms, weights):
+            rows, cols = t.W_entries(n)
+            W.view(-1).index_put_((rows * n + cols % n,), t.W_values(w), accumulate=True)
+        return W
+
+    def whitened_hessian(self, L: Tensor, weights: Sequence[Tensor]) -> Tensor:
+        r"""``B = I + L^T W L`` (``B x n x n``) for ``L`` (``B x n x n``).
+
+        With many observations per item and no gradient to track, ``L^T (W L)`` with a sparse
+        ``W`` (one ``n^3`` product); otherwise ``sum_terms (D L)^T diag(w) (D L)`` (``m n^2`` per
+        term, differentiable).
+        """
+        n = L.shape[-1]
+        tracked = torch.is_grad_enabled() and (L.requires_grad or any(w.requires_grad for w in weights))
+        if not tracked and 2 * self.num_observations > n:
+            WL = self.W_times(weights, L)
+            H = lower_t_matmul(L[0], WL[0]).unsqueeze(0) if L.shape[0] == 1 else L.mT @ WL
+        else:
+            H = torch.zeros_like(L)
+            for t, w in zip(self.terms, weights):
+                DL = t.rows(L)
+                H = H + DL.mT @ (w.unsqueeze(-1) * DL)
+        H.diagonal(dim1=-2, dim2=-1).add_(1.0)
+        return H
