@@ -75,7 +75,7 @@ def test_registry_and_fixed_kernel():
     from torchpref.kernels import fixed_rbf_kernel
 
     for name in ALL:
-        assert make_selector(name, m=3).name == name
+        assert callable(make_selector(name, m=3).select_batch)
     with pytest.raises(ValueError, match="no such"):
         make_selector("no such")
     X = torch.rand(7, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
@@ -89,3 +89,19 @@ def test_registry_and_fixed_kernel():
                 "rating_precision": 60.0}
     model = make_model(X[:2], torch.tensor([[0, 1]]), settings)
     assert float(model.likelihood.rating.rating_precision) == pytest.approx(60.0)
+
+
+def test_fixed_kernel_batch_of_values():
+    import torch
+
+    from torchpref.kernels import FixedRBFKernel
+
+    X = torch.rand(3, 6, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    ls, os_ = torch.tensor([0.1, 0.3, 1.0], dtype=torch.float64), torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)
+    k = FixedRBFKernel(ls, os_)
+    K, d = k.forward(X, X), k.forward(X, X.flip(1), diag=True)
+    for b in range(3):
+        one = FixedRBFKernel(ls[b], os_[b])
+        torch.testing.assert_close(K[b], one.forward(X[b], X[b]), rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(d[b], one.forward(X[b], X[b].flip(0), diag=True), rtol=1e-12, atol=1e-14)
+    assert k.forward(X[0], X[0]).shape == (3, 6, 6)  # one set of points, three kernels

@@ -159,3 +159,23 @@ def test_integrated_posterior_variance_on_rating_fantasies(device, generator):
     fantasy = model.fantasize(X, acqf.sampler)
     torch.testing.assert_close(value, -fantasy.posterior(mc).variance.mean(dim=(-2, -1)).reshape(5), rtol=1e-10,
                                atol=1e-12)
+
+
+def test_batched_kernel_hyperparameters_per_problem(generator):
+    """A kernel of batch shape ``[b]`` (BoTorch's batched models): each problem with its own values."""
+    b, n = 3, 8
+    X = torch.rand(b, n, 2, generator=generator, dtype=torch.float64)
+    C = torch.stack([random_comparisons(n, 5, generator) for _ in range(b)])
+    k = ScaleKernel(RBFKernel(ard_num_dims=2, batch_shape=torch.Size([b])), batch_shape=torch.Size([b])).double()
+    k.outputscale = torch.tensor([0.5, 1.0, 2.0])
+    k.base_kernel.lengthscale = torch.tensor([[[0.2, 0.4]], [[0.3, 0.3]], [[0.6, 0.1]]])
+    model = PreferenceGP(X, C, covar_module=k)
+    Xt = torch.rand(4, b, 5, 2, generator=generator, dtype=torch.float64)
+    post, evidence = model.posterior(Xt), model.log_marginal_likelihood()
+    for j in range(b):
+        kj = ScaleKernel(RBFKernel(ard_num_dims=2)).double()
+        kj.outputscale = float(k.outputscale[j])
+        kj.base_kernel.lengthscale = k.base_kernel.lengthscale[j]
+        one = PreferenceGP(X[j], C[j], covar_module=kj)
+        torch.testing.assert_close(post.mean[:, j], one.posterior(Xt[:, j]).mean, rtol=0, atol=1e-6)
+        torch.testing.assert_close(evidence[j], one.log_marginal_likelihood(), rtol=0, atol=1e-6)

@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from torchpref.lake import InformationField, Lake, LakeOperator, LakeScenario, path_objectives
-from torchpref.lake.experiment import STRATEGIES, make_model, pool_bounds, run_lake_experiment
-from torchpref.lake.plan import normalise, plan_with_utility
+from torchpref.experiments.lake import (STRATEGIES, make_model, model_utility, normalise, pool_bounds,
+                                        run_lake_experiment)
+from torchpref.lake.plan import plan_with_utility
 
 
 def _paths(lake, offsets, T=20):
@@ -72,14 +73,12 @@ def test_plan_with_utility_on_water_and_not_worse(scenario):
     for i in idx:
         model.add_observations(Z[i:i + 1], ratings=[op.rate(scenario.train_X[i])], rating_index=[0])
 
-    def utility(Zq):
-        return model.posterior(Zq.unsqueeze(-2)).mean.reshape(Zq.shape[:-1])
-
-    res = plan_with_utility(scenario, utility, bounds=bounds, num_starts=2, steps=30)
+    utility = model_utility(model, bounds)
+    res = plan_with_utility(scenario, utility, num_starts=2, steps=30)
     assert bool(scenario.lake.path_on_water(res.path))
     assert torch.equal(res.path[0], scenario.lake.start) or torch.allclose(res.path[0], scenario.lake.start)
     assert torch.allclose(res.path[-1], scenario.lake.goal)
     assert res.utility >= res.start_utility - 1e-12
     with torch.no_grad():
-        u = utility(normalise(path_objectives(res.path, scenario.field), bounds).unsqueeze(0))
+        u = utility(path_objectives(res.path, scenario.field).unsqueeze(0))
     assert abs(float(u) - res.utility) < 1e-8

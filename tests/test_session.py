@@ -163,7 +163,7 @@ def test_bad_items_are_rejected():
 
 
 def test_write_failure_leaves_file_and_model_unchanged(tmp_path, monkeypatch):
-    import torchpref.session as mod
+    import torchpref.journal as mod
 
     X = pool()
     path = tmp_path / "s.jsonl"

@@ -33,6 +33,7 @@ import warnings
 
 import torch
 
+import torchpref.journal as journal
 import torchpref.session as ts
 
 
@@ -63,7 +64,7 @@ def session(path, seed, total, repair=False):
 if __name__ == "__main__":
     path, seed, total, pause = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
     state = {"step": -1}
-    write_all = ts._write_all
+    write_all = journal._write_all
 
     def slow_write(fd, data):  # half a record, a pause, the rest: room for a kill mid-write
         write_all(fd, data[: len(data) // 2])
@@ -71,7 +72,7 @@ if __name__ == "__main__":
         time.sleep(pause)
         write_all(fd, data[len(data) // 2:])
 
-    ts._write_all = slow_write
+    journal._write_all = slow_write
     try:
         s = session(path, seed, total)
     except ts.SessionFileCorrupt as err:

@@ -107,8 +107,7 @@ def run_active_learning(
     for step in range(num_queries):
         X, indices = candidates.draw(generator)
         query = selector.select(model, X, indices, step, num_queries, generator)
-        answer = ask_user(user, query)
-        record_answer(model, query, answer)
+        answer = record_answer(model, query, ask_user(user, query))
         record = QueryRecord(step, query, answer, costs[query.kind])
         history.records.append(record)
         if refit_every is not None and (step + 1) % refit_every == 0:
@@ -141,6 +140,7 @@ def run_active_learning_batch(
     generators: Sequence[torch.Generator],
     metrics: Callable[[BatchedPreferenceGP], dict[str, Tensor]] | None = None,
     costs: dict[str, float] | None = None,
+    refit: Callable[[int, BatchedPreferenceGP], Any] | None = None,
 ) -> list[History]:
     r""":func:`run_active_learning` for ``T`` independent trials at once (fixed hyperparameters).
 
@@ -160,6 +160,9 @@ def run_active_learning_batch(
         generators: one per trial.
         metrics: ``model -> {name: T values}``, evaluated before the first query and after each.
         costs: effort of a ``"rating"`` and of a ``"ranking"`` query (default 1 each).
+        refit: called as ``refit(step, model)`` after each query's answers are recorded and
+            before the metrics, e.g. to set new hyperparameters learned from the answers (a
+            schedule of its own: it decides at which steps to change anything).
 
     Returns:
         One :class:`History` per trial (``model`` is ``None``: ``model`` holds all trials).
@@ -184,8 +187,9 @@ def run_active_learning_batch(
         X = torch.stack([x for x, _ in draws])
         queries = selector.select_batch(model, X, [i for _, i in draws], step, num_queries, generators)
         for b, query in enumerate(queries):
-            answer = ask_user(users[b], query)
-            record_answer(_Trial(model, b), query, answer)
+            answer = record_answer(_Trial(model, b), query, ask_user(users[b], query))
             histories[b].records.append(QueryRecord(step, query, answer, costs[query.kind]))
+        if refit is not None:
+            refit(step, model)
         measure()
     return histories

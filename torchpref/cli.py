@@ -1,62 +1,209 @@
 r"""The ``torchpref`` command line.
 
-    torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR]
-    torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR]
+    torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
+    torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
+    torchpref reproduce suite [--families F ...] [--trials N] [--queries Q] [--seed S] [--out DIR]
     torchpref elicit lake [--session FILE]
-    torchpref elicit --features items.csv [--session FILE]
+    torchpref elicit --features items.csv [--id COLUMN] [--session FILE]
+    torchpref --version
 
-Each subcommand lives in its own module, imported only when it runs.
+Each subcommand lives in its own module, imported only when it runs. Every argument is checked
+before any work starts; an error a person can cause (a bad value, a file that cannot be read or
+written, Ctrl-C) is one line on stderr and a non-zero exit status, never a traceback (set
+``TORCHPREF_DEBUG=1`` to see one).
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime as _dt
 import importlib
+import os
 import sys
+import time
+import warnings
+from pathlib import Path
 
-# subcommand -> module with ``add_arguments(parser)`` and ``run(args) -> int``
-REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.lake.experiment"}
+from torchpref.version import __version__
+
+# subcommand -> module with ``run(args) -> int``
+REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.experiments.lake",
+             "suite": "torchpref.experiments.suite"}
 ELICIT = "torchpref.elicit"
+RESULTS = "torchpref-results"
+"""The folder (in the current one) that holds a fresh folder per ``reproduce`` run by default."""
+
+LEGEND = {
+    "wave": "mean ± standard error over the trials; WRMS (eq. 14): lower is better; "
+            "TP: true positives, how many of the 15 truly best items are among the model's 15 best "
+            "(higher is better)",
+    "lake": "mean ± standard error over the trials; error5: mean |expected - true rating| on the test paths "
+            "rated 5 (lower is better); WRMS: lower is better; chosen: the operator's level (1-5) of the path "
+            "the model ranks best; share 5: fraction of trials whose chosen path is rated 5",
+    "suite": "mean ± standard error over the trials; WRMS and regret: lower is better; TP: true positives "
+             "among the 15 best items (higher is better); see docs/suite.md",
+}
+
+
+class UsageError(ValueError):
+    """A command-line value that cannot be used (reported as one line, exit status 2)."""
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
 
 
 def _experiment_args(p: argparse.ArgumentParser, trials: int, queries: int) -> None:
-    p.add_argument("--trials", type=int, default=trials, help=f"number of trials (default {trials})")
-    p.add_argument("--queries", type=int, default=queries, help=f"queries per trial (default {queries})")
+    p.add_argument("--trials", type=positive_int, default=trials, help=f"number of trials (default {trials})")
+    p.add_argument("--queries", type=positive_int, default=queries, help=f"queries per trial (default {queries})")
     p.add_argument("--seed", type=int, default=10, help="seed of the whole run (default 10)")
-    p.add_argument("--out", default="benchmarks/results", help="output folder (default benchmarks/results)")
-    p.add_argument("--workers", type=int, default=None, help="worker processes (default: CPU count)")
+    p.add_argument("--out", default=None,
+                   help=f"output folder (default: a new folder in ./{RESULTS}/; the committed results are in "
+                        "benchmarks/results)")
+    p.add_argument("--workers", type=positive_int, default=None, help="worker processes (default: CPU count)")
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``torchpref``'s arguments (its help texts are plain text, no markup)."""
     parser = argparse.ArgumentParser(
         prog="torchpref", description="Reproduce the paper's experiments, or learn your preferences in the terminal.")
+    parser.add_argument("--version", action="version", version=f"torchpref {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     rep = sub.add_parser("reproduce", help="reproduce one of the paper's experiments")
     rep_sub = rep.add_subparsers(dest="experiment", required=True)
     _experiment_args(rep_sub.add_parser("wave", help="the 1-D wave-function experiment (Fig. 6)"), 100, 20)
     _experiment_args(rep_sub.add_parser("lake", help="the lake-monitoring experiment (Fig. 9)"), 20, 14)
+    suite = rep_sub.add_parser("suite", help="every strategy on the user-family benchmark suite (docs/suite.md)")
+    _experiment_args(suite, 50, 20)
+    suite.add_argument("--families", nargs="+", default=None, help="families to run (default: all)")
     el = sub.add_parser("elicit", help="learn your preferences in the terminal")
     el.add_argument("world", nargs="?", choices=["lake"], help="a built-in world to elicit over")
-    el.add_argument("--features", help="CSV of items' objective values (one row per item, a header row)")
-    el.add_argument("--session", help="session file (JSON Lines) to append to / resume from")
-    el.add_argument("--queries", type=int, default=14, help="number of queries (default 14)")
-    el.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    el.add_argument("--features", help="CSV of items' objective values (a header row, one row per item)")
+    el.add_argument("--id", dest="id_column", metavar="COLUMN",
+                    help="the CSV column that names the items (default: a first column named id, name, label or "
+                         "item, or holding any text)")
+    el.add_argument("--session", help="session file (JSON Lines) to append to / resume from (default: "
+                                      "NAME.session.jsonl in the current folder, NAME the CSV's or 'lake')")
+    el.add_argument("--no-session", action="store_true", help="keep nothing: answers are lost when it ends")
+    el.add_argument("--queries", type=positive_int, default=14, help="number of queries (default 14)")
+    el.add_argument("--seed", type=int, default=None, help="seed of a new session (default 0; a resumed session "
+                                                           "keeps its own)")
     el.add_argument("--out", default=".", help="where to write figures (default: current folder)")
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run ``torchpref`` with the arguments ``argv`` (default ``sys.argv[1:]``); return the exit status."""
-    args = build_parser().parse_args(argv)
-    if args.command == "reproduce":
-        module = importlib.import_module(REPRODUCE[args.experiment])
+def seconds_since_start() -> float:
+    """Seconds since this process started (Python's and torch's start-up included), where the
+    system says (Linux ``/proc``); otherwise since this module was imported."""
+    try:
+        with open("/proc/self/stat") as f:
+            after_name = f.read().rsplit(")", 1)[1].split()
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return max(0.0, uptime - int(after_name[19]) / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError, AttributeError):
+        return time.perf_counter() - _IMPORTED
+
+
+_IMPORTED = time.perf_counter()
+
+
+def output_folder(out: str | None, experiment: str) -> Path:
+    """The checked output folder: ``out`` (created, and tested for writing), or a new folder
+    ``./torchpref-results/EXPERIMENT-YYYYMMDD-HHMMSS`` that did not exist before.
+
+    Raises:
+        UsageError: ``out`` is a file, cannot be created or cannot be written to.
+    """
+    if out is None:
+        stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+        base = Path(RESULTS) / f"{experiment}-{stamp}"
+        path, k = base, 1
+        while path.exists():
+            k += 1
+            path = base.with_name(f"{base.name}-{k}")
     else:
-        if (args.world is None) == (args.features is None):
-            print("torchpref elicit: give either a world (lake) or --features FILE", file=sys.stderr)
-            return 2
-        module = importlib.import_module(ELICIT)
-    return int(module.run(args) or 0)
+        path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"--out {out}: is a file, not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f".torchpref-write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise UsageError(f"--out {path}: cannot write there ({exc.strerror or exc})") from None
+    return path
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) < 2000 else text[:1997] + "..."
+
+
+def _reproduce(args) -> int:
+    args.out = str(output_folder(args.out, args.experiment))
+    module = importlib.import_module(REPRODUCE[args.experiment])
+    code = int(module.run(args) or 0)
+    legend = LEGEND.get(args.experiment, "mean ± standard error over the trials")
+    print(f"({legend}{'; one trial has no standard error' if args.trials == 1 else ''})")
+    print(f"Total wall time {seconds_since_start():.1f} s, start-up included; files in {args.out}")
+    return code
+
+
+def _elicit(args) -> int:
+    if (args.world is None) == (args.features is None):
+        raise UsageError("give either a world (lake) or --features FILE")
+    if args.no_session and args.session:
+        raise UsageError("give --session FILE or --no-session, not both")
+    if args.id_column is not None and args.features is None:
+        raise UsageError("--id names a column of the --features CSV")
+    return int(importlib.import_module(ELICIT).run(args) or 0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status (errors and warnings: one line each on stderr)."""
+    shown = warnings.showwarning
+    warnings.showwarning = _warning_line
+    try:
+        return _main(argv)
+    finally:
+        warnings.showwarning = shown
+
+
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as one line (no source line): ``torchpref: SomeWarning: message``."""
+    print(f"torchpref: {category.__name__}: {one_line(message)}", file=sys.stderr if file is None else file)
+
+
+def _main(argv: list[str] | None) -> int:
+    command = "torchpref"
+    try:
+        args = build_parser().parse_args(argv)
+        command = f"torchpref {args.command}"
+        return _reproduce(args) if args.command == "reproduce" else _elicit(args)
+    except KeyboardInterrupt:
+        print(f"\n{command}: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError) as exc:  # what a person can cause: bad values, unreadable files
+        if os.environ.get("TORCHPREF_DEBUG"):
+            raise
+        print(f"{command}: {one_line(exc)}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # a bug: still one line, with a way to see more
+        if os.environ.get("TORCHPREF_DEBUG"):
+            raise
+        print(f"{command}: internal error ({type(exc).__name__}: {one_line(exc)}); run with TORCHPREF_DEBUG=1 "
+              "to see where, and please report it", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

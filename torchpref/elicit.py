@@ -1,24 +1,25 @@
 r"""``torchpref elicit``: learn a person's preferences in the terminal.
 
     torchpref elicit lake [--session FILE] [--queries Q] [--seed S] [--out DIR]
-    torchpref elicit --features items.csv [--session FILE] [--queries Q] [--seed S]
+    torchpref elicit --features items.csv [--id COLUMN] [--session FILE] [--queries Q] [--seed S]
 
 Each query is shown as a table of the items' objective values (for the lake, also as a PNG of
 the candidate paths on the map, written to ``--out``). A rating is answered with a whole number
-``1..5``, a ranking with the letter of the best item; ``=`` says "no preference", ``u`` undoes
-the last answer, ``?`` shows help and ``q`` quits. Bad input is explained and asked again.
-With ``--session`` every answer is saved (and fsynced) as it is given: run the same command
-again to continue. At the end the learned utility's best items are shown (for the lake, the
-path the robot would pick).
+``1..5``, a ranking with the letter of the best item; ``=`` says "no preference" (recorded, not
+yet used by the model), ``u`` undoes the last answer, ``?`` shows help and ``q`` quits. Bad
+input is explained and asked again. Every answer is saved (and fsynced) as it is given, to
+``--session`` or by default to ``NAME.session.jsonl`` in the current folder (``--no-session``:
+nothing is kept): run the same command again to continue. At the end the learned utility's best
+items are shown (for the lake, the path the robot would pick).
 
+Nothing a person types or puts in a file shows a traceback: errors are one line on stderr with
+a non-zero exit status, and labels from a CSV are printed with control characters replaced.
 The model works on the objectives normalised to the unit cube by the items' range
 (:class:`~torchpref.session.PreferenceSession`'s ``bounds``).
 """
 
 from __future__ import annotations
 
-import csv
-import math
 import sys
 from pathlib import Path
 from typing import TextIO
@@ -26,9 +27,13 @@ from typing import TextIO
 import torch
 from torch import Tensor
 
-from torchpref.queries import Query, RankingQuery
-from torchpref.session import PreferenceSession, SessionFileCorrupt, SessionFileError, read_session_file
+from torchpref.features import FeaturesError, printable, read_features_csv
+from torchpref.queries import Query, RankingQuery, first_unique_rows
+from torchpref.session import (PreferenceSession, SessionFileCorrupt, SessionFileError, SessionMismatchError,
+                               default_ranking_size, read_session_file)
 from torchpref.strategies import UCBC
+
+__all__ = ["FeaturesError", "FeaturesWorld", "LakeWorld", "plot_paths", "read_features_csv", "run"]
 
 LETTERS = "ABCDEFGHIJKLMNOPQRSTUVWXYZ"
 NUM_LEVELS = 5
@@ -37,57 +42,10 @@ HELP = """\
 Answers:
   rating query   a whole number from 1 (unacceptable) to 5 (excellent)
   ranking query  the letter of the best item (A, B, ...); '=' if you have no preference
+                 (recorded, but it does not change what is learned: ties are not modelled yet)
   u              undo your last answer (it is asked again)
   ?              this help
   q              quit (with --session, every answer so far is saved; run the same command to continue)"""
-
-
-class FeaturesError(ValueError):
-    """A features CSV that cannot be read."""
-
-
-def read_features_csv(path) -> tuple[Tensor, list[str], list[str] | None]:
-    """Items from a CSV: a header row of objective names, then one numeric row per item.
-
-    A first column holding any non-numeric value is taken as the items' labels.
-
-    Returns:
-        ``(X, names, labels)``: ``N x d`` float64 values, the ``d`` names, ``N`` labels or ``None``.
-
-    Raises:
-        FeaturesError: a missing header, a ragged row, a non-numeric or non-finite value
-            (naming the row and column), fewer than two items.
-    """
-    path = Path(path)
-    with open(path, newline="") as f:
-        rows = [r for r in csv.reader(f) if any(c.strip() for c in r)]
-    if len(rows) < 3:
-        raise FeaturesError(f"{path}: need a header row and at least two items, got {max(0, len(rows) - 1)} item(s).")
-    header, body = [c.strip() for c in rows[0]], rows[1:]
-    for i, r in enumerate(body, start=2):
-        if len(r) != len(header):
-            raise FeaturesError(f"{path}, row {i}: {len(r)} values, but the header has {len(header)} columns.")
-
-    def number(s: str) -> float | None:
-        try:
-            return float(s)
-        except ValueError:
-            return None
-
-    labels = None
-    if any(number(r[0]) is None for r in body) and len(header) > 1:
-        labels = [r[0].strip() for r in body]
-        header, body = header[1:], [r[1:] for r in body]
-    values = []
-    for i, r in enumerate(body, start=2):
-        row = []
-        for name, cell in zip(header, r):
-            v = number(cell)
-            if v is None or not math.isfinite(v):
-                raise FeaturesError(f"{path}, row {i}, column {name!r}: {cell.strip()!r} is not a finite number.")
-            row.append(v)
-        values.append(row)
-    return torch.tensor(values, dtype=torch.float64), header, labels
 
 
 # ----------------------------------------------------------------------------- worlds
@@ -192,13 +150,16 @@ def plot_paths(scenario, rows: list[int], letters, title: str, path: Path) -> Pa
 
 
 # ----------------------------------------------------------------------------- terminal
-def _table(world: FeaturesWorld, rows: list[int | None], X: Tensor, letters, out: TextIO) -> None:
+def _table(world: FeaturesWorld, rows: list[int | None], X: Tensor, letters, out: TextIO, extra: str = "",
+           extras: list[str] | None = None) -> None:
+    """Items as rows: a letter (or rank), the label, the objectives' values, and ``extras``."""
     names = world.names
     width = [max(10, len(n)) for n in names]
-    print("      " + f"{world.noun:<12}" + "  ".join(f"{n:>{w}}" for n, w in zip(names, width)), file=out)
-    for letter, r, x in zip(letters, rows, X):
+    lw = max([12] + [len(world.label(r)) + 2 for r in rows])
+    print("      " + f"{world.noun:<{lw}}" + "  ".join(f"{n:>{w}}" for n, w in zip(names, width)) + extra, file=out)
+    for k, (letter, r, x) in enumerate(zip(letters, rows, X)):
         vals = "  ".join(f"{float(v):>{w}.4g}" for v, w in zip(x, width))
-        print(f"  {letter:>2}  {world.label(r):<12}{vals}", file=out)
+        print(f"  {letter:>2}  {world.label(r):<{lw}}{vals}" + (extras[k] if extras else ""), file=out)
 
 
 def _read(prompt: str, inp: TextIO, out: TextIO) -> str | None:
@@ -235,12 +196,12 @@ def _ask_answer(query: Query, inp: TextIO, out: TextIO):
                 return ("answer", None)
             if len(text) == 1 and text.upper() in valid:
                 return ("answer", valid.index(text.upper()))
-            print(f"{text!r} is not one of the items: type a letter from {valid[0]} to {valid[-1]} "
+            print(f"{printable(text)!r} is not one of the items: type a letter from {valid[0]} to {valid[-1]} "
                   "(or ? for help).", file=out)
         else:
-            if text.isdigit() and 1 <= int(text) <= NUM_LEVELS:
+            if text.isascii() and text.isdigit() and 1 <= int(text) <= NUM_LEVELS:  # not '²' or '①'
                 return ("answer", int(text))
-            print(f"{text!r} is not a rating: type a whole number from 1 (unacceptable) to {NUM_LEVELS} "
+            print(f"{printable(text)!r} is not a rating: type a whole number from 1 (unacceptable) to {NUM_LEVELS} "
                   "(excellent), or ? for help.", file=out)
 
 
@@ -260,34 +221,52 @@ def _show_query(world: FeaturesWorld, session: PreferenceSession, query: Query, 
 
 def _summary(world: FeaturesWorld, session: PreferenceSession, out: TextIO, top: int = 5) -> None:
     X = world.X
+    distinct = first_unique_rows(X)  # identical items (the lake's identical paths) listed once
     mean, std = session.predict(X)
-    level = (NUM_LEVELS * session.expected_rating(X) + 0.5).clamp(1, NUM_LEVELS)
-    order = mean.argsort(descending=True)[: min(top, X.shape[0])]
+    level = (NUM_LEVELS * session.expected_rating(X) + 0.5).clamp(1, NUM_LEVELS)  # inverse of likert_to_unit
+    order = distinct[mean[distinct].argsort(descending=True)[:top]]
     print("", file=out)
     print(f"Learned utility: your top {order.numel()} {world.noun}s "
-          f"(from {session.step} answers; utility = posterior mean +- sd):", file=out)
-    names = world.names
-    width = [max(10, len(n)) for n in names]
-    print("      " + f"{world.noun:<12}" + "  ".join(f"{n:>{w}}" for n, w in zip(names, width))
-          + "     utility   expected rating", file=out)
-    for k, i in enumerate(order.tolist()):
-        vals = "  ".join(f"{float(v):>{w}.4g}" for v, w in zip(X[i], width))
-        print(f"  {k + 1:>2}  {world.label(i):<12}{vals}  {float(mean[i]):+6.2f} +- {float(std[i]):.2f}"
-              f"   {float(level[i]):.1f} / {NUM_LEVELS}", file=out)
+          f"(from {_plural(session.step, 'answer')}; utility: posterior mean +- standard deviation, higher is "
+          "better; expected rating: on the 1-5 scale):", file=out)
+    extras = [f"  {float(mean[i]):+6.2f} +- {float(std[i]):.2f}   {float(level[i]):.1f} / {NUM_LEVELS}"
+              for i in order.tolist()]
+    _table(world, order.tolist(), X[order], [str(k + 1) for k in range(order.numel())], out,
+           "     utility   expected rating", extras)
     world.finish(session, out)
 
 
-def _open_session(world: FeaturesWorld, args, seed: int, inp: TextIO, out: TextIO) -> PreferenceSession | None:
+def _plural(n: int, noun: str, nouns: str | None = None) -> str:
+    return f"{n} {noun}" if n == 1 else f"{n} {nouns or noun + 's'}"
+
+
+def session_path(args) -> Path | None:
+    """The session file: ``--session``, none with ``--no-session``, else ``NAME.session.jsonl``
+    in the current folder (``NAME``: the CSV's name, or ``lake``)."""
+    if args.no_session:
+        return None
+    if args.session:
+        return Path(args.session)
+    return Path(f"{Path(args.features).stem if args.features else args.world}.session.jsonl")
+
+
+def _open_session(world: FeaturesWorld, args, path: Path | None, seed: int, inp: TextIO,
+                  out: TextIO) -> PreferenceSession | None:
     n = torch.unique(world.X, dim=0).shape[0]  # distinct items
     if n < 2:
         raise SessionFileError("need at least two distinct items to elicit preferences.")
-    kwargs = dict(selector=UCBC(m=min(5, n)), seed=seed, num_queries=args.queries, num_levels=NUM_LEVELS,
-                  names=world.names, session_file=args.session,
+    kwargs = dict(selector=UCBC(m=default_ranking_size(n)), seed=seed, num_queries=args.queries,
+                  num_levels=NUM_LEVELS, names=world.names, session_file=path,
                   metadata={"world": args.world or "features", "features": args.features})
     try:
         return PreferenceSession(world.X, **kwargs)
+    except SessionMismatchError as err:
+        what = "CSV" if args.features else "world"
+        theirs, mine = err.theirs.strip("()"), err.mine.strip("()")
+        raise SessionFileError(f"{path} was started with other {err.setting} ({theirs}) than this {what}'s ({mine}); "
+                               f"give another --session file, or the {what} it was started with.") from None
     except SessionFileCorrupt as err:
-        print(f"torchpref elicit: {err}", file=out)
+        print(f"torchpref elicit: {err}", file=sys.stderr)
         if not err.repairable:
             return None
         answer = _read("Repair the file now (the partial line is kept in a .dropped file)? [y/N]: ", inp, out)
@@ -296,62 +275,62 @@ def _open_session(world: FeaturesWorld, args, seed: int, inp: TextIO, out: TextI
         return PreferenceSession(world.X, repair=True, **kwargs)
 
 
-def _file_seed(path: str | None, default: int) -> int:
-    """The seed recorded in an existing session file (so a resumed lake has the same paths)."""
-    if path is None or not Path(path).exists():
-        return default
+def _file_seed(path: Path | None) -> int | None:
+    """The seed of an existing session file (so a resumed lake has the same paths), if any."""
+    if path is None or not path.is_file():
+        return None
     try:
         header = read_session_file(path)[0]
     except SessionFileError:
-        return default  # reported when the session is opened
-    return int(header["seed"]) if header is not None else default
+        return None  # reported when the session is opened
+    return None if header is None else header["seed"]
 
 
 def run(args, stdin: TextIO | None = None, stdout: TextIO | None = None) -> int:
-    """Run an elicitation in the terminal (``args`` from :mod:`torchpref.cli`); returns the exit code."""
+    """Run an elicitation in the terminal (``args`` from :mod:`torchpref.cli`); returns the exit code.
+
+    Raises:
+        FeaturesError, SessionFileError, OSError: a file that cannot be used (the command line
+            prints them as one line).
+    """
     inp = sys.stdin if stdin is None else stdin
     out = sys.stdout if stdout is None else stdout
-    if args.queries < 1:
-        print(f"torchpref elicit: --queries must be positive, got {args.queries}", file=out)
-        return 2
-    seed = _file_seed(args.session, args.seed)
-    try:
-        if args.features is not None:
-            X, names, labels = read_features_csv(args.features)
-            world: FeaturesWorld = FeaturesWorld(X, names, labels)
-        else:
-            print(f"Building the lake scenario (seed {seed}) ...", file=out, flush=True)
-            world = LakeWorld(seed, Path(args.out))
-    except (OSError, FeaturesError) as exc:
-        print(f"torchpref elicit: {exc}", file=out)
-        return 2
-    try:
-        session = _open_session(world, args, seed, inp, out)
-    except (SessionFileError, OSError) as exc:
-        print(f"torchpref elicit: {exc}", file=out)
-        return 2
+    path = session_path(args)
+    seed = _file_seed(path)
+    if seed is not None and args.seed is not None and args.seed != seed:
+        print(f"Note: {path} was started with seed {seed}; continuing with it (--seed {args.seed} is for a new "
+              "session).", file=out)
+    seed = seed if seed is not None else (0 if args.seed is None else args.seed)
+    if args.features is not None:
+        X, names, labels = read_features_csv(args.features, getattr(args, "id_column", None))
+        world: FeaturesWorld = FeaturesWorld(X, names, labels)
+    else:
+        print(f"Building the lake scenario (seed {seed}) ...", file=out, flush=True)
+        world = LakeWorld(seed, Path(args.out))
+    session = _open_session(world, args, path, seed, inp, out)
     if session is None:
         return 2
     with session:
-        return _loop(world, session, args, inp, out)
+        return _loop(world, session, path, inp, out)
 
 
-def _loop(world: FeaturesWorld, session: PreferenceSession, args, inp: TextIO, out: TextIO) -> int:
-    n, d = world.X.shape
-    print(f"{n} {world.noun}s, objectives: {', '.join(world.names)}. {session.num_queries} queries; "
-          "type ? for help.", file=out)
-    if args.session:
-        note = f"resuming with {session.step} answers" if session.step else "a new session"
-        print(f"Answers are saved to {args.session} as you give them ({note}).", file=out)
+def _loop(world: FeaturesWorld, session: PreferenceSession, path: Path | None, inp: TextIO, out: TextIO) -> int:
+    n = world.X.shape[0]
+    print(f"{_plural(n, world.noun)}, objectives: {', '.join(world.names)}. "
+          f"{_plural(session.num_queries, 'query', 'queries')}; type ? for help.", file=out)
+    if path is not None:
+        note = f"resuming with {_plural(session.step, 'answer')}" if session.step else "a new session"
+        print(f"Answers are saved to {path} as you give them ({note}).", file=out)
+    else:
+        print("Answers are not saved (--no-session).", file=out)
+    saved = f"saved in {path}; run the same command to continue" if path else "nothing saved: --no-session"
     try:
         while not session.done:
             query = session.ask()
             _show_query(world, session, query, out)
             reply = _ask_answer(query, inp, out)
             if reply[0] == "quit":
-                where = (f"saved in {args.session}; run the same command to continue" if args.session
-                         else "not saved (no --session)")
-                print(f"\nStopped after {session.step} answers ({where}).", file=out)
+                print(f"\nStopped after {_plural(session.step, 'answer')} ({saved}).", file=out)
                 return 0
             if reply[0] == "undo":
                 if session.step == 0:
@@ -364,11 +343,14 @@ def _loop(world: FeaturesWorld, session: PreferenceSession, args, inp: TextIO, o
                 session.tell(query, reply[1])
             except ValueError as exc:  # not expected for a validated answer; never lose the session
                 print(f"That answer could not be used ({exc}); please try again.", file=out)
+                continue
+            if reply[1] is None:
+                print("Noted: no preference. It is kept in the session but does not change what is learned "
+                      "(ties are not modelled yet).", file=out)
     except KeyboardInterrupt:
-        print(f"\nInterrupted after {session.step} answers"
-              + (f" (saved in {args.session})." if args.session else "."), file=out)
+        print(f"\nInterrupted after {_plural(session.step, 'answer')} ({saved}).", file=out)
         return 130
-    print(f"\nThank you: {session.step} answers.", file=out)
+    print(f"\nThank you: {_plural(session.step, 'answer')}.", file=out)
     _summary(world, session, out)
     return 0
 

@@ -25,17 +25,22 @@ class FixedRBFKernel(Kernel):
     most of a small kernel evaluation's time. For experiments that never fit the hyperparameters;
     ``outputscale`` and ``base_kernel.lengthscale`` read and set the values as on a ``ScaleKernel``.
 
+    **A batch of values.** A ``B`` tensor of lengthscales (and of outputscales, or one) gives
+    ``B`` kernels at once: ``k(X1, X2)`` is ``B x n1 x n2`` for inputs ``n x d`` or ``B x n x d``,
+    e.g. one isotropic kernel per problem of a batched model whose hyperparameters differ by
+    problem (learned per trial in a simulation study).
+
     Args:
-        lengthscale: the (scalar) lengthscale.
-        outputscale: the kernel variance ``sigma_f^2``.
+        lengthscale: the lengthscale, a scalar or ``B`` values (isotropic).
+        outputscale: the kernel variance ``sigma_f^2``, a scalar or ``B`` values.
     """
 
     def __init__(self, lengthscale: float | Tensor, outputscale: float | Tensor):
         super().__init__()
         ls, os_ = (torch.as_tensor(v) for v in (lengthscale, outputscale))
         dtype = ls.dtype if ls.is_floating_point() else torch.get_default_dtype()
-        self.register_buffer("lengthscale_value", ls.to(dtype).reshape(1, 1))
-        self.register_buffer("outputscale_value", os_.to(dtype).reshape(()))
+        self.register_buffer("lengthscale_value", _lengthscale_shape(ls.to(dtype)))
+        self.register_buffer("outputscale_value", _outputscale_shape(os_.to(dtype)))
 
     # ``ScaleKernel(RBFKernel())``'s attribute names, so code written for that kernel can read and
     # set the values: ``k.outputscale``, ``k.base_kernel.lengthscale`` (the kernel itself).
@@ -51,7 +56,7 @@ class FixedRBFKernel(Kernel):
 
     @lengthscale.setter
     def lengthscale(self, value: float | Tensor) -> None:
-        self.lengthscale_value = torch.as_tensor(value).to(self.lengthscale_value).reshape(1, 1)
+        self.lengthscale_value = _lengthscale_shape(torch.as_tensor(value).to(self.lengthscale_value))
 
     @property
     def outputscale(self) -> Tensor:
@@ -60,17 +65,18 @@ class FixedRBFKernel(Kernel):
 
     @outputscale.setter
     def outputscale(self, value: float | Tensor) -> None:
-        self.outputscale_value = torch.as_tensor(value).to(self.outputscale_value).reshape(())
+        self.outputscale_value = _outputscale_shape(torch.as_tensor(value).to(self.outputscale_value))
 
     def forward(self, x1: Tensor, x2: Tensor, diag: bool = False, last_dim_is_batch: bool = False, **params) -> Tensor:
         if last_dim_is_batch:
             raise NotImplementedError("FixedRBFKernel does not support last_dim_is_batch.")
         x1 = x1.div(self.lengthscale_value)
         x2 = x2.div(self.lengthscale_value)
+        scale = self.outputscale_value.unsqueeze(-1)  # () -> 1, B -> B x 1
         if diag:
             if torch.equal(x1, x2):
-                return self.outputscale_value.expand(*x1.shape[:-1]).clone()
-            return torch.linalg.norm(x1 - x2, dim=-1).pow(2).div_(-2.0).exp_().mul_(self.outputscale_value)
+                return scale.expand(*x1.shape[:-1]).clone()
+            return torch.linalg.norm(x1 - x2, dim=-1).pow(2).div_(-2.0).exp_().mul_(scale)
         same = torch.equal(x1, x2) and not (x1.requires_grad or x2.requires_grad)
         adjustment = x1.mean(-2, keepdim=True)  # gpytorch.kernels.kernel.sq_dist, step by step
         x1 = x1 - adjustment
@@ -85,7 +91,17 @@ class FixedRBFKernel(Kernel):
         res = torch.cat([-2.0 * x1, x1_norm, x1_pad], dim=-1).matmul(torch.cat([x2, x2_pad, x2_norm], dim=-1).mT)
         if same:
             res.diagonal(dim1=-2, dim2=-1).fill_(0)
-        return res.clamp_min_(0).div_(-2.0).exp_().mul(self.outputscale_value)
+        return res.clamp_min_(0).div_(-2.0).exp_().mul(scale.unsqueeze(-1))
+
+
+def _lengthscale_shape(ls: Tensor) -> Tensor:
+    """A scalar as ``1 x 1``, ``B`` values as ``B x 1 x 1`` (they divide ``[B x] n x d`` inputs)."""
+    return ls.reshape(1, 1) if ls.numel() == 1 else ls.reshape(-1, 1, 1)
+
+
+def _outputscale_shape(os_: Tensor) -> Tensor:
+    """A scalar as ``()``, ``B`` values as ``B``."""
+    return os_.reshape(()) if os_.numel() == 1 else os_.reshape(-1)
 
 
 def fixed_rbf_kernel(lengthscale: float, outputscale: float, like: Tensor) -> FixedRBFKernel:

@@ -186,12 +186,12 @@ def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor |
         V = torch.linalg.solve_triangular(M, L.mT, upper=False)  # M^-1 L^T
         Sigma = V.mT @ V
         s = obs.quadratic_forms(Sigma)
-        h = obs.adjoint([dw * sk for dw, sk in zip(obs.curvature_slopes(f), s)], n).to(K)
+        h = obs.adjoint([dw * sk for dw, sk in zip(obs.curvature_slopes(f), s)], n, like=K)
         Sigma_h = (Sigma @ h.unsqueeze(-1)).squeeze(-1)
         b = h - obs.W_times(mode.weights, Sigma_h.unsqueeze(-1)).squeeze(-1)  # (I - W Sigma) h
         WS = obs.W_times(mode.weights, Sigma)
         W_Sigma_W = obs.W_times(mode.weights, WS.mT.contiguous()).mT  # W (W Sigma)^T = W Sigma W
-        G = 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - obs.W_dense(n, mode.weights) + W_Sigma_W
+        G = 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - obs.W_dense(n, mode.weights, like=K) + W_Sigma_W
                    - b.unsqueeze(-1) * alpha.unsqueeze(-2))
         # the mode is exact only to the solver's tolerance: one more Newton step's first-order
         # change of the value makes it second-order accurate (smooth in the hyperparameters)

@@ -277,45 +277,65 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         x, w = gauss_hermite(num_points, mean, expectation=False)
         u, mean, var = torch.broadcast_tensors(u, mean, var)
         v = var.clamp_min(1e-200)
-
-        def log_g(d: Tensor) -> Tensor:  # log Beta(u; m + d) + log N(m + d; m, v) + const
-            return self.log_prob(mean + d, u) - 0.5 * d * d / v
-
         with torch.no_grad():
-            c = SQRT2 * self.rating_scale.detach()
-            f_u = c * torch.special.ndtri(u.detach())  # where the Beta mean equals u
-            P = self.fisher(f_u).detach()
-            d = v.detach() * P * (f_u - mean.detach()) / (1 + v.detach() * P)
-            cur = log_g(d)
-            for _ in range(50):
-                _, g1, g2 = self.derivatives(mean + d, u)
-                g = g1 - d / v
-                h = g2 - 1 / v
-                h = torch.where(h < 0, h, -self.fisher(mean + d) - 1 / v)
-                step = -g / h
-                t = torch.ones_like(step)
-                for _ in range(30):  # elementwise backtracking: never decrease log_g
-                    new = log_g(d + t * step)
-                    ok = torch.isfinite(new) & (new >= cur)
-                    if ok.all():
-                        break
-                    t = torch.where(ok, t, 0.5 * t)
-                new = log_g(d + t * step)
-                ok = torch.isfinite(new) & (new >= cur)
-                d = torch.where(ok, d + t * step, d)
-                cur = torch.where(ok, new, cur)
-                if (step.abs() <= 1e-10 * (d.abs() + v.sqrt())).all():
-                    break
-            _, _, g2 = self.derivatives(mean + d, u)
-            h = g2 - 1 / v
-            h = torch.where(h < 0, h, -self.fisher(mean + d) - 1 / v)
-            s = torch.rsqrt(-h)  # scale of the integrand around its mode
+            d, s = self._integrand_peak(u.detach(), mean.detach(), v.detach())
         # nodes d_k = d + sqrt(2) s x_k; int g = sqrt(2) s sum_k w_k e^{x_k^2} g(d_k)
         dk = d.unsqueeze(-1) + (SQRT2 * s).unsqueeze(-1) * x
         lp = self.log_prob(mean.unsqueeze(-1) + dk, u.unsqueeze(-1)) - 0.5 * dk * dk / v.unsqueeze(-1)
         out = (torch.logsumexp(lp + x * x + torch.log(w), dim=-1) + torch.log(SQRT2 * s)
                - 0.5 * torch.log(2 * math.pi * v))
         return torch.where(var > 0, out, self.log_prob(mean, u))
+
+    def _integrand_peak(self, u: Tensor, m: Tensor, v: Tensor, max_iter: int = 50,
+                        max_halvings: int = 30) -> tuple[Tensor, Tensor]:
+        r"""The mode ``d`` (in ``delta = f - m``) and scale ``s = (-h)^{-1/2}`` of eq. 11's integrand
+        ``log g(d) = log Beta(u; m + d) - d^2 / (2 v)``, by Newton steps with elementwise
+        backtracking (never decreasing ``log g``; Fisher scoring where ``h`` is not negative).
+
+        Each element stops when its step is below ``1e-10`` of its scale, or cannot be taken, or no
+        longer increases ``log g`` in floating point (then ``d`` is at the peak to rounding); only
+        the unfinished elements are evaluated, so the work shrinks with them.
+        """
+
+        def log_g(d_, u_, m_, v_):
+            return self.log_prob(m_ + d_, u_) - 0.5 * d_ * d_ / v_
+
+        def slope_curvature(d_, u_, m_, v_):
+            _, g1, g2 = self.derivatives(m_ + d_, u_)
+            h_ = g2 - 1 / v_
+            return g1 - d_ / v_, torch.where(h_ < 0, h_, -self.fisher(m_ + d_) - 1 / v_)
+
+        shape = u.shape
+        u, m, v = (t.reshape(-1) for t in (u, m, v))
+        f_u = SQRT2 * self.rating_scale.detach() * torch.special.ndtri(u)  # where the Beta mean equals u
+        P = self.fisher(f_u)
+        d = v * P * (f_u - m) / (1 + v * P)
+        cur = log_g(d, u, m, v)
+        active = torch.arange(d.numel(), device=d.device)
+        for _ in range(max_iter):
+            ua, ma, va, da, ca = u[active], m[active], v[active], d[active], cur[active]
+            g, h = slope_curvature(da, ua, ma, va)
+            step = -g / h
+            t, new = torch.ones_like(step), torch.empty_like(ca)
+            ok = torch.zeros_like(step, dtype=torch.bool)
+            todo = torch.arange(step.numel(), device=d.device)
+            for k in range(max_halvings + 1):  # halve each element's step until log g does not decrease
+                cand = log_g(da[todo] + t[todo] * step[todo], ua[todo], ma[todo], va[todo])
+                good = torch.isfinite(cand) & (cand >= ca[todo])
+                new[todo], ok[todo] = cand, good
+                todo = todo[~good]
+                if todo.numel() == 0 or k == max_halvings:
+                    break
+                t[todo] = 0.5 * t[todo]
+            d[active] = torch.where(ok, da + t * step, da)
+            cur[active] = torch.where(ok, new, ca)
+            # done: converged, no step possible, or no measurable gain in log g (at its peak to rounding)
+            done = ~ok | (new <= ca) | (step.abs() <= 1e-10 * (d[active].abs() + va.sqrt()))
+            active = active[~done]
+            if active.numel() == 0:
+                break
+        _, h = slope_curvature(d, u, m, v)
+        return d.reshape(shape), torch.rsqrt(-h).reshape(shape)  # s: the integrand's scale at its mode
 
     def marginal(self, function_dist: MultivariateNormal) -> Beta:
         """Moment-matched Beta with the exact predictive mean (eq. 11) and the precision ``nu``.

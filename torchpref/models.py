@@ -3,7 +3,6 @@ r"""``PreferenceGP``: a BoTorch model of a latent utility learned from ratings a
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -25,10 +24,10 @@ from torch import Tensor
 from torchpref.botorch_api import PairwiseGPInterface, prior_only_data
 from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.fantasy import fantasize
-from torchpref.laplace import ModeResult, Observations, PredictiveCache, find_mode, laplace_evidence, predict
+from torchpref.laplace import ModeResult, Observations, laplace_evidence
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
-from torchpref.numerics import batched_cholesky, cholesky_jittered
 from torchpref.padding import PaddedData
+from torchpref.posterior_state import PosteriorState, fingerprint
 
 
 #: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
@@ -65,45 +64,10 @@ class PreferenceLikelihood(Module):
 
 
 def _create_data(train_X, comparisons, ratings, rating_index, rating_eps: float) -> PreferenceData | PaddedData:
-    """Validated data: one problem for ``n x d`` items; for ``b x n x d`` items one problem per
-    batch element, with ``comparisons`` ``b x p x 2`` and ``ratings`` / ``rating_index`` ``b x q``
-    (or sequences of per-problem tensors of any lengths)."""
-    if not (isinstance(train_X, Tensor) and train_X.dim() == 3):
-        return PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
-    b = train_X.shape[0]
-
-    def part(value, k: int):
-        if value is None:
-            return None
-        if len(value) != b:
-            raise ValueError(f"batched training data: expected {b} per-problem entries, got {len(value)}.")
-        return value[k]
-
-    return PaddedData.stack([
-        PreferenceData.create(train_X[k], part(comparisons, k), part(ratings, k), part(rating_index, k),
-                              rating_eps=rating_eps) for k in range(b)])
-
-
-@dataclass(frozen=True)
-class PosteriorState:
-    """Everything prediction and the evidence need, for one data object and one set of
-    hyperparameter values (the model's prediction strategy, as GPyTorch's ``prediction_strategy``):
-    built lazily by :meth:`PreferenceGP._state`, replaced when either changes."""
-
-    data: object  # the model's data object it was computed for (compared by identity)
-    fingerprint: Tensor  # the hyperparameter values it was computed for
-    padded: PaddedData  # the problems, items transformed by the input transform
-    jitter: float | Tensor  # diagonal jitter of L (one per problem for a batch)
-    obs: Observations
-    mode: ModeResult  # batched: B = number of problems
-    pred: PredictiveCache
-
-    def is_current(self, data: object, fingerprint: Tensor) -> bool:
-        """Whether this state was computed for ``data`` with the hyperparameters ``fingerprint``."""
-        return self.data is data and torch.equal(self.fingerprint, fingerprint)
-
-
-_PADDED_REST = ("comparisons", "ratings", "rating_index", "item_mask", "comparison_mask", "rating_mask")
+    """Validated data: one problem for ``n x d`` items, one per batch element for ``b x n x d``."""
+    if isinstance(train_X, Tensor) and train_X.dim() == 3:
+        return PaddedData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
+    return PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps)
 
 
 class PreferenceGP(PairwiseGPInterface, Model, GP):
@@ -327,24 +291,6 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         return fantasize(self, X, sampler, kind)
 
     # ------------------------------------------------------------- inference
-    def _fingerprint(self) -> Tensor:
-        # all parameters, then all floating buffers (as parameters() / buffers()), in one module walk
-        params, bufs, seen = [], [], set()
-        stack, modules = [self], []
-        while stack:  # the modules in ``self.modules()`` order, without its generator overhead
-            m = stack.pop()
-            modules.append(m)
-            stack.extend(c for c in reversed(m._modules.values()) if c is not None)
-        for m in modules:
-            for t, out in ((m._parameters, params), (m._buffers, bufs)):
-                for v in t.values():
-                    if v is not None and id(v) not in seen:
-                        seen.add(id(v))
-                        out.append(v)
-        vals = params + [b for b in bufs if b.is_floating_point()]
-        with torch.no_grad():  # torch.cat promotes the dtypes
-            return torch.cat([v.reshape(-1) for v in vals]) if vals else self._data.train_X.new_zeros(0)
-
     def _kernel(self, X1: Tensor, X2: Tensor | None = None, diag: bool = False) -> Tensor:
         """Dense ``k(X1, X2)`` (or its diagonal): the kernel's ``forward`` directly (the values
         ``__call__`` would give, without building a lazy kernel tensor) unless a kernel selects
@@ -358,32 +304,11 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         # kernels such as LinearKernel return a LinearOperator from forward: evaluate it densely
         return out.to_dense() if isinstance(out, LinearOperator) else out
 
-    def _prior_factor(self, padded: PaddedData, jitter: float | None) -> tuple[Tensor, float | Tensor]:
-        """``L`` (``B x N x N``) with ``L L^T = K + jitter I`` per problem, and the jitter used."""
-        K = padded.prior_covariance(self._kernel(padded.X))
-        N = padded.num_items
-        if padded.num_problems == 1:  # one problem: start from the jitter that worked last time
-            L, j = cholesky_jittered(K.reshape(N, N), jitter=jitter, name="kernel matrix")
-            return L.reshape(1, N, N), j
-        return batched_cholesky(K.reshape(-1, N, N), name="kernel matrix")
-
     def _state(self) -> PosteriorState:
         """The mode and prediction cache for the current hyperparameters and data (cached)."""
-        fp = self._fingerprint()
-        c = self._cache
-        if c is not None and c.is_current(self._data, fp):
-            return c
-        with torch.no_grad():
-            padded = self._padded()
-            padded = PaddedData(self._transformed_train_X(), *(getattr(padded, k) for k in _PADDED_REST))
-            prev = c.jitter if (c is not None and isinstance(c.jitter, float)) else None
-            L, jitter = self._prior_factor(padded, prev)
-            same_size = c is not None and c.mode.f.shape == L.shape[:-1]
-            warm = c.mode.f if same_size else self._warm_f
-            obs = self._observations()
-            mode = find_mode(L, obs, f0=warm, max_iter=self.max_newton_iter)
-            pred = PredictiveCache.from_mode(L, mode)
-        self._cache = PosteriorState(self._data, fp, padded, jitter, obs, mode, pred)
+        fp = fingerprint(self)
+        if self._cache is None or not self._cache.is_current(self._data, fp):
+            self._cache = PosteriorState.build(self, fp, self._cache)
         return self._cache
 
     @property
@@ -399,7 +324,7 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         (``mode.fisher_fallback``)."""
         state = self._state()
         n = state.padded.num_items
-        return state.obs.W_dense(n, state.mode.weights).reshape(*self.batch_shape, n, n)
+        return state.obs.W_dense(n, state.mode.weights, like=state.pred.L).reshape(*self.batch_shape, n, n)
 
     def log_marginal_likelihood(self) -> Tensor:
         r"""Laplace evidence ``log q(Y) = log p(Y|f) - f^T K^-1 f / 2 - log|I + W K| / 2`` at the
@@ -413,30 +338,8 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         return value.reshape(self.batch_shape)
 
     def _predict(self, X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
-        r"""Posterior mean ``... x q`` and covariance ``... x q x q`` (eqs. 9-10) at transformed
-        ``X`` (``... x q x d``, its batch dimensions ending in, or broadcasting to, the model's
-        ``batch_shape``); with ``diag``, the variances ``... x q`` instead of the covariance."""
-        state = self._state()
-        S, padded = self.batch_shape, state.padded
-        q, d = X.shape[-2:]
-        shape = torch.broadcast_shapes(X.shape[:-2], S)
-        extra = shape[: len(shape) - len(S)]
-        E = extra.numel()
-        Xe = X.expand(*shape, q, d).reshape(E, *S, q, d)  # test blocks first, then the problems
-        k_ss = self._kernel(Xe, diag=diag)  # E x S x q (x q)
-        tail = k_ss.shape[len(S) + 2:]  # () for variances, (q,) for covariances
-        if padded.num_items == 0:  # no items yet: the prior
-            mean, cov = k_ss.new_zeros(Xe.shape[:-1]), k_ss
-        else:
-            if not S:  # one problem: one kernel call for all test points
-                K_xs = self._kernel(padded.X, Xe.reshape(E * q, d)).reshape(1, -1, E, q)
-            else:
-                K_xs = self._kernel(padded.X.expand(E, *padded.X.shape), Xe)  # E x S x N x q
-                K_xs = padded.cross_covariance(K_xs).movedim(0, -2).reshape(S.numel(), -1, E, q)
-            mean, cov = predict(state.pred, K_xs, k_ss.movedim(0, len(S)).reshape(S.numel(), E, q, *tail))
-            mean = mean.reshape(*S, E, q).movedim(len(S), 0)
-            cov = cov.reshape(*S, E, q, *tail).movedim(len(S), 0)
-        return mean.reshape(*shape, q), cov.reshape(*shape, q, *tail)
+        """Posterior moments at transformed ``X``: :meth:`PosteriorState.moments`."""
+        return self._state().moments(self._kernel, X, diag)
 
     def forward(self, X: Tensor) -> MultivariateNormal:
         """The Laplace posterior of the latent utility at ``X`` (``batch x q x d``, transformed)."""
@@ -547,8 +450,7 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         if isinstance(data, PreferenceData):
             self._data = PreferenceData(*(fn(t) for t in (data.train_X, data.comparisons, data.ratings, data.rating_index)))
         elif data is not None:
-            self._data = PaddedData(*(None if t is None else fn(t) for t in
-                                      (getattr(data, k) for k in ("X",) + _PADDED_REST)))
+            self._data = data.map(fn)
         if data is not None:
             self._cache, self._warm_f = None, None
         return self

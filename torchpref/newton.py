@@ -52,6 +52,9 @@ class NewtonPoint:
 
     def where(self, take: Tensor, other: "NewtonPoint") -> "NewtonPoint":
         """This point for the problems in ``take`` (``B`` bool), ``other`` elsewhere."""
+        if bool(take.all()):
+            return self
+
         def pick(x: Tensor, y: Tensor) -> Tensor:
             return torch.where(take.reshape(-1, *[1] * (x.dim() - 1)), x, y)
         return NewtonPoint(pick(self.a, other.a), pick(self.f, other.f), pick(self.psi, other.psi),
@@ -70,6 +73,8 @@ class Factor:
 
     def where(self, take: Tensor, other: "Factor") -> "Factor":
         """Problem by problem: this factor where ``take`` (``B``) is true, ``other`` elsewhere."""
+        if bool(take.all()):
+            return self
         t1, t2 = take.reshape(-1, 1), take.reshape(-1, 1, 1)
         return Factor(torch.where(t2, self.M, other.M),
                       tuple(torch.where(t1, x, y) for x, y in zip(self.weights, other.weights)),
@@ -130,23 +135,23 @@ class Problem:
 
     def line_search(self, point: NewtonPoint, step: Tensor, decrement: Tensor, active: Tensor,
                     full: Tensor | None = None) -> tuple[NewtonPoint, Tensor]:
-        """Armijo backtracking for the ``active`` problems, each with its own step length; the
-        ``full`` ones take the whole step untested. Returns the new point and the problems for
-        which no step length increased ``Psi`` (their point is unchanged)."""
-        t = torch.ones_like(decrement)
-        pending, failed, new = active.clone(), torch.zeros_like(active), point
-        while bool(pending.any()):
-            trial = self.evaluate(point.a + t.unsqueeze(-1) * step)
+        """Armijo backtracking for the ``active`` problems; the ``full`` ones take the whole step
+        untested. All problems still searching share the step length (each halves it from 1 until
+        its test passes), so one evaluation per length serves them all. Returns the new point and
+        the problems for which no step length increased ``Psi`` (their point is unchanged)."""
+        t, pending, new = 1.0, active, point
+        while True:
+            trial = self.evaluate(point.a + t * step)
             ok = pending & torch.isfinite(trial.psi) & (trial.psi >= point.psi + ARMIJO * t * decrement)
             if full is not None:
                 ok |= pending & full
             new = trial.where(ok, new)
-            pending &= ~ok
-            t = torch.where(pending, 0.5 * t, t)
-            stuck = pending & (t <= MIN_STEP)
-            failed |= stuck
-            pending &= ~stuck
-        return new, failed
+            pending = pending & ~ok
+            if not bool(pending.any()):
+                return new, pending
+            t *= 0.5
+            if t <= MIN_STEP:
+                return new, pending
 
 
 def newton_direction(M: Tensor, grad: Tensor) -> tuple[Tensor, Tensor]:
@@ -165,7 +170,7 @@ def float32_step(prob: Problem, point: NewtonPoint, active: Tensor, tol: float):
     step = step32.to(point.grad.dtype)
     decrement = (point.grad * step).sum(-1)
     moving = active & (decrement / 2 >= tol)
-    if not bool(torch.isfinite(decrement[active]).all()) or not bool(moving.any()):
+    if not bool((torch.isfinite(decrement) | ~active).all()) or not bool(moving.any()):
         return None
     new, failed = prob.line_search(point, step, decrement, moving)
     return None if bool(failed.any()) else (new, decrement)
@@ -209,7 +214,7 @@ def newton_mode(L: Tensor, obs: Observations, f0: Tensor | None, opts: NewtonOpt
             far = far_allowed = False  # float32 does not suffice for these problems
         factor = prob.factorise(point)
         step, dec = newton_direction(factor.M, point.grad)
-        if not bool(torch.isfinite(dec[active]).all()):
+        if not bool((torch.isfinite(dec) | ~active).all()):
             bad = (active & ~torch.isfinite(dec)).nonzero().reshape(-1).tolist()
             raise FloatingPointError(f"non-finite Newton step while finding the Laplace modes of problems {bad}")
         decrement = torch.where(active, dec, decrement)

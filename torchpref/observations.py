@@ -27,6 +27,10 @@ from torch import Tensor
 
 from torchpref.numerics import lower_t_matmul
 
+#: Up to this many items ``W`` is multiplied as a dense matrix (formed by one scatter, no sparse
+#: pattern to build); above it as a sparse one.
+DENSE_W_MAX_ITEMS = 256
+
 
 class TermLikelihood(Protocol):
     """What a :class:`Term` asks of its likelihood: closed-form derivatives in the predictor."""
@@ -195,12 +199,13 @@ class Observations:
             weights.append(w)
         return LikelihoodTerms(ll, grad, tuple(weights))
 
-    def adjoint(self, values: Sequence[Tensor], n: int) -> Tensor:
-        """``sum over terms and k of x_k d_k`` (``B x n``) for per-term values."""
-        out = 0.0
+    def adjoint(self, values: Sequence[Tensor], n: int, like: Tensor) -> Tensor:
+        """``sum over terms and k of x_k d_k`` (``B x n``, dtype and device of ``like``) for
+        per-term values."""
+        out = like.new_zeros(self.batch, n)
         for t, x in zip(self.terms, values):
             out = out + t.adjoint(x, n)
-        return out if self.terms else torch.zeros(self.batch, n)
+        return out
 
     def curvature_slopes(self, f: Tensor) -> tuple[Tensor, ...]:
         """Each term's :meth:`Term.curvature_slope` at ``f``."""
@@ -224,16 +229,20 @@ class Observations:
         return torch.sparse_coo_tensor(index, vals, (N, N), is_coalesced=True, check_invariants=False)
 
     def W_times(self, weights: Sequence[Tensor], X: Tensor) -> Tensor:
-        """``W X`` (``B x n x k``) for ``B x n x k`` ``X``, by the block-sparse ``W``."""
+        """``W X`` (``B x n x k``) for ``B x n x k`` ``X``: dense for small ``n``, else block-sparse."""
         B, n, k = X.shape
         if not self.terms:
             return torch.zeros_like(X)
+        if n <= DENSE_W_MAX_ITEMS:
+            return self.W_dense(n, weights) @ X
         return torch.sparse.mm(self.W_blocks(n, weights), X.reshape(B * n, k)).reshape(B, n, k)
 
-    def W_dense(self, n: int, weights: Sequence[Tensor]) -> Tensor:
-        """``W`` (``B x n x n``, eq. 8) densely, for the evidence's gradient, inspection and tests."""
-        W = torch.zeros(self.batch, n, n, dtype=weights[0].dtype if weights else torch.float64,
-                        device=weights[0].device if weights else None)
+    def W_dense(self, n: int, weights: Sequence[Tensor], like: Tensor | None = None) -> Tensor:
+        """``W`` (``B x n x n``, eq. 8) densely, for the evidence's gradient, inspection and tests
+        (dtype and device of the weights, or of ``like`` when there are no terms)."""
+        ref = weights[0] if weights else like
+        W = torch.zeros(self.batch, n, n, dtype=ref.dtype if ref is not None else torch.float64,
+                        device=ref.device if ref is not None else None)
         for t, w in zip(self.terms, weights):
             rows, cols = t.W_entries(n)
             W.view(-1).index_put_((rows * n + cols % n,), t.W_values(w), accumulate=True)

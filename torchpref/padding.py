@@ -13,13 +13,13 @@ mask false and holds index 0 (and rating 0.5), values every likelihood can evalu
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Sequence
 
 import torch
 from torch import Tensor
 
-from torchpref.data import PreferenceData
+from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.observations import Observations
 
 PAD_RATING = 0.5
@@ -53,6 +53,24 @@ class PaddedData:
     def single(cls, data: PreferenceData) -> "PaddedData":
         """One problem: batch shape ``()``, nothing padded."""
         return cls(data.train_X, data.comparisons, data.ratings, data.rating_index)
+
+    @classmethod
+    def create(cls, train_X: Tensor, comparisons=None, ratings=None, rating_index=None,
+               rating_eps: float = DEFAULT_RATING_EPS) -> "PaddedData":
+        """Batched training data, validated per problem: items ``b x n x d``, ``comparisons``
+        ``b x p x 2`` and ``ratings`` / ``rating_index`` ``b x q`` (or sequences of ``b``
+        per-problem tensors of any lengths)."""
+        b = train_X.shape[0]
+
+        def part(value, k: int):
+            if value is None:
+                return None
+            if len(value) != b:
+                raise ValueError(f"batched training data: expected {b} per-problem entries, got {len(value)}.")
+            return value[k]
+
+        return cls.stack([PreferenceData.create(train_X[k], part(comparisons, k), part(ratings, k),
+                                                part(rating_index, k), rating_eps=rating_eps) for k in range(b)])
 
     @classmethod
     def stack(cls, data: Sequence[PreferenceData]) -> "PaddedData":
@@ -118,6 +136,15 @@ class PaddedData:
 
         return PaddedData(f(self.X, 2), f(self.comparisons, 2), f(self.ratings, 1), f(self.rating_index, 1),
                           f(self.item_mask, 1), f(self.comparison_mask, 1), f(self.rating_mask, 1))
+
+    def map(self, fn) -> "PaddedData":
+        """The same problems with ``fn`` applied to every tensor (e.g. a device move)."""
+        return PaddedData(*(None if getattr(self, f.name) is None else fn(getattr(self, f.name))
+                            for f in fields(self)))
+
+    def with_items(self, X: Tensor) -> "PaddedData":
+        """The same problems with items ``X`` (e.g. transformed by an input transform)."""
+        return replace(self, X=X)
 
     def observations(self, comparison_likelihood, rating_likelihood) -> Observations:
         """The observations of the ``B`` flattened problems as likelihood terms."""

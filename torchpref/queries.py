@@ -11,12 +11,28 @@ query).
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
-from torchpref.data import best_of_m
+from torchpref.data import best_of_m, likert_to_unit
+
+
+def as_integer(value) -> int | None:
+    """``value`` as an ``int`` if it is an integer (a Python, NumPy or 0-d integer tensor one; not
+    a bool, a float or text), else ``None``."""
+    if isinstance(value, bool):
+        return None
+    try:
+        return operator.index(value)
+    except TypeError:
+        return None
+
+
+def _is_text_or_bool(answer) -> bool:
+    return isinstance(answer, (str, bytes, bool))
 
 
 @dataclass(frozen=True)
@@ -32,13 +48,23 @@ class RatingQuery:
         """``1 x d``: the items shown."""
         return self.item.unsqueeze(0)
 
-    def validate_answer(self, answer: object) -> float:
-        """The answer as a rating in ``[0, 1]``.
+    def validate_answer(self, answer: object, num_levels: int | None = None) -> float:
+        """The rating in ``[0, 1]`` that ``answer`` gives: ``answer`` itself, or with ``num_levels``
+        a whole Likert level ``1..num_levels`` mapped by :func:`~torchpref.likert_to_unit`.
 
         Raises:
-            ValueError: not a number in ``[0, 1]`` (naming it).
+            ValueError: not a number (text and booleans included), or out of range.
         """
+        if num_levels is not None:
+            try:
+                if _is_text_or_bool(answer):
+                    raise TypeError
+                return float(likert_to_unit(float(answer), num_levels))
+            except (TypeError, ValueError):
+                raise ValueError(f"a rating must be a whole level in 1..{num_levels}, got {answer!r}.") from None
         try:
+            if _is_text_or_bool(answer):
+                raise TypeError
             u = float(answer)
         except (TypeError, ValueError):
             raise ValueError(f"a rating must be a number in [0, 1], got {answer!r}.") from None
@@ -60,17 +86,17 @@ class RankingQuery:
         """The number of items shown."""
         return self.items.shape[0]
 
-    def validate_answer(self, answer: object) -> int:
-        """The answer as a row index of :attr:`items`.
+    def validate_answer(self, answer: object, no_preference: bool = False) -> int | None:
+        """The chosen row ``0..m-1`` (an integer; not a bool, float or text); ``None`` (no
+        preference) where ``no_preference`` allows it.
 
         Raises:
-            ValueError: not a whole number in ``0..m-1`` (naming it).
+            ValueError: anything else.
         """
-        try:
-            j = int(answer)
-        except (TypeError, ValueError):
-            raise ValueError(f"a ranking answer must be an item index in 0..{self.m - 1}, got {answer!r}.") from None
-        if j != answer or not 0 <= j < self.m:
+        if answer is None and no_preference:
+            return None
+        j = as_integer(answer)
+        if j is None or not 0 <= j < self.m:
             raise ValueError(f"a ranking answer must be an item index in 0..{self.m - 1}, got {answer!r}.")
         return j
 
@@ -82,23 +108,53 @@ class RankingQuery:
 Query = RatingQuery | RankingQuery
 
 
-def record_answer(model, query: Query, answer) -> None:
-    """Add a query's answer to ``model`` (a :class:`~torchpref.PreferenceGP`), validated first."""
+def record_answer(model, query: Query, answer, *, num_levels: int | None = None):
+    r"""Validate ``answer`` to ``query`` and add it to ``model``: the one path from an answer to
+    observations (the active-learning loop, the session live and on replay).
+
+    Answers, in one vocabulary: a rating query takes a rating in ``[0, 1]`` (or, with
+    ``num_levels``, a Likert level ``1..num_levels``, see :meth:`RatingQuery.validate_answer`);
+    a ranking query takes the index of the best row of ``query.items``, which becomes ``m - 1``
+    comparisons ``[chosen, other]``, or ``None`` for no preference, which adds nothing (the model
+    has no tie likelihood yet: :func:`no_preference_observations` is where one would go).
+
+    Args:
+        model: a :class:`~torchpref.PreferenceGP` (or anything with its ``add_observations``).
+        query: the query answered, its items in the model's coordinates.
+        answer: the answer.
+        num_levels: ratings are Likert levels ``1..num_levels``.
+
+    Returns:
+        The validated answer: the rating in ``[0, 1]``, the chosen row, or ``None``.
+
+    Raises:
+        ValueError: an invalid answer (naming it); the model is unchanged.
+    """
     if isinstance(query, RatingQuery):
-        u = query.validate_answer(answer)
+        u = query.validate_answer(answer, num_levels)
         model.add_observations(query.items, ratings=[u], rating_index=[0])
-    elif isinstance(query, RankingQuery):
-        j = query.validate_answer(answer)
-        model.add_observations(query.items, comparisons=query.comparisons(j))
-    else:
-        raise TypeError(f"unknown query type {type(query).__name__}")
+        return u
+    if isinstance(query, RankingQuery):
+        j = query.validate_answer(answer, no_preference=True)
+        if j is None:
+            no_preference_observations(model, query)
+        else:
+            model.add_observations(query.items, comparisons=query.comparisons(j))
+        return j
+    raise TypeError(f"query must be a RatingQuery or RankingQuery, got {type(query).__name__}.")
+
+
+def no_preference_observations(model, query: RankingQuery) -> None:
+    """No preference among ``query.items``: nothing is added, as the model has no tie likelihood
+    (an ordinal likelihood with ties would add its observations here)."""
 
 
 def ask_user(user, query: Query):
-    """The answer of a user (``rate(x)`` / ``choose(X)``) to ``query``."""
+    """The answer of a user (``rate(x)`` / ``choose(X)``) to ``query``, as given (it is validated
+    where it is used, by :func:`record_answer`)."""
     if isinstance(query, RatingQuery):
-        return query.validate_answer(user.rate(query.item))
-    return query.validate_answer(user.choose(query.items))
+        return user.rate(query.item)
+    return user.choose(query.items)
 
 
 class Candidates:

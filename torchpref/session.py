@@ -6,33 +6,23 @@ It also takes answers given out of turn (:meth:`~PreferenceSession.tell_rating`,
 :meth:`~PreferenceSession.tell_choice`, :meth:`~PreferenceSession.tell_no_preference`) and
 undoes the last answer (:meth:`~PreferenceSession.undo`).
 
-With a ``session_file`` every answer is appended as one JSON line and flushed to disk
-(``fsync``) before ``tell`` returns. The model is a pure function of the answers in the file:
-starting again from the file replays them, in order, through exactly the same sequence of
-warm-started updates, so the restored posterior is bitwise the one the interrupted process had,
-and the next query is the one it would have asked (the selector's random numbers for query
-``k`` come from ``(seed, k)``, not from a stream that a restart would lose).
+With a ``session_file`` every answer is appended to a :class:`~torchpref.journal.Journal` (one
+JSON line, fsynced) before ``tell`` returns. The model is a pure function of the answers in the
+file: each goes through :func:`~torchpref.queries.record_answer`, live and on replay, so a
+session restarted from its file has bitwise the posterior of the interrupted process, and asks
+the query it would have asked (the selector's random numbers for query ``k`` come from
+``(seed, k)``, not from a stream that a restart would lose).
 
-File format (version 1, see ``docs/sessions.md``)::
-
-    {"type": "header", "version": 1, "dim": 2, "created": "...", "seed": 0, ...}
-    {"type": "answer", "v": 1, "seq": 1, "time": "...", "kind": "rating", "items": [[...]], ...}
-    {"type": "undo", "v": 1, "seq": 2, "time": "...", "undoes": 1}
-
-A last line without its newline, or one that is not valid JSON (a crash mid-write), raises
-:class:`SessionFileCorrupt` with the line number; ``repair=True`` reports it (a
-:class:`SessionRepairWarning`), moves the partial bytes to ``FILE.dropped`` and truncates the
-file to its last complete record.
+The session's state is the journal's records; the model is a cache of them, rebuilt by replay
+whenever it may not match (after an interrupted or failed update), so a ``KeyboardInterrupt``
+anywhere in :meth:`~PreferenceSession.tell` leaves the model, the file and the history agreeing.
 """
 
 from __future__ import annotations
 
-import datetime as _dt
 import hashlib
 import json
-import math
 import os
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -40,10 +30,13 @@ from typing import Any, Callable, Sequence
 import torch
 from torch import Tensor
 
-from torchpref.data import best_of_m, likert_to_unit
+from torchpref.journal import Journal, now, read_session_file
+from torchpref.records import (FORMAT_VERSION, SessionFileCorrupt, SessionFileError, SessionMismatchError,
+                               SessionRepairWarning, SessionVersionError, check_new_record, dumps_settings,
+                               records_in_force)
 from torchpref.models import PreferenceGP, default_covar_module
 from torchpref.queries import (BoxCandidates, Candidates, FinitePool, Query, RankingQuery, RatingQuery,
-                               first_unique_rows)
+                               as_integer, first_unique_rows, record_answer)
 from torchpref.strategies import UCBC, Selector
 from torchpref.version import __version__
 
@@ -56,59 +49,11 @@ __all__ = [
     "SessionMismatchError",
     "SessionRepairWarning",
     "SessionVersionError",
+    "default_ranking_size",
     "default_session_model",
     "read_session_file",
     "step_generator",
 ]
-
-FORMAT_VERSION = 1
-"""The newest session-file format this version reads and the one it writes."""
-
-ANSWER_KINDS = ("rating", "choice", "no_preference")
-
-
-class SessionFileError(ValueError):
-    """A session file that cannot be used as it is."""
-
-
-class SessionFileCorrupt(SessionFileError):
-    """A line of a session file is incomplete or not a valid record.
-
-    Attributes:
-        path: the file.
-        line_number: the 1-based number of the bad line.
-        reason: what is wrong with it.
-        repairable: whether ``repair=True`` can fix it (only a bad *last* line: a crash
-            mid-write; a bad line followed by good ones is never dropped).
-        partial: the bad line's bytes.
-        offset: the byte offset where the bad line starts.
-    """
-
-    def __init__(self, path, line_number: int, reason: str, repairable: bool, partial: bytes, offset: int):
-        self.path, self.line_number, self.reason = str(path), line_number, reason
-        self.repairable, self.partial, self.offset = repairable, partial, offset
-        fix = (
-            "It looks like a crash in the middle of writing the last answer. To recover, open it with "
-            "repair=True (PreferenceSession(..., repair=True) or PreferenceSession.load(path, repair=True)): "
-            f"the partial line is moved to {self.path}.dropped, the file is truncated to its last complete "
-            "record, and that answer is asked again."
-            if repairable
-            else "The lines after it are valid, so this is not an interrupted write; the file was edited or "
-            "damaged and must be fixed by hand."
-        )
-        super().__init__(f"session file {self.path}, line {line_number}: {reason}. {fix}")
-
-
-class SessionVersionError(SessionFileError):
-    """The file was written by a newer format version than this library reads."""
-
-
-class SessionMismatchError(SessionFileError):
-    """The file was written for other items, dimensions or settings than those given."""
-
-
-class SessionRepairWarning(UserWarning):
-    """A partial last line was removed from a session file (``repair=True``)."""
 
 
 @dataclass(frozen=True)
@@ -138,11 +83,23 @@ class SessionAnswer:
     time: str
 
 
-def step_generator(seed: int, step: int) -> torch.Generator:
+def step_generator(seed: int, step: int, attempt: int = 0) -> torch.Generator:
     """The generator for query ``step`` of a session seeded ``seed``: a fresh stream per step, so a
-    restarted session proposes what the uninterrupted one would have."""
-    digest = hashlib.sha256(f"torchpref-session:{int(seed)}:{int(step)}".encode()).digest()
+    restarted session proposes what the uninterrupted one would have (``attempt``: a further
+    stream for the same step, when the first one's query repeats the last answered one)."""
+    key = f"torchpref-session:{int(seed)}:{int(step)}" + (f":{int(attempt)}" if attempt else "")
+    digest = hashlib.sha256(key.encode()).digest()
     return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
+
+
+MAX_REDRAWS = 10
+"""How many further draws :meth:`PreferenceSession.ask` makes while its query repeats the last one answered."""
+
+
+def default_ranking_size(num_items: int) -> int:
+    """Items per ranking query for a pool of ``num_items`` distinct items: 5, or fewer than the
+    pool (``num_items - 1``, at least 2), so that a small pool's rankings are not all the same set."""
+    return max(2, min(5, num_items - 1))
 
 
 def default_session_model(train_X: Tensor) -> PreferenceGP:
@@ -153,114 +110,6 @@ def default_session_model(train_X: Tensor) -> PreferenceGP:
     kernel.base_kernel.lengthscale = 0.2
     kernel.outputscale = 1.0
     return PreferenceGP(train_X, covar_module=kernel)
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
-
-
-def _write_all(fd: int, data: bytes) -> None:
-    """Write all of ``data`` to ``fd`` (``os.write`` may write less than asked)."""
-    view = memoryview(data)
-    while view:
-        n = os.write(fd, view)
-        view = view[n:]
-
-
-def _encode(record: dict) -> bytes:
-    return (json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n").encode()
-
-
-def read_session_file(path) -> tuple[dict | None, list[dict], int]:
-    """Parse a session file without changing it.
-
-    Returns:
-        ``(header, records, size)``: the header (``None`` for an empty file), the records after
-        it in order, and the file's size in bytes.
-
-    Raises:
-        SessionFileCorrupt: a line is incomplete or invalid (with its line number).
-        SessionVersionError: a record is of a newer format version.
-        SessionFileError: the records are inconsistent (sequence numbers, undo targets).
-    """
-    path = Path(path)
-    data = path.read_bytes()
-    if not data:
-        return None, [], 0
-    lines = data.split(b"\n")
-    complete = lines[:-1]  # the text after the last newline is "" for a well-formed file
-    tail = lines[-1]
-    parsed: list[dict] = []
-    offset = 0
-    for i, line in enumerate(complete):
-        is_last = i == len(complete) - 1 and not tail
-        try:
-            rec = json.loads(line.decode())
-            if not isinstance(rec, dict) or "type" not in rec:
-                raise ValueError("not a JSON object with a 'type'")
-        except (UnicodeDecodeError, ValueError) as exc:
-            raise SessionFileCorrupt(path, i + 1, f"not a valid record ({exc})", is_last, line, offset) from None
-        parsed.append(rec)
-        offset += len(line) + 1
-    if tail:
-        raise SessionFileCorrupt(path, len(lines), "the last line is incomplete (no newline at its end)", True, tail,
-                                 offset)
-    header, records = parsed[0], parsed[1:]
-    if header.get("type") != "header":
-        raise SessionFileError(f"session file {path}, line 1: the first record must be the header, got {header!r:.200}.")
-    version = header.get("version")
-    if not isinstance(version, int) or version < 1:
-        raise SessionFileError(f"session file {path}: the header has no valid version ({version!r}).")
-    if version > FORMAT_VERSION:
-        raise SessionVersionError(
-            f"session file {path} has format version {version}, newer than this torchpref {__version__} reads "
-            f"(up to {FORMAT_VERSION}); upgrade torchpref to open it."
-        )
-    last_seq = 0
-    active: set[int] = set()
-    for i, rec in enumerate(records, start=2):
-        v = rec.get("v", 1)
-        if not isinstance(v, int) or v > FORMAT_VERSION:
-            raise SessionVersionError(
-                f"session file {path}, line {i}: record format version {v!r} is newer than {FORMAT_VERSION}; "
-                "upgrade torchpref to open it."
-            )
-        seq = rec.get("seq")
-        if not isinstance(seq, int) or seq <= last_seq:
-            raise SessionFileError(f"session file {path}, line {i}: sequence number {seq!r} does not follow {last_seq}.")
-        last_seq = seq
-        if rec["type"] == "answer":
-            if rec.get("kind") not in ANSWER_KINDS:
-                raise SessionFileError(f"session file {path}, line {i}: unknown answer kind {rec.get('kind')!r}.")
-            active.add(seq)
-        elif rec["type"] == "undo":
-            if rec.get("undoes") not in active:
-                raise SessionFileError(f"session file {path}, line {i}: undo of {rec.get('undoes')!r}, not an answer in force.")
-            active.discard(rec["undoes"])
-        else:
-            raise SessionFileError(f"session file {path}, line {i}: unknown record type {rec['type']!r}.")
-    return header, records, len(data)
-
-
-def _repair(path: Path, err: SessionFileCorrupt) -> None:
-    """Move a partial last line to ``path.dropped`` and truncate ``path`` before it (reported)."""
-    dropped = Path(str(path) + ".dropped")
-    with open(dropped, "ab") as f:
-        f.write(f"# {_now()} line {err.line_number} of {path.name}: {err.reason}\n".encode() + err.partial + b"\n")
-        f.flush()
-        os.fsync(f.fileno())
-    fd = os.open(path, os.O_WRONLY)
-    try:
-        os.ftruncate(fd, err.offset)
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    warnings.warn(
-        f"session file {path}: removed the incomplete line {err.line_number} ({len(err.partial)} bytes, kept in "
-        f"{dropped}); its answer, if any, will be asked again.",
-        SessionRepairWarning,
-        stacklevel=3,
-    )
 
 
 def _as_items(X, dim: int, name: str) -> Tensor:
@@ -275,10 +124,6 @@ def _as_items(X, dim: int, name: str) -> Tensor:
     if not torch.isfinite(t).all():
         raise ValueError(f"{name} must be finite, got {t.tolist()}.")
     return t
-
-
-def _same(a, b) -> bool:
-    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
 
 
 class PreferenceSession:
@@ -327,55 +172,40 @@ class PreferenceSession:
         repair: bool = False,
         metadata: dict | None = None,
     ) -> None:
-        if isinstance(candidates, Tensor):
-            candidates = FinitePool(_as_items(candidates, candidates.shape[-1], "candidates"))
-        if isinstance(candidates, FinitePool):
-            pool = candidates.X.to(torch.float64)
-            candidates = FinitePool(pool)
-            spec = {"kind": "pool", "items": pool.tolist()}
-            lo, hi = pool.min(0).values, pool.max(0).values
-        elif isinstance(candidates, BoxCandidates):
-            b = candidates.bounds.to(torch.float64)
-            candidates = BoxCandidates(b, candidates.num)
-            spec = {"kind": "box", "bounds": b.tolist(), "num": candidates.num}
-            lo, hi = b[0], b[1]
-        else:
-            raise TypeError(f"candidates must be a tensor, FinitePool or BoxCandidates, got {type(candidates).__name__}.")
-        self._candidates = candidates
-        self._spec = spec
+        self._candidates, self._spec, lo, hi = _candidates_spec(candidates)
         self.dim = int(lo.shape[0])
         if bounds is None:
-            width = hi - lo
-            hi = torch.where(width > 0, hi, lo + 1.0)
-            bounds = torch.stack([lo, hi])
+            bounds = torch.stack([lo, torch.where(hi > lo, hi, lo + 1.0)])
         bounds = torch.as_tensor(bounds, dtype=torch.float64)
         if bounds.shape != (2, self.dim) or not torch.isfinite(bounds).all() or not (bounds[1] > bounds[0]).all():
             raise ValueError(f"bounds must be 2 x {self.dim} finite with lower < upper, got {bounds.tolist()}.")
-        self.bounds = bounds
-        if num_levels is not None and (int(num_levels) != num_levels or num_levels < 2):
-            raise ValueError(f"num_levels must be an integer >= 2 or None, got {num_levels!r}.")
-        if int(num_queries) != num_queries or num_queries < 1:
-            raise ValueError(f"num_queries must be a positive integer, got {num_queries!r}.")
         if names is not None and len(names) != self.dim:
             raise ValueError(f"names must give {self.dim} names, got {list(names)}.")
-        self.num_levels = None if num_levels is None else int(num_levels)
-        self.num_queries = int(num_queries)
-        self.seed = int(seed)
+        self.bounds = bounds
+        self.num_levels = None if num_levels is None else _whole("num_levels", num_levels, 2)
+        self.num_queries = _whole("num_queries", num_queries, 1)
+        self.seed = _whole("seed", seed, None)
         self.names = None if names is None else [str(n) for n in names]
         n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
-        self.selector = selector if selector is not None else UCBC(m=min(5, n_pool) if n_pool else 5)
+        self.selector = selector if selector is not None else UCBC(m=default_ranking_size(n_pool) if n_pool else 5)
         self.model_factory = model_factory if model_factory is not None else default_session_model
         self._anchor = self.transform(self._pool[:1] if self._pool is not None else bounds.mean(0, keepdim=True))
-        self._records: list[dict] = []
-        self._active: list[dict] = []
-        self._next_seq = 1
-        self._pending: Query | None = None
-        self._pending_step: int | None = None
-        self._fd: int | None = None
+        self._pending: tuple[int, Query] | None = None  # (step, query) until answered
+        self._journal: Journal | None = None
+        self._memory: list[dict] = []  # the records when there is no file
+        self._memory_header = self._header(metadata)
+        self._model: PreferenceGP | None = None
+        self._model_seqs: tuple[int, ...] | None = None  # the answers the model holds
         self.path = None if session_file is None else Path(session_file)
         if self.path is not None:
-            self._open(repair, metadata)
-        self._model = self._replay(self._active)
+            self._journal = Journal(self.path, lambda: self._memory_header, repair=repair)
+        try:
+            if self._journal is not None:
+                self._check_header(self._journal.header)
+            self.model  # noqa: B018  (replays the file's answers now: errors surface at opening)
+        except BaseException:
+            self.close()
+            raise
 
     # ------------------------------------------------------------------ file
     @property
@@ -387,7 +217,7 @@ class PreferenceSession:
             "type": "header",
             "version": FORMAT_VERSION,
             "dim": self.dim,
-            "created": _now(),
+            "created": now(),
             "torchpref": __version__,
             "seed": self.seed,
             "num_queries": self.num_queries,
@@ -398,74 +228,22 @@ class PreferenceSession:
             "metadata": metadata or {},
         }
 
-    def _open(self, repair: bool, metadata: dict | None) -> None:
-        path = self.path
-        if path.exists():
-            try:
-                header, records, _ = read_session_file(path)
-            except SessionFileCorrupt as err:
-                if not (repair and err.repairable):
-                    raise
-                _repair(path, err)
-                header, records, _ = read_session_file(path)
-        else:
-            header, records = None, []
-        if header is not None:
-            self._check_header(header)
-        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-        try:
-            self._lock(fd)
-            if header is None:
-                _write_all(fd, _encode(self._header(metadata)))
-                os.fsync(fd)
-                _fsync_dir(path)
-        except BaseException:
-            os.close(fd)
-            raise
-        self._fd = fd
-        self._records = records
-        for rec in records:
-            self._next_seq = rec["seq"] + 1
-            if rec["type"] == "answer":
-                self._active.append(rec)
-            else:
-                self._active = [r for r in self._active if r["seq"] != rec["undoes"]]
-        for rec in self._active:
-            self._check_record_items(rec)
-
-    def _lock(self, fd: int) -> None:
-        try:
-            import fcntl
-        except ImportError:  # not POSIX: no advisory lock
-            return
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise SessionFileError(f"session file {self.path} is in use by another process.") from None
-
     def _check_header(self, h: dict) -> None:
         p = self.path
-        if h.get("dim") != self.dim:
+        if h["dim"] != self.dim:
             raise SessionMismatchError(
-                f"session file {p} was written for {h.get('dim')}-dimensional items, but these items have "
-                f"{self.dim} dimensions."
-            )
+                f"session file {p} was written for {h['dim']}-dimensional items, but these items have "
+                f"{self.dim} dimensions.", "dim", str(h["dim"]), str(self.dim))
         for key, mine in (("candidates", self._spec), ("bounds", self.bounds.tolist()), ("seed", self.seed),
                           ("num_levels", self.num_levels)):
-            if not _same(h.get(key), mine):
-                theirs = h.get(key)
+            if dumps_settings(h[key]) != dumps_settings(mine):
+                theirs = h[key]
                 if key == "candidates":
                     theirs, mine = _describe(theirs), _describe(mine)
                 raise SessionMismatchError(
                     f"session file {p} was written with {key} {theirs}, but this session has {key} {mine}; "
-                    f"open it with PreferenceSession.load({str(p)!r}) to use the file's settings."
-                )
-
-    def _check_record_items(self, rec: dict) -> None:
-        items = torch.tensor(rec["items"], dtype=torch.float64)
-        if items.dim() != 2 or items.shape[-1] != self.dim:
-            raise SessionMismatchError(f"session file {self.path}: record {rec['seq']} has items of shape "
-                                       f"{tuple(items.shape)}, not m x {self.dim}.")
+                    f"open it with PreferenceSession.load({str(p)!r}) to use the file's settings.",
+                    key, str(theirs), str(mine))
 
     @classmethod
     def load(cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Any) -> "PreferenceSession":
@@ -476,16 +254,14 @@ class PreferenceSession:
             FileNotFoundError: no such file.
             SessionFileCorrupt: a line is incomplete or invalid (``repair=True`` fixes a bad last line).
             SessionVersionError: the file is of a newer format version.
+            SessionFileError: a record breaks the format (naming the file and line).
             SessionMismatchError: ``candidates`` given that differ from the file's.
         """
         path = Path(path)
-        try:
-            header, _, _ = read_session_file(path)
-        except SessionFileCorrupt as err:
-            if not (kwargs.get("repair") and err.repairable):
-                raise
-            _repair(path, err)
-            header, _, _ = read_session_file(path)
+        if not path.exists():
+            raise FileNotFoundError(f"no session file {path}")
+        with Journal(path, lambda: None, repair=bool(kwargs.get("repair"))) as journal:
+            header = journal.header
         if header is None:
             raise SessionFileError(f"session file {path} is empty: create the session with PreferenceSession(...).")
         if candidates is None:
@@ -502,9 +278,8 @@ class PreferenceSession:
 
     def close(self) -> None:
         """Release the file (every answer is already on disk)."""
-        if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
+        if self._journal is not None:
+            self._journal.close()
 
     def __enter__(self) -> "PreferenceSession":
         return self
@@ -518,21 +293,25 @@ class PreferenceSession:
         except Exception:
             pass
 
+    @property
+    def _records(self) -> list[dict]:
+        return self._journal.records if self._journal is not None else self._memory
+
     def _append(self, record: dict) -> None:
-        """Append ``record`` and fsync; on any failure the file is truncated back as it was."""
-        if self.path is None:
-            return
-        if self._fd is None:
-            raise SessionFileError(f"session file {self.path} is closed.")
-        data = _encode(record)
-        size = os.fstat(self._fd).st_size
-        try:
-            _write_all(self._fd, data)
-            os.fsync(self._fd)
-        except BaseException:
-            os.ftruncate(self._fd, size)
-            os.fsync(self._fd)
-            raise
+        """Check ``record`` and append it to the file (or memory): all of it or, on any failure, nothing."""
+        if self._journal is not None:
+            self._journal.append(record)
+        else:
+            check_new_record("session (no file)", self._memory_header, self._memory, record)
+            self._memory.append(record)
+
+    @property
+    def _active(self) -> list[dict]:
+        return records_in_force(self._records)
+
+    @property
+    def _next_seq(self) -> int:
+        return self._records[-1]["seq"] + 1 if self._records else 1
 
     # ----------------------------------------------------------------- model
     def transform(self, X: Tensor) -> Tensor:
@@ -540,40 +319,42 @@ class PreferenceSession:
         lo, hi = self.bounds
         return (X.to(torch.float64) - lo) / (hi - lo)
 
-    def _apply(self, model: PreferenceGP, rec: dict) -> None:
-        """Add one answer record to ``model``, in the same way on every path (live and replay)."""
-        if rec["kind"] == "no_preference":
-            return
-        items = self.transform(torch.tensor(rec["items"], dtype=torch.float64))
-        model.mode  # the mode for the current data first (as ask() leaves it): identical warm starts
-        if rec["kind"] == "rating":
-            model.add_observations(items, ratings=[rec["value"]], rating_index=[0])
-        else:
-            model.add_observations(items, comparisons=best_of_m(rec["answer"], list(range(items.shape[0]))))
+    def _model_query(self, kind: str, items: Tensor) -> Query:
+        """A query of ``kind`` (``"rating"`` or not) on ``items`` (``m x d``), in the model's coordinates."""
+        Z = self.transform(items)
+        return RatingQuery(Z[0]) if kind == "rating" else RankingQuery(Z)
 
     def _replay(self, records: list[dict]) -> PreferenceGP:
         model = self.model_factory(self._anchor.clone())
         for rec in records:
-            self._apply(model, rec)
+            query = self._model_query(rec["kind"], torch.tensor(rec["items"], dtype=torch.float64))
+            record_answer(model, query, rec["answer"], num_levels=self.num_levels)
         return model
 
     @property
     def model(self) -> PreferenceGP:
-        """The current model (inputs normalised: use :meth:`transform`, or :meth:`predict`)."""
+        """The current model (inputs normalised: use :meth:`transform`, or :meth:`predict`),
+        rebuilt from the answers in force if an update was interrupted."""
+        active = self._active
+        seqs = tuple(r["seq"] for r in active)
+        if self._model is None or self._model_seqs != seqs:
+            self._model_seqs = None
+            self._model = self._replay(active)
+            self._model_seqs = seqs
         return self._model
 
     def predict(self, X: Tensor) -> tuple[Tensor, Tensor]:
         """Posterior mean and standard deviation of the utility at the rows of ``X`` (``N x d``)."""
         X = _as_items(X, self.dim, "X")
         with torch.no_grad():
-            post = self._model.posterior(self.transform(X).unsqueeze(-2))
+            post = self.model.posterior(self.transform(X).unsqueeze(-2))
         return post.mean.reshape(-1), post.variance.reshape(-1).clamp_min(0).sqrt()
 
     def expected_rating(self, X: Tensor) -> Tensor:
         """Expected rating in ``[0, 1]`` at the rows of ``X`` (``N x d``) (eq. 11)."""
         X = _as_items(X, self.dim, "X")
         with torch.no_grad():
-            return self._model.expected_rating(self.transform(X))
+            return self.model.expected_rating(self.transform(X))
 
     def best_item(self) -> tuple[int | None, Tensor]:
         """The item of largest posterior mean: ``(pool index, item)`` over the pool, or
@@ -618,108 +399,87 @@ class PreferenceSession:
     def ask(self) -> Query:
         """The next query (the same one until it is answered or the session changes). Its items
         are in the caller's coordinates; ``index`` / ``indices`` are pool rows (or ``None``)."""
-        if self._pending is not None:
-            return self._pending
         step = self.step
-        gen = step_generator(self.seed, step)
+        if self._pending is not None and self._pending[0] == step:
+            return self._pending[1]
+        last = sorted(self._active[-1]["items"]) if self._active else None
+        for attempt in range(MAX_REDRAWS + 1):  # not the items just answered about again (small pools)
+            query = self._select(step, attempt)
+            if sorted(query.items.tolist()) != last:
+                break
+        self._pending = (step, query)
+        return query
+
+    def _select(self, step: int, attempt: int) -> Query:
+        """The selector's query ``step`` (its ``attempt``-th draw), in the caller's coordinates."""
+        gen = step_generator(self.seed, step, attempt)
         X, idx = self._candidates.draw(gen)
         rows = torch.arange(X.shape[0])  # a pool draws each distinct item once (FinitePool)
-        q = self.selector.select(self._model, self.transform(X), rows, step, self.num_queries, gen)
+        q = self.selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)
         if isinstance(q, RatingQuery):
             r = int(q.index)
-            query: Query = RatingQuery(X[r], None if idx is None else int(idx[r]))
-        else:
-            rr = list(q.indices)
-            query = RankingQuery(X[rr], None if idx is None else tuple(int(idx[r]) for r in rr))
-        self._pending, self._pending_step = query, step
-        return query
+            return RatingQuery(X[r], None if idx is None else int(idx[r]))
+        rr = list(q.indices)
+        return RankingQuery(X[rr], None if idx is None else tuple(int(idx[r]) for r in rr))
 
     def tell(self, query: Query, answer: int | float | None) -> None:
         """Record ``answer`` to ``query``: a Likert level (or a ``[0, 1]`` rating if the session has
         no levels) for a :class:`~torchpref.RatingQuery`; the index of the chosen row of
-        ``query.items`` for a :class:`~torchpref.RankingQuery`, or ``None`` for no preference.
+        ``query.items`` for a :class:`~torchpref.RankingQuery`, or ``None`` for no preference
+        (see :func:`~torchpref.queries.record_answer`).
 
         Raises:
             ValueError: an invalid answer (naming it); the session and the file are unchanged.
         """
-        info: dict[str, Any] = {"kind": getattr(query, "kind", None)}
-        if query is self._pending:
-            info["step"] = self._pending_step
-        if isinstance(query, RatingQuery):
-            info["pool_indices"] = None if query.index is None else [int(query.index)]
-            self._tell_rating(query.item, answer, info)
-        elif isinstance(query, RankingQuery):
-            info["pool_indices"] = None if query.indices is None else [int(i) for i in query.indices]
-            if answer is None:
-                self._tell(self._body("no_preference", query.items, None, None, info))
-            elif isinstance(answer, bool):
-                raise ValueError(f"a ranking answer must be an item index in 0..{query.m - 1}, got {answer!r}.")
-            else:
-                self._tell_choice(query.items, query.validate_answer(answer), info)
-        else:
+        if not isinstance(query, (RatingQuery, RankingQuery)):
             raise TypeError(f"query must be a RatingQuery or RankingQuery, got {type(query).__name__}.")
+        pending = self._pending is not None and self._pending[1] is query and self._pending[0] == self.step
+        rows = [query.index] if isinstance(query, RatingQuery) else query.indices
+        info = {"kind": query.kind, "step": self.step if pending else None,
+                "pool_indices": None if rows is None or rows[0] is None else [int(i) for i in rows]}
+        self._tell(query, answer, info)
 
     def tell_rating(self, x: Tensor, rating: int | float) -> None:
         """A rating of any item ``x`` (``d``), given out of turn: a Likert level (or ``[0, 1]``)."""
-        self._tell_rating(x, rating, None)
+        x = _as_items(x, self.dim, "x")
+        if x.shape[0] != 1:
+            raise ValueError(f"a rating is of one item, got {x.shape[0]}.")
+        self._tell(RatingQuery(x[0]), rating, None)
 
     def tell_choice(self, X_shown: Tensor, chosen: int) -> None:
         """A choice of row ``chosen`` among any shown items ``X_shown`` (``m x d``, ``m >= 2``)."""
         X = _as_items(X_shown, self.dim, "X_shown")
-        if isinstance(chosen, (bool, str)):
-            raise ValueError(f"chosen must be a row index in 0..{X.shape[0] - 1}, got {chosen!r}.")
-        self._tell_choice(X, RankingQuery(X).validate_answer(chosen), None)
+        RankingQuery(X).validate_answer(chosen)  # None is not a choice here
+        self._tell(RankingQuery(X), chosen, None)
 
     def tell_no_preference(self, X_shown: Tensor) -> None:
         """The person saw ``X_shown`` (``m x d``) and had no preference: recorded in the file and
         the history, not used by the model (it has no tie likelihood)."""
-        X = _as_items(X_shown, self.dim, "X_shown")
-        if X.shape[0] < 2:
-            raise ValueError(f"no preference needs at least 2 items shown, got {X.shape[0]}.")
-        self._tell(self._body("no_preference", X, None, None, None))
+        self._tell(RankingQuery(_as_items(X_shown, self.dim, "X_shown")), None, None)
 
-    def _tell_rating(self, x, answer, info) -> None:
-        x = _as_items(x, self.dim, "x")
-        if x.shape[0] != 1:
-            raise ValueError(f"a rating is of one item, got {x.shape[0]}.")
-        if isinstance(answer, bool) or isinstance(answer, str):
-            raise ValueError(f"a rating must be a number, got {answer!r}.")
-        if self.num_levels is not None:
-            try:
-                level = float(answer)
-                value = float(likert_to_unit(level, self.num_levels))
-            except (TypeError, ValueError):
-                raise ValueError(f"a rating must be a Likert level in 1..{self.num_levels}, got {answer!r}.") from None
-            answer = int(level)
-        else:
-            value = RatingQuery(x[0]).validate_answer(answer)
-            answer = value
-        self._tell(self._body("rating", x, answer, value, info))
-
-    def _tell_choice(self, X: Tensor, chosen: int, info) -> None:
-        if X.shape[0] < 2:
-            raise ValueError(f"a choice needs at least 2 items shown, got {X.shape[0]}.")
-        self._tell(self._body("choice", X, int(chosen), None, info))
-
-    def _body(self, kind: str, X: Tensor, answer, value, info) -> dict:
-        body = {"type": "answer", "v": FORMAT_VERSION, "kind": kind, "items": X.tolist(), "answer": answer}
-        if value is not None:
-            body["value"] = value
-        body["query"] = info
-        return body
-
-    def _tell(self, body: dict) -> None:
-        rec = {"type": "answer", "v": FORMAT_VERSION, "seq": self._next_seq, "time": _now(), **body}
-        self._apply(self._model, rec)  # validated and solved first; unchanged on error
+    def _tell(self, query: Query, answer, info: dict | None) -> None:
+        """Validate and add the answer to the model (:func:`~torchpref.queries.record_answer`),
+        then append its record; the model is trusted again only once the record is in."""
+        items = _as_items(query.items, self.dim, "the query's items")
+        if isinstance(query, RankingQuery) and items.shape[0] < 2:
+            raise ValueError(f"a choice needs at least 2 items shown, got {items.shape[0]}.")
+        model, seqs = self.model, self._model_seqs
+        self._model_seqs = None  # in flux: rebuilt from the file if this does not complete
         try:
-            self._append(rec)
-        except BaseException:
-            self._model = self._replay(self._active)
+            value = record_answer(model, self._model_query(query.kind, items), answer, num_levels=self.num_levels)
+        except Exception:
+            self._model_seqs = seqs  # the model rolls back on error (PreferenceGP.add_observations)
             raise
-        self._records.append(rec)
-        self._active.append(rec)
-        self._next_seq += 1
-        self._pending = self._pending_step = None
+        rec = {"type": "answer", "v": FORMAT_VERSION, "seq": self._next_seq, "time": now(),
+               "kind": "rating" if query.kind == "rating" else ("choice" if value is not None else "no_preference"),
+               "items": items.tolist()}
+        if query.kind == "rating":
+            rec.update(answer=int(answer) if self.num_levels is not None else value, value=value)
+        else:
+            rec["answer"] = value
+        rec["query"] = info
+        self._append(rec)
+        self._model_seqs = seqs + (rec["seq"],)
 
     def undo(self) -> SessionAnswer:
         """Withdraw the last answer in force (an ``undo`` record is appended; the model is rebuilt
@@ -728,18 +488,38 @@ class PreferenceSession:
         Raises:
             ValueError: nothing to undo.
         """
-        if not self._active:
+        active = self._active
+        if not active:
             raise ValueError("nothing to undo: no answers in force.")
         undone = self.history[-1]
-        remaining = self._active[:-1]
-        model = self._replay(remaining)
-        rec = {"type": "undo", "v": FORMAT_VERSION, "seq": self._next_seq, "time": _now(), "undoes": undone.seq}
-        self._append(rec)
-        self._model, self._active = model, remaining
-        self._records.append(rec)
-        self._next_seq += 1
-        self._pending = self._pending_step = None
+        model = self._replay(active[:-1])
+        self._append({"type": "undo", "v": FORMAT_VERSION, "seq": self._next_seq, "time": now(),
+                      "undoes": undone.seq})
+        self._model, self._model_seqs = model, tuple(r["seq"] for r in active[:-1])
         return undone
+
+
+def _whole(name: str, value, lo: int | None) -> int:
+    """``value`` as an int (an integer, not a bool, float or text) of at least ``lo``."""
+    v = as_integer(value)
+    if v is None or (lo is not None and v < lo):
+        raise ValueError(f"{name} must be an integer{'' if lo is None else f' >= {lo}'}, got {value!r}.")
+    return v
+
+
+def _candidates_spec(candidates) -> tuple[Candidates, dict, Tensor, Tensor]:
+    """``(candidates, header spec, lower, upper)``: float64 candidates, their description for the
+    file's header, and their range."""
+    if isinstance(candidates, Tensor):
+        candidates = FinitePool(_as_items(candidates, candidates.shape[-1], "candidates"))
+    if isinstance(candidates, FinitePool):
+        pool = candidates.X.to(torch.float64)
+        return FinitePool(pool), {"kind": "pool", "items": pool.tolist()}, pool.min(0).values, pool.max(0).values
+    if isinstance(candidates, BoxCandidates):
+        b = candidates.bounds.to(torch.float64)
+        spec = {"kind": "box", "bounds": b.tolist(), "num": candidates.num}
+        return BoxCandidates(b, candidates.num), spec, b[0], b[1]
+    raise TypeError(f"candidates must be a tensor, FinitePool or BoxCandidates, got {type(candidates).__name__}.")
 
 
 def _describe(spec) -> str:
@@ -750,16 +530,3 @@ def _describe(spec) -> str:
         digest = hashlib.sha256(json.dumps(items).encode()).hexdigest()[:10]
         return f"(a pool of {len(items)} items, digest {digest})"
     return f"(a box {spec.get('bounds')} x {spec.get('num')})"
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path.parent if str(path.parent) else ".", os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)

@@ -211,6 +211,12 @@ class InformationPerEffort(Selector):
       as large as the information itself and favours ratings over rankings). It buys
       information on the whole upper region and on its boundary (which item is in, which is
       just out), not only on the single best item;
+    * ``target="top+levels"``: the same, and each candidate's rating level: the labels
+      ``1[mu(f(x_i)) > e]`` for the rating-scale edges ``e`` of ``level_edges`` (by default the
+      bin edges of a 1-5 Likert scale), summed with the memberships in the same estimator. A
+      ranking tells only which item is better, so it informs memberships (relative) but not
+      levels (absolute); a rating informs both. The target is what the metrics score: which
+      items are best (true positives, regret) and what each would be rated (WRMS);
     * ``target="maximizer"``: which candidate is the maximiser, the discrete entropy search of
       Hennig & Schuler (2012) / Villemonteix et al. (2009)
       (:func:`~torchpref.acquisition.sample_information`);
@@ -237,7 +243,7 @@ class InformationPerEffort(Selector):
             ``m = 5``, twice a rating; see ``docs/wave.md``).
         gamma: eq. 12's ``gamma``, to order candidates of equal uncertainty.
         num_samples: joint posterior samples.
-        target: ``"top"``, ``"maximizer"`` or ``"utility"``.
+        target: ``"top"``, ``"top+levels"``, ``"maximizer"`` or ``"utility"``.
         top_fraction: the top set's share of the candidates (``target="top"``).
         num_plausible: candidates considered for ratings and rankings.
         num_bins: bins of a rating's answer.
@@ -246,20 +252,24 @@ class InformationPerEffort(Selector):
             see :func:`~torchpref.acquisition.membership_information`).
         bias_correction: ``target="top"``: correct the information estimates' finite-sample
             bias (:func:`~torchpref.acquisition.membership_information`).
+        level_edges: ``target="top+levels"``: the rating-scale edges of the levels.
     """
 
     name = "info per effort"
 
     def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
                  gamma: float = 3.0, num_samples: int = 128, target: str = "top", top_fraction: float = 0.2,
-                 num_plausible: int = 15, num_bins: int = 10, min_count: int = 8, bias_correction: bool = True):
+                 num_plausible: int = 15, num_bins: int = 10, min_count: int = 8, bias_correction: bool = True,
+                 level_edges: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8)):
         m = _ranking_size(m)
         if ranking_cost is None:
             ranking_cost = 1.0 + (m - 1) / 4
         if not (rating_cost > 0 and ranking_cost > 0):
             raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
-        if target not in ("top", "maximizer", "utility"):
-            raise ValueError(f"target must be 'top', 'maximizer' or 'utility', got {target!r}.")
+        if target not in ("top", "top+levels", "maximizer", "utility"):
+            raise ValueError(f"target must be 'top', 'top+levels', 'maximizer' or 'utility', got {target!r}.")
+        if not all(0 < e < 1 for e in level_edges):
+            raise ValueError(f"level_edges must lie in (0, 1), got {level_edges}.")
         if num_samples < 2 or num_plausible < 1:
             raise ValueError(f"need num_samples >= 2 and num_plausible >= 1, got {num_samples} and {num_plausible}.")
         if not 0 < top_fraction < 1:
@@ -268,6 +278,7 @@ class InformationPerEffort(Selector):
         self.gamma, self.num_samples, self.target = gamma, num_samples, target
         self.top_fraction, self.num_plausible, self.num_bins = top_fraction, num_plausible, num_bins
         self.min_count, self.bias_correction = min_count, bias_correction
+        self.level_edges = tuple(float(e) for e in level_edges)
 
     def _samples(self, model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Tensor, Tensor, Tensor]:
         """``T x S x N`` joint samples, the posterior mean and std (``T x N``) at ``X`` (``T x N x d``)."""
@@ -284,6 +295,13 @@ class InformationPerEffort(Selector):
                          for g in generators])
         return mean.unsqueeze(-2) + z @ L.mT, mean, std
 
+    def _levels(self, F: Tensor, rating_likelihood) -> Tensor:
+        """``T x S x L x N``: is each sample's rating mean ``Phi(f / (sqrt 2 sigma_B))`` above
+        each of :attr:`level_edges` (the latent thresholds ``sqrt 2 sigma_B Phi^-1(edge)``)."""
+        edges = torch.tensor(self.level_edges, dtype=F.dtype, device=F.device)
+        c = math.sqrt(2) * rating_likelihood.rating_scale.to(F) * torch.special.ndtri(edges)
+        return F.unsqueeze(-2) > c.reshape(-1, 1)
+
     def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
         with torch.no_grad():
@@ -292,10 +310,12 @@ class InformationPerEffort(Selector):
             lik = model.likelihood
             ucb = mean + self.gamma * std
             tie = 1e-9 * torch.sigmoid(ucb - ucb.max(-1, keepdim=True).values)
-            if self.target == "top":
+            if self.target in ("top", "top+levels"):
                 Z = top_set_membership(F, max(1, min(N, round(self.top_fraction * N))))
+                if self.target == "top+levels":  # and each item's rating level: N x L more labels
+                    Z = torch.cat([Z, self._levels(F, lik.rating).flatten(-2)], dim=-1)
                 p = Z.to(F).mean(-2)
-                order = torch.argsort(p * (1 - p) + tie, dim=-1, descending=True)
+                order = torch.argsort((p * (1 - p)).reshape(T, -1, N).sum(1) + tie, dim=-1, descending=True)
 
                 def info(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
                     return membership_information(P, Z, self.min_count, self.bias_correction)

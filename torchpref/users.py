@@ -30,9 +30,10 @@ from typing import Callable, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from torchpref.data import likert_to_unit, unit_to_likert
 from torchpref.likelihoods import rating_link
 
-__all__ = ["User", "SimulatedUser", "sample_beta", "sample_log_gamma", "RATING_CLAMP"]
+__all__ = ["User", "SimulatedUser", "LikertUser", "sample_beta", "sample_log_gamma", "RATING_CLAMP"]
 
 #: Simulated ratings are clamped to ``[RATING_CLAMP, 1 - RATING_CLAMP]`` so that they lie
 #: strictly inside the Beta likelihood's support (0, 1).
@@ -382,3 +383,29 @@ class SimulatedUser:
             f"rating_scale={self.rating_scale}, rating_precision={self.rating_precision}, "
             f"noiseless={self.noiseless}, n_ratings={self.n_ratings}, n_choices={self.n_choices})"
         )
+
+
+class LikertUser:
+    r"""A :class:`SimulatedUser` whose ratings are quantised to a Likert scale, as a person ticking
+    one of ``num_levels`` boxes: the simulated rating ``u`` becomes level ``k = ceil(K u)``,
+    answered as the centre of its bin, ``(k - 1/2) / K`` (:func:`~torchpref.data.likert_to_unit`).
+    Choices are the wrapped user's.
+
+    Args:
+        user: the underlying simulated user (its Beta ratings are quantised).
+        num_levels: ``K`` (default 5).
+    """
+
+    def __init__(self, user: SimulatedUser, num_levels: int = 5):
+        if not isinstance(num_levels, int) or num_levels < 2:
+            raise ValueError(f"num_levels must be an integer >= 2, got {num_levels!r}.")
+        self.user, self.num_levels = user, num_levels
+
+    def rate(self, x: Tensor) -> float:
+        """A rating of ``x`` (``d``) on the Likert scale, mapped to ``[0, 1]``."""
+        level = unit_to_likert(self.user.rate(x), self.num_levels)
+        return float(likert_to_unit(level, self.num_levels))
+
+    def choose(self, X: Tensor) -> int:
+        """The wrapped user's best of ``m`` items (``m x d``)."""
+        return self.user.choose(X)

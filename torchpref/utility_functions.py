@@ -1,4 +1,8 @@
-r"""Random wave functions: the 1-D truth functions of the paper's Sec. IV.A (eq. 13).
+r"""Users' hidden utilities: the paper's random wave functions (Sec. IV.A, eq. 13) and the
+shapes of the user-family suite (:class:`GaussianBumps`, :class:`Plateau`,
+:class:`RescaledUtility` of BoTorch test functions; :mod:`torchpref.experiments.suite`).
+
+The wave functions:
 
 .. math::
 
@@ -24,7 +28,7 @@ import torch
 from botorch.test_functions.synthetic import SyntheticTestFunction
 from torch import Tensor
 
-__all__ = ["WaveFunction", "evaluation_grid"]
+__all__ = ["WaveFunction", "evaluation_grid", "GaussianBumps", "Plateau", "RescaledUtility"]
 
 # Grid used to locate the maximum numerically: coarse pass, then a fine pass around the best
 # coarse point. With a coarse spacing of 5e-5 and a fine spacing of 5e-8 the value is exact
@@ -267,3 +271,87 @@ def evaluation_grid(
     if not hi > lo:
         raise ValueError(f"bounds must satisfy lower < upper, got {bounds}.")
     return torch.linspace(lo, hi, n, dtype=dtype, device=device).unsqueeze(-1)
+
+
+class GaussianBumps:
+    r"""A sum of Gaussian bumps on the unit cube: ``f(x) = sum_k h_k exp(-|x - c_k|^2 / (2 w_k^2))``.
+
+    Args:
+        centres: ``K x d`` bump centres.
+        heights: ``K`` heights ``h_k``.
+        widths: ``K`` widths ``w_k``.
+    """
+
+    def __init__(self, centres: Tensor, heights: Sequence[float] | Tensor, widths: Sequence[float] | Tensor):
+        self.centres = torch.as_tensor(centres, dtype=torch.float64)
+        self.heights = _as_parameter("heights", heights)
+        self.widths = _as_parameter("widths", widths)
+        if self.centres.dim() != 2 or not self.centres.shape[0] == self.heights.numel() == self.widths.numel():
+            raise ValueError(f"need K x d centres and K heights and widths, got shapes {tuple(self.centres.shape)}, "
+                             f"{tuple(self.heights.shape)}, {tuple(self.widths.shape)}.")
+
+    def __call__(self, X: Tensor) -> Tensor:
+        """``n x d`` -> ``n`` values."""
+        d2 = (X.unsqueeze(-2) - self.centres.to(X)).square().sum(-1)  # n x K
+        return (self.heights.to(X) * torch.exp(-0.5 * d2 / self.widths.to(X).square())).sum(-1)
+
+
+class Plateau:
+    r"""A broad flat-topped bump with a gentle tilt: ``sigmoid((r - |x - c|) / e) + s (x - c) . v``.
+
+    Many items are nearly as good as the best (the top is flat to within the tilt ``s``): finding
+    *a* good item is easy, ranking the plateau's items is hard.
+
+    Args:
+        centre: ``d`` centre ``c``.
+        radius: the plateau's radius ``r``.
+        edge: the width ``e`` of its edge.
+        tilt: ``d`` vector ``s v``, the slope across the plateau.
+    """
+
+    def __init__(self, centre: Tensor, radius: float, edge: float, tilt: Tensor):
+        self.centre, self.tilt = torch.as_tensor(centre, dtype=torch.float64), torch.as_tensor(tilt, dtype=torch.float64)
+        if not (radius > 0 and edge > 0):
+            raise ValueError(f"radius and edge must be positive, got {radius} and {edge}.")
+        self.radius, self.edge = float(radius), float(edge)
+
+    def __call__(self, X: Tensor) -> Tensor:
+        """``n x d`` -> ``n`` values."""
+        z = X - self.centre.to(X)
+        return torch.sigmoid((self.radius - z.norm(dim=-1)) / self.edge) + z @ self.tilt.to(X)
+
+
+class RescaledUtility:
+    r"""A function of the unit cube rescaled into a utility: ``u(x) = 2 (g(T x) - med) / (max - med)``.
+
+    ``g`` is any function to maximise on a box (e.g. the negative of a BoTorch test function);
+    ``T`` maps the unit cube onto its box after flipping the axes in ``flips``, so that one test
+    function gives several users. ``med`` and ``max`` are the median and maximum of ``g`` over
+    ``reference`` points of the unit cube: the typical item has utility 0, the best about 2,
+    about the scale of the rating link (eq. 7 with ``sigma_B`` near 1).
+
+    Args:
+        g: ``n x D`` (in ``bounds``) -> ``n``.
+        bounds: ``2 x D`` box of ``g``.
+        reference: ``r x D`` points of the unit cube for the median and maximum.
+        flips: ``D`` booleans: axes to reverse.
+    """
+
+    def __init__(self, g, bounds: Tensor, reference: Tensor, flips: Tensor | None = None):
+        self.g, self.bounds = g, torch.as_tensor(bounds, dtype=torch.float64)
+        D = self.bounds.shape[-1]
+        self.flips = torch.zeros(D, dtype=torch.bool) if flips is None else torch.as_tensor(flips, dtype=torch.bool)
+        with torch.no_grad():
+            v = self._raw(reference.to(torch.float64))
+        self.median, self.maximum = float(v.median()), float(v.max())
+        if not self.maximum > self.median:
+            raise ValueError(f"g is constant on the reference points (median {self.median}, max {self.maximum}).")
+
+    def _raw(self, X: Tensor) -> Tensor:
+        X = torch.where(self.flips.to(X.device), 1 - X, X)
+        lo, hi = self.bounds.to(X)
+        return self.g(lo + (hi - lo) * X)
+
+    def __call__(self, X: Tensor) -> Tensor:
+        """``n x D`` in the unit cube -> ``n`` utilities."""
+        return 2 * (self._raw(X) - self.median) / (self.maximum - self.median)

@@ -83,7 +83,11 @@ def paired_tests(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
         return out
     tt = stats.ttest_rel(x.numpy(), y.numpy())
     out["t"], out["p_ttest"] = float(tt.statistic), float(tt.pvalue)
-    out["p_wilcoxon"] = float(stats.wilcoxon(d, zero_method="wilcox").pvalue)
+    # exact for small samples without ties or zeros, else the normal approximation with the tie
+    # correction (SciPy's default would fall back on a permutation test: seconds per call)
+    nz = d[d != 0]
+    exact = nz.size <= 50 and len(set(abs(nz).tolist())) == nz.size
+    out["p_wilcoxon"] = float(stats.wilcoxon(d, zero_method="wilcox", method="exact" if exact else "approx").pvalue)
     return out
 
 

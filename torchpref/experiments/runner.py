@@ -136,6 +136,8 @@ _FACTORIES: dict[str, Callable[..., Selector]] = {
     "UCB ratings": lambda gamma, **_: UCBRatings(gamma=gamma),
     "info per effort": lambda m, gamma, rating_cost, ranking_cost: InformationPerEffort(
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma),
+    "top & level info": lambda m, gamma, rating_cost, ranking_cost: InformationPerEffort(
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma, target="top+levels"),
 }
 
 #: every strategy :func:`make_selector` knows, by name

@@ -4,7 +4,7 @@ r"""Plan a path for a learned utility: gradient ascent on the utility of a path'
 paths by the utility) with ``torch.optim.Adam`` to maximise
 
 .. math::
-    U\big(\mathrm{normalise}(\mathrm{path\_objectives}(p))\big)
+    U\big(\mathrm{path\_objectives}(p)\big)
     - \lambda \sum_t \mathrm{relu}(\mathrm{sd}(p_t) + \mathrm{margin})^2,
 
 where ``sd`` is :meth:`Lake.signed_distance` (negative on the water) and the start and goal
@@ -12,6 +12,10 @@ stay fixed. The penalty keeps waypoints ``margin`` inside the shore; whether the
 between them stay on the water is checked exactly afterwards (:meth:`Lake.path_on_water`).
 The returned path is the on-water candidate (planned or starting pool path) of largest
 utility, so it is never worse than the best starting pool path.
+
+The lake knows nothing of learning: ``U`` is any differentiable function of the objectives
+``[distance, information]`` in the lake's own units. A model that works on normalised objectives
+is wrapped by its user (see :mod:`torchpref.experiments.lake`).
 """
 
 from __future__ import annotations
@@ -25,17 +29,7 @@ from torch import Tensor
 from .objectives import path_objectives
 from .planners import resample_by_arc_length
 
-__all__ = ["PlanResult", "plan_with_utility", "normalise", "unnormalise"]
-
-
-def normalise(X: Tensor, bounds: Tensor) -> Tensor:
-    """Map ``... x d`` points to the unit cube of ``bounds`` (``2 x d``: lower, upper)."""
-    return (X - bounds[0]) / (bounds[1] - bounds[0])
-
-
-def unnormalise(Z: Tensor, bounds: Tensor) -> Tensor:
-    """Inverse of :func:`normalise`."""
-    return bounds[0] + Z * (bounds[1] - bounds[0])
+__all__ = ["PlanResult", "plan_with_utility"]
 
 
 @dataclass
@@ -64,7 +58,6 @@ def plan_with_utility(
     scenario,
     utility: Callable[[Tensor], Tensor],
     *,
-    bounds: Tensor | None = None,
     pool_paths: Tensor | None = None,
     pool_X: Tensor | None = None,
     num_starts: int = 3,
@@ -80,10 +73,8 @@ def plan_with_utility(
     Args:
         scenario: a :class:`~torchpref.lake.scenario.LakeScenario`, or a ``(lake, field)``
             pair (then give ``pool_paths``).
-        utility: maps normalised objectives ``n x 2`` to ``n`` utilities, differentiably
-            (e.g. ``lambda Z: model.posterior(Z.unsqueeze(-2)).mean.reshape(-1)``).
-        bounds: ``2 x 2`` the normalisation bounds of the objectives (default: the pool's
-            objectives' min and max, as the experiment's model uses).
+        utility: maps objectives ``n x 2`` (``[distance, information]``, the lake's units) to
+            ``n`` utilities, differentiably.
         pool_paths: ``n x T x 2`` paths to start from (default the scenario's training paths).
         pool_X: their objectives (default: computed).
         num_starts: how many of the best pool paths to optimise.
@@ -108,13 +99,11 @@ def plan_with_utility(
     pool_paths = pool_paths.to(torch.float64)
     if pool_X is None:
         pool_X = path_objectives(pool_paths, field)
-    if bounds is None:
-        bounds = torch.stack([pool_X.min(0).values, pool_X.max(0).values])
     if num_starts < 1 or steps < 0:
         raise ValueError(f"need num_starts >= 1 and steps >= 0, got {num_starts} and {steps}.")
 
     def u_of(X: Tensor) -> Tensor:
-        return utility(normalise(X, bounds)).reshape(X.shape[:-1])
+        return utility(X).reshape(X.shape[:-1])
 
     with torch.no_grad():
         u_pool = u_of(pool_X)

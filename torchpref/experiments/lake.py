@@ -20,7 +20,7 @@ Metrics per query count: ``error5`` (mean ``|expected rating - true rating|`` on
 rated 5), ``wrms`` (:func:`torchpref.metrics.wrms`) and ``chosen_rating`` (the operator's level
 of the test path with the largest posterior mean). For each strategy's final model in the first
 ``plan_trials`` trials, :func:`~torchpref.lake.plan.plan_with_utility` plans a path for the
-posterior mean and the operator's level of that path is compared with the best pool path's.
+posterior mean (wrapped by :func:`model_utility` to take the lake's objectives) and the operator's level of that path is compared with the best pool path's.
 
 Command line: ``torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR]``;
 from Python: :func:`run_lake_experiment`.
@@ -42,8 +42,11 @@ from torchpref.data import likert_to_unit
 from torchpref.experiments import runner
 from torchpref.experiments.results import fraction_ratings, mean_sem, paired_tests, plot_mean_sem, write_json, write_summary_csv
 from torchpref.experiments.runner import run_trials, single_threaded
+from botorch.utils.transforms import normalize as normalise
+from botorch.utils.transforms import unnormalize as unnormalise
+
 from torchpref.lake.operator import LakeOperator
-from torchpref.lake.plan import normalise, plan_with_utility, unnormalise
+from torchpref.lake.plan import plan_with_utility
 from torchpref.lake.scenario import LakeScenario, make_scenario
 from torchpref.metrics import wrms
 from torchpref.queries import FinitePool, first_unique_rows
@@ -81,6 +84,17 @@ def pool_bounds(scenario: LakeScenario) -> torch.Tensor:
     """``2 x 2`` min and max of the training pool's objectives (the normalisation)."""
     X = scenario.train_X
     return torch.stack([X.min(0).values, X.max(0).values])
+
+
+def model_utility(model, bounds: torch.Tensor):
+    """The posterior mean of ``model`` (trained on objectives normalised by ``bounds``) as a
+    differentiable function of the lake's objectives ``n x 2`` -> ``n``."""
+
+    def utility(X: torch.Tensor) -> torch.Tensor:
+        Z = normalise(X, bounds)
+        return model.posterior(Z.unsqueeze(-2)).mean.reshape(Z.shape[:-1])
+
+    return utility
 
 
 def trial_seeds(seed: int, trials: int) -> list[int]:
@@ -128,10 +142,7 @@ def run_trial(scenario: LakeScenario, trial_seed: int, queries: int, strategies:
         entry["kinds"] = [r.query.kind for r in hist.records]
         entry["plan"] = None
         if plan:
-            def utility(Z, model=model):
-                return model.posterior(Z.unsqueeze(-2)).mean.reshape(Z.shape[:-1])
-
-            res = plan_with_utility(scenario, utility, bounds=bounds, **PLAN_OPTIONS)
+            res = plan_with_utility(scenario, model_utility(model, bounds), **PLAN_OPTIONS)
             entry["plan"] = {"planned_level": int(operator.level(res.objectives)),
                              "pool_level": int(operator.level(res.start_objectives)),
                              "planned": bool(res.planned),

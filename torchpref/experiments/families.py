@@ -1,0 +1,177 @@
+r"""The simulated users of the benchmark suite (:mod:`torchpref.experiments.suite`).
+
+A :class:`Family` is a kind of person: a random utility on the unit cube (a shape, drawn anew
+for every trial) and an answering style (how noisy their choices are, how precise their ratings,
+whether they tick a 1-5 box). The families span ``d = 1`` to ``6`` and shapes from the paper's
+waves to narrow peaks, flat plateaus and BoTorch test functions rescaled into utilities
+(:class:`~torchpref.utility_functions.RescaledUtility`: median item 0, best item about 2).
+
+Each family also says how a trial's items are offered (fresh uniform candidates per query, or a
+finite pool as the lake's planned paths), where the metrics are taken (:func:`setup`: a grid in
+1-D, the pool, or fixed random points), and the hyperparameters of the *fixed* condition (a
+lengthscale of the order of the shape's features, the user's own noise); the *learned*
+condition learns the kernel's from the answers (:mod:`~torchpref.experiments.suite`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+from botorch.test_functions import Branin, Hartmann, Levy
+from torch import Tensor
+
+from torchpref.likelihoods import rating_link
+from torchpref.users import LikertUser, SimulatedUser
+from torchpref.utility_functions import GaussianBumps, Plateau, RescaledUtility, WaveFunction, evaluation_grid
+
+RATING_SCALE = 0.8  # sigma_B of every family's raters (eq. 7): utilities 0..2 span ratings 0.5..0.96
+EVAL_POINTS = 256  # metric points of a family of d >= 2 without a pool
+REFERENCE_POINTS = 1024  # points that set a rescaled utility's median and maximum
+NUM_CANDIDATES = 100  # fresh candidates per query
+
+
+def _uniform(g: torch.Generator, n: int, d: int) -> Tensor:
+    return torch.rand(n, d, generator=g, dtype=torch.float64)
+
+
+def _flips(g: torch.Generator, d: int) -> Tensor:
+    return torch.rand(d, generator=g) < 0.5
+
+
+def _rescaled(fn: Callable[[Tensor], Tensor], bounds: Tensor, d: int, g: torch.Generator) -> RescaledUtility:
+    return RescaledUtility(fn, bounds, _uniform(g, REFERENCE_POINTS, d), _flips(g, d))
+
+
+def _unit(d: int) -> Tensor:
+    return torch.tensor([[0.0] * d, [1.0] * d], dtype=torch.float64)
+
+
+def _botorch(problem, g: torch.Generator) -> RescaledUtility:
+    """A BoTorch test function to minimise, negated (a utility to maximise) and rescaled."""
+    return _rescaled(lambda X: -problem.evaluate_true(X), problem.bounds.to(torch.float64), problem.dim, g)
+
+
+def _damped_wave(g: torch.Generator) -> RescaledUtility:
+    wave = WaveFunction.random(generator=g, n_components=1)
+    return RescaledUtility(lambda X: wave(X, noise=False), _unit(1), evaluation_grid(REFERENCE_POINTS), None)
+
+
+def _narrow_peak(g: torch.Generator) -> RescaledUtility:
+    c = 0.1 + 0.8 * _uniform(g, 3, 2)
+    return _rescaled(GaussianBumps(c, [1.0, 0.5, 0.5], [0.05, 0.2, 0.2]), _unit(2), 2, g)
+
+
+def _plateau(g: torch.Generator) -> RescaledUtility:
+    c = 0.3 + 0.4 * _uniform(g, 1, 2)[0]
+    v = torch.randn(2, generator=g, dtype=torch.float64)
+    return _rescaled(Plateau(c, radius=0.25, edge=0.03, tilt=0.1 * v / v.norm()), _unit(2), 2, g)
+
+
+def _two_bumps(g: torch.Generator) -> RescaledUtility:
+    c = 0.2 + 0.6 * _uniform(g, 2, 4)
+    return _rescaled(GaussianBumps(c, [1.0, 0.7], [0.25, 0.25]), _unit(4), 4, g)
+
+
+@dataclass(frozen=True)
+class Family:
+    r"""A kind of simulated user.
+
+    Attributes:
+        name: the family's name.
+        dim: ``d``.
+        draw: ``generator -> utility`` (``n x d`` in the unit cube -> ``n``), one per trial.
+        comparison_noise: the user's ``sigma_R`` (eq. 3).
+        rating_precision: the user's ``nu`` (eqs. 5-6); ratings have ``sigma_B`` :data:`RATING_SCALE`.
+        likert: ratings quantised to levels 1-5 (:class:`~torchpref.users.LikertUser`).
+        lengthscale: the fixed condition's kernel lengthscale.
+        pool: a finite pool of this many random items (also the metric points), or ``None``:
+            :data:`NUM_CANDIDATES` fresh uniform candidates per query.
+        model: the fixed condition's model settings, if not the user's own noise (see
+            :func:`model_settings`).
+        description: what the family is.
+    """
+
+    name: str
+    dim: int
+    draw: Callable[[torch.Generator], Callable[[Tensor], Tensor]]
+    comparison_noise: float
+    rating_precision: float
+    lengthscale: float
+    likert: bool = False
+    pool: int | None = None
+    model: dict[str, float] | None = field(default=None)
+    description: str = ""
+
+
+#: the paper's model for the waves (docs/wave.md), with the authors' user
+_WAVE_MODEL = {"lengthscale": 0.02, "outputscale": 0.36, "comparison_noise": 0.2, "rating_scale": 0.8,
+               "rating_precision": 60.0}
+
+FAMILIES: dict[str, Family] = {f.name: f for f in [
+    Family("waves", 1, lambda g: (lambda w: lambda X: w(X, noise=False))(WaveFunction.random(generator=g)),
+           0.05, 80.0, 0.02, model=_WAVE_MODEL,
+           description="the paper's three-wave functions (eq. 13), its user and model"),
+    Family("damped-wave", 1, _damped_wave, 0.3, 20.0, 0.03,
+           description="one damped wave; noisy choices, imprecise ratings"),
+    Family("narrow-peak", 2, _narrow_peak, 0.1, 40.0, 0.05, likert=True,
+           description="a narrow dominant bump and two broad low ones; Likert ratings"),
+    Family("plateau", 2, _plateau, 0.1, 10.0, 0.1,
+           description="a broad flat-topped bump, slightly tilted; very imprecise ratings"),
+    Family("branin", 2, lambda g: _botorch(Branin(), g), 0.02, 100.0, 0.25,
+           description="BoTorch's Branin; near-exact choices and precise ratings"),
+    Family("hartmann3", 3, lambda g: _botorch(Hartmann(dim=3), g), 0.1, 40.0, 0.2, likert=True, pool=300,
+           description="BoTorch's Hartmann-3 over a pool of 300 items; Likert ratings"),
+    Family("two-bumps", 4, _two_bumps, 0.1, 40.0, 0.25,
+           description="two Gaussian bumps in 4-D"),
+    Family("levy5", 5, lambda g: _botorch(Levy(dim=5), g), 0.2, 40.0, 0.15, likert=True,
+           description="BoTorch's Levy (rugged) in 5-D; noisy choices, Likert ratings"),
+    Family("hartmann6", 6, lambda g: _botorch(Hartmann(dim=6), g), 0.05, 60.0, 0.3,
+           description="BoTorch's Hartmann-6"),
+]}
+
+
+def model_settings(family: Family) -> dict[str, float]:
+    """The fixed condition's model: ``family.model``, or the family's lengthscale, outputscale 1 and
+    the user's own noise (``nu`` 20 for Likert raters: a level is a bin 0.2 wide)."""
+    if family.model is not None:
+        return dict(family.model)
+    return {"lengthscale": family.lengthscale, "outputscale": 1.0, "comparison_noise": family.comparison_noise,
+            "rating_scale": RATING_SCALE, "rating_precision": 20.0 if family.likert else family.rating_precision}
+
+
+@dataclass
+class TrialSetup:
+    """One trial of a family: the user, the metric points and their truth, the first pair."""
+
+    user: object
+    eval_X: Tensor  # E x d metric points
+    f_true: Tensor  # E true utilities
+    u_true: Tensor  # E true ratings (the raters' mean rating, eq. 7)
+    x0: Tensor  # 2 x d the first comparison's items
+    pool: Tensor | None  # P x d, or None (fresh candidates)
+    selector_seed: int
+
+
+def setup(family: Family, trial_seed: int) -> TrialSetup:
+    """A trial of ``family`` drawn from ``trial_seed``."""
+    g = torch.Generator().manual_seed(int(trial_seed))
+    utility = family.draw(g)
+    user_seed, selector_seed = torch.randint(0, 2**62, (2,), generator=g).tolist()
+    rating_scale = family.model["rating_scale"] if family.model is not None else RATING_SCALE
+    user = SimulatedUser(utility, family.comparison_noise, rating_scale, family.rating_precision,
+                         torch.Generator().manual_seed(user_seed))
+    if family.likert:
+        user = LikertUser(user)
+    pool = None
+    if family.pool is not None:
+        pool = _uniform(g, family.pool, family.dim)
+        eval_X = pool
+        x0 = pool[torch.randperm(family.pool, generator=g)[:2]]
+    else:
+        eval_X = evaluation_grid(101) if family.dim == 1 else _uniform(g, EVAL_POINTS, family.dim)
+        x0 = _uniform(g, 2, family.dim)
+    with torch.no_grad():
+        f_true = utility(eval_X)
+    return TrialSetup(user, eval_X, f_true, rating_link(f_true, rating_scale), x0, pool, selector_seed)

@@ -1,0 +1,114 @@
+r"""The model's prediction strategy: one object holding what prediction and the evidence need.
+
+:class:`PosteriorState` plays the part of GPyTorch's ``prediction_strategy``: built lazily by
+:meth:`~torchpref.PreferenceGP._state` for one data object and one set of hyperparameter values
+(a :func:`fingerprint` of all parameters and buffers, computed once per call of ``_state``) and
+replaced when either changes. Building it solves the Laplace modes of all the model's problems
+(:func:`~torchpref.laplace.find_mode`), warm-started from the previous state's modes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+import torch
+from gpytorch.module import Module
+from torch import Tensor
+
+from torchpref.laplace import ModeResult, Observations, PredictiveCache, find_mode, predict
+from torchpref.numerics import batched_cholesky, cholesky_jittered
+from torchpref.padding import PaddedData
+
+if TYPE_CHECKING:
+    from torchpref.models import PreferenceGP
+
+
+def fingerprint(module: Module) -> Tensor:
+    """The values of all parameters, then all floating buffers (as ``parameters()`` /
+    ``buffers()``), concatenated: equal fingerprints mean equal hyperparameters."""
+    params, bufs, seen = [], [], set()
+    stack, modules = [module], []
+    while stack:  # the modules in ``module.modules()`` order, without its generator overhead
+        m = stack.pop()
+        modules.append(m)
+        stack.extend(c for c in reversed(m._modules.values()) if c is not None)
+    for m in modules:
+        for t, out in ((m._parameters, params), (m._buffers, bufs)):
+            for v in t.values():
+                if v is not None and id(v) not in seen:
+                    seen.add(id(v))
+                    out.append(v)
+    vals = params + [b for b in bufs if b.is_floating_point()]
+    with torch.no_grad():  # torch.cat promotes the dtypes
+        return torch.cat([v.reshape(-1) for v in vals]) if vals else torch.zeros(0)
+
+
+def prior_factor(K: Tensor, jitter: float | None) -> tuple[Tensor, float | Tensor]:
+    """``L`` (``B x N x N``) with ``L L^T = K + jitter I`` for ``K`` (``... x N x N``), and the
+    jitter used: one problem starts from the jitter that worked last time."""
+    N = K.shape[-1]
+    if K.shape[:-2].numel() == 1:
+        L, j = cholesky_jittered(K.reshape(N, N), jitter=jitter, name="kernel matrix")
+        return L.reshape(1, N, N), j
+    return batched_cholesky(K.reshape(-1, N, N), name="kernel matrix")
+
+
+@dataclass(frozen=True)
+class PosteriorState:
+    """Everything prediction and the evidence need, for one data object and one set of
+    hyperparameter values."""
+
+    data: object  # the model's data object it was computed for (compared by identity)
+    fingerprint: Tensor  # the hyperparameter values it was computed for
+    padded: PaddedData  # the problems, items transformed by the input transform
+    jitter: float | Tensor  # diagonal jitter of L (one per problem for a batch)
+    likelihood: Module  # the likelihood module ``obs`` refers to
+    obs: Observations
+    mode: ModeResult  # batched: B = number of problems
+    pred: PredictiveCache
+
+    def is_current(self, data: object, fingerprint: Tensor) -> bool:
+        """Whether this state was computed for ``data`` with the hyperparameters ``fingerprint``."""
+        return self.data is data and torch.equal(self.fingerprint, fingerprint)
+
+    @classmethod
+    def build(cls, model: "PreferenceGP", fp: Tensor, previous: "PosteriorState | None") -> "PosteriorState":
+        """Solve the modes of ``model``'s problems, warm-started from ``previous`` where sizes match."""
+        with torch.no_grad():
+            padded = model._padded().with_items(model._transformed_train_X())
+            prev_jitter = previous.jitter if (previous is not None and isinstance(previous.jitter, float)) else None
+            L, jitter = prior_factor(padded.prior_covariance(model._kernel(padded.X)), prev_jitter)
+            same_size = previous is not None and previous.mode.f.shape == L.shape[:-1]
+            warm = previous.mode.f if same_size else model._warm_f
+            # the observations' index structure depends on the data only: kept across hyperparameters
+            same_data = previous is not None and previous.data is model.data and previous.likelihood is model.likelihood
+            obs = previous.obs if same_data else model._observations()
+            mode = find_mode(L, obs, f0=warm, max_iter=model.max_newton_iter)
+            pred = PredictiveCache.from_mode(L, mode)
+        return cls(model.data, fp, padded, jitter, model.likelihood, obs, mode, pred)
+
+    def moments(self, kernel: Callable[..., Tensor], X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
+        r"""Posterior mean ``... x q`` and covariance ``... x q x q`` (eqs. 9-10) at transformed
+        ``X`` (``... x q x d``, its batch dimensions ending in, or broadcasting to, the problems'
+        ``batch_shape``); with ``diag``, the variances ``... x q`` instead of the covariance.
+        ``kernel(X1, X2=None, diag=False)`` evaluates the prior covariance densely."""
+        padded = self.padded
+        S = padded.batch_shape
+        q, d = X.shape[-2:]
+        shape = torch.broadcast_shapes(X.shape[:-2], S)
+        E = shape[: len(shape) - len(S)].numel()
+        Xe = X.expand(*shape, q, d).reshape(E, *S, q, d)  # test blocks first, then the problems
+        k_ss = kernel(Xe, diag=diag)  # E x S x q (x q)
+        tail = k_ss.shape[len(S) + 2:]  # () for variances, (q,) for covariances
+        if padded.num_items == 0:  # no items yet: the prior
+            return k_ss.new_zeros(shape + (q,)), k_ss.reshape(*shape, q, *tail)
+        if not S:  # one problem: one kernel call for all test points
+            K_xs = kernel(padded.X, Xe.reshape(E * q, d)).reshape(1, -1, E, q)
+        else:
+            K_xs = kernel(padded.X.expand(E, *padded.X.shape), Xe)  # E x S x N x q
+            K_xs = padded.cross_covariance(K_xs).movedim(0, -2).reshape(S.numel(), -1, E, q)
+        mean, cov = predict(self.pred, K_xs, k_ss.movedim(0, len(S)).reshape(S.numel(), E, q, *tail))
+        mean = mean.reshape(*S, E, q).movedim(len(S), 0)
+        cov = cov.reshape(*S, E, q, *tail).movedim(len(S), 0)
+        return mean.reshape(*shape, q), cov.reshape(*shape, q, *tail)
