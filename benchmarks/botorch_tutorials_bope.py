@@ -42,7 +42,8 @@ from botorch.utils.sampling import draw_sobol_samples  # noqa: E402
 from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from botorch_tutorials_common import MODELS, RESULTS, Record, fit_preference_model, paired_summary, seed_all, timed  # noqa: E402
+from botorch_tutorials_common import (  # noqa: E402
+    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, seed_all, timed)
 
 X_DIM, Y_DIM = 5, 4
 NUM_RESTARTS, NUM_OUTCOME_SAMPLES, RAW_SAMPLES, BATCH_LIMIT = 8, 32, 64, 4
@@ -169,9 +170,7 @@ def plot(rows, strategies, path) -> None:
         for s in strategies:
             ys = np.array([r[f"{s}_checks"] for r in rows if r["model"] == name])
             if len(ys):
-                sem = ys.std(0, ddof=1) / np.sqrt(len(ys)) if len(ys) > 1 else 0 * ys.mean(0)
-                ax.errorbar(EVERY_N_COMPS * np.arange(ys.shape[1]) + 1, ys.mean(0), yerr=1.96 * sem, ls=style,
-                            label=f"{name} {s}", capsize=2)
+                errorbar_curve(ax, EVERY_N_COMPS * np.arange(ys.shape[1]) + 1, ys, ls=style, label=f"{name} {s}")
     ax.set(xlabel="comparisons", ylabel="true utility of the max-posterior-mean design",
            title=f"bope tutorial, {len({r['seed'] for r in rows})} seeds (mean, 95% CI)")
     ax.legend(fontsize=8)

@@ -96,6 +96,12 @@ def paired_summary(rows: list[dict], key: str, higher_is_better: bool) -> dict:
     return out
 
 
+def errorbar_curve(ax, x, ys: np.ndarray, **kwargs) -> None:
+    """Mean of the ``seeds x points`` curves ``ys`` with a 95% confidence band of the mean."""
+    sem = ys.std(0, ddof=1) / np.sqrt(len(ys)) if len(ys) > 1 else 0 * ys.mean(0)
+    ax.errorbar(x, ys.mean(0), yerr=1.96 * sem, capsize=2, **kwargs)
+
+
 def _mean(x):
     return float(np.mean(x)) if len(x) else math.nan
 

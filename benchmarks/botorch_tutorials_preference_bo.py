@@ -31,7 +31,8 @@ from botorch.acquisition.preference import AnalyticExpectedUtilityOfBestOption  
 from botorch.optim import optimize_acqf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from botorch_tutorials_common import MODELS, RESULTS, Record, fit_preference_model, paired_summary, seed_all, timed  # noqa: E402
+from botorch_tutorials_common import (  # noqa: E402
+    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, seed_all, timed)
 
 DIM, NOISE, Q, Q_COMP = 4, 0.1, 2, 1
 NUM_RESTARTS, RAW_SAMPLES = 3, 512
@@ -134,8 +135,7 @@ def plot(rows: list[dict], path) -> None:
         for arm in ("EUBO", "rand"):
             ys = np.array([r[f"{arm}_best"] for r in rows if r["model"] == name])
             if len(ys):
-                m, s = ys.mean(0), ys.std(0, ddof=1) / np.sqrt(len(ys)) if len(ys) > 1 else 0 * ys.mean(0)
-                ax.errorbar(np.arange(ys.shape[1]), m, yerr=1.96 * s, ls=style, label=f"{name} {arm}", capsize=2)
+                errorbar_curve(ax, np.arange(ys.shape[1]), ys, ls=style, label=f"{name} {arm}")
     ax.axhline(utility(torch.ones(1, DIM, dtype=torch.float64)).item(), color="k", lw=1, label="optimum")
     ax.set(xlabel="query (q = 2, one comparison each)", ylabel="best utility seen",
            title=f"preference_bo tutorial, {len({r['seed'] for r in rows})} seeds (mean, 95% CI)")
