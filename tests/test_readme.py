@@ -15,8 +15,8 @@ def test_readme_has_a_quick_start():
 
 
 def test_readme_code_runs(capsys):
+    namespace: dict = {}  # the blocks build on each other, as a reader runs them
     for block in _python_blocks():
-        namespace: dict = {}
         exec(compile(block, str(README), "exec"), namespace)
     model = namespace["model"]
     assert model.train_X.shape[0] == 13  # the quick start's 12 items plus the UCB point

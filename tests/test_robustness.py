@@ -1,8 +1,9 @@
 """Hundreds of small random problems, extreme hyperparameters included: the mode converges and
 nothing is NaN (mode, posterior mean / variance, evidence and its gradient)."""
 
-import math
+import sys
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -10,41 +11,20 @@ from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from torchpref.models import PreferenceGP
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import fuzz_problems as fp  # noqa: E402
+
 F64 = torch.float64
 
 
 def random_config(seed):
-    g = torch.Generator().manual_seed(seed)
-
-    def logu(lo, hi):
-        return math.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * float(torch.rand((), generator=g, dtype=F64)))
-
-    n = int(torch.randint(2, 16, (), generator=g))
-    d = int(torch.randint(1, 4, (), generator=g))
-    kind = ["mixed", "comparisons", "ratings"][int(torch.randint(0, 3, (), generator=g))]
-    cfg = dict(seed=seed, n=n, d=d, kind=kind, lengthscale=logu(1e-3, 1e3), outputscale=logu(1e-2, 1e2),
-               comparison_noise=logu(1e-3, 10.0), rating_scale=logu(0.1, 3.0), rating_precision=logu(1.0, 1e3))
-    X = torch.rand(n, d, generator=g, dtype=F64)
-    if torch.rand((), generator=g) < 0.3:  # duplicated items (same coordinates, separate indices)
-        X[n // 2:] = X[: n - n // 2].clone()
-    p = int(torch.randint(1, 3 * n, (), generator=g)) if kind != "ratings" else 0
-    q = int(torch.randint(1, 2 * n, (), generator=g)) if kind != "comparisons" else 0
-    i = torch.randint(0, n, (p,), generator=g)
-    j = (i + torch.randint(1, max(n, 2), (p,), generator=g)) % n
-    C = torch.stack([i, j], -1)
-    if p and torch.rand((), generator=g) < 0.4:  # contradictory comparisons: both orders
-        C = torch.cat([C, C.flip(-1)])
-    ri = torch.randint(0, n, (q,), generator=g)
-    mode_u = int(torch.randint(0, 3, (), generator=g))
-    if mode_u == 0:  # near 0 and 1
-        u = torch.where(torch.rand(q, generator=g) < 0.5, torch.full((q,), 1e-6, dtype=F64),
-                        torch.full((q,), 1 - 1e-6, dtype=F64))
-    elif mode_u == 1:
-        u = torch.rand(q, generator=g, dtype=F64).clamp(1e-4, 1 - 1e-4)
-    else:  # the same item rated inconsistently
-        u = torch.linspace(0.05, 0.95, q, dtype=F64)
-        ri = torch.zeros(q, dtype=torch.long)
-    return cfg, X, C, u, ri
+    """The hostile problem of ``seed`` from the fuzz (``benchmarks/fuzz_problems.py``), at most 15
+    items, with hostile likelihood parameters for every kind."""
+    p = fp.make_problem(seed, max_n=15, pairwise_likelihood=False)
+    cfg = dict(seed=seed, n=p.n, d=p.X.shape[-1], kind=p.kind, lengthscale=p.lengthscale,
+               outputscale=p.outputscale, **p.likelihood)
+    return cfg, p.X, p.comparisons, p.ratings, p.rating_index
 
 
 def check(seed):

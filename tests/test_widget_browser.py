@@ -3,7 +3,8 @@
 
 Checks that each option's picture is rendered by the browser and shows a path on the map (its
 pixels hold the path's colour), and that a click on "A is best" is recorded in the session file.
-Skipped where Chromium (Debian's ``chromium``), Voilà or Playwright is missing.
+Skipped where Chromium (Debian's ``chromium``, or the browser at ``TORCHPREF_CHROMIUM``), Voilà or
+Playwright is missing.
 
 ``TORCHPREF_SCREENSHOT_DIR=benchmarks/results`` also writes the page's screenshot there as
 ``widget_lake.png`` (by default it goes to the test's temporary folder only).
@@ -22,9 +23,10 @@ from pathlib import Path
 
 import pytest
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+CHROMIUM = os.environ.get("TORCHPREF_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 if not os.path.exists(CHROMIUM):
-    pytest.skip("no Chromium (Debian: apt-get install chromium)", allow_module_level=True)
+    pytest.skip(f"no Chromium at {CHROMIUM} (Debian: apt-get install chromium; or set TORCHPREF_CHROMIUM)",
+                allow_module_level=True)
 pytest.importorskip("voila", reason="Voilà is not installed (the test extra)")
 sync_api = pytest.importorskip("playwright.sync_api", reason="Playwright is not installed (the test extra)")
 pytest.importorskip("ipywidgets")

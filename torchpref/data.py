@@ -279,6 +279,9 @@ class PreferenceData:
 
 def _check_index(name: str, index, n: int, device) -> Tensor:
     t = _as_tensor(index, device=device)
+    if t.dtype == torch.bool:  # a mask would be read as the indices 0 and 1
+        raise ValueError(f"{name} must hold integer indices, got a bool tensor {t.flatten()[:5].tolist()} "
+                         "(for a mask, use mask.nonzero()).")
     if t.is_floating_point():
         if not torch.isfinite(t).all() or (t != t.round()).any():
             raise ValueError(f"{name} must hold integer indices, got {t.flatten()[:5].tolist()}.")

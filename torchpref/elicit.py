@@ -78,16 +78,21 @@ class LakeWorld(FeaturesWorld):
     noun = "path"
 
     def __init__(self, seed: int, out_dir: Path):
-        from torchpref.lake import make_scenario
+        from torchpref.lake.scenario import cached_scenario, scenario_cache_path
 
-        self.scenario = make_scenario(seed)
+        if not scenario_cache_path(seed).exists():
+            print(f"Building the lake of seed {seed} (once; it is cached in {scenario_cache_path(seed).parent}) ...",
+                  file=sys.stderr)
+        self.scenario = cached_scenario(seed, progress=True)
         self.out_dir = out_dir
         super().__init__(self.scenario.train_X, ["distance", "information"], None)
 
     def label(self, i: int | None) -> str:
+        """``path i`` (``-`` for ``None``)."""
         return "-" if i is None else f"path {i}"
 
     def show(self, query: Query, number: int, out: TextIO) -> None:
+        """Write a map of the query's paths, labelled by their letters, and say where it is."""
         rows = list(query.indices) if isinstance(query, RankingQuery) else [query.index]
         letters = LETTERS[: len(rows)] if isinstance(query, RankingQuery) else ["?"]
         title = (f"Query {number}: which path is best?" if isinstance(query, RankingQuery)
@@ -96,57 +101,43 @@ class LakeWorld(FeaturesWorld):
         print(f"Map of the {'paths' if len(rows) > 1 else 'path'}: {png}", file=out)
 
     def finish(self, session: PreferenceSession, out: TextIO) -> None:
-        i, x = session.best_item()
-        png = plot_paths(self.scenario, [i], ["best"], "The path the robot would pick",
-                         self.out_dir / "best-path.png")
-        import torchpref.lake as lake
+        """Plan a path with the learned utility, draw it with the pool's best and recommend one."""
+        from torchpref.experiments.lake_plan import PLAN_SETTINGS, plan_for_model
+        from torchpref.lake.plotting import plot_paths as plot_map
 
-        planner = getattr(lake, "plan_with_utility", None)
-        if planner is not None:
-            try:
-                planned = planner(self.scenario, lambda X: session.predict(X)[0])
-                print(f"Planned with your learned utility: {planned}", file=out)
-            except Exception as exc:  # the planning API is new: fall back on the pool
-                print(f"(planning with the learned utility failed: {exc}; showing the best pool path)", file=out)
-        print(f"The robot would plan path {i}: distance {float(x[0]):.1f}, information {float(x[1]):.1f}. "
-              f"Map: {png}", file=out)
+        i, x = session.best_item()
+        print(f"The robot would plan path {i}: distance {float(x[0]):.1f}, information {float(x[1]):.1f}.", file=out)
+        rows = torch.arange(self.scenario.train_X.shape[0])
+        plan = plan_for_model(self.scenario, session.model, session.bounds, rows)
+        d, info = plan["planned_objectives"]
+        shown = plan["shown_row"]
+        sure = 100 * float(torch.special.ndtr(torch.tensor(float(PLAN_SETTINGS["beta"]))))
+        if plan["source"] == "fallback":
+            text = (f"Recommended: path {shown} (the best path you answered about): no planned path is at least "
+                    f"{sure:.0f} % sure to be better.")
+        else:
+            text = (f"Recommended: a planned path, distance {d:.1f}, information {info:.1f}: the learned utility is "
+                    f"at least {sure:.0f} % sure it beats path {shown}, the best path you answered about.")
+        paths = [self.scenario.train_paths[i], self.scenario.train_paths[shown]]
+        labels = [f"pool's best (path {i}): d={float(x[0]):.0f}, I={float(x[1]):.0f}",
+                  f"best answered (path {shown}{', recommended' if plan['source'] == 'fallback' else ''}): "
+                  f"d={plan['shown_objectives'][0]:.0f}, I={plan['shown_objectives'][1]:.0f}"]
+        if plan["source"] != "fallback":
+            paths.append(torch.tensor(plan["path"]))
+            labels.append(f"planned (recommended): d={d:.0f}, I={info:.0f}")
+        png = plot_map(self.scenario, paths, labels, self.out_dir / "best-path.png",
+                       title="The pool's best path, the best answered path and the planned path")
+        print(f"{text} Map: {png}", file=out)
 
 
 def plot_paths(scenario, rows: list[int], letters, title: str, path: Path) -> Path:
-    """The information field over the lake with the training paths ``rows``, labelled, as a PNG."""
-    import matplotlib
+    """The lake's map (:func:`torchpref.lake.plotting.plot_paths`: field with colour bar, land
+    masked) with the training paths ``rows``, labelled by ``letters``, as a PNG."""
+    from torchpref.lake.plotting import plot_paths as plot_map
 
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Polygon
-
-    lake, field = scenario.lake, scenario.field
-    fig, ax = plt.subplots(figsize=(7, 4.8))
-    xmin, xmax, ymin, ymax = field.extent
-    ax.imshow(field.grid.numpy(), origin="lower", extent=(xmin, xmax, ymin, ymax), cmap="YlOrRd", alpha=0.8)
-    ax.add_patch(Polygon(lake.vertices.numpy(), closed=True, facecolor="none", edgecolor="#3b3b3b", lw=1.5))
-    colours = ["#1f3fbf", "#111111", "#2ca02c", "#9467bd", "#17becf", "#8c564b", "#e377c2"]
-    for k, (r, letter) in enumerate(zip(rows, letters)):
-        xy = scenario.train_paths[r].numpy()
-        c = colours[k % len(colours)]
-        ax.plot(xy[:, 0], xy[:, 1], color=c, lw=2, label=f"{letter}: d={float(scenario.train_X[r, 0]):.0f}, "
-                f"I={float(scenario.train_X[r, 1]):.0f}")
-        mid = xy[len(xy) // 2]
-        ax.annotate(str(letter), mid, fontsize=12, fontweight="bold", color=c,
-                    bbox=dict(boxstyle="round", fc="white", ec=c, alpha=0.9))
-    for pt, name in ((lake.start, "start"), (lake.goal, "goal")):
-        ax.plot(*pt.tolist(), "o", color="white", mec="black", ms=9)
-        ax.annotate(name, pt.tolist(), xytext=(6, 6), textcoords="offset points")
-    ax.set_xlim(xmin, xmax)
-    ax.set_ylim(ymin, ymax)
-    ax.set_aspect("equal")
-    ax.set_title(title)
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.05), ncol=min(3, len(rows)), fontsize=8, frameon=False)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    X = scenario.train_X
+    labels = [f"{letter}: d={float(X[r, 0]):.0f}, I={float(X[r, 1]):.0f}".lstrip(": ") for r, letter in zip(rows, letters)]
+    return plot_map(scenario, [scenario.train_paths[r] for r in rows], labels, Path(path), title=title, dpi=90)
 
 
 # ----------------------------------------------------------------------------- terminal

@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from torchpref.newton import NewtonOptions, newton_mode
-from torchpref.numerics import NotPSDError
+from torchpref.numerics import NotPSDError, default_tolerance
 from torchpref.observations import Observations, Term, item_term, pairwise_term  # noqa: F401  (re-exported)
 
 
@@ -76,7 +76,7 @@ def find_mode(
     obs: Observations,
     f0: Tensor | None = None,
     max_iter: int = 100,
-    tol: float = 1e-11,
+    tol: float | None = None,
     max_chord: int = 3,
     single_precision_min_size: int = 256,
     chord_min_size: int = 128,
@@ -98,7 +98,8 @@ def find_mode(
         f0: ``B x n`` (or ``n``) warm start (e.g. the previous mode); zeros by default.
         max_iter: iteration budget (factorisations).
         tol: a problem has converged when half its Newton decrement ``grad^T B^{-1} grad / 2``
-            (an estimate of the distance to the optimum in log-posterior units) is below ``tol``.
+            (an estimate of the distance to the optimum in log-posterior units) is below ``tol``;
+            default :func:`~torchpref.numerics.default_tolerance` of ``L``'s dtype.
         max_chord: chord steps per factorisation (0: plain Newton).
         single_precision_min_size: from this ``n`` on, float64 problems take their steps far
             from the mode (Newton decrement above 1) in float32, falling back to float64 if that
@@ -110,6 +111,7 @@ def find_mode(
     if single:
         L, f0 = L[None], None if f0 is None else f0[None]
     n = L.shape[-1]
+    tol = default_tolerance(L.dtype) if tol is None else tol
     opts = NewtonOptions(max_iter, tol, max_chord if n >= chord_min_size else 0,
                          L.dtype == torch.float64 and n >= single_precision_min_size)
     with torch.no_grad():

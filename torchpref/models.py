@@ -3,10 +3,13 @@ r"""``PreferenceGP``: a BoTorch model of a latent utility learned from ratings a
 from __future__ import annotations
 
 import math
+import numbers
+import warnings
 from typing import Any
 
 import torch
 from botorch.acquisition.objective import PosteriorTransform
+from botorch.exceptions.warnings import InputDataWarning
 from botorch.models.model import Model
 from botorch.models.transforms.input import InputTransform
 from botorch.sampling.base import MCSampler
@@ -26,6 +29,7 @@ from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.fantasy import fantasize
 from torchpref.laplace import ModeResult, Observations, laplace_evidence
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.numerics import pin_coincident
 from torchpref.padding import PaddedData
 from torchpref.posterior_state import PosteriorState, fingerprint
 
@@ -101,7 +105,12 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         input_transform: a BoTorch input transform (e.g. ``Normalize``), applied to ``train_X``
             and to every input of :meth:`posterior`.
         rating_eps: where exact 0 / 1 ratings are moved to.
-        max_newton_iter: iteration budget of the mode finder.
+        max_newton_iter: iteration budget of the mode finder (at least 1).
+
+    Warns:
+        InputDataWarning: (BoTorch's) for inputs in a dtype other than float64, and for training
+            items (after ``input_transform``) outside the unit cube, whose scale the default
+            kernel's lengthscale prior assumes (docs/decisions.md).
 
     Example:
         >>> model = PreferenceGP(X, comparisons=C, ratings=u, rating_index=idx)
@@ -135,6 +144,14 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         else:
             data = _create_data(train_X, comparisons, ratings, rating_index, rating_eps)
         X = data.train_X if isinstance(data, PreferenceData) else data.X
+        if X.dtype != torch.float64:
+            warnings.warn(
+                f"train_X is {X.dtype}; float64 is recommended (as in BoTorch): float32 kernel matrices "
+                "need about 1e4 times more diagonal jitter and posteriors agree with float64 to about "
+                "1e-3 (docs/decisions.md).",
+                InputDataWarning,
+                stacklevel=2,
+            )
         self.covar_module = covar_module if covar_module is not None else default_covar_module(X.shape[-1])
         self.likelihood = PreferenceLikelihood(
             PairwiseProbitLikelihood(comparison_noise, learn=learn_likelihood),
@@ -144,12 +161,25 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
             self.input_transform = input_transform
         self.rating_eps = rating_eps
         self.max_newton_iter = max_newton_iter
+        self._scaling_warned = False
         self.to(device=X.device, dtype=X.dtype)
         self._data: PreferenceData | PaddedData = data
         self._cache: PosteriorState | None = None
         self._warm_f: Tensor | None = None
         self._fit_input_transform()
+        self._check_scaling()
         self.eval()
+
+    @property
+    def max_newton_iter(self) -> int:
+        """Iteration budget of the mode finder (an integer, at least 1)."""
+        return self._max_newton_iter
+
+    @max_newton_iter.setter
+    def max_newton_iter(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+            raise ValueError(f"max_newton_iter must be an integer of at least 1, got {value!r}.")
+        self._max_newton_iter = int(value)
 
     # ------------------------------------------------------------------ data
     @property
@@ -223,6 +253,27 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
                 tf(self.train_X)
             tf.train(was_training)
 
+    def _check_scaling(self) -> None:
+        """BoTorch's ``InputDataWarning`` (once per model) when the items, after the input
+        transform, leave the unit cube by more than BoTorch's tolerance of 0.01."""
+        X = self._transformed_train_X()
+        if self._scaling_warned or X.shape[-2] == 0:
+            return
+        with torch.no_grad():
+            X = X.reshape(-1, X.shape[-1])
+            lo, hi = X.min(0).values, X.max(0).values
+        out = ((lo < -0.01) | (hi > 1.01)).nonzero().reshape(-1).tolist()
+        if out:
+            self._scaling_warned = True
+            ranges = ", ".join(f"column {i}: [{float(lo[i]):.3g}, {float(hi[i]):.3g}]" for i in out[:5])
+            warnings.warn(
+                f"the items are not contained in the unit cube ({ranges}); the default kernel's "
+                f"lengthscale prior assumes inputs in [0, 1]: pass input_transform=Normalize(d={X.shape[-1]}, "
+                "bounds=...) with your domain's bounds (botorch.models.transforms), or scale the items yourself.",
+                InputDataWarning,
+                stacklevel=3,
+            )
+
     def _transformed_train_X(self) -> Tensor:
         tf = getattr(self, "input_transform", None)
         if tf is None:
@@ -238,16 +289,18 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         return self._padded().observations(self.likelihood.comparison, self.likelihood.rating)
 
     def _set_data(self, data: PreferenceData | PaddedData, warm_f: Tensor | None) -> None:
-        """Swap in new data; re-solve the mode first and keep the old state if that fails."""
+        """Swap in new data; re-solve the mode first and keep the old state if that fails or is
+        interrupted (``BaseException``: a ``KeyboardInterrupt`` leaves nothing half-updated)."""
         old = (self._data, self._cache, self._warm_f)
         self._data, self._cache, self._warm_f = data, None, warm_f
         try:
             self._fit_input_transform()
             self._state()
-        except Exception:
+        except BaseException:
             self._data, self._cache, self._warm_f = old
             self._fit_input_transform()
             raise
+        self._check_scaling()
 
     def add_observations(
         self,
@@ -294,15 +347,22 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
     def _kernel(self, X1: Tensor, X2: Tensor | None = None, diag: bool = False) -> Tensor:
         """Dense ``k(X1, X2)`` (or its diagonal): the kernel's ``forward`` directly (the values
         ``__call__`` would give, without building a lazy kernel tensor) unless a kernel selects
-        ``active_dims``."""
+        ``active_dims``; below float64, exact at coincident points
+        (:func:`~torchpref.numerics.pin_coincident`)."""
         k = self.covar_module
         X2 = X1 if X2 is None else X2
         if any(getattr(m, "active_dims", None) is not None for m in k.modules()):
-            out = k(X1, X2, diag=diag)
+            def evaluate(A, B, diag):
+                out = k(A, B, diag=diag)
+                return out if diag else out.to_dense()
         else:
-            out = k.forward(X1, X2, diag=diag)
+            evaluate = k.forward
+        out = evaluate(X1, X2, diag=diag)
         # kernels such as LinearKernel return a LinearOperator from forward: evaluate it densely
-        return out.to_dense() if isinstance(out, LinearOperator) else out
+        out = out.to_dense() if isinstance(out, LinearOperator) else out
+        if diag or out.dtype == torch.float64:  # float64's round-off there is ~1e-16: not worth a pass
+            return out
+        return pin_coincident(out, X1, X2, evaluate(X1, X1, diag=True))
 
     def _state(self) -> PosteriorState:
         """The mode and prediction cache for the current hyperparameters and data (cached)."""
@@ -384,9 +444,20 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         return post
 
     def _prediction_inputs(self, X: Tensor) -> Tensor:
-        """``X`` checked (``... x d``), the model in eval mode, the input transform applied."""
+        """``X`` checked (``... x d``, finite; a lower floating precision is converted to the
+        model's, as BoTorch's models do), the model in eval mode, the input transform applied."""
         if self._data.dim and X.shape[-1] != self._data.dim:  # dim 0: a prior-only model takes any d
             raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
+        dtype = self.train_X.dtype
+        if X.dtype != dtype and X.is_floating_point():
+            if torch.finfo(X.dtype).eps < torch.finfo(dtype).eps:  # would lose precision: say so
+                raise ValueError(f"X is {X.dtype} but the model is {dtype}: convert one of them "
+                                 f"(X.to({dtype}) or model.to(...)).")
+            X = X.to(dtype)  # BoTorch's optimisers and objectives hand over float32 candidates
+        finite = torch.isfinite(X.detach())
+        if not bool(finite.all()):
+            bad = X.detach()[~finite][:3].tolist()
+            raise ValueError(f"X must be finite, got {int((~finite).sum())} non-finite value(s) such as {bad}.")
         if self.training:
             self.eval()
         return self.transform_inputs(X)

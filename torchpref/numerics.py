@@ -13,8 +13,15 @@ from torch import Tensor
 
 LOG_2PI_HALF = 0.5 * math.log(2 * math.pi)
 
-#: The largest absolute diagonal jitter ever added to a kernel matrix (float64).
-MAX_JITTER = 1e-6
+#: Diagonal jitter relative to the matrix's mean diagonal, per dtype: ``(first, largest)``.
+#: float64 tries ``1e-10`` up to ``1e-6``; float32 starts where linear_operator's
+#: ``psd_safe_cholesky`` does (``1e-6``, about eight float32 epsilons) and goes one tenfold step
+#: beyond its largest (``1e-4``), since a kernel matrix of 1,000 items accumulates ``n eps`` of
+#: round-off in its factorisation.
+RELATIVE_JITTER = {torch.float64: (1e-10, 1e-6), torch.float32: (1e-6, 1e-3)}
+
+#: The largest diagonal jitter for float64 matrices with a unit diagonal.
+MAX_JITTER = RELATIVE_JITTER[torch.float64][1]
 
 
 class NotPSDError(_LinearOperatorNotPSDError):
@@ -28,6 +35,14 @@ class NotPSDError(_LinearOperatorNotPSDError):
 
 class JitterWarning(UserWarning):
     """Diagonal jitter was added to a matrix to make its Cholesky factorisation succeed."""
+
+
+def default_tolerance(dtype: torch.dtype) -> float:
+    r"""Newton's stopping tolerance for the Laplace mode in ``dtype``: ``1e-11`` (log-posterior
+    units) in float64; ten epsilons of ``dtype`` where that is coarser (``1.2e-6`` in float32,
+    whose round-off keeps the Newton decrement near ``1e-8`` at ``n`` = 1,500, so that
+    ``1e-11`` is never reached)."""
+    return max(1e-11, 10 * torch.finfo(dtype).eps)
 
 
 def log_ndtr(z: Tensor) -> Tensor:
@@ -65,9 +80,28 @@ def gauss_hermite(n: int, like: Tensor, expectation: bool = True) -> tuple[Tenso
     return (x, w / math.sqrt(math.pi)) if expectation else (x, w)
 
 
-def jitter_schedule(max_jitter: float = MAX_JITTER) -> list[float]:
-    """The diagonal jitters tried in turn: 0, then ``1e-10`` growing tenfold up to ``max_jitter``."""
-    return [0.0] + [10.0**e for e in range(-10, 1 + int(math.floor(math.log10(max_jitter))))]
+def relative_jitter(dtype: torch.dtype) -> tuple[float, float]:
+    """``(first, largest)`` diagonal jitter for ``dtype``, relative to the diagonal's scale
+    (:data:`RELATIVE_JITTER`; other dtypes start at eight of their epsilons)."""
+    if dtype in RELATIVE_JITTER:
+        return RELATIVE_JITTER[dtype]
+    first = 10.0 ** math.ceil(math.log10(8 * torch.finfo(dtype).eps))
+    return first, min(1e3 * first, 1e-1)
+
+
+def diagonal_scale(A: Tensor) -> Tensor:
+    """The mean of the diagonal of ``A`` (``... x n x n`` -> ``...``), or 1 where that is not a
+    positive finite number: the scale that jitter is relative to (the outputscale of a
+    stationary kernel)."""
+    s = A.diagonal(dim1=-2, dim2=-1).mean(-1)
+    return torch.where(torch.isfinite(s) & (s > 0), s, torch.ones_like(s))
+
+
+def jitter_schedule(dtype: torch.dtype = torch.float64, scale: float = 1.0) -> list[float]:
+    """The diagonal jitters tried in turn: 0, then :func:`relative_jitter`'s first amount growing
+    tenfold up to its largest (as ``psd_safe_cholesky`` escalates), each times ``scale``."""
+    first, largest = (round(math.log10(v)) for v in relative_jitter(dtype))
+    return [0.0] + [scale * 10.0**e for e in range(first, largest + 1)]
 
 
 def cholesky_batch(A: Tensor, jitters: Sequence[float] | Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -99,41 +133,50 @@ def cholesky_batch(A: Tensor, jitters: Sequence[float] | Tensor) -> tuple[Tensor
     return L, jitter, info > 0
 
 
-def batched_cholesky(A: Tensor, max_jitter: float = MAX_JITTER, name: str = "matrix") -> tuple[Tensor, Tensor]:
+def batched_cholesky(A: Tensor, name: str = "matrix") -> tuple[Tensor, Tensor]:
     r"""Cholesky factors of a batch ``T x n x n``, adding diagonal jitter (:func:`jitter_schedule`,
-    as :func:`cholesky_jittered`) only to the matrices whose plain factorisation fails.
+    relative to each matrix's :func:`diagonal_scale`, as :func:`cholesky_jittered`) only to the
+    matrices whose plain factorisation fails.
 
     Returns:
         ``(L, jitter)`` with ``jitter`` the ``T`` amounts used.
 
     Raises:
-        NotPSDError: naming the matrices still not positive definite at ``max_jitter``.
+        NotPSDError: naming the matrices still not positive definite at the largest jitter.
     """
-    L, jitter, failed = cholesky_batch(A, jitter_schedule(max_jitter))
+    rel = torch.tensor(jitter_schedule(A.dtype), dtype=A.dtype, device=A.device)
+    L, jitter, failed = cholesky_batch(A, rel.unsqueeze(-1) * diagonal_scale(A).unsqueeze(0))
     if bool(failed.any()):
         bad = failed.nonzero().reshape(-1).tolist()
-        raise NotPSDError(f"the {name} of trials {bad} is not positive definite even with jitter {max_jitter:g}.")
+        raise NotPSDError(
+            f"the {name} of trials {bad} is not positive definite even with jitter "
+            f"{relative_jitter(A.dtype)[1]:g} times its mean diagonal."
+        )
     return L, jitter
 
 
-def cholesky_jittered(
-    A: Tensor, jitter: float | None = None, max_jitter: float = MAX_JITTER, name: str = "matrix"
-) -> tuple[Tensor, float]:
+def cholesky_jittered(A: Tensor, jitter: float | None = None, name: str = "matrix") -> tuple[Tensor, float]:
     r"""Cholesky factor of ``A``, adding diagonal jitter only if plain factorisation fails.
 
-    The jitter starts at ``jitter`` (or 0, then ``1e-10``) and grows tenfold up to ``max_jitter``
-    (absolute). A :class:`JitterWarning` is issued when jitter above ``1e-8`` was needed.
+    The jitter tried first is ``jitter`` (e.g. the amount an earlier factorisation of a similar
+    matrix needed), then :func:`jitter_schedule`: 0, then growing tenfold from the first to the
+    largest amount of :func:`relative_jitter` for ``A``'s dtype, times ``A``'s
+    :func:`diagonal_scale`. A :class:`JitterWarning` is issued when more than a hundred times the
+    first amount was needed.
 
     Returns:
         ``(L, jitter_used)`` with ``L L^T = A + jitter_used I``.
 
     Raises:
-        NotPSDError: if ``A + max_jitter I`` is still not positive definite, or ``A`` has NaNs.
+        NotPSDError: if ``A`` plus the largest jitter is still not positive definite, or ``A``
+        has non-finite entries.
     """
-    tries = ([] if jitter is None else [jitter]) + jitter_schedule(max_jitter)
+    scale = float(diagonal_scale(A))
+    first, largest = relative_jitter(A.dtype)
+    tries = ([] if jitter is None else [jitter]) + jitter_schedule(A.dtype, scale)
     eye = None
     for j in tries:
-        if j > max_jitter:
+        if j > largest * scale:
             continue
         if j == 0:
             L, info = torch.linalg.cholesky_ex(A)
@@ -142,12 +185,38 @@ def cholesky_jittered(
                 eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
             L, info = torch.linalg.cholesky_ex(A + j * eye)
         if not info.any():
-            if j > 1e-8 and (jitter is None or j != jitter):
-                warnings.warn(f"added jitter {j:.0e} to the diagonal of the {name}", JitterWarning, stacklevel=3)
+            if j > 100 * first * scale and (jitter is None or j != jitter):
+                warnings.warn(
+                    f"added jitter {j:.1e} ({j / scale:.0e} of its mean diagonal) to the diagonal of the {name}",
+                    JitterWarning,
+                    stacklevel=3,
+                )
             return L, j
     if not torch.isfinite(A).all():  # checked only on failure: it costs a pass over A
         raise NotPSDError(f"{name} has non-finite entries; cannot factorise it.")
-    raise NotPSDError(f"{name} is not positive definite even with jitter {max_jitter:.0e} on its diagonal.")
+    raise NotPSDError(
+        f"{name} ({A.dtype}, n = {A.shape[-1]}) is not positive definite even with jitter "
+        f"{largest * scale:.1e} ({largest:.0e} of its mean diagonal {scale:.3g}) on its diagonal."
+    )
+
+
+def pin_coincident(K: Tensor, X1: Tensor, X2: Tensor, k_same: Tensor) -> Tensor:
+    r"""``K`` with its entries at coincident points (``X1[i] == X2[j]``) set to ``k(x, x)``.
+
+    GPyTorch computes squared distances as ``|x|^2 - 2 x^T y + |y|^2`` and zeroes those of a
+    point with itself only when no input requires a gradient, so with autograd on (inside
+    ``optimize_acqf``, or through a lengthscale being fitted) ``k(x, x)`` comes back off by
+    round-off, about ``1e-4`` relative in float32 at a lengthscale of 0.01; the kernel's
+    ``diag=True`` path (``x - x = 0``) is exact. The result stays differentiable.
+
+    Args:
+        K: ``... x n x m`` kernel matrix ``k(X1, X2)``.
+        X1: ``... x n x d`` points.
+        X2: ``... x m x d`` points.
+        k_same: ``... x n`` values ``k(X1[i], X1[i])``.
+    """
+    same = (X1.unsqueeze(-2) == X2.unsqueeze(-3)).all(-1)
+    return torch.where(same, k_same.unsqueeze(-1).to(K), K)
 
 
 def lower_t_matmul(L: Tensor, X: Tensor, blocks: int = 4, min_size: int = 256) -> Tensor:

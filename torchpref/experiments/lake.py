@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import functools
 import math
+import os
+import pickle
 import time
 from concurrent.futures import Executor
 from pathlib import Path
@@ -39,15 +41,18 @@ import torch
 
 from torchpref.active import run_active_learning
 from torchpref.data import likert_to_unit
-from torchpref.experiments import runner
-from torchpref.experiments.results import fraction_ratings, mean_sem, paired_tests, plot_mean_sem, write_json, write_summary_csv
-from torchpref.experiments.runner import run_trials, single_threaded
 from botorch.utils.transforms import normalize as normalise
 from botorch.utils.transforms import unnormalize as unnormalise
 
+from torchpref.experiments import runner
+from torchpref.experiments.lake_plan import (PLAN_SETTINGS, fresh_paths, plan_for_model, plot_plan_levels,
+                                             plot_plan_maps, summarise_plans)
+from torchpref.experiments.results import (fraction_ratings, mean_sem, paired_tests, plot_mean_sem, write_json,
+                                           write_summary_csv)
+from torchpref.experiments.runner import run_trials, single_threaded
 from torchpref.lake.operator import LakeOperator
-from torchpref.lake.plan import plan_with_utility
-from torchpref.lake.scenario import LakeScenario, make_scenario
+from torchpref.lake.plotting import plot_field, plot_objectives
+from torchpref.lake.scenario import SCENARIO_VERSION, LakeScenario, cached_scenario, scenario_cache_path
 from torchpref.metrics import wrms
 from torchpref.queries import FinitePool, first_unique_rows
 
@@ -57,8 +62,6 @@ MODEL_SETTINGS = {"lengthscale": 0.15, "outputscale": 1.0, "comparison_noise": 0
 M = 5
 GAMMA = 3.0
 STRATEGIES = ["UCBC", "random ratings", "UCB ratings", "info per effort"]
-PLAN_TRIALS = 5
-PLAN_OPTIONS = {"num_starts": 3, "steps": 100, "lr": 1.0}
 
 
 make_selector = functools.partial(runner.make_selector, m=M, gamma=GAMMA)
@@ -86,25 +89,21 @@ def pool_bounds(scenario: LakeScenario) -> torch.Tensor:
     return torch.stack([X.min(0).values, X.max(0).values])
 
 
-def model_utility(model, bounds: torch.Tensor):
-    """The posterior mean of ``model`` (trained on objectives normalised by ``bounds``) as a
-    differentiable function of the lake's objectives ``n x 2`` -> ``n``."""
-
-    def utility(X: torch.Tensor) -> torch.Tensor:
-        Z = normalise(X, bounds)
-        return model.posterior(Z.unsqueeze(-2)).mean.reshape(Z.shape[:-1])
-
-    return utility
-
-
 def trial_seeds(seed: int, trials: int) -> list[int]:
     """``trials`` per-trial seeds derived from the run's ``seed``."""
     return runner.trial_seeds(int(seed) + 1, trials)
 
 
 def run_trial(scenario: LakeScenario, trial_seed: int, queries: int, strategies: tuple[str, ...],
-              plan: bool = False) -> dict[str, Any]:
+              plan: tuple[str, ...] = (), plan_settings: dict[str, Any] | None = None,
+              fresh: torch.Tensor | None = None) -> dict[str, Any]:
     r"""One trial: every strategy from the same first comparison on the shared scenario.
+
+    Args:
+        plan: the strategies whose final model plans a path
+            (:func:`~torchpref.experiments.lake_plan.plan_for_model`).
+        plan_settings: overrides of :data:`~torchpref.experiments.lake_plan.PLAN_SETTINGS`.
+        fresh: fresh planner paths to start from too.
 
     Returns:
         ``{strategy: {"error5": [Q+1], "wrms": [Q+1], "chosen_rating": [Q+1], "kinds": [Q],
@@ -141,20 +140,15 @@ def run_trial(scenario: LakeScenario, trial_seed: int, queries: int, strategies:
         entry = {k: hist.metric(k) for k in ("error5", "wrms", "chosen_rating")}
         entry["kinds"] = [r.query.kind for r in hist.records]
         entry["plan"] = None
-        if plan:
-            res = plan_with_utility(scenario, model_utility(model, bounds), **PLAN_OPTIONS)
-            entry["plan"] = {"planned_level": int(operator.level(res.objectives)),
-                             "pool_level": int(operator.level(res.start_objectives)),
-                             "planned": bool(res.planned),
-                             "planned_objectives": res.objectives.tolist(),
-                             "pool_objectives": res.start_objectives.tolist(),
-                             "utility_gain": res.utility - res.start_utility}
+        if name in plan:
+            entry["plan"] = plan_for_model(scenario, model, bounds, keep, fresh, plan_settings)
         out[name] = entry
     return out
 
 
 def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str, Any]:
-    """Per-query mean ± SEM, final values, share rated 5, paired tests and planning results."""
+    """Per-query mean ± SEM, final values, share rated 5, paired tests and planning results
+    (:func:`~torchpref.experiments.lake_plan.summarise_plans`)."""
     per_query = {}
     for s in strategies:
         entry = {}
@@ -175,20 +169,56 @@ def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str,
     for s in strategies:
         plans = [r[s]["plan"] for r in results if r[s]["plan"] is not None]
         if plans:
-            planning[s] = {
-                "n": len(plans),
-                "planned_level_mean": sum(p["planned_level"] for p in plans) / len(plans),
-                "pool_level_mean": sum(p["pool_level"] for p in plans) / len(plans),
-                "planned_better": sum(p["planned_level"] > p["pool_level"] for p in plans),
-                "planned_worse": sum(p["planned_level"] < p["pool_level"] for p in plans),
-                "optimised_path_kept": sum(p["planned"] for p in plans),
-                "trials": plans,
-            }
+            planning[s] = summarise_plans(plans)
     return {"per_query": per_query,
             "final": {s: {k: [per_query[s][f"{k}_mean"][-1], per_query[s][f"{k}_sem"][-1]]
                           for k in ("error5", "wrms", "chosen_rating")} for s in strategies},
             "share_rated_5": share5, "paired_tests": tests, "planning": planning,
             "fraction_ratings": fraction_ratings(results, strategies)}
+
+
+def prepare_lake(seed: int, cache_dir: str | Path | None, num_fresh: int) -> tuple[LakeScenario, torch.Tensor | None]:
+    """The scenario of ``seed`` (:func:`~torchpref.lake.scenario.cached_scenario`) and, with
+    ``num_fresh > 0``, its fresh planner paths (:func:`~torchpref.experiments.lake_plan.fresh_paths`,
+    cached beside it)."""
+    single_threaded()
+    scenario = cached_scenario(seed, cache_dir)
+    if num_fresh <= 0:
+        return scenario, None
+    path = scenario_cache_path(seed, cache_dir).with_name(f"fresh-v{SCENARIO_VERSION}-seed{seed}-n{num_fresh}.pt")
+    try:
+        return scenario, torch.load(path, weights_only=True)
+    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError):
+        fresh = fresh_paths(scenario, num_fresh, torch.Generator().manual_seed(seed))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        torch.save(fresh, tmp)
+        os.replace(tmp, path)
+        return scenario, fresh
+
+
+def _write_files(out: Path, result: dict[str, Any], summary: dict[str, Any], strategies: list[str],
+                 scenarios: list[LakeScenario], results: list[dict[str, Any]], lake_of: list[int]) -> None:
+    write_json(out / "lake.json", result)
+    write_summary_csv(out / "lake.csv", summary["per_query"], x_name="queries")
+    write_json(out / "lake_summary.json", summary)
+    x = list(range(result["queries"] + 1))
+    pq = summary["per_query"]
+    plot_mean_sem(out / "lake.png", [
+        ("error on paths rated 5", {s: (x, pq[s]["error5_mean"], pq[s]["error5_sem"]) for s in strategies}),
+        ("WRMS", {s: (x, pq[s]["wrms_mean"], pq[s]["wrms_sem"]) for s in strategies}),
+        ("rating of chosen path", {s: (x, pq[s]["chosen_rating_mean"], pq[s]["chosen_rating_sem"])
+                                   for s in strategies}),
+    ], title=f"Lake monitoring, {len(scenarios)} lake(s) x {result['trials']} trials (mean ± s.e.)")
+    plot_field(scenarios[0], out / "lake_field.png")
+    plot_objectives(scenarios[0], out / "lake_objectives.png")
+    planned = [s for s in strategies if results[0][s]["plan"] is not None]
+    if planned:
+        plot_plan_maps(scenarios[0], {s: results[0][s]["plan"] for s in planned}, out / "lake_plan_maps.png")
+        s = planned[0]
+        rows = [i for i, r in enumerate(results) if r[s]["plan"] is not None]
+        plot_plan_levels([results[i][s]["plan"] for i in rows], [lake_of[i] for i in rows], out / "lake_plan_levels.png",
+                         title=f"{s}: operator's level of the planned path, the pool pick and the best shown path")
 
 
 def run_lake_experiment(
@@ -201,78 +231,120 @@ def run_lake_experiment(
     workers: int | None = None,
     strategies: list[str] | None = None,
     scenario: LakeScenario | None = None,
-    plan_trials: int = PLAN_TRIALS,
+    lakes: int = 1,
+    plan: list[str] | None = None,
+    plan_trials: int | None = None,
+    plan_settings: dict[str, Any] | None = None,
+    cache_dir: str | Path | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
     r"""Run the lake experiment and (if ``out`` is given) write its files.
 
-    One scenario is built from ``seed`` for the whole run (unless ``scenario`` is given); the
-    trials share it and differ by their trial seed (first comparison, selector randomness).
+    Lake ``k`` (``k = 0 .. lakes - 1``) is the scenario of seed ``seed + k``, built once and
+    cached on disk (:func:`~torchpref.lake.scenario.cached_scenario`); its ``trials`` trials
+    differ by their trial seed (first comparison, selector randomness), derived from the lake's
+    seed. Lake 0 with the default arguments is the one-lake run of earlier versions.
 
-    Files in ``out``: ``lake.json`` (``{"trials", "queries", "strategies": {name: {"error5_mean",
-    "error5_sem", "wrms_mean", "wrms_sem", "chosen_rating_mean", "chosen_rating_sem"}}}``, one
-    value per query count 0..Q), ``lake.csv`` (the same, long format), ``lake.png`` (three
-    panels, mean ± standard error) and ``lake_summary.json`` (final values, share of trials
-    whose chosen path is rated 5, paired tests, planned vs pool path, wall time).
+    Files in ``out``: ``lake.json`` (``{"trials", "queries", "lakes", "strategies": {name:
+    {"error5_mean", "error5_sem", "wrms_mean", "wrms_sem", "chosen_rating_mean",
+    "chosen_rating_sem"}}}``, one value per query count 0..Q, pooled over lakes), ``lake.csv``
+    (the same, long format), ``lake.png`` (three panels, mean ± standard error),
+    ``lake_summary.json`` (pooled and per-lake final values, share of trials whose chosen path is
+    rated 5, paired tests, planned vs pool path, wall time), the first lake's maps
+    ``lake_field.png`` and ``lake_objectives.png``, and with planning ``lake_plan_maps.png`` (the
+    first trial's paths per strategy) and ``lake_plan_levels.png`` (levels over the trials).
 
     Args:
-        trials: number of trials.
+        trials: trials per lake.
         queries: queries per trial.
-        seed: the run's seed (scenario and per-trial seeds).
+        seed: the run's seed (lake ``k`` has seed ``seed + k``).
         out: output folder, or ``None``.
         executor: any ``concurrent.futures.Executor`` (default: a process pool of ``workers``).
         workers: processes of the default pool.
         strategies: a subset of :data:`STRATEGIES` (default all).
-        scenario: a prebuilt scenario (default ``make_scenario(seed)``).
-        plan_trials: plan with each strategy's final model in this many first trials.
-        progress: show a progress bar.
+        scenario: a prebuilt scenario (then ``lakes`` must be 1).
+        lakes: number of lakes.
+        plan: strategies whose final model plans a path (default ``["UCBC"]``, the default
+            selector of a session; ``[]``: no planning).
+        plan_trials: plan in this many first trials of each lake (default all).
+        plan_settings: overrides of :data:`~torchpref.experiments.lake_plan.PLAN_SETTINGS`.
+        fresh: fresh planner paths to start from too.
+        cache_dir: where scenarios are cached (default
+            :func:`~torchpref.lake.scenario.default_cache_dir`).
+        progress: show progress bars (scenarios, then trials).
 
     Returns:
         The ``lake.json`` content with ``"summary"`` added.
     """
+    if lakes < 1 or (scenario is not None and lakes != 1):
+        raise ValueError(f"lakes must be a positive integer (1 with a given scenario), got {lakes}.")
     strategies = runner.check_run(queries, strategies, STRATEGIES)
+    plan = runner.check_run(queries, ["UCBC"] if plan is None else plan, STRATEGIES)
+    settings = {**PLAN_SETTINGS, **(plan_settings or {})}
+    num_fresh = int(settings["fresh_weights"]) if plan and settings["num_fresh"] > 0 else 0
     t0 = time.perf_counter()
+    seeds = [seed + k for k in range(lakes)]
     if scenario is None:
-        scenario = make_scenario(seed)
+        prepared = run_trials(prepare_lake, [(s, cache_dir, num_fresh) for s in seeds], executor=executor,
+                              progress=progress, workers=workers, description="lake scenarios")
+    else:
+        prepared = [(scenario, fresh_paths(scenario, num_fresh, torch.Generator().manual_seed(seed))
+                     if num_fresh else None)]
     t_scenario = time.perf_counter() - t0
-    args = [(scenario, s, queries, tuple(strategies), i < plan_trials)
-            for i, s in enumerate(trial_seeds(seed, trials))]
+    plan_trials = trials if plan_trials is None else plan_trials
+    args, lake_of = [], []
+    for k, (lake_seed, (scen, fresh)) in enumerate(zip(seeds, prepared)):
+        for i, ts in enumerate(trial_seeds(lake_seed, trials)):
+            args.append((scen, ts, queries, tuple(strategies), tuple(plan) if i < plan_trials else (), settings, fresh))
+            lake_of.append(k)
     results = run_trials(run_trial, args, executor=executor, progress=progress, workers=workers,
                          description="lake trials")
     wall = time.perf_counter() - t0
     summary = summarise(results, strategies)
-    summary.update(trials=trials, queries=queries, seed=seed, wall_time_s=wall, scenario_time_s=t_scenario,
-                   workers=workers, settings={"model": MODEL_SETTINGS, "m": M, "gamma": GAMMA,
-                                              "plan": PLAN_OPTIONS, "plan_trials": plan_trials,
-                                              "test_paths_rated_5": int((LakeOperator().level(scenario.test_X) == 5).sum())})
-    result = {"trials": trials, "queries": queries, "strategies": summary["per_query"]}
+    if lakes > 1:
+        summary["per_lake"] = {str(s): _lake_summary(summarise([r for r, k2 in zip(results, lake_of) if k2 == k],
+                                                              strategies))
+                               for k, s in enumerate(seeds)}
+    # every plan without its path (the paths are drawn, not stored)
+    summary["plans"] = [{"lake": seeds[k], "strategy": s, **{key: v for key, v in r[s]["plan"].items() if key != "path"}}
+                        for r, k in zip(results, lake_of) for s in strategies if r[s]["plan"] is not None]
+    summary.update(trials=trials, queries=queries, seed=seed, lakes=lakes, lake_seeds=seeds, wall_time_s=wall,
+                   scenario_time_s=t_scenario, workers=workers,
+                   settings={"model": MODEL_SETTINGS, "m": M, "gamma": GAMMA, "plan": settings, "plan_strategies": plan,
+                             "plan_trials": plan_trials,
+                             "test_paths_rated_5": [int((LakeOperator().level(sc.test_X) == 5).sum())
+                                                    for sc, _ in prepared]})
+    result = {"trials": trials, "queries": queries, "lakes": lakes, "strategies": summary["per_query"]}
     if out is not None:
-        out = Path(out)
-        write_json(out / "lake.json", result)
-        write_summary_csv(out / "lake.csv", summary["per_query"], x_name="queries")
-        write_json(out / "lake_summary.json", summary)
-        x = list(range(queries + 1))
-        pq = summary["per_query"]
-        plot_mean_sem(out / "lake.png", [
-            ("error on paths rated 5", {s: (x, pq[s]["error5_mean"], pq[s]["error5_sem"]) for s in strategies}),
-            ("WRMS", {s: (x, pq[s]["wrms_mean"], pq[s]["wrms_sem"]) for s in strategies}),
-            ("rating of chosen path", {s: (x, pq[s]["chosen_rating_mean"], pq[s]["chosen_rating_sem"])
-                                       for s in strategies}),
-        ], title=f"Lake monitoring, {trials} trials (mean ± s.e.)")
+        _write_files(Path(out), result, summary, strategies, [sc for sc, _ in prepared], results, lake_of)
     result["summary"] = summary
     return result
 
 
+def _lake_summary(summary: dict[str, Any]) -> dict[str, Any]:
+    """The per-lake part of a summary: final values, share rated 5 and planning (no trials)."""
+    return {"final": summary["final"], "share_rated_5": summary["share_rated_5"],
+            "planning": {s: {k: v for k, v in p.items() if k != "paired"} for s, p in summary["planning"].items()}}
+
+
 def run(args) -> int:
     """``torchpref reproduce lake``: run and report."""
+    lakes = getattr(args, "lakes", 1) or 1
     res = run_lake_experiment(trials=args.trials, queries=args.queries, seed=args.seed, out=args.out,
-                              workers=getattr(args, "workers", None))
+                              workers=getattr(args, "workers", None), lakes=lakes,
+                              cache_dir=getattr(args, "cache", None))
     s = res["summary"]
-    print(f"{args.trials} trials x {args.queries} queries in {s['wall_time_s']:.1f} s "
-          f"(scenario {s['scenario_time_s']:.1f} s); files in {args.out}")
+    print(f"{lakes} lake(s) x {args.trials} trials x {args.queries} queries in {s['wall_time_s']:.1f} s "
+          f"(scenarios {s['scenario_time_s']:.1f} s); files in {args.out}")
+    print("  error5: mean |expected - true rating| on test paths rated 5 (lower is better); WRMS: weighted RMS "
+          "error (lower is better);\n  chosen: level of the test path the model ranks first; share 5: share of "
+          "trials where it is rated 5; mean ± standard error over trials")
     for name, v in s["final"].items():
-        p = s["planning"].get(name)
-        plan = f"   plan {p['planned_level_mean']:.2f} vs pool {p['pool_level_mean']:.2f}" if p else ""
         print(f"  {name:16s} error5 {v['error5'][0]:.3f} ± {v['error5'][1]:.3f}   WRMS {v['wrms'][0]:.3f} ± "
-              f"{v['wrms'][1]:.3f}   chosen {v['chosen_rating'][0]:.2f}   share 5 {s['share_rated_5'][name]:.2f}{plan}")
+              f"{v['wrms'][1]:.3f}   chosen {v['chosen_rating'][0]:.2f}   share 5 {s['share_rated_5'][name]:.2f}")
+    for name, p in s["planning"].items():
+        print(f"  planning with {name}'s model ({p['n']} plans): planned path rated at least as high as the pool pick "
+              f"in {100 * p['at_least_as_good']:.0f} %, strictly better (finer measure) in {100 * p['strictly_better']:.0f} %; "
+              f"mean level planned {p['planned_level_mean']:.2f}, pick {p['pick_level_mean']:.2f}, "
+              f"best shown {p['shown_level_mean']:.2f}")
     return 0

@@ -18,7 +18,7 @@ from .field import InformationField, bilinear_sample
 from .geometry import Lake
 from .objectives import path_information, path_length, segment_midpoints
 
-__all__ = ["stomp", "rrt_star", "path_cost", "resample_by_arc_length"]
+__all__ = ["stomp", "rrt_star", "path_cost", "pad_paths", "resample_by_arc_length", "shore_distance_grid"]
 
 
 def _check_weights(weights) -> Tensor:
@@ -35,14 +35,28 @@ def path_cost(paths: Tensor, field: InformationField, weights: Tensor, *, step: 
     return length + weights * (field.max * length - info)
 
 
-def _sdf_grid(lake: Lake, extent: tuple[float, float, float, float], spacing: float) -> Tensor:
-    xmin, xmax, ymin, ymax = extent
-    nx = int((xmax - xmin) / spacing) + 2
-    ny = int((ymax - ymin) / spacing) + 2
-    xs = torch.linspace(xmin, xmax, nx, dtype=torch.float64)
-    ys = torch.linspace(ymin, ymax, ny, dtype=torch.float64)
+def shore_distance_grid(lake: Lake, margin: float, spacing: float = 3.0) -> tuple[Tensor, tuple[float, float, float, float]]:
+    """:meth:`Lake.signed_distance` tabulated on a grid of ``spacing`` over the lake's bounds padded
+    by ``2 margin + 10``: ``(grid, extent)`` for :func:`bilinear_sample`, a cheap differentiable
+    shore penalty for optimisers (the exact test stays :meth:`Lake.path_on_water`)."""
+    xmin, xmax, ymin, ymax = lake.bounds
+    pad = 2 * margin + 10.0
+    extent = (xmin - pad, xmax + pad, ymin - pad, ymax + pad)
+    nx = int((extent[1] - extent[0]) / spacing) + 2
+    ny = int((extent[3] - extent[2]) / spacing) + 2
+    xs = torch.linspace(extent[0], extent[1], nx, dtype=torch.float64)
+    ys = torch.linspace(extent[2], extent[3], ny, dtype=torch.float64)
     pts = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)
-    return lake.signed_distance(pts)
+    return lake.signed_distance(pts), extent
+
+
+def pad_paths(paths) -> Tensor:
+    """Stack paths (each ``T_i x 2``, or batches ``n_i x T_i x 2``) into one ``n x T x 2`` tensor,
+    the shorter ones padded by repeating their last point (which changes neither their length
+    nor their information)."""
+    batches = [p.unsqueeze(0) if p.dim() == 2 else p for p in paths]
+    T = max(p.shape[1] for p in batches)
+    return torch.cat([torch.cat([p, p[:, -1:].expand(-1, T - p.shape[1], -1)], dim=1) for p in batches])
 
 
 def resample_by_arc_length(paths: Tensor, num_points: int) -> Tensor:
@@ -137,9 +151,7 @@ def stomp(
     L = torch.linalg.cholesky(R_inv) / R_inv.diagonal().max().sqrt()  # largest noise std is 1
 
     xmin, xmax, ymin, ymax = lake.bounds
-    pad = 2 * margin + 10.0
-    sdf_extent = (xmin - pad, xmax + pad, ymin - pad, ymax + pad)
-    sdf = _sdf_grid(lake, sdf_extent, spacing=3.0)
+    sdf, sdf_extent = shore_distance_grid(lake, margin)
     fmax = field.max
     w4 = w.view(-1, 1, 1, 1)
 

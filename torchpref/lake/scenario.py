@@ -4,7 +4,11 @@ training and test sets of planned paths with their objectives ``[distance, infor
 from __future__ import annotations
 
 import math
+import os
+import pickle
+import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -12,9 +16,10 @@ from torch import Tensor
 from .field import InformationField
 from .geometry import Lake
 from .objectives import path_objectives
-from .planners import rrt_star, stomp
+from .planners import pad_paths, rrt_star, stomp
 
-__all__ = ["LakeScenario", "make_scenario", "PLANNERS"]
+__all__ = ["LakeScenario", "make_scenario", "PLANNERS", "SCENARIO_VERSION", "cached_scenario", "default_cache_dir",
+           "load_scenario", "save_scenario", "scenario_cache_path"]
 
 PLANNERS = ("stomp", "rrt_star")
 """Planner names; ``LakeScenario.train_planner`` holds indices into this tuple."""
@@ -44,15 +49,6 @@ class LakeScenario:
     test_X: Tensor
     test_planner: Tensor
     test_weights: Tensor
-
-
-def _pad_cat(a: Tensor, b: Tensor) -> Tensor:
-    T = max(a.shape[1], b.shape[1])
-
-    def pad(p: Tensor) -> Tensor:
-        return torch.cat([p, p[:, -1:].expand(-1, T - p.shape[1], -1)], dim=1)
-
-    return torch.cat([pad(a), pad(b)])
 
 
 def make_scenario(
@@ -114,7 +110,7 @@ def make_scenario(
         w_eff = w / field.max
         a = stomp(lake, field, w_eff, generator=generator, progress=progress, **(stomp_options or {}))
         b = rrt_star(lake, field, w_eff, generator=generator, progress=progress, **(rrt_options or {}))
-        paths = _pad_cat(a, b)
+        paths = pad_paths([a, b])
         planner = torch.cat([torch.zeros(paths_per_planner), torch.ones(paths_per_planner)]).long()
         return paths, path_objectives(paths, field), planner, torch.cat([w, w])
 
@@ -133,3 +129,75 @@ def make_scenario(
         train = (train[0], train[1] * torch.tensor([1.0, scale], dtype=torch.float64), *train[2:])
         test = (test[0], test[1] * torch.tensor([1.0, scale], dtype=torch.float64), *test[2:])
     return LakeScenario(lake, field, *train, *test)
+
+
+SCENARIO_VERSION = 1
+"""Version of :func:`make_scenario`'s output; bump it whenever the same seed would build a
+different scenario, so that cached scenarios of the old builder are not used."""
+
+_TENSORS = ("train_paths", "train_X", "train_planner", "train_weights", "test_paths", "test_X", "test_planner",
+            "test_weights")
+
+
+def default_cache_dir() -> Path:
+    """``$TORCHPREF_CACHE/lake``, else ``$XDG_CACHE_HOME/torchpref/lake``, else ``~/.cache/torchpref/lake``."""
+    root = os.environ.get("TORCHPREF_CACHE")
+    if root:
+        return Path(root) / "lake"
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "torchpref" / "lake"
+
+
+def scenario_cache_path(seed: int, cache_dir: str | os.PathLike | None = None) -> Path:
+    """The file holding the scenario of ``seed`` (keyed by the seed and :data:`SCENARIO_VERSION`)."""
+    folder = default_cache_dir() if cache_dir is None else Path(cache_dir)
+    return folder / f"scenario-v{SCENARIO_VERSION}-seed{int(seed)}.pt"
+
+
+def save_scenario(scenario: LakeScenario, path: str | os.PathLike) -> Path:
+    """Write ``scenario`` to ``path`` atomically (a temporary file, then a rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {"version": SCENARIO_VERSION, "vertices": scenario.lake.vertices, "start": scenario.lake.start,
+             "goal": scenario.lake.goal, "grid": scenario.field.grid, "extent": list(scenario.field.extent),
+             **{k: getattr(scenario, k) for k in _TENSORS}}
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def load_scenario(path: str | os.PathLike) -> LakeScenario:
+    """Read a scenario written by :func:`save_scenario`.
+
+    Raises:
+        ValueError: the file is not a scenario of this :data:`SCENARIO_VERSION`.
+    """
+    try:
+        state = torch.load(path, weights_only=True)
+        if state.get("version") != SCENARIO_VERSION:
+            raise ValueError(f"version {state.get('version')}, expected {SCENARIO_VERSION}")
+        lake = Lake(state["vertices"], state["start"], state["goal"])
+        field = InformationField(state["grid"], tuple(state["extent"]))
+        return LakeScenario(lake, field, *(state[k] for k in _TENSORS))
+    except (OSError, RuntimeError, KeyError, TypeError, ValueError, AttributeError, EOFError,
+            pickle.UnpicklingError) as exc:
+        raise ValueError(f"{path} is not a usable lake scenario: {exc}") from exc
+
+
+def cached_scenario(seed: int, cache_dir: str | os.PathLike | None = None, *, progress: bool = False) -> LakeScenario:
+    """The scenario ``make_scenario(seed)``, built once and then read from ``cache_dir``
+    (default :func:`default_cache_dir`). An unreadable cache file is rebuilt with a warning."""
+    path = scenario_cache_path(seed, cache_dir)
+    if path.exists():
+        try:
+            return load_scenario(path)
+        except ValueError as exc:
+            warnings.warn(f"rebuilding the lake scenario of seed {seed}: {exc}", RuntimeWarning, stacklevel=2)
+    scenario = make_scenario(seed, progress=progress)
+    try:
+        save_scenario(scenario, path)
+    except OSError as exc:
+        warnings.warn(f"could not cache the lake scenario of seed {seed} in {path.parent}: {exc}", RuntimeWarning,
+                      stacklevel=2)
+    return scenario

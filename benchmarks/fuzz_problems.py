@@ -1,0 +1,192 @@
+r"""Hostile preference problems and the checks run on each, shared by ``tests/test_fuzz.py`` (a small
+sample) and ``benchmarks/fuzz.py`` (a thousand and more).
+
+A problem (:func:`make_problem`, from a seed): ``n`` log-uniform in ``1 .. max_n`` items in
+``[0, 1]^d``, some duplicated; comparisons (some contradictory: both orders), ratings (some at
+``1e-6`` from 0 or 1, or the same item rated inconsistently), or both; kernel lengthscale
+``1e-3 .. 1e3`` and outputscale ``1e-2 .. 1e2`` (log-uniform), and for problems with ratings the
+likelihood's ``sigma_R``, ``sigma_B`` and ``nu`` as hostile. Comparisons-only problems use
+``sigma_R = 1``, BoTorch's ``PairwiseGP`` likelihood, so that ``PairwiseGP`` solves the same problem.
+
+:func:`check` runs a problem in float32 and float64 (and ``PairwiseGP`` in float32 on
+comparisons-only problems): the exception raised if any, whether anything is NaN, whether Newton
+converged, and how far float32's posterior is from float64's, with autograd off and on (the
+inputs requiring a gradient, as inside ``optimize_acqf``).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import torch
+from gpytorch.kernels import RBFKernel, ScaleKernel
+from torch import Tensor
+
+from torchpref import PreferenceGP
+from torchpref.numerics import cholesky_jittered
+
+F32, F64 = torch.float32, torch.float64
+KINDS = ("comparisons", "ratings", "mixed")
+
+
+@dataclass
+class Problem:
+    """One hostile problem (float64 tensors; indices long)."""
+
+    seed: int
+    kind: str
+    X: Tensor
+    comparisons: Tensor
+    ratings: Tensor
+    rating_index: Tensor
+    lengthscale: float
+    outputscale: float
+    likelihood: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return self.X.shape[0]
+
+
+def _log_uniform(lo: float, hi: float, g: torch.Generator) -> float:
+    return math.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * float(torch.rand((), generator=g, dtype=F64)))
+
+
+def make_problem(seed: int, max_n: int = 1500, pairwise_likelihood: bool = True) -> Problem:
+    """The hostile problem of ``seed`` (see the module docstring); with ``pairwise_likelihood=False``
+    comparisons-only problems get hostile likelihood parameters too."""
+    g = torch.Generator().manual_seed(seed)
+    n = max(1, min(max_n, round(_log_uniform(1.0, max_n, g))))
+    d = int(torch.randint(1, 5, (), generator=g))
+    kind = KINDS[int(torch.randint(0, 3, (), generator=g))] if n > 1 else "ratings"
+    X = torch.rand(n, d, generator=g, dtype=F64)
+    if n > 1 and torch.rand((), generator=g) < 0.3:  # duplicated items (same coordinates, two indices)
+        X[n // 2:] = X[: n - n // 2].clone()
+    p = int(torch.randint(1, 3 * n, (), generator=g)) if kind != "ratings" else 0
+    i = torch.randint(0, n, (p,), generator=g)
+    j = (i + torch.randint(1, max(n, 2), (p,), generator=g)) % n
+    C = torch.stack([i, j], -1)
+    if p and torch.rand((), generator=g) < 0.4:  # contradictory comparisons: both orders
+        C = torch.cat([C, C.flip(-1)])
+    q = int(torch.randint(1, 2 * n + 1, (), generator=g)) if kind != "comparisons" else 0
+    ri = torch.randint(0, n, (q,), generator=g)
+    style = int(torch.randint(0, 3, (), generator=g))
+    if style == 0:  # 1e-6 from the ends
+        u = torch.where(torch.rand(q, generator=g) < 0.5, torch.full((q,), 1e-6, dtype=F64),
+                        torch.full((q,), 1 - 1e-6, dtype=F64))
+    elif style == 1:
+        u = torch.rand(q, generator=g, dtype=F64).clamp(1e-4, 1 - 1e-4)
+    else:  # one item rated all over the scale
+        u, ri = torch.linspace(0.05, 0.95, q, dtype=F64), torch.zeros(q, dtype=torch.long)
+    lengthscale, outputscale = _log_uniform(1e-3, 1e3, g), _log_uniform(1e-2, 1e2, g)
+    lik = {"comparison_noise": 1.0}
+    if kind != "comparisons" or not pairwise_likelihood:
+        lik = {"comparison_noise": _log_uniform(1e-3, 10.0, g), "rating_scale": _log_uniform(0.1, 3.0, g),
+               "rating_precision": _log_uniform(1.0, 1e3, g)}
+    # float32-representable data: the float64 twin sees exactly the float32 model's inputs
+    X, u = X.float().double(), u.float().double()
+    lengthscale, outputscale = float(torch.tensor(lengthscale, dtype=F32)), float(torch.tensor(outputscale, dtype=F32))
+    lik = {k: float(torch.tensor(v, dtype=F32)) for k, v in lik.items()}
+    return Problem(seed, kind, X, C, u, ri, lengthscale, outputscale, lik)
+
+
+def kernel(problem: Problem, dtype: torch.dtype) -> ScaleKernel:
+    k = ScaleKernel(RBFKernel(ard_num_dims=problem.X.shape[-1])).to(dtype)
+    k.base_kernel.lengthscale = problem.lengthscale
+    k.outputscale = problem.outputscale
+    return k
+
+
+def query_points(problem: Problem, num: int = 8) -> Tensor:
+    """``num`` fresh points and up to 4 training items (``m x d`` float64)."""
+    g = torch.Generator().manual_seed(problem.seed + 7)
+    return torch.cat([torch.rand(num, problem.X.shape[-1], generator=g, dtype=F64), problem.X[:4]])
+
+
+def build(problem: Problem, dtype: torch.dtype) -> PreferenceGP:
+    C = problem.comparisons if problem.comparisons.numel() else None
+    r, ri = (problem.ratings, problem.rating_index) if problem.ratings.numel() else (None, None)
+    return PreferenceGP(problem.X.to(dtype), C, r.to(dtype) if r is not None else None, ri,
+                        covar_module=kernel(problem, dtype), **problem.likelihood)
+
+
+def posterior_moments(model, X: Tensor, grad: bool) -> tuple[Tensor, Tensor]:
+    """Joint posterior mean and covariance at ``X`` (``m x d``, the model's dtype), float64; with
+    ``grad`` the inputs require a gradient (and one is taken, as an optimiser would)."""
+    if grad:
+        X = X.clone().requires_grad_(True)
+        with torch.enable_grad():
+            mvn = model.posterior(X).distribution
+            mvn.mean.sum().backward()
+    else:
+        with torch.no_grad():
+            mvn = model.posterior(X).distribution
+    return mvn.mean.detach().double(), mvn.covariance_matrix.detach().double()
+
+
+def _run(problem: Problem, dtype: torch.dtype, Xq: Tensor) -> dict:
+    """One model: its outcome and moments (``None`` where it raised)."""
+    out = {"error": None, "nan": False, "converged": None, "iterations": None, "moments": None, "jitter": None}
+    try:
+        model = build(problem, dtype)
+        with torch.no_grad():  # the jitter the model's factorisation needs (the same function)
+            K = model.covar_module(problem.X.to(dtype)).to_dense()
+            out["jitter"] = cholesky_jittered(K)[1] / problem.outputscale if problem.n else 0.0
+        mode = model.mode
+        out["converged"], out["iterations"] = bool(mode.converged), int(mode.iterations)
+        out["moments"] = {grad: posterior_moments(model, Xq.to(dtype), grad) for grad in (False, True)}
+        out["nan"] = not bool(torch.isfinite(mode.f).all()) or any(
+            not (torch.isfinite(m).all() and torch.isfinite(S).all()) for m, S in out["moments"].values())
+    except Exception as e:  # noqa: BLE001 - the outcome is what is measured
+        out["error"] = f"{type(e).__name__}: {str(e)[:160]}"
+    return out
+
+
+def _pairwisegp(problem: Problem, Xq: Tensor) -> dict:
+    """BoTorch's ``PairwiseGP`` in float32 on a comparisons-only problem."""
+    from botorch.models.pairwise_gp import PairwiseGP
+
+    out = {"error": None, "nan": False}
+    try:
+        model = PairwiseGP(problem.X.to(F32), problem.comparisons, covar_module=kernel(problem, F32))
+        mean, cov = posterior_moments(model, Xq.to(F32), grad=False)
+        out["nan"] = not bool(torch.isfinite(mean).all() and torch.isfinite(cov).all())
+    except Exception as e:  # noqa: BLE001
+        out["error"] = f"{type(e).__name__}: {str(e)[:160]}"
+    return out
+
+
+def relative_gap(a: tuple[Tensor, Tensor], b: tuple[Tensor, Tensor], outputscale: float) -> tuple[float, float]:
+    r"""``(mean gap, covariance gap)`` of moments ``a`` from the reference ``b``: the largest mean
+    difference over ``max(max |mean_b|, sqrt(outputscale))``, the largest covariance difference over
+    the prior variance ``outputscale``."""
+    (ma, Sa), (mb, Sb) = a, b
+    mean_scale = max(float(mb.abs().max()), math.sqrt(outputscale))
+    return float((ma - mb).abs().max()) / mean_scale, float((Sa - Sb).abs().max()) / outputscale
+
+
+def check(problem: Problem, pairwisegp: bool = True) -> dict:
+    """Run ``problem`` in float64 and float32 (and ``PairwiseGP`` in float32 where it has only
+    comparisons); a flat record of the outcomes (see the module docstring)."""
+    Xq = query_points(problem)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # jitter, boundary and float32 warnings are expected here
+        r64, r32 = _run(problem, F64, Xq), _run(problem, F32, Xq)
+        pg = _pairwisegp(problem, Xq) if pairwisegp and problem.kind == "comparisons" else None
+    rec = {"seed": problem.seed, "kind": problem.kind, "n": problem.n, "d": problem.X.shape[-1],
+           "p": problem.comparisons.shape[0], "q": problem.ratings.shape[0], "lengthscale": problem.lengthscale,
+           "outputscale": problem.outputscale}
+    for name, r in (("f64", r64), ("f32", r32)):
+        rec.update({f"{name}_error": r["error"], f"{name}_nan": r["nan"], f"{name}_converged": r["converged"],
+                    f"{name}_iterations": r["iterations"], f"{name}_jitter": r["jitter"]})
+    for grad in (False, True):
+        tag = "grad" if grad else "nograd"
+        gaps = (None, None)
+        if r64["moments"] is not None and r32["moments"] is not None:
+            gaps = relative_gap(r32["moments"][grad], r64["moments"][False], problem.outputscale)
+        rec[f"gap_mean_{tag}"], rec[f"gap_cov_{tag}"] = gaps
+    rec["pairwisegp_error"] = pg["error"] if pg else None
+    rec["pairwisegp_nan"] = pg["nan"] if pg else None
+    return rec
