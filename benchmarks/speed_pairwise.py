@@ -110,7 +110,8 @@ def measure_mixed(repeats: int) -> float:
     X, C, u, ri = bc.make_mixed()
 
     def run():
-        m = bc.PreferenceGP(X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel())
+        m = bc.PreferenceGP(X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel(),
+                           comparison_noise=0.1)
         return m.mode
 
     run()
@@ -146,7 +147,8 @@ def _child(task: str, lib: str, n: int, p: int) -> None:
     if task == "mixed_mode":
         X, C, u, ri = bc.make_mixed(n, p)
         before = _reset_peak()
-        bc.PreferenceGP(X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel()).mode
+        bc.PreferenceGP(X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel(),
+                           comparison_noise=0.1).mode
     else:
         X, C = bc.make_comparisons(n, p)
         fitted = None

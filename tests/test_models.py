@@ -139,7 +139,7 @@ def test_condition_on_observations_leaves_original_unchanged(model, generator):
     before = model.posterior(Xs).mean.detach().clone()
     n, p, q = model.train_X.shape[0], model.comparisons.shape[0], model.ratings.shape[0]
     Xn = rand(2, 2, generator=generator)
-    new = model.condition_on_observations(Xn, torch.tensor([0.9, 0.2], dtype=torch.float64),
+    new = model.condition_on_observations(Xn, ratings=torch.tensor([0.9, 0.2], dtype=torch.float64),
                                           comparisons=torch.tensor([[0, 1]]))
     assert new is not model
     assert (model.train_X.shape[0], model.comparisons.shape[0], model.ratings.shape[0]) == (n, p, q)

@@ -225,7 +225,7 @@ def raw_units_use(seed, input_transform):
     C = torch.cat([torchpref.best_of_m(int(s[u[s].argmax()]), s) for s in shown])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        model = PreferenceGP(X, C, input_transform=input_transform)
+        model = PreferenceGP(X, C, input_transform=input_transform, comparison_noise=0.1)  # the value it was written for
         fit_gpytorch_mll(torchpref.LaplaceMarginalLogLikelihood(model))
     best = int(model.posterior(X).mean.detach().reshape(-1).argmax())
     return int((u > u[best]).sum()) + 1, [w for w in caught if issubclass(w.category, InputDataWarning)]

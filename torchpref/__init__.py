@@ -28,10 +28,11 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         prepare_ratings,
         unit_to_likert,
     )
+    from torchpref.botorch_api import TrainDataMismatchError
     from torchpref.laplace import LaplaceConvergenceWarning
     from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
     from torchpref.metrics import error_on_best, expected_rating, rating_from_latent, true_positives, wrms, wrms_authors
-    from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP, default_covar_module
+    from torchpref.models import PAPER_FIG4_SETTINGS, LaplaceMarginalLogLikelihood, PreferenceGP, default_covar_module
     from torchpref.numerics import JitterWarning, NotPSDError
     from torchpref.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
     from torchpref.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
@@ -65,6 +66,8 @@ _EXPORTS = {
     "likert_to_unit": "data",
     "NotPSDError": "numerics",
     "OrdinalRatingLikelihood": "ordinal",
+    "PAPER_FIG4_SETTINGS": "models",
+    "TrainDataMismatchError": "botorch_api",
     "PairwiseProbitLikelihood": "likelihoods",
     "PreferenceData": "data",
     "PreferenceGP": "models",

@@ -19,8 +19,6 @@ import torch
 from botorch.posteriors.gpytorch import GPyTorchPosterior
 from botorch.sampling.base import MCSampler
 from botorch.sampling.pairwise_samplers import PairwiseMCSampler
-from gpytorch.distributions import MultivariateNormal
-from linear_operator.operators import DenseLinearOperator
 from torch import Tensor
 
 from torchpref.data import prepare_levels, prepare_ratings
@@ -88,10 +86,7 @@ def perceived_utility(model: "PreferenceGP", X: Tensor) -> GPyTorchPosterior:
     r"""The posterior of ``f + eps`` at ``X`` with ``eps ~ N(0, sigma_R^2)`` independent per point:
     the utilities a person compares (eq. 3), so that ``P(f_i + eps_i > f_j + eps_j)`` is the
     probit likelihood of the comparison."""
-    mvn = model.posterior(X).distribution
-    noise = model.likelihood.comparison.comparison_noise.to(mvn.mean) ** 2
-    cov = mvn.covariance_matrix + noise * torch.eye(mvn.mean.shape[-1], dtype=mvn.mean.dtype, device=mvn.mean.device)
-    return GPyTorchPosterior(MultivariateNormal(mvn.mean, DenseLinearOperator(cov)))
+    return model.posterior(X, observation_noise=True)
 
 
 def sampled_comparisons(sampler: PairwiseMCSampler, posterior: GPyTorchPosterior) -> Tensor:

@@ -2,7 +2,6 @@ r"""``PreferenceGP``: a BoTorch model of a latent utility learned from ratings a
 
 from __future__ import annotations
 
-import copy
 import math
 import numbers
 import warnings
@@ -20,12 +19,14 @@ from gpytorch.kernels import Kernel, RBFKernel, ScaleKernel
 from gpytorch.mlls import MarginalLogLikelihood
 from gpytorch.models import GP
 from gpytorch.module import Module
+from gpytorch.constraints import GreaterThan
 from gpytorch.priors import GammaPrior, LogNormalPrior
-from linear_operator.operators import DenseLinearOperator
+from linear_operator.operators import DenseLinearOperator, LinearOperator
 from torch import Tensor
 
+from torchpref.botorch_api import PairwiseGPInterface, prior_only_data
 from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
-from torchpref.fantasy import condition_batch, fantasize
+from torchpref.fantasy import fantasize
 from torchpref.laplace import ModeResult, Observations, laplace_evidence
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.numerics import pin_coincident
@@ -34,14 +35,26 @@ from torchpref.padding import PaddedData
 from torchpref.posterior_state import PosteriorState, fingerprint
 
 
+#: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
+#: reproduce the paper: ``PreferenceGP(X, ..., **PAPER_FIG4_SETTINGS)`` (docs/botorch.md).
+PAPER_FIG4_SETTINGS = {"comparison_noise": 0.1, "rating_scale": 1.0, "rating_precision": 80.0}
+
+#: Lower bound of the default kernel's lengthscales (inputs in the unit cube).
+MIN_LENGTHSCALE = 1e-4
+
+
 def default_covar_module(dim: int) -> ScaleKernel:
     r"""``ScaleKernel(RBFKernel(ard_num_dims=d))`` (eq. 1) with BoTorch's dimension-scaled
     lengthscale prior ``LogNormal(sqrt 2 + log(d) / 2, sqrt 3)`` (inputs in the unit cube) and a
     ``Gamma(2, 1)`` prior on the outputscale ``sigma_f^2`` (utilities of order one on the
-    rating link's scale)."""
+    rating link's scale). Lengthscales stay above ``1e-4`` (as ``PairwiseGP``'s): at exactly 0,
+    where an optimiser's long step can send a softplus-constrained one, the kernel matrix is NaN.
+    ``dim = 0`` (not known yet: a prior-only model) gives one shared lengthscale with the
+    ``d = 1`` prior."""
     base = RBFKernel(
-        ard_num_dims=dim,
-        lengthscale_prior=LogNormalPrior(math.sqrt(2) + 0.5 * math.log(dim), math.sqrt(3)),
+        ard_num_dims=dim or None,
+        lengthscale_prior=LogNormalPrior(math.sqrt(2) + 0.5 * math.log(max(dim, 1)), math.sqrt(3)),
+        lengthscale_constraint=GreaterThan(MIN_LENGTHSCALE),
     )
     return ScaleKernel(base, outputscale_prior=GammaPrior(2.0, 1.0))
 
@@ -70,22 +83,31 @@ def _create_data(train_X, comparisons, ratings, rating_index, rating_eps: float,
                                  rating_levels=rating_levels)
 
 
-class PreferenceGP(Model, GP):
+class PreferenceGP(PairwiseGPInterface, Model, GP):
     r"""A GP over the items' objective space, learned from comparisons and ratings together.
 
     The latent utility ``f ~ GP(0, k)`` (eq. 1) is observed through comparisons (eq. 3) and
     ratings on ``[0, 1]`` (eqs. 4-7); the posterior is the Laplace approximation (eqs. 2, 8-10).
     The mode is re-solved, warm-started, whenever the hyperparameters or the data change.
 
+    BoTorch's ``PairwiseGP`` interface is there too (``datapoints``, ``dim``, ``utility``,
+    ``construct_inputs``, prior-only ``PreferenceGP(None, None)``, comparisons as
+    ``condition_on_observations(X, Y)``): see :class:`~torchpref.botorch_api.PairwiseGPInterface`
+    and docs/botorch.md.
+
     Args:
-        train_X: ``n x d`` items (float64 recommended; dtype and device are followed).
+        train_X: ``n x d`` items (float64 recommended; dtype and device are followed), or
+            ``None`` for a prior-only model (then no observations; ``d`` is set by the first
+            data).
         comparisons: ``p x 2`` long, rows ``[preferred, other]`` (BoTorch's convention).
         ratings: ``q`` values in ``[0, 1]``; exact 0 and 1 are moved in to ``rating_eps``.
         rating_index: ``q`` long indices into ``train_X``: the item each rating rates.
         covar_module: the kernel; default :func:`default_covar_module`.
-        comparison_noise: ``sigma_R`` of eq. 3 (default 0.1, the paper's Fig. 4).
-        rating_scale: ``sigma_B`` of eq. 7 (default 1.0, Fig. 4).
-        rating_precision: ``nu`` of eqs. 5-6 (default 80, Fig. 4).
+        comparison_noise: ``sigma_R`` of eq. 3 (default 1.0: BoTorch's ``PairwiseGP`` probit
+            ``Phi((f_i - f_j) / sqrt 2)``, which keeps EUBO-style loops from re-asking compared
+            pairs; the paper's Fig. 4 used 0.1, see :data:`PAPER_FIG4_SETTINGS`).
+        rating_scale: ``sigma_B`` of eq. 7 (default 1.0, as Fig. 4).
+        rating_precision: ``nu`` of eqs. 5-6 (default 80, as Fig. 4).
         learn_likelihood: make the three likelihood parameters trainable (default: fixed, as in
             the paper; with comparisons only, ``comparison_noise`` and the outputscale are not
             separately identifiable).
@@ -121,13 +143,13 @@ class PreferenceGP(Model, GP):
 
     def __init__(
         self,
-        train_X: Tensor,
+        train_X: Tensor | None,
         comparisons: Tensor | None = None,
         ratings: Tensor | None = None,
         rating_index: Tensor | None = None,
         covar_module: Kernel | None = None,
         *,
-        comparison_noise: float = 0.1,
+        comparison_noise: float = 1.0,
         rating_scale: float = 1.0,
         rating_precision: float = 80.0,
         learn_likelihood: bool = False,
@@ -142,7 +164,12 @@ class PreferenceGP(Model, GP):
         ties_offered: bool = False,
     ) -> None:
         super().__init__()
-        data = _create_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
+        if train_X is None:  # BoTorch's prior-only model, PairwiseGP(None, None)
+            if ratings is not None or (comparisons is not None and len(comparisons)):
+                raise ValueError("a prior-only model (train_X=None) takes no comparisons or ratings.")
+            data = prior_only_data()
+        else:
+            data = _create_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
         X = data.train_X if isinstance(data, PreferenceData) else data.X
         if X.dtype != torch.float64:
             warnings.warn(
@@ -271,7 +298,7 @@ class PreferenceGP(Model, GP):
 
     def _fit_input_transform(self) -> None:
         tf = getattr(self, "input_transform", None)
-        if tf is not None:
+        if tf is not None and self.train_X.shape[-2] > 0:  # no items: nothing to learn bounds from
             was_training = tf.training
             tf.train()
             with torch.no_grad():
@@ -364,36 +391,6 @@ class PreferenceGP(Model, GP):
         self._set_data(new, warm)
         return self
 
-    def set_train_data(self, train_X: Tensor, comparisons: Tensor | None = None, ratings: Tensor | None = None,
-                       rating_index: Tensor | None = None, strict: bool = False, ties: Tensor | None = None) -> None:
-        """Replace all data (validated first; the model is unchanged on error)."""
-        new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps, ties=ties,
-                                    rating_levels=self.rating_levels)
-        new = new.to(device=self.train_X.device, dtype=self.train_X.dtype)
-        self._set_data(new, None)
-
-    def condition_on_observations(self, X: Tensor, Y: Tensor | None = None, **kwargs: Any) -> "PreferenceGP":
-        r"""A new model with observations added; ``self`` is unchanged.
-
-        ``Y`` (``m`` or ``m x 1``), when given, are ratings of the rows of ``X``; comparisons
-        among the rows of ``X`` go in ``comparisons=`` (indices into ``X``). Batched ``X``
-        (``batch x m x d``), batched observations or a batched model give a batched model
-        (:func:`~torchpref.fantasy.condition_batch`).
-        """
-        if Y is not None:
-            if "ratings" in kwargs:
-                raise ValueError("give ratings either as Y or as ratings=, not both.")
-            Y = Y.reshape(*Y.shape[:-1]) if Y.dim() > 1 and Y.shape[-1] == 1 else Y
-            kwargs["ratings"] = Y
-            kwargs["rating_index"] = torch.arange(Y.shape[-1], device=Y.device).expand(Y.shape)
-        batched = (self.batch_shape or X.dim() > 2 or any(
-            v is not None and torch.as_tensor(v).dim() > k
-            for v, k in ((kwargs.get("comparisons"), 2), (kwargs.get("ratings"), 1))))
-        if batched:
-            return condition_batch(self, X, **kwargs)
-        fantasy = copy.deepcopy(self)
-        return fantasy.add_observations(X, **kwargs)
-
     def fantasize(self, X: Tensor, sampler: MCSampler, observation_noise: Tensor | None = None,
                   kind: str | None = None, **kwargs: Any) -> "PreferenceGP":
         r"""A batched fantasy model (see :func:`~torchpref.fantasy.fantasize`): comparisons among
@@ -417,6 +414,8 @@ class PreferenceGP(Model, GP):
         else:
             evaluate = k.forward
         out = evaluate(X1, X2, diag=diag)
+        # kernels such as LinearKernel return a LinearOperator from forward: evaluate it densely
+        out = out.to_dense() if isinstance(out, LinearOperator) else out
         if diag or out.dtype == torch.float64:  # float64's round-off there is ~1e-16: not worth a pass
             return out
         return pin_coincident(out, X1, X2, evaluate(X1, X1, diag=True))
@@ -476,27 +475,41 @@ class PreferenceGP(Model, GP):
 
         The factorisations are cached: repeated calls with unchanged hyperparameters and data
         cost kernel evaluations and triangular solves only.
+
+        Args:
+            X: ``batch_shape x q x d`` inputs (untransformed).
+            output_indices: ``None`` or ``[0]`` (the one output).
+            observation_noise: ``False``: the latent utility ``f``. ``True``: the utility as
+                perceived in a comparison, ``f + eps`` with independent ``eps ~ N(0, sigma_R^2)``
+                per point (eq. 3; what ``qMaxValueEntropy`` asks for). A tensor
+                (``batch_shape x q x 1``): those noise variances instead. BoTorch's
+                ``PairwiseGP`` ignores this argument.
+            posterior_transform: applied to the result.
         """
-        if output_indices not in (None, [0]):
+        if output_indices is not None and [int(i) for i in output_indices] not in ([0], [-1]):
             raise ValueError(f"PreferenceGP has one output; got output_indices={output_indices}.")
-        if observation_noise is not False:
-            raise NotImplementedError("observation_noise is not defined for a latent utility model.")
         X = self._prediction_inputs(X)
         if X.dim() == 1:  # a single point
             X = X.unsqueeze(0)
-        post = GPyTorchPosterior(self(X))
+        mvn = self(X)
+        if observation_noise is not False:
+            mvn = self._add_observation_noise(mvn, observation_noise)
+        post = GPyTorchPosterior(mvn)
         if posterior_transform is not None:
             return posterior_transform(post)
         return post
 
     def _prediction_inputs(self, X: Tensor) -> Tensor:
-        """``X`` checked (``... x d``, the model's dtype, finite), the model in eval mode, the input
-        transform applied."""
-        if X.shape[-1] != self._data.dim:
+        """``X`` checked (``... x d``, finite; a lower floating precision is converted to the
+        model's, as BoTorch's models do), the model in eval mode, the input transform applied."""
+        if self._data.dim and X.shape[-1] != self._data.dim:  # dim 0: a prior-only model takes any d
             raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
         dtype = self.train_X.dtype
-        if X.dtype != dtype:
-            raise ValueError(f"X is {X.dtype} but the model is {dtype}: convert one of them (X.to({dtype}) or model.to(...)).")
+        if X.dtype != dtype and X.is_floating_point():
+            if torch.finfo(X.dtype).eps < torch.finfo(dtype).eps:  # would lose precision: say so
+                raise ValueError(f"X is {X.dtype} but the model is {dtype}: convert one of them "
+                                 f"(X.to({dtype}) or model.to(...)).")
+            X = X.to(dtype)  # BoTorch's optimisers and objectives hand over float32 candidates
         finite = torch.isfinite(X.detach())
         if not bool(finite.all()):
             bad = X.detach()[~finite][:3].tolist()

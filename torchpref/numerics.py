@@ -8,6 +8,7 @@ import warnings
 from typing import Sequence
 
 import torch
+from linear_operator.utils.errors import NotPSDError as _LinearOperatorNotPSDError
 from torch import Tensor
 
 LOG_2PI_HALF = 0.5 * math.log(2 * math.pi)
@@ -23,8 +24,13 @@ RELATIVE_JITTER = {torch.float64: (1e-10, 1e-6), torch.float32: (1e-6, 1e-3)}
 MAX_JITTER = RELATIVE_JITTER[torch.float64][1]
 
 
-class NotPSDError(RuntimeError):
-    """A matrix that must be positive definite is not, even with the largest allowed jitter."""
+class NotPSDError(_LinearOperatorNotPSDError):
+    """A matrix that must be positive definite is not, even with the largest allowed jitter.
+
+    A subclass of linear_operator's ``NotPSDError`` (itself a ``RuntimeError``), so BoTorch's
+    ``fit_gpytorch_mll`` treats it as it treats GPyTorch's own: it retries the fit from
+    resampled hyperparameters instead of failing (docs/botorch.md).
+    """
 
 
 class JitterWarning(UserWarning):
