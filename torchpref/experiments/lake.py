@@ -339,9 +339,10 @@ def run(args) -> int:
     print("  error5: mean |expected - true rating| on test paths rated 5 (lower is better); WRMS: weighted RMS "
           "error (lower is better);\n  chosen: level of the test path the model ranks first; share 5: share of "
           "trials where it is rated 5; mean ± standard error over trials")
+    pm = (lambda e: f" ± {e:.3f}") if lakes * args.trials > 1 else (lambda e: "")  # no s.e. from one trial
     for name, v in s["final"].items():
-        print(f"  {name:16s} error5 {v['error5'][0]:.3f} ± {v['error5'][1]:.3f}   WRMS {v['wrms'][0]:.3f} ± "
-              f"{v['wrms'][1]:.3f}   chosen {v['chosen_rating'][0]:.2f}   share 5 {s['share_rated_5'][name]:.2f}")
+        print(f"  {name:16s} error5 {v['error5'][0]:.3f}{pm(v['error5'][1])}   WRMS {v['wrms'][0]:.3f}"
+              f"{pm(v['wrms'][1])}   chosen {v['chosen_rating'][0]:.2f}   share 5 {s['share_rated_5'][name]:.2f}")
     for name, p in s["planning"].items():
         print(f"  planning with {name}'s model ({p['n']} plans): planned path rated at least as high as the pool pick "
               f"in {100 * p['at_least_as_good']:.0f} %, strictly better (finer measure) in {100 * p['strictly_better']:.0f} %; "

@@ -65,6 +65,7 @@ def run_trials(
     workers: int | None = None,
     description: str = "trials",
     sizes: Sequence[int] | None = None,
+    unit: str = "trial",
 ) -> list[Any]:
     r"""Run ``trial_fn(*args)`` for every ``args`` in ``trial_args_list``; results in input order.
 
@@ -78,6 +79,7 @@ def run_trials(
         workers: processes of the default pool (default :func:`default_workers`).
         description: the progress bar's label.
         sizes: how many trials each call runs (for the progress bar; default 1 each).
+        unit: what the progress bar counts.
 
     Returns:
         ``[trial_fn(*args) for args in trial_args_list]``.
@@ -92,7 +94,7 @@ def run_trials(
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=sum(sizes), desc=description, unit="trial")
+        bar = tqdm(total=sum(sizes), desc=description, unit=unit)
     results: list[Any] = [None] * len(args_list)
     try:
         if executor is None and (workers or default_workers()) == 1:
@@ -212,6 +214,7 @@ def run_by_strategy(batch_fn: Callable[..., list[dict[str, Any]]], seeds: Sequen
     order = sorted(strategies, key=lambda s: s not in first)
     starts = [(s, i) for s in order for i in range(0, len(seeds), batch_size)]
     tasks = [(tuple(seeds[i : i + batch_size]), *args, s) for s, i in starts]
+    run_kw.setdefault("unit", "trial x strategy")  # each strategy runs every trial
     parts = run_trials(batch_fn, tasks, sizes=[len(t[0]) for t in tasks], **run_kw)
     results: list[dict[str, Any]] = [{} for _ in seeds]
     for (s, i), part in zip(starts, parts):
@@ -228,5 +231,6 @@ def run_cli(args, experiment: Callable[..., dict[str, Any]], **kwargs) -> int:
     s = res["summary"]
     print(f"{args.trials} trials x {args.queries} queries in {s['wall_time_s']:.1f} s; files in {args.out}")
     for name, values in s["final"].items():
-        print(f"  {name:16s} " + "   ".join(f"{k} {m:.4g} ± {e:.2g}" for k, (m, e) in values.items()))
+        print(f"  {name:16s} " + "   ".join(f"{k} {m:.4g}" + (f" ± {e:.2g}" if args.trials > 1 else "")
+                                          for k, (m, e) in values.items()))
     return 0
