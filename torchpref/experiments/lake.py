@@ -286,7 +286,7 @@ def run_lake_experiment(
     seeds = [seed + k for k in range(lakes)]
     if scenario is None:
         prepared = run_trials(prepare_lake, [(s, cache_dir, num_fresh) for s in seeds], executor=executor,
-                              progress=progress, workers=workers, description="lake scenarios")
+                              progress=progress, workers=workers, description="lake scenarios", unit="lake")
     else:
         prepared = [(scenario, fresh_paths(scenario, num_fresh, torch.Generator().manual_seed(seed))
                      if num_fresh else None)]
