@@ -354,3 +354,21 @@ def test_beta_third_derivative_matches_autograd(sigma_B, nu, generator):
     u = rand(40, generator=generator, low=0.01, high=0.99)
     ref = _autograd_third(lambda e: lik.derivatives(e, u)[2], eta)
     torch.testing.assert_close(lik.third_derivative(eta, u), ref, rtol=1e-7, atol=1e-9)
+
+
+def test_beta_fisher_is_finite_where_mu_rounds_to_0_or_1():
+    """Far in the tails mu = Phi(t) rounds to 0 or 1, so nu^2 psi'(a) mu'^2 would be inf * 0;
+    the weight stays finite, positive, and equal to the direct form where that is well
+    conditioned (|t| <= 3), and grows like (t / c)^2 in the tails."""
+    lik = BetaRatingLikelihood(0.8, 60.0)
+    c = SQRT2 * 0.8
+    t = torch.tensor([-60.0, -40.0, -9.0, -3.0, 0.0, 3.0, 9.0, 40.0, 60.0], dtype=torch.float64)
+    got = lik.fisher(t * c)
+    assert torch.isfinite(got).all() and (got > 0).all()
+    mu = torch.special.ndtr(t)
+    dmu = torch.exp(-0.5 * t * t) / math.sqrt(2 * math.pi) / c
+    direct = 60.0**2 * (torch.polygamma(1, 60.0 * mu) + torch.polygamma(1, 60.0 * (1 - mu))) * dmu**2
+    ok = torch.isfinite(direct) & (t.abs() <= 3)
+    torch.testing.assert_close(got[ok], direct[ok], rtol=1e-10, atol=0)
+    # the inverse Mills ratio phi(t) / Phi(t) ~ |t| as t -> -inf
+    assert abs(float(got[0]) / (60.0 / c) ** 2 - 1) < 0.01

@@ -261,10 +261,16 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
 
     def fisher(self, eta: Tensor) -> Tensor:
         r"""Expected negative second derivative ``nu^2 (psi'(a) + psi'(b)) mu'^2 >= 0`` (Fisher
-        scoring weight, used for Newton steps where the exact Hessian is not negative definite)."""
+        scoring weight, used for Newton steps where the exact Hessian is not negative definite).
+
+        Written with ``psi'(x) = 1 / x^2 + psi'(x + 1)`` as
+        ``(mu' / mu)^2 + (mu' / (1 - mu))^2 + nu^2 (psi'(a + 1) + psi'(b + 1)) mu'^2``, where
+        ``mu' / mu = phi(t) / (c Phi(t))`` is an inverse Mills ratio: finite where ``mu`` rounds
+        to 0 or 1 (the direct form is ``inf * 0 = NaN`` there)."""
         c, t, nu, a, b = self._shape(eta)
         dmu = normal_pdf(t) / c
-        return nu**2 * (torch.polygamma(1, a) + torch.polygamma(1, b)) * dmu**2
+        return ((inv_mills(t) / c) ** 2 + (inv_mills(-t) / c) ** 2
+                + nu**2 * (torch.polygamma(1, a + 1) + torch.polygamma(1, b + 1)) * dmu**2)
 
     def expected_rating(self, mean: Tensor, var: Tensor) -> Tensor:
         r"""Predictive mean rating (eq. 11 for the Beta mean): ``Phi(m / sqrt(2 sigma_B^2 + v))``
