@@ -12,6 +12,7 @@ from gpytorch.kernels import RBFKernel, ScaleKernel
 from scipy import optimize, special, stats
 
 from conftest import rand, random_comparisons
+from evidence_check import assert_evidence_gradient
 from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
 
 SQRT2 = math.sqrt(2.0)
@@ -119,20 +120,7 @@ def _raw_params(model, learn: bool) -> dict:
 def test_evidence_gradient_vs_finite_differences(kind, learn, offered):
     model = build(kind, seed=3, learn=learn, offered=offered)
     params = _raw_params(model, learn)
-    value = model.log_marginal_likelihood()
-    grads = torch.autograd.grad(value, list(params.values()))
-    h = 1e-5
-    for (name, p), g in zip(params.items(), grads):
-        for k in range(p.numel()):
-            with torch.no_grad():
-                p.view(-1)[k] += h
-                up = float(model.log_marginal_likelihood().detach())  # re-solves the mode
-                p.view(-1)[k] -= 2 * h
-                down = float(model.log_marginal_likelihood().detach())
-                p.view(-1)[k] += h
-            fd = (up - down) / (2 * h)
-            gk = float(g.reshape(-1)[k])
-            assert abs(gk - fd) <= 1e-5 * max(abs(fd), 1e-2), f"{name}[{k}]: autograd {gk} vs FD {fd}"
+    assert_evidence_gradient(model, params)
 
 
 def test_fit_learns_tie_threshold_and_cut_points():
