@@ -134,6 +134,23 @@ def _joint(model, X: Tensor) -> tuple[Tensor, Tensor]:
     return mvn.mean.reshape(T, N), mvn.covariance_matrix.reshape(T, N, N)
 
 
+def joint_samples(mean: Tensor, cov: Tensor, generators: Sequence[torch.Generator],
+                  num_samples: int) -> tuple[Tensor, Tensor]:
+    """``T x S x N`` joint samples of ``N(mean, cov)`` (``T x N``, ``T x N x N``; ``S =
+    num_samples``, one ``randn`` draw from each trial's generator) and the std (``T x N``)."""
+    T, N = mean.shape
+    std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    jitters = [1e-9 * cov.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)]  # relative, then tenfold
+    for _ in range(7):
+        jitters.append(10 * jitters[-1])
+    L, _, failed = cholesky_batch(cov, torch.stack(jitters))
+    if bool(failed.any()):  # fall back on independent samples
+        L[failed] = torch.diag_embed(std[failed])
+    z = torch.stack([torch.randn(num_samples, N, generator=g, dtype=mean.dtype, device=mean.device)
+                     for g in generators])
+    return mean.unsqueeze(-2) + z @ L.mT, std
+
+
 class UCBRatings(Selector):
     """Rate the candidate of largest UCB (eq. 12)."""
 
@@ -280,21 +297,6 @@ class InformationPerEffort(Selector):
         self.min_count, self.bias_correction = min_count, bias_correction
         self.level_edges = tuple(float(e) for e in level_edges)
 
-    def _samples(self, model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Tensor, Tensor, Tensor]:
-        """``T x S x N`` joint samples, the posterior mean and std (``T x N``) at ``X`` (``T x N x d``)."""
-        mean, cov = _joint(model, X)
-        T, N = mean.shape
-        std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
-        jitters = [1e-9 * cov.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)]  # relative, then tenfold
-        for _ in range(7):
-            jitters.append(10 * jitters[-1])
-        L, _, failed = cholesky_batch(cov, torch.stack(jitters))
-        if bool(failed.any()):  # fall back on independent samples
-            L[failed] = torch.diag_embed(std[failed])
-        z = torch.stack([torch.randn(self.num_samples, N, generator=g, dtype=mean.dtype, device=mean.device)
-                         for g in generators])
-        return mean.unsqueeze(-2) + z @ L.mT, mean, std
-
     def _levels(self, F: Tensor, rating_likelihood) -> Tensor:
         """``T x S x L x N``: is each sample's rating mean ``Phi(f / (sqrt 2 sigma_B))`` above
         each of :attr:`level_edges` (the latent thresholds ``sqrt 2 sigma_B Phi^-1(edge)``)."""
@@ -305,7 +307,8 @@ class InformationPerEffort(Selector):
     def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
         with torch.no_grad():
-            F, mean, std = self._samples(model, X, generators)  # T x S x N
+            mean, cov = _joint(model, X)
+            F, std = joint_samples(mean, cov, generators, self.num_samples)  # T x S x N
             T, S, N = F.shape
             lik = model.likelihood
             ucb = mean + self.gamma * std
