@@ -44,6 +44,16 @@ def _ranking_size(m: int) -> int:
     return int(m)
 
 
+def effort_model(m: int, rating_cost: float, ranking_cost: float | None) -> tuple[int, float, float]:
+    """``m`` checked, and the efforts of a rating and a best-of-``m`` ranking (default
+    ``1 + (m - 1) / 4``: one judgement and reading ``m - 1`` more items at a quarter each)."""
+    m = _ranking_size(m)
+    ranking_cost = 1.0 + (m - 1) / 4 if ranking_cost is None else ranking_cost
+    if not (rating_cost > 0 and ranking_cost > 0):
+        raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
+    return m, float(rating_cost), float(ranking_cost)
+
+
 def _check_m(m: int, X: Tensor) -> None:
     if m < 2:
         raise ValueError(f"a ranking query needs m >= 2 items, got m={m}.")
@@ -278,11 +288,7 @@ class InformationPerEffort(Selector):
                  gamma: float = 3.0, num_samples: int = 128, target: str = "top", top_fraction: float = 0.2,
                  num_plausible: int = 15, num_bins: int = 10, min_count: int = 8, bias_correction: bool = True,
                  level_edges: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8)):
-        m = _ranking_size(m)
-        if ranking_cost is None:
-            ranking_cost = 1.0 + (m - 1) / 4
-        if not (rating_cost > 0 and ranking_cost > 0):
-            raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
+        m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
         if target not in ("top", "top+levels", "maximizer", "utility"):
             raise ValueError(f"target must be 'top', 'top+levels', 'maximizer' or 'utility', got {target!r}.")
         if not all(0 < e < 1 for e in level_edges):
@@ -291,7 +297,7 @@ class InformationPerEffort(Selector):
             raise ValueError(f"need num_samples >= 2 and num_plausible >= 1, got {num_samples} and {num_plausible}.")
         if not 0 < top_fraction < 1:
             raise ValueError(f"top_fraction must be in (0, 1), got {top_fraction}.")
-        self.m, self.rating_cost, self.ranking_cost = m, float(rating_cost), float(ranking_cost)
+        self.m, self.rating_cost, self.ranking_cost = m, rating_cost, ranking_cost
         self.gamma, self.num_samples, self.target = gamma, num_samples, target
         self.top_fraction, self.num_plausible, self.num_bins = top_fraction, num_plausible, num_bins
         self.min_count, self.bias_correction = min_count, bias_correction

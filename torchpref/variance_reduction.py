@@ -40,9 +40,10 @@ import torch
 from botorch.models.model import Model
 from torch import Tensor
 
-from torchpref.acquisition import choice_probabilities, top_set_membership
+from torchpref.acquisition import choice_probabilities
+from torchpref.information import top_set_membership
 from torchpref.queries import Query
-from torchpref.strategies import Selector, _joint, _ranking, _ranking_size, _rating, joint_samples
+from torchpref.strategies import Selector, _joint, _ranking, _rating, effort_model, joint_samples
 
 SQRT2 = 2.0**0.5
 
@@ -182,15 +183,12 @@ class VariancePerEffort(Selector):
     def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
                  num_samples: int = 128, top_fraction: float = 0.2, num_plausible: int = 15,
                  num_hessian_samples: int = 32):
-        m = _ranking_size(m)
-        ranking_cost = 1.0 + (m - 1) / 4 if ranking_cost is None else ranking_cost
-        if not (rating_cost > 0 and ranking_cost > 0):
-            raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
+        m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
         if num_samples < 2 or num_plausible < 2:
             raise ValueError(f"need num_samples >= 2 and num_plausible >= 2, got {num_samples} and {num_plausible}.")
         if not 0 < top_fraction < 1:
             raise ValueError(f"top_fraction must be in (0, 1), got {top_fraction}.")
-        self.m, self.rating_cost, self.ranking_cost = m, float(rating_cost), float(ranking_cost)
+        self.m, self.rating_cost, self.ranking_cost = m, rating_cost, ranking_cost
         self.num_samples, self.top_fraction, self.num_plausible = num_samples, top_fraction, num_plausible
         self.num_hessian_samples = max(1, min(num_hessian_samples, num_samples))
 
