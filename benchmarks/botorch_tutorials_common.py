@@ -66,27 +66,32 @@ class Record:
             f.write(json.dumps(row) + "\n")
 
 
-#: seconds per named phase of the running trial (``phase``), reset by ``timed``
+#: wall and CPU seconds per named phase of the running trial (``phase``), reset by ``timed``
 PHASES: dict[str, float] = {}
+PHASES_CPU: dict[str, float] = {}
 
 
 @contextmanager
 def phase(name: str):
-    """Add the wall time of the ``with`` block to ``PHASES[name]`` (where a loop spends its time)."""
-    t0 = time.perf_counter()
+    """Add the wall and CPU time of the ``with`` block to ``PHASES[name]`` / ``PHASES_CPU[name]``
+    (where a loop spends its time; the CPU time is robust to load from other processes)."""
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         yield
     finally:
         PHASES[name] = PHASES.get(name, 0.0) + time.perf_counter() - t0
+        PHASES_CPU[name] = PHASES_CPU.get(name, 0.0) + time.process_time() - c0
 
 
 def timed(fn: Callable[[], dict]) -> dict:
     """Run one trial; add its wall time, its CPU time (this process, one thread: the work done
-    rather than the waiting on a loaded machine) and the wall time per ``phase``."""
+    rather than the waiting on a loaded machine) and the wall and CPU time per ``phase``."""
     PHASES.clear()
+    PHASES_CPU.clear()
     t0, c0 = time.perf_counter(), time.process_time()
     out = fn()
-    return {**out, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "phase_s": dict(PHASES)}
+    return {**out, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "phase_s": dict(PHASES),
+            "phase_cpu_s": dict(PHASES_CPU)}
 
 
 def paired_summary(rows: list[dict], key: str, higher_is_better: bool) -> dict:

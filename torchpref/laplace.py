@@ -190,11 +190,11 @@ def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor |
         s = obs.quadratic_forms(Sigma)
         h = obs.adjoint([dw * sk for dw, sk in zip(obs.curvature_slopes(f), s)], n, like=K)
         Sigma_h = (Sigma @ h.unsqueeze(-1)).squeeze(-1)
-        b = h - obs.W_times(mode.weights, Sigma_h.unsqueeze(-1)).squeeze(-1)  # (I - W Sigma) h
-        WS = obs.W_times(mode.weights, Sigma)
-        W_Sigma_W = obs.W_times(mode.weights, WS.mT.contiguous()).mT  # W (W Sigma)^T = W Sigma W
-        G = 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - obs.W_dense(n, mode.weights, like=K) + W_Sigma_W
-                   - b.unsqueeze(-1) * alpha.unsqueeze(-2))
+        W = obs.W_dense(n, mode.weights, like=K)
+        W_times = obs.W_operator(n, mode.weights, dense=W)
+        b = h - W_times(Sigma_h.unsqueeze(-1)).squeeze(-1)  # (I - W Sigma) h
+        W_Sigma_W = W_times(W_times(Sigma).mT).mT  # W (W Sigma)^T = W Sigma W
+        G = 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - W + W_Sigma_W - b.unsqueeze(-1) * alpha.unsqueeze(-2))
         # the mode is exact only to the solver's tolerance: one more Newton step's first-order
         # change of the value makes it second-order accurate (smooth in the hyperparameters)
         grad_a = (L.mT @ g.detach().unsqueeze(-1)).squeeze(-1) - a

@@ -73,12 +73,14 @@ class PosteriorState:
         return self.data is data and torch.equal(self.fingerprint, fingerprint)
 
     @classmethod
-    def build(cls, model: "PreferenceGP", fp: Tensor, previous: "PosteriorState | None") -> "PosteriorState":
-        """Solve the modes of ``model``'s problems, warm-started from ``previous`` where sizes match."""
+    def build(cls, model: "PreferenceGP", fp: Tensor, previous: "PosteriorState | None",
+              prior: "tuple[PaddedData, Tensor] | None" = None) -> "PosteriorState":
+        """Solve the modes of ``model``'s problems, warm-started from ``previous`` where sizes match.
+        ``prior``: the model's :meth:`~torchpref.PreferenceGP._prior` if already computed."""
         with torch.no_grad():
-            padded = model._padded().with_items(model._transformed_train_X())
+            padded, K = model._prior() if prior is None else prior
             prev_jitter = previous.jitter if (previous is not None and isinstance(previous.jitter, float)) else None
-            L, jitter = prior_factor(padded.prior_covariance(model._kernel(padded.X)), prev_jitter)
+            L, jitter = prior_factor(K.detach(), prev_jitter)
             same_size = previous is not None and previous.mode.f.shape == L.shape[:-1]
             warm = previous.mode.f if same_size else model._warm_f
             # the observations' index structure depends on the data only: kept across hyperparameters
