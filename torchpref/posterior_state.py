@@ -23,6 +23,10 @@ from torchpref.padding import PaddedData
 if TYPE_CHECKING:
     from torchpref.models import PreferenceGP
 
+#: Up to this many test points (all blocks together) one kernel call on ``[train_X; X]`` gives both
+#: the cross-covariances and the test blocks (a few wasted entries cost less than a second call).
+JOINT_KERNEL_MAX_POINTS = 64
+
 
 def fingerprint(module: Module) -> Tensor:
     """The values of all parameters, then all floating buffers (as ``parameters()`` /
@@ -101,12 +105,21 @@ class PosteriorState:
         shape = torch.broadcast_shapes(X.shape[:-2], S)
         E = shape[: len(shape) - len(S)].numel()
         Xe = X.expand(*shape, q, d).reshape(E, *S, q, d)  # test blocks first, then the problems
-        k_ss = kernel(Xe, diag=diag)  # E x S x q (x q)
+        N, K_xs = padded.num_items, None
+        if not S and not diag and N and E * q <= JOINT_KERNEL_MAX_POINTS:
+            # one problem, a few test points: one kernel call gives K_X* and the test blocks
+            Xf = Xe.reshape(E * q, d)
+            K = kernel(torch.cat([padded.X, Xf]), Xf)  # (N + E q) x E q
+            K_xs = K[:N].reshape(1, N, E, q)
+            k_ss = K[N:].reshape(E, q, E, q).diagonal(dim1=0, dim2=2).permute(2, 0, 1)  # E x q x q
+        else:
+            k_ss = kernel(Xe, diag=diag)  # E x S x q (x q)
         tail = k_ss.shape[len(S) + 2:]  # () for variances, (q,) for covariances
-        if padded.num_items == 0:  # no items yet: the prior
+        if N == 0:  # no items yet: the prior
             return k_ss.new_zeros(shape + (q,)), k_ss.reshape(*shape, q, *tail)
         if not S:  # one problem: one kernel call for all test points
-            K_xs = kernel(padded.X, Xe.reshape(E * q, d)).reshape(1, -1, E, q)
+            if K_xs is None:
+                K_xs = kernel(padded.X, Xe.reshape(E * q, d)).reshape(1, -1, E, q)
         else:
             K_xs = kernel(padded.X.expand(E, *padded.X.shape), Xe)  # E x S x N x q
             K_xs = padded.cross_covariance(K_xs).movedim(0, -2).reshape(S.numel(), -1, E, q)
