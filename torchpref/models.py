@@ -32,7 +32,7 @@ from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.numerics import pin_coincident
 from torchpref.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood, default_cut_points
 from torchpref.padding import PaddedData
-from torchpref.posterior_state import PosteriorState, fingerprint
+from torchpref.posterior_state import PosteriorState, carries_gradients, fingerprint
 
 
 #: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
@@ -460,8 +460,13 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         return value.reshape(self.batch_shape)
 
     def _predict(self, X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
-        """Posterior moments at transformed ``X``: :meth:`PosteriorState.moments`."""
-        return self._state().moments(self._kernel, X, diag)
+        """Posterior moments at transformed ``X``: :meth:`PosteriorState.moments`; with autograd on
+        and training items or ratings that carry gradients (a fantasy model inside a look-ahead
+        acquisition), differentiable in them through the mode (:meth:`PosteriorState.traced`)."""
+        state = self._state()
+        if torch.is_grad_enabled() and carries_gradients(self._padded()):
+            state = state.traced(*self._prior(), self._observations())
+        return state.moments(self._kernel, X, diag)
 
     def forward(self, X: Tensor) -> MultivariateNormal:
         """The Laplace posterior of the latent utility at ``X`` (``batch x q x d``, transformed)."""

@@ -9,7 +9,7 @@ replaced when either changes. Building it solves the Laplace modes of all the mo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Callable
 
 import torch
@@ -58,6 +58,11 @@ def prior_factor(K: Tensor, jitter: float | None) -> tuple[Tensor, float | Tenso
     return batched_cholesky(K.reshape(-1, N, N), name="kernel matrix")
 
 
+def carries_gradients(padded: PaddedData) -> bool:
+    """Whether the items or the ratings of ``padded`` require gradients."""
+    return any(t is not None and t.requires_grad for t in (padded.X, padded.ratings))
+
+
 @dataclass(frozen=True)
 class PosteriorState:
     """Everything prediction and the evidence need, for one data object and one set of
@@ -83,6 +88,7 @@ class PosteriorState:
         ``prior``: the model's :meth:`~torchpref.PreferenceGP._prior` if already computed."""
         with torch.no_grad():
             padded, K = model._prior() if prior is None else prior
+            padded = padded.with_items(padded.X.detach())  # gradients in the items: see ``traced``
             prev_jitter = previous.jitter if (previous is not None and isinstance(previous.jitter, float)) else None
             L, jitter = prior_factor(K.detach(), prev_jitter)
             same_size = previous is not None and previous.mode.f.shape == L.shape[:-1]
@@ -93,6 +99,14 @@ class PosteriorState:
             mode = find_mode(L, obs, f0=warm, max_iter=model.max_newton_iter)
             pred = PredictiveCache.from_mode(L, mode)
         return cls(model.data, fp, padded, jitter, model.likelihood, obs, mode, pred)
+
+    def traced(self, padded: PaddedData, K: Tensor, obs: Observations) -> "PosteriorState":
+        """This state with a prediction cache traced through the mode
+        (:meth:`~torchpref.laplace.PredictiveCache.traced`), for the problems ``padded`` whose
+        items or ratings carry gradients, their prior covariance ``K`` and observations ``obs``
+        (built with autograd on): built afresh for each prediction, so that each has its own
+        autograd graph."""
+        return replace(self, padded=padded, obs=obs, pred=PredictiveCache.traced(K, self.jitter, obs, self.mode))
 
     def moments(self, kernel: Callable[..., Tensor], X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
         r"""Posterior mean ``... x q`` and covariance ``... x q x q`` (eqs. 9-10) at transformed
