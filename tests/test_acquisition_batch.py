@@ -4,7 +4,8 @@ result is that of the 2-D call on its slice."""
 import pytest
 import torch
 
-import torchpref.acquisition as acquisition
+import torchpref.choice_sets as choice_sets
+import torchpref.information as information
 from torchpref.acquisition import (
     choice_probabilities,
     greedy_choice_set,
@@ -33,8 +34,8 @@ def chunks(request, monkeypatch):
     """The chunk budgets (elements): by default every test trial fits one chunk; 1: a trial a
     chunk; 4000 / 70000: uneven chunks of a few trials (membership / greedy)."""
     if request.param is not None:
-        monkeypatch.setattr(acquisition, "_MEMBERSHIP_CHUNK", request.param)
-        monkeypatch.setattr(acquisition, "_GREEDY_CHUNK", request.param)
+        monkeypatch.setattr(information, "_MEMBERSHIP_CHUNK", request.param)
+        monkeypatch.setattr(choice_sets, "_GREEDY_CHUNK", request.param)
     return request.param
 
 

@@ -6,7 +6,10 @@ a^T a / 2``. One iteration of :func:`newton_mode`:
 1. :meth:`Problem.factorise`: ``B = I + L^T W L`` at the current point (Fisher weights for the
    problems whose exact ``B`` is not positive definite);
 2. :func:`newton_direction`: the step ``B^-1 grad`` and the Newton decrement ``grad^T B^-1 grad``;
-   problems with half a decrement below ``tol`` stop (converged, their factor kept);
+   problems with half a decrement below ``tol`` stop (converged, their factor kept), and so do
+   those whose decrement stopped contracting below the round-off floor of their dtype
+   (:func:`~torchpref.numerics.roundoff_floor`: a float32 log posterior of ``1e4`` cannot resolve
+   a change of ``1e-6``);
 3. :meth:`Problem.line_search`: Armijo backtracking, each problem with its own step length;
 4. near the mode, :func:`chord_steps`: more steps with the same factor while they contract.
 
@@ -23,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchpref.numerics import NotPSDError
+from torchpref.numerics import NotPSDError, roundoff_floor
 from torchpref.observations import Observations
 
 ARMIJO = 1e-4  # sufficient increase: Psi(a + t s) >= Psi(a) + ARMIJO t grad^T s
@@ -119,6 +122,12 @@ class Problem:
             grad = lt.grad - a
         return NewtonPoint(a, f, lt.log_lik - 0.5 * (a * a).sum(-1), grad, lt.weights)
 
+    @staticmethod
+    def floor(point: NewtonPoint) -> Tensor:
+        """The half decrement (``B``) below which ``point``'s dtype cannot resolve progress."""
+        prior = 0.5 * (point.a * point.a).sum(-1)
+        return roundoff_floor(point.psi + prior, prior)
+
     def factorise(self, point: NewtonPoint) -> Factor:
         """Cholesky of ``B`` at ``point``; Fisher weights for the problems where ``B`` is not PD."""
         M, info = torch.linalg.cholesky_ex(self.obs.whitened_hessian(self.L, point.weights, self.rows))
@@ -209,6 +218,7 @@ def newton_mode(L: Tensor, obs: Observations, f0: Tensor | None, opts: NewtonOpt
     active = torch.ones(B, dtype=torch.bool, device=L.device)
     converged, has_factor = torch.zeros_like(active), torch.zeros_like(active)
     decrement = torch.full((B,), float("inf"), dtype=L.dtype, device=L.device)
+    newton_dec = decrement  # the decrement of each problem's last factorisation
     final: Factor | None = None
     far = far_allowed = opts.float32_far
     it = 0
@@ -226,14 +236,19 @@ def newton_mode(L: Tensor, obs: Observations, f0: Tensor | None, opts: NewtonOpt
             bad = (active & ~torch.isfinite(dec)).nonzero().reshape(-1).tolist()
             raise FloatingPointError(f"non-finite Newton step while finding the Laplace modes of problems {bad}")
         decrement = torch.where(active, dec, decrement)
-        done = active & (dec / 2 < opts.tol)  # the point stays: keep this factorisation
+        floor = prob.floor(point)
+        # stalled: a whole iteration (step and chord steps) did not contract the decrement, which
+        # is below the round-off floor: no further progress can be resolved in this dtype
+        stalled = (dec > 0.25 * newton_dec) & (dec / 2 < floor)
+        newton_dec = torch.where(active, dec, newton_dec)
+        done = active & ((dec / 2 < opts.tol) | stalled)  # the point stays: keep this factorisation
         final = factor if final is None else factor.where(done, final)
         converged, has_factor, active = converged | done, has_factor | done, active & ~done
         if not bool(active.any()):
             break
         point, stuck = prob.line_search(point, step, dec, active)
         # no ascent possible in floating point: at the optimum up to round-off
-        converged, active = converged | (stuck & (dec / 2 < STUCK_TOL)), active & ~stuck
+        converged, active = converged | (stuck & (dec / 2 < floor.clamp(min=STUCK_TOL))), active & ~stuck
         # far from the mode the old B is a poor model: refactorise (in float32 where allowed)
         far = far_allowed and bool((dec[active] > 1.0).any())
         near = active & (dec <= 1.0)

@@ -45,6 +45,26 @@ def default_tolerance(dtype: torch.dtype) -> float:
     return max(1e-11, 10 * torch.finfo(dtype).eps)
 
 
+#: Newton's decrement is at round-off once below this many epsilons of the log posterior's scale
+#: (:func:`roundoff_floor`); the stalled float32 solves of the fuzz (docs/precision.md) stopped at
+#: up to about 20.
+ROUNDOFF_EPS = 100.0
+
+
+def roundoff_floor(log_lik: Tensor, prior_term: Tensor) -> Tensor:
+    r"""The smallest half Newton decrement (log-posterior units) that ``log_lik``'s dtype can
+    resolve: ``ROUNDOFF_EPS eps (|log p(Y|f)| + a^T a / 2)`` per problem (``B`` each).
+
+    ``Psi = log p - a^T a / 2`` is a sum of terms much larger than itself (a Beta log density
+    holds ``lgamma(nu)``), so its round-off, and that of its gradient, grows with the size of
+    its parts, not with ``Psi``: a float32 solve of a log posterior of ``1e4`` cannot see a
+    change of ``1e-6``. In float64 the floor is below the default tolerance (``1e-11``) until the
+    parts reach about ``450``, and is only used once the decrement has stopped contracting
+    (:func:`torchpref.newton.newton_mode`).
+    """
+    return ROUNDOFF_EPS * torch.finfo(log_lik.dtype).eps * (log_lik.abs() + prior_term)
+
+
 def log_ndtr(z: Tensor) -> Tensor:
     r"""``log Phi(z)``, accurate in both tails."""
     return torch.special.log_ndtr(z)

@@ -20,10 +20,7 @@ anywhere in :meth:`~PreferenceSession.tell` leaves the model, the file and the h
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -31,14 +28,15 @@ import torch
 from torch import Tensor
 
 from torchpref.journal import Journal, now, read_session_file
+from torchpref.models import PreferenceGP
+from torchpref.queries import (Candidates, FinitePool, Query, RankingQuery, RatingQuery, first_unique_rows,
+                               record_answer)
 from torchpref.records import (FORMAT_VERSION, SessionFileCorrupt, SessionFileError, SessionMismatchError,
-                               SessionRepairWarning, SessionVersionError, check_new_record, dumps_settings,
-                               records_in_force)
-from torchpref.models import PreferenceGP, default_covar_module
-from torchpref.queries import (BoxCandidates, Candidates, FinitePool, Query, RankingQuery, RatingQuery,
-                               as_integer, first_unique_rows, record_answer)
+                               SessionRepairWarning, SessionVersionError, check_new_record, records_in_force)
+from torchpref.session_settings import (MAX_REDRAWS, SessionAnswer, SessionSettings, as_items,
+                                        candidates_from_header, default_ranking_size, default_session_model,
+                                        step_generator)
 from torchpref.strategies import UCBC, Selector
-from torchpref.version import __version__
 
 __all__ = [
     "FORMAT_VERSION",
@@ -54,78 +52,6 @@ __all__ = [
     "read_session_file",
     "step_generator",
 ]
-
-
-@dataclass(frozen=True)
-class SessionAnswer:
-    """One answer in force (not undone).
-
-    Attributes:
-        seq: its sequence number in the file.
-        kind: ``"rating"``, ``"choice"`` or ``"no_preference"``.
-        items: ``m x d`` the items' coordinates as shown (``1 x d`` for a rating).
-        answer: the answer as given: a Likert level (or a rating in ``[0, 1]`` when the session
-            has no levels) for a rating, the index of the chosen row of ``items`` for a choice,
-            ``None`` for no preference.
-        value: the rating in ``[0, 1]`` the model uses (ratings only).
-        step: the query number it answered, or ``None`` if given out of turn.
-        pool_indices: the items' rows in the candidate pool, where known.
-        time: ISO 8601 timestamp.
-    """
-
-    seq: int
-    kind: str
-    items: Tensor
-    answer: Any
-    value: float | None
-    step: int | None
-    pool_indices: tuple[int, ...] | None
-    time: str
-
-
-def step_generator(seed: int, step: int, attempt: int = 0) -> torch.Generator:
-    """The generator for query ``step`` of a session seeded ``seed``: a fresh stream per step, so a
-    restarted session proposes what the uninterrupted one would have (``attempt``: a further
-    stream for the same step, when the first one's query repeats the last answered one)."""
-    key = f"torchpref-session:{int(seed)}:{int(step)}" + (f":{int(attempt)}" if attempt else "")
-    digest = hashlib.sha256(key.encode()).digest()
-    return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
-
-
-MAX_REDRAWS = 10
-"""How many further draws :meth:`PreferenceSession.ask` makes while its query repeats the last one answered."""
-
-
-def default_ranking_size(num_items: int) -> int:
-    """Items per ranking query for a pool of ``num_items`` distinct items: 5, or fewer than the
-    pool (``num_items - 1``, at least 2), so that a small pool's rankings are not all the same set."""
-    return max(2, min(5, num_items - 1))
-
-
-def default_session_model(train_X: Tensor) -> PreferenceGP:
-    r"""The default model of a session: :class:`~torchpref.PreferenceGP` on inputs normalised to the
-    unit cube, an RBF kernel with lengthscale 0.2 and outputscale ``sigma_f^2 = 1`` (eq. 1), and the
-    model's default likelihood settings (``sigma_R = 0.1``, ``sigma_B = 1``, ``nu = 80``, tie
-    threshold ``tau = 0.1``), all fixed. A person can answer "no preference", so strict choices are
-    the tie likelihood's upper category (``ties_offered=True``, docs/likelihoods.md)."""
-    kernel = default_covar_module(train_X.shape[-1]).to(train_X)
-    kernel.base_kernel.lengthscale = 0.2
-    kernel.outputscale = 1.0
-    return PreferenceGP(train_X, covar_module=kernel, ties_offered=True)
-
-
-def _as_items(X, dim: int, name: str) -> Tensor:
-    try:
-        t = torch.as_tensor(X, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError):
-        raise ValueError(f"{name} must be numbers, got {X!r}.") from None
-    if t.dim() == 1:
-        t = t.unsqueeze(0)
-    if t.dim() != 2 or t.shape[-1] != dim:
-        raise ValueError(f"{name} must be m x {dim}, got shape {tuple(t.shape)}.")
-    if not torch.isfinite(t).all():
-        raise ValueError(f"{name} must be finite, got {t.tolist()}.")
-    return t
 
 
 class PreferenceSession:
@@ -174,28 +100,18 @@ class PreferenceSession:
         repair: bool = False,
         metadata: dict | None = None,
     ) -> None:
-        self._candidates, self._spec, lo, hi = _candidates_spec(candidates)
-        self.dim = int(lo.shape[0])
-        if bounds is None:
-            bounds = torch.stack([lo, torch.where(hi > lo, hi, lo + 1.0)])
-        bounds = torch.as_tensor(bounds, dtype=torch.float64)
-        if bounds.shape != (2, self.dim) or not torch.isfinite(bounds).all() or not (bounds[1] > bounds[0]).all():
-            raise ValueError(f"bounds must be 2 x {self.dim} finite with lower < upper, got {bounds.tolist()}.")
-        if names is not None and len(names) != self.dim:
-            raise ValueError(f"names must give {self.dim} names, got {list(names)}.")
-        self.bounds = bounds
-        self.num_levels = None if num_levels is None else _whole("num_levels", num_levels, 2)
-        self.num_queries = _whole("num_queries", num_queries, 1)
-        self.seed = _whole("seed", seed, None)
-        self.names = None if names is None else [str(n) for n in names]
+        settings = SessionSettings.validated(candidates, bounds, seed, num_queries, num_levels, names)
+        self._settings, self._candidates = settings, settings.candidates
+        self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
+        self.num_queries, self.num_levels, self.names = settings.num_queries, settings.num_levels, settings.names
         n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
         self.selector = selector if selector is not None else UCBC(m=default_ranking_size(n_pool) if n_pool else 5)
         self.model_factory = model_factory if model_factory is not None else default_session_model
-        self._anchor = self.transform(self._pool[:1] if self._pool is not None else bounds.mean(0, keepdim=True))
+        self._anchor = self.transform(self._pool[:1] if self._pool is not None else self.bounds.mean(0, keepdim=True))
         self._pending: tuple[int, Query] | None = None  # (step, query) until answered
         self._journal: Journal | None = None
         self._memory: list[dict] = []  # the records when there is no file
-        self._memory_header = self._header(metadata)
+        self._memory_header = settings.header(metadata)
         self._model: PreferenceGP | None = None
         self._model_seqs: tuple[int, ...] | None = None  # the answers the model holds
         self.path = None if session_file is None else Path(session_file)
@@ -203,7 +119,7 @@ class PreferenceSession:
             self._journal = Journal(self.path, lambda: self._memory_header, repair=repair)
         try:
             if self._journal is not None:
-                self._check_header(self._journal.header)
+                settings.check_header(self._journal.header, self.path)
             self.model  # noqa: B018  (replays the file's answers now: errors surface at opening)
         except BaseException:
             self.close()
@@ -213,39 +129,6 @@ class PreferenceSession:
     @property
     def _pool(self) -> Tensor | None:
         return self._candidates.X if isinstance(self._candidates, FinitePool) else None
-
-    def _header(self, metadata: dict | None) -> dict:
-        return {
-            "type": "header",
-            "version": FORMAT_VERSION,
-            "dim": self.dim,
-            "created": now(),
-            "torchpref": __version__,
-            "seed": self.seed,
-            "num_queries": self.num_queries,
-            "num_levels": self.num_levels,
-            "bounds": self.bounds.tolist(),
-            "names": self.names,
-            "candidates": self._spec,
-            "metadata": metadata or {},
-        }
-
-    def _check_header(self, h: dict) -> None:
-        p = self.path
-        if h["dim"] != self.dim:
-            raise SessionMismatchError(
-                f"session file {p} was written for {h['dim']}-dimensional items, but these items have "
-                f"{self.dim} dimensions.", "dim", str(h["dim"]), str(self.dim))
-        for key, mine in (("candidates", self._spec), ("bounds", self.bounds.tolist()), ("seed", self.seed),
-                          ("num_levels", self.num_levels)):
-            if dumps_settings(h[key]) != dumps_settings(mine):
-                theirs = h[key]
-                if key == "candidates":
-                    theirs, mine = _describe(theirs), _describe(mine)
-                raise SessionMismatchError(
-                    f"session file {p} was written with {key} {theirs}, but this session has {key} {mine}; "
-                    f"open it with PreferenceSession.load({str(p)!r}) to use the file's settings.",
-                    key, str(theirs), str(mine))
 
     @classmethod
     def load(cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Any) -> "PreferenceSession":
@@ -267,11 +150,7 @@ class PreferenceSession:
         if header is None:
             raise SessionFileError(f"session file {path} is empty: create the session with PreferenceSession(...).")
         if candidates is None:
-            spec = header["candidates"]
-            if spec["kind"] == "pool":
-                candidates = torch.tensor(spec["items"], dtype=torch.float64)
-            else:
-                candidates = BoxCandidates(torch.tensor(spec["bounds"], dtype=torch.float64), spec["num"])
+            candidates = candidates_from_header(header)
         kwargs.setdefault("num_queries", header["num_queries"])
         kwargs.setdefault("num_levels", header["num_levels"])
         kwargs.setdefault("names", header.get("names"))
@@ -347,14 +226,14 @@ class PreferenceSession:
 
     def predict(self, X: Tensor) -> tuple[Tensor, Tensor]:
         """Posterior mean and standard deviation of the utility at the rows of ``X`` (``N x d``)."""
-        X = _as_items(X, self.dim, "X")
+        X = as_items(X, self.dim, "X")
         with torch.no_grad():
             post = self.model.posterior(self.transform(X).unsqueeze(-2))
         return post.mean.reshape(-1), post.variance.reshape(-1).clamp_min(0).sqrt()
 
     def expected_rating(self, X: Tensor) -> Tensor:
         """Expected rating in ``[0, 1]`` at the rows of ``X`` (``N x d``) (eq. 11)."""
-        X = _as_items(X, self.dim, "X")
+        X = as_items(X, self.dim, "X")
         with torch.no_grad():
             return self.model.expected_rating(self.transform(X))
 
@@ -385,13 +264,7 @@ class PreferenceSession:
     @property
     def history(self) -> list[SessionAnswer]:
         """The answers in force, oldest first."""
-        out = []
-        for r in self._active:
-            q = r.get("query") or {}
-            out.append(SessionAnswer(r["seq"], r["kind"], torch.tensor(r["items"], dtype=torch.float64),
-                                     r.get("answer"), r.get("value"), q.get("step"),
-                                     None if q.get("pool_indices") is None else tuple(q["pool_indices"]), r["time"]))
-        return out
+        return [SessionAnswer.from_record(r) for r in self._active]
 
     @property
     def records(self) -> list[dict]:
@@ -443,26 +316,26 @@ class PreferenceSession:
 
     def tell_rating(self, x: Tensor, rating: int | float) -> None:
         """A rating of any item ``x`` (``d``), given out of turn: a Likert level (or ``[0, 1]``)."""
-        x = _as_items(x, self.dim, "x")
+        x = as_items(x, self.dim, "x")
         if x.shape[0] != 1:
             raise ValueError(f"a rating is of one item, got {x.shape[0]}.")
         self._tell(RatingQuery(x[0]), rating, None)
 
     def tell_choice(self, X_shown: Tensor, chosen: int) -> None:
         """A choice of row ``chosen`` among any shown items ``X_shown`` (``m x d``, ``m >= 2``)."""
-        X = _as_items(X_shown, self.dim, "X_shown")
+        X = as_items(X_shown, self.dim, "X_shown")
         RankingQuery(X).validate_answer(chosen)  # None is not a choice here
         self._tell(RankingQuery(X), chosen, None)
 
     def tell_no_preference(self, X_shown: Tensor) -> None:
         """The person saw ``X_shown`` (``m x d``) and had no preference: a tie between every two of
         the items shown (:func:`~torchpref.queries.no_preference_observations`)."""
-        self._tell(RankingQuery(_as_items(X_shown, self.dim, "X_shown")), None, None)
+        self._tell(RankingQuery(as_items(X_shown, self.dim, "X_shown")), None, None)
 
     def _tell(self, query: Query, answer, info: dict | None) -> None:
         """Validate and add the answer to the model (:func:`~torchpref.queries.record_answer`),
         then append its record; the model is trusted again only once the record is in."""
-        items = _as_items(query.items, self.dim, "the query's items")
+        items = as_items(query.items, self.dim, "the query's items")
         if isinstance(query, RankingQuery) and items.shape[0] < 2:
             raise ValueError(f"a choice needs at least 2 items shown, got {items.shape[0]}.")
         model, seqs = self.model, self._model_seqs
@@ -500,35 +373,3 @@ class PreferenceSession:
         self._model, self._model_seqs = model, tuple(r["seq"] for r in active[:-1])
         return undone
 
-
-def _whole(name: str, value, lo: int | None) -> int:
-    """``value`` as an int (an integer, not a bool, float or text) of at least ``lo``."""
-    v = as_integer(value)
-    if v is None or (lo is not None and v < lo):
-        raise ValueError(f"{name} must be an integer{'' if lo is None else f' >= {lo}'}, got {value!r}.")
-    return v
-
-
-def _candidates_spec(candidates) -> tuple[Candidates, dict, Tensor, Tensor]:
-    """``(candidates, header spec, lower, upper)``: float64 candidates, their description for the
-    file's header, and their range."""
-    if isinstance(candidates, Tensor):
-        candidates = FinitePool(_as_items(candidates, candidates.shape[-1], "candidates"))
-    if isinstance(candidates, FinitePool):
-        pool = candidates.X.to(torch.float64)
-        return FinitePool(pool), {"kind": "pool", "items": pool.tolist()}, pool.min(0).values, pool.max(0).values
-    if isinstance(candidates, BoxCandidates):
-        b = candidates.bounds.to(torch.float64)
-        spec = {"kind": "box", "bounds": b.tolist(), "num": candidates.num}
-        return BoxCandidates(b, candidates.num), spec, b[0], b[1]
-    raise TypeError(f"candidates must be a tensor, FinitePool or BoxCandidates, got {type(candidates).__name__}.")
-
-
-def _describe(spec) -> str:
-    if not isinstance(spec, dict):
-        return repr(spec)
-    if spec.get("kind") == "pool":
-        items = spec.get("items") or []
-        digest = hashlib.sha256(json.dumps(items).encode()).hexdigest()[:10]
-        return f"(a pool of {len(items)} items, digest {digest})"
-    return f"(a box {spec.get('bounds')} x {spec.get('num')})"
