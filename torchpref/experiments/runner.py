@@ -40,6 +40,7 @@ from torch import Tensor
 from torchpref.kernels import fixed_rbf_kernel
 from torchpref.models import PreferenceGP
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, Selector, UCBRatings
+from torchpref.variance_reduction import VariancePerEffort
 
 
 def single_threaded() -> None:
@@ -140,6 +141,8 @@ _FACTORIES: dict[str, Callable[..., Selector]] = {
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma),
     "top & level info": lambda m, gamma, rating_cost, ranking_cost: InformationPerEffort(
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma, target="top+levels"),
+    "variance per effort": lambda m, rating_cost, ranking_cost, **_: VariancePerEffort(
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost),
 }
 
 #: every strategy :func:`make_selector` knows, by name
