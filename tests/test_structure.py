@@ -16,12 +16,6 @@ MAX_FUNCTION_LINES = 60
 EXEMPT_MODULES = {"models.py"}
 EXEMPT_FUNCTIONS = {("models.py", "__init__"), ("laplace.py", "laplace_evidence"),
                     ("numerics.py", "normal_interval")}
-# Being split into named steps on the `structure` branch (issue #13); the list only shrinks.
-EXEMPT_FUNCTIONS |= {("active.py", "run_active_learning_batch"), ("experiments/lake.py", "run_lake_experiment"),
-                     ("experiments/runner.py", "run_trials"), ("experiments/suite.py", "run_suite"),
-                     ("experiments/wave.py", "run_wave_experiment"), ("lake/field.py", "random"),
-                     ("lake/plan.py", "plan_with_utility"), ("lake/planners.py", "stomp"),
-                     ("lake/planners.py", "rrt_star"), ("lake/scenario.py", "make_scenario")}
 
 # What a module of torchpref/lake/ may import from the rest of torchpref: the data conventions
 # (Likert levels) and numerical helpers; never a model, a selector, the loop or the metrics.

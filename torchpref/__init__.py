@@ -39,6 +39,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.session import PreferenceSession
     from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
     from torchpref.utility_functions import WaveFunction, evaluation_grid
+    from torchpref.variance_reduction import VariancePerEffort
     from torchpref.users import SimulatedUser, User
 
 # public name -> the torchpref module that defines it
@@ -93,6 +94,7 @@ _EXPORTS = {
     "UCBRatings": "strategies",
     "unit_to_likert": "data",
     "User": "users",
+    "VariancePerEffort": "variance_reduction",
     "WaveFunction": "utility_functions",
     "wrms": "metrics",
     "wrms_authors": "metrics",

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from torchpref.batch import BatchedPreferenceGP
 from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
-from torchpref.queries import Candidates, Query, RatingQuery, ask_user, record_answer
+from torchpref.queries import Candidates, Query, ask_user, record_answer
 from torchpref.strategies import Selector
 from torchpref.users import User
 
@@ -52,11 +52,6 @@ class History:
         for r in self.records:
             out.append(out[-1] + r.cost)
         return out
-
-    @property
-    def num_ratings(self) -> int:
-        """How many of the recorded queries were ratings."""
-        return sum(isinstance(r.query, RatingQuery) for r in self.records)
 
 
 def fit_model(model: PreferenceGP) -> PreferenceGP:
@@ -130,18 +125,11 @@ class _Trial:
         self.model.add_observations(self.trial, X, comparisons, ratings, rating_index)
 
 
-def run_active_learning_batch(
-    model: BatchedPreferenceGP,
-    users: Sequence[User],
-    candidates: Candidates,
-    selector: Selector,
-    num_queries: int,
-    *,
-    generators: Sequence[torch.Generator],
-    metrics: Callable[[BatchedPreferenceGP], dict[str, Tensor]] | None = None,
-    costs: dict[str, float] | None = None,
-    refit: Callable[[int, BatchedPreferenceGP], Any] | None = None,
-) -> list[History]:
+def run_active_learning_batch(model: BatchedPreferenceGP, users: Sequence[User], candidates: Candidates,
+                              selector: Selector, num_queries: int, *, generators: Sequence[torch.Generator],
+                              metrics: Callable[[BatchedPreferenceGP], dict[str, Tensor]] | None = None,
+                              costs: dict[str, float] | None = None,
+                              refit: Callable[[int, BatchedPreferenceGP], Any] | None = None) -> list[History]:
     r""":func:`run_active_learning` for ``T`` independent trials at once (fixed hyperparameters).
 
     Trial ``b`` asks ``users[b]``, draws its candidates and makes its selector's random choices
@@ -174,14 +162,7 @@ def run_active_learning_batch(
         raise ValueError(f"num_queries must be non-negative, got {num_queries}.")
     costs = {**DEFAULT_COSTS, **(costs or {})}
     histories = [History() for _ in range(T)]
-
-    def measure() -> None:
-        if metrics is not None:
-            values = {k: v.tolist() for k, v in metrics(model).items()}
-            for b, h in enumerate(histories):
-                h.metrics.append({k: v[b] for k, v in values.items()})
-
-    measure()
+    _measure(metrics, model, histories)
     for step in range(num_queries):
         draws = [candidates.draw(g) for g in generators]
         X = torch.stack([x for x, _ in draws])
@@ -191,5 +172,14 @@ def run_active_learning_batch(
             histories[b].records.append(QueryRecord(step, query, answer, costs[query.kind]))
         if refit is not None:
             refit(step, model)
-        measure()
+        _measure(metrics, model, histories)
     return histories
+
+
+def _measure(metrics: Callable[[BatchedPreferenceGP], dict[str, Tensor]] | None, model: BatchedPreferenceGP,
+             histories: list[History]) -> None:
+    """Append each trial's metrics (``metrics(model)``: ``T`` values per name) to its history."""
+    if metrics is not None:
+        values = {k: v.tolist() for k, v in metrics(model).items()}
+        for b, h in enumerate(histories):
+            h.metrics.append({k: v[b] for k, v in values.items()})

@@ -44,6 +44,16 @@ def _ranking_size(m: int) -> int:
     return int(m)
 
 
+def effort_model(m: int, rating_cost: float, ranking_cost: float | None) -> tuple[int, float, float]:
+    """``m`` checked, and the efforts of a rating and a best-of-``m`` ranking (default
+    ``1 + (m - 1) / 4``: one judgement and reading ``m - 1`` more items at a quarter each)."""
+    m = _ranking_size(m)
+    ranking_cost = 1.0 + (m - 1) / 4 if ranking_cost is None else ranking_cost
+    if not (rating_cost > 0 and ranking_cost > 0):
+        raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
+    return m, float(rating_cost), float(ranking_cost)
+
+
 def _check_m(m: int, X: Tensor) -> None:
     if m < 2:
         raise ValueError(f"a ranking query needs m >= 2 items, got m={m}.")
@@ -132,6 +142,23 @@ def _joint(model, X: Tensor) -> tuple[Tensor, Tensor]:
     mvn = model.posterior(X).distribution
     T, N = X.shape[:2]
     return mvn.mean.reshape(T, N), mvn.covariance_matrix.reshape(T, N, N)
+
+
+def joint_samples(mean: Tensor, cov: Tensor, generators: Sequence[torch.Generator],
+                  num_samples: int) -> tuple[Tensor, Tensor]:
+    """``T x S x N`` joint samples of ``N(mean, cov)`` (``T x N``, ``T x N x N``; ``S =
+    num_samples``, one ``randn`` draw from each trial's generator) and the std (``T x N``)."""
+    T, N = mean.shape
+    std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    jitters = [1e-9 * cov.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)]  # relative, then tenfold
+    for _ in range(7):
+        jitters.append(10 * jitters[-1])
+    L, _, failed = cholesky_batch(cov, torch.stack(jitters))
+    if bool(failed.any()):  # fall back on independent samples
+        L[failed] = torch.diag_embed(std[failed])
+    z = torch.stack([torch.randn(num_samples, N, generator=g, dtype=mean.dtype, device=mean.device)
+                     for g in generators])
+    return mean.unsqueeze(-2) + z @ L.mT, std
 
 
 class UCBRatings(Selector):
@@ -261,11 +288,7 @@ class InformationPerEffort(Selector):
                  gamma: float = 3.0, num_samples: int = 128, target: str = "top", top_fraction: float = 0.2,
                  num_plausible: int = 15, num_bins: int = 10, min_count: int = 8, bias_correction: bool = True,
                  level_edges: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8)):
-        m = _ranking_size(m)
-        if ranking_cost is None:
-            ranking_cost = 1.0 + (m - 1) / 4
-        if not (rating_cost > 0 and ranking_cost > 0):
-            raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
+        m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
         if target not in ("top", "top+levels", "maximizer", "utility"):
             raise ValueError(f"target must be 'top', 'top+levels', 'maximizer' or 'utility', got {target!r}.")
         if not all(0 < e < 1 for e in level_edges):
@@ -274,26 +297,11 @@ class InformationPerEffort(Selector):
             raise ValueError(f"need num_samples >= 2 and num_plausible >= 1, got {num_samples} and {num_plausible}.")
         if not 0 < top_fraction < 1:
             raise ValueError(f"top_fraction must be in (0, 1), got {top_fraction}.")
-        self.m, self.rating_cost, self.ranking_cost = m, float(rating_cost), float(ranking_cost)
+        self.m, self.rating_cost, self.ranking_cost = m, rating_cost, ranking_cost
         self.gamma, self.num_samples, self.target = gamma, num_samples, target
         self.top_fraction, self.num_plausible, self.num_bins = top_fraction, num_plausible, num_bins
         self.min_count, self.bias_correction = min_count, bias_correction
         self.level_edges = tuple(float(e) for e in level_edges)
-
-    def _samples(self, model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Tensor, Tensor, Tensor]:
-        """``T x S x N`` joint samples, the posterior mean and std (``T x N``) at ``X`` (``T x N x d``)."""
-        mean, cov = _joint(model, X)
-        T, N = mean.shape
-        std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
-        jitters = [1e-9 * cov.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)]  # relative, then tenfold
-        for _ in range(7):
-            jitters.append(10 * jitters[-1])
-        L, _, failed = cholesky_batch(cov, torch.stack(jitters))
-        if bool(failed.any()):  # fall back on independent samples
-            L[failed] = torch.diag_embed(std[failed])
-        z = torch.stack([torch.randn(self.num_samples, N, generator=g, dtype=mean.dtype, device=mean.device)
-                         for g in generators])
-        return mean.unsqueeze(-2) + z @ L.mT, mean, std
 
     def _levels(self, F: Tensor, rating_likelihood) -> Tensor:
         """``T x S x L x N``: is each sample's rating mean ``Phi(f / (sqrt 2 sigma_B))`` above
@@ -305,7 +313,8 @@ class InformationPerEffort(Selector):
     def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
         with torch.no_grad():
-            F, mean, std = self._samples(model, X, generators)  # T x S x N
+            mean, cov = _joint(model, X)
+            F, std = joint_samples(mean, cov, generators, self.num_samples)  # T x S x N
             T, S, N = F.shape
             lik = model.likelihood
             ucb = mean + self.gamma * std

@@ -22,6 +22,15 @@ of the test path with the largest posterior mean). For each strategy's final mod
 ``plan_trials`` trials, :func:`~torchpref.lake.plan.plan_with_utility` plans a path for the
 posterior mean (wrapped by :func:`model_utility` to take the lake's objectives) and the operator's level of that path is compared with the best pool path's.
 
+Files written by :func:`run_lake_experiment` in its ``out`` folder: ``lake.json``
+(``{"trials", "queries", "lakes", "strategies": {name: {"error5_mean", "error5_sem", "wrms_mean",
+"wrms_sem", "chosen_rating_mean", "chosen_rating_sem"}}}``, one value per query count 0..Q, pooled over lakes), ``lake.csv``
+(the same, long format), ``lake.png`` (three panels, mean ± standard error),
+``lake_summary.json`` (pooled and per-lake final values, share of trials whose chosen path is
+rated 5, paired tests, planned vs pool path, wall time), the first lake's maps
+``lake_field.png`` and ``lake_objectives.png``, and with planning ``lake_plan_maps.png`` (the
+first trial's paths per strategy) and ``lake_plan_levels.png`` (levels over the trials).
+
 Command line: ``torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR]``;
 from Python: :func:`run_lake_experiment`.
 """
@@ -221,38 +230,18 @@ def _write_files(out: Path, result: dict[str, Any], summary: dict[str, Any], str
                          title=f"{s}: operator's level of the planned path, the pool pick and the best shown path")
 
 
-def run_lake_experiment(
-    trials: int = 20,
-    queries: int = 14,
-    seed: int = 10,
-    out: str | Path | None = "benchmarks/results",
-    executor: Executor | None = None,
-    *,
-    workers: int | None = None,
-    strategies: list[str] | None = None,
-    scenario: LakeScenario | None = None,
-    lakes: int = 1,
-    plan: list[str] | None = None,
-    plan_trials: int | None = None,
-    plan_settings: dict[str, Any] | None = None,
-    cache_dir: str | Path | None = None,
-    progress: bool = True,
-) -> dict[str, Any]:
-    r"""Run the lake experiment and (if ``out`` is given) write its files.
+def run_lake_experiment(trials: int = 20, queries: int = 14, seed: int = 10,
+                        out: str | Path | None = "benchmarks/results", executor: Executor | None = None, *,
+                        workers: int | None = None, strategies: list[str] | None = None,
+                        scenario: LakeScenario | None = None, lakes: int = 1, plan: list[str] | None = None,
+                        plan_trials: int | None = None, plan_settings: dict[str, Any] | None = None,
+                        cache_dir: str | Path | None = None, progress: bool = True) -> dict[str, Any]:
+    r"""Run the lake experiment and (if ``out`` is given) write its files (see the module docstring).
 
     Lake ``k`` (``k = 0 .. lakes - 1``) is the scenario of seed ``seed + k``, built once and
     cached on disk (:func:`~torchpref.lake.scenario.cached_scenario`); its ``trials`` trials
     differ by their trial seed (first comparison, selector randomness), derived from the lake's
-    seed. Lake 0 with the default arguments is the one-lake run of earlier versions.
-
-    Files in ``out``: ``lake.json`` (``{"trials", "queries", "lakes", "strategies": {name:
-    {"error5_mean", "error5_sem", "wrms_mean", "wrms_sem", "chosen_rating_mean",
-    "chosen_rating_sem"}}}``, one value per query count 0..Q, pooled over lakes), ``lake.csv``
-    (the same, long format), ``lake.png`` (three panels, mean ± standard error),
-    ``lake_summary.json`` (pooled and per-lake final values, share of trials whose chosen path is
-    rated 5, paired tests, planned vs pool path, wall time), the first lake's maps
-    ``lake_field.png`` and ``lake_objectives.png``, and with planning ``lake_plan_maps.png`` (the
-    first trial's paths per strategy) and ``lake_plan_levels.png`` (levels over the trials).
+    seed.
 
     Args:
         trials: trials per lake.
@@ -268,7 +257,6 @@ def run_lake_experiment(
             selector of a session; ``[]``: no planning).
         plan_trials: plan in this many first trials of each lake (default all).
         plan_settings: overrides of :data:`~torchpref.experiments.lake_plan.PLAN_SETTINGS`.
-        fresh: fresh planner paths to start from too.
         cache_dir: where scenarios are cached (default
             :func:`~torchpref.lake.scenario.default_cache_dir`).
         progress: show progress bars (scenarios, then trials).
@@ -284,41 +272,66 @@ def run_lake_experiment(
     num_fresh = int(settings["fresh_weights"]) if plan and settings["num_fresh"] > 0 else 0
     t0 = time.perf_counter()
     seeds = [seed + k for k in range(lakes)]
-    if scenario is None:
-        prepared = run_trials(prepare_lake, [(s, cache_dir, num_fresh) for s in seeds], executor=executor,
-                              progress=progress, workers=workers, description="lake scenarios", unit="lake")
-    else:
-        prepared = [(scenario, fresh_paths(scenario, num_fresh, torch.Generator().manual_seed(seed))
-                     if num_fresh else None)]
+    run_kw = dict(executor=executor, progress=progress, workers=workers)
+    prepared = _prepare_lakes(seeds, scenario, cache_dir, num_fresh, run_kw)
     t_scenario = time.perf_counter() - t0
     plan_trials = trials if plan_trials is None else plan_trials
-    args, lake_of = [], []
-    for k, (lake_seed, (scen, fresh)) in enumerate(zip(seeds, prepared)):
-        for i, ts in enumerate(trial_seeds(lake_seed, trials)):
-            args.append((scen, ts, queries, tuple(strategies), tuple(plan) if i < plan_trials else (), settings, fresh))
-            lake_of.append(k)
-    results = run_trials(run_trial, args, executor=executor, progress=progress, workers=workers,
-                         description="lake trials")
+    args, lake_of = _trial_args(seeds, prepared, trials, queries, strategies, plan, plan_trials, settings)
+    results = run_trials(run_trial, args, description="lake trials", **run_kw)
     wall = time.perf_counter() - t0
-    summary = summarise(results, strategies)
-    if lakes > 1:
-        summary["per_lake"] = {str(s): _lake_summary(summarise([r for r, k2 in zip(results, lake_of) if k2 == k],
-                                                              strategies))
-                               for k, s in enumerate(seeds)}
-    # every plan without its path (the paths are drawn, not stored)
-    summary["plans"] = [{"lake": seeds[k], "strategy": s, **{key: v for key, v in r[s]["plan"].items() if key != "path"}}
-                        for r, k in zip(results, lake_of) for s in strategies if r[s]["plan"] is not None]
+    summary = _summarise_run(results, strategies, seeds, lake_of)
     summary.update(trials=trials, queries=queries, seed=seed, lakes=lakes, lake_seeds=seeds, wall_time_s=wall,
                    scenario_time_s=t_scenario, workers=workers,
                    settings={"model": MODEL_SETTINGS, "m": M, "gamma": GAMMA, "plan": settings, "plan_strategies": plan,
-                             "plan_trials": plan_trials,
-                             "test_paths_rated_5": [int((LakeOperator().level(sc.test_X) == 5).sum())
-                                                    for sc, _ in prepared]})
+                             "plan_trials": plan_trials, "test_paths_rated_5": [_rated_5(sc) for sc, _ in prepared]})
     result = {"trials": trials, "queries": queries, "lakes": lakes, "strategies": summary["per_query"]}
     if out is not None:
         _write_files(Path(out), result, summary, strategies, [sc for sc, _ in prepared], results, lake_of)
     result["summary"] = summary
     return result
+
+
+def _prepare_lakes(seeds: list[int], scenario: LakeScenario | None, cache_dir: str | Path | None, num_fresh: int,
+                   run_kw: dict[str, Any]) -> list[tuple[LakeScenario, torch.Tensor | None]]:
+    """Each lake's scenario and fresh paths (:func:`prepare_lake`, one executor call a lake), or
+    the given ``scenario`` (of seed ``seeds[0]``) and its fresh paths."""
+    if scenario is None:
+        return run_trials(prepare_lake, [(s, cache_dir, num_fresh) for s in seeds], description="lake scenarios",
+                          unit="lake", **run_kw)
+    return [(scenario, fresh_paths(scenario, num_fresh, torch.Generator().manual_seed(seeds[0])) if num_fresh
+             else None)]
+
+
+def _rated_5(scenario: LakeScenario) -> int:
+    """How many of the scenario's test paths the operator rates 5."""
+    return int((LakeOperator().level(scenario.test_X) == 5).sum())
+
+
+def _trial_args(seeds: list[int], prepared: list[tuple], trials: int, queries: int, strategies: list[str],
+                plan: list[str], plan_trials: int, settings: dict[str, Any]) -> tuple[list[tuple], list[int]]:
+    """:func:`run_trial`'s arguments for every trial of every lake (``prepared``: each lake's scenario
+    and fresh paths), planning in the first ``plan_trials`` of each, and each trial's lake."""
+    args, lake_of = [], []
+    for k, (lake_seed, (scen, fresh)) in enumerate(zip(seeds, prepared)):
+        for i, ts in enumerate(trial_seeds(lake_seed, trials)):
+            args.append((scen, ts, queries, tuple(strategies), tuple(plan) if i < plan_trials else (), settings, fresh))
+            lake_of.append(k)
+    return args, lake_of
+
+
+def _summarise_run(results: list[dict[str, Any]], strategies: list[str], seeds: list[int],
+                   lake_of: list[int]) -> dict[str, Any]:
+    """:func:`summarise` over all trials, per lake where there are several (trial ``i`` is of lake
+    ``lake_of[i]``, seed ``seeds[lake_of[i]]``), and every plan without its path (the paths are
+    drawn, not stored)."""
+    summary = summarise(results, strategies)
+    if len(seeds) > 1:
+        summary["per_lake"] = {str(s): _lake_summary(summarise([r for r, k2 in zip(results, lake_of) if k2 == k],
+                                                              strategies))
+                               for k, s in enumerate(seeds)}
+    summary["plans"] = [{"lake": seeds[k], "strategy": s, **{key: v for key, v in r[s]["plan"].items() if key != "path"}}
+                        for r, k in zip(results, lake_of) for s in strategies if r[s]["plan"] is not None]
+    return summary
 
 
 def _lake_summary(summary: dict[str, Any]) -> dict[str, Any]:

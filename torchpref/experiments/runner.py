@@ -40,6 +40,7 @@ from torch import Tensor
 from torchpref.kernels import fixed_rbf_kernel
 from torchpref.models import PreferenceGP
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, Selector, UCBRatings
+from torchpref.variance_reduction import VariancePerEffort
 
 
 def single_threaded() -> None:
@@ -56,17 +57,9 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def run_trials(
-    trial_fn: Callable[..., Any],
-    trial_args_list: Sequence[tuple],
-    executor: Executor | None = None,
-    progress: bool = True,
-    *,
-    workers: int | None = None,
-    description: str = "trials",
-    sizes: Sequence[int] | None = None,
-    unit: str = "trial",
-) -> list[Any]:
+def run_trials(trial_fn: Callable[..., Any], trial_args_list: Sequence[tuple], executor: Executor | None = None,
+               progress: bool = True, *, workers: int | None = None, description: str = "trials",
+               sizes: Sequence[int] | None = None, unit: str = "trial") -> list[Any]:
     r"""Run ``trial_fn(*args)`` for every ``args`` in ``trial_args_list``; results in input order.
 
     Args:
@@ -96,29 +89,37 @@ def run_trials(
 
         bar = tqdm(total=sum(sizes), desc=description, unit=unit)
     results: list[Any] = [None] * len(args_list)
+
+    def done(i: int, result: Any) -> None:
+        results[i] = result
+        if bar is not None:
+            bar.update(sizes[i])
+
     try:
         if executor is None and (workers or default_workers()) == 1:
             for i, a in enumerate(args_list):
-                results[i] = trial_fn(*a)
-                if bar is not None:
-                    bar.update(sizes[i])
-            return results
-        own = executor is None
-        ex = ProcessPoolExecutor(max_workers=workers or default_workers()) if own else executor
-        try:
-            futures = {ex.submit(trial_fn, *a): i for i, a in enumerate(args_list)}
-            for fut in as_completed(futures):
-                i = futures[fut]
-                results[i] = fut.result()
-                if bar is not None:
-                    bar.update(sizes[i])
-        finally:
-            if own:
-                ex.shutdown(cancel_futures=True)
+                done(i, trial_fn(*a))
+        else:
+            own = executor is None
+            ex = ProcessPoolExecutor(max_workers=workers or default_workers()) if own else executor
+            _run_on(ex, trial_fn, args_list, done, own)
         return results
     finally:
         if bar is not None:
             bar.close()
+
+
+def _run_on(ex: Executor, trial_fn: Callable[..., Any], args_list: list[tuple], done: Callable[[int, Any], None],
+            own: bool) -> None:
+    """Submit every call to ``ex`` and hand each result to ``done(index, result)`` as it completes;
+    an ``own`` executor is shut down afterwards, its pending calls cancelled on an error."""
+    try:
+        futures = {ex.submit(trial_fn, *a): i for i, a in enumerate(args_list)}
+        for fut in as_completed(futures):
+            done(futures[fut], fut.result())
+    finally:
+        if own:
+            ex.shutdown(cancel_futures=True)
 
 
 def trial_seeds(seed: int, trials: int) -> list[int]:
@@ -140,6 +141,8 @@ _FACTORIES: dict[str, Callable[..., Selector]] = {
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma),
     "top & level info": lambda m, gamma, rating_cost, ranking_cost: InformationPerEffort(
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma, target="top+levels"),
+    "variance per effort": lambda m, rating_cost, ranking_cost, **_: VariancePerEffort(
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost),
 }
 
 #: every strategy :func:`make_selector` knows, by name
@@ -218,9 +221,15 @@ def run_by_strategy(batch_fn: Callable[..., list[dict[str, Any]]], seeds: Sequen
     parts = run_trials(batch_fn, tasks, sizes=[len(t[0]) for t in tasks], **run_kw)
     results: list[dict[str, Any]] = [{} for _ in seeds]
     for (s, i), part in zip(starts, parts):
-        for k, r in enumerate(part):
-            results[i + k][s] = r[s]
+        place_records(results, i, s, part)
     return results
+
+
+def place_records(results: list[dict[str, Any]], first: int, strategy: str, part: list[dict[str, Any]]) -> None:
+    """Put a call's per-trial records of ``strategy`` (``part``, for trials ``first``, ``first + 1``,
+    ...) into ``results``, one ``{strategy: record}`` per trial."""
+    for k, r in enumerate(part):
+        results[first + k][strategy] = r[strategy]
 
 
 def run_cli(args, experiment: Callable[..., dict[str, Any]], **kwargs) -> int:

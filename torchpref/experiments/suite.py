@@ -53,7 +53,8 @@ RANKING_COST = 1.0 + (M - 1) / 4
 CONDITIONS = ("fixed", "learned")
 #: verdicts after these many queries (and the last) and at these efforts
 CHECKPOINTS = (10, 20)
-STRATEGIES = ["UCBC", "random ratings", "random rankings", "UCB ratings", "info per effort", "top & level info"]
+STRATEGIES = ["UCBC", "random ratings", "random rankings", "UCB ratings", "info per effort", "top & level info",
+              "variance per effort"]
 METRICS = ("wrms", "tp", "regret")
 #: the learned condition refits after these many queries
 REFIT_AFTER = (3, 6, 10, 15)
@@ -177,20 +178,10 @@ def make_selector(name: str):
     return runner.make_selector(name, m=M, gamma=GAMMA, rating_cost=RATING_COST, ranking_cost=RANKING_COST)
 
 
-def run_suite(
-    families: Sequence[str] | None = None,
-    trials: int = 50,
-    queries: int = 20,
-    seed: int = 0,
-    out: str | Path | None = "benchmarks/results",
-    executor: Executor | None = None,
-    *,
-    workers: int | None = None,
-    strategies: Sequence[str] | None = None,
-    conditions: Sequence[str] = CONDITIONS,
-    batch_size: int = 50,
-    progress: bool = True,
-) -> dict[str, Any]:
+def run_suite(families: Sequence[str] | None = None, trials: int = 50, queries: int = 20, seed: int = 0,
+              out: str | Path | None = "benchmarks/results", executor: Executor | None = None, *,
+              workers: int | None = None, strategies: Sequence[str] | None = None,
+              conditions: Sequence[str] = CONDITIONS, batch_size: int = 50, progress: bool = True) -> dict[str, Any]:
     r"""Run the suite and (if ``out`` is given) write ``suite.json``, ``suite.csv``,
     ``suite_summary.json`` and the figures ``suite_fixed.png`` / ``suite_learned.png``.
 
@@ -210,13 +201,7 @@ def run_suite(
     Returns:
         ``{"families", "conditions", "strategies", "trials", "queries", "curves", "summary"}``.
     """
-    families = list(FAMILIES if families is None else families)
-    for f in families:
-        if f not in FAMILIES:
-            raise ValueError(f"unknown family {f!r}; choose from {list(FAMILIES)}.")
-    for c in conditions:
-        if c not in CONDITIONS:
-            raise ValueError(f"unknown condition {c!r}; choose from {list(CONDITIONS)}.")
+    families = _checked(FAMILIES if families is None else families, conditions)
     strategies = runner.check_run(queries, strategies, STRATEGIES, batch_size)
     seeds = {f: runner.trial_seeds(seed + 7919 * i, trials) for i, f in enumerate(FAMILIES) if f in families}
     keys = [(f, c, s, i) for f in families for c in conditions for s in strategies for i in range(0, trials, batch_size)]
@@ -229,23 +214,42 @@ def run_suite(
     results: dict[tuple[str, str], list[dict[str, Any]]] = {(f, c): [{} for _ in range(trials)]
                                                             for f in families for c in conditions}
     for (f, c, s, i), part in zip(keys, parts):
-        for k, r in enumerate(part):
-            results[f, c][i + k][s] = r[s]
+        runner.place_records(results[f, c], i, s, part)
     checkpoints = sorted({q for q in CHECKPOINTS if q <= queries} | {queries})
     summary = summarise(results, strategies, METRICS, budgets=CHECKPOINTS, checkpoints=checkpoints)
     cpu = sum(r[s]["cpu_s"] for trials_ in results.values() for r in trials_ for s in strategies)
     summary.update(trials=trials, queries=queries, seed=seed, wall_time_s=wall, cpu_time_s=cpu, workers=workers,
-                   settings={"m": M, "gamma": GAMMA, "top_k": TOP_K, "refit_after": REFIT_AFTER,
-                             "costs": {"rating": RATING_COST, "ranking": RANKING_COST},
-                             "families": {f: {"dim": FAMILIES[f].dim, "description": FAMILIES[f].description,
-                                              "model": model_settings(FAMILIES[f]), "pool": FAMILIES[f].pool,
-                                              "likert": FAMILIES[f].likert} for f in families}})
+                   settings=_settings(families))
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
         write_json(Path(out) / "suite_trials.json", {f"{f}/{c}": v for (f, c), v in results.items()})
         write_suite_files(Path(out), summary, families, conditions, strategies, METRICS)
     return {"families": families, "conditions": list(conditions), "strategies": strategies, "trials": trials,
             "queries": queries, "summary": summary}
+
+
+def _checked(families: Sequence[str], conditions: Sequence[str]) -> list[str]:
+    """``families`` as a list, each a known family and each condition a known one.
+
+    Raises:
+        ValueError: naming an unknown family or condition.
+    """
+    for f in families:
+        if f not in FAMILIES:
+            raise ValueError(f"unknown family {f!r}; choose from {list(FAMILIES)}.")
+    for c in conditions:
+        if c not in CONDITIONS:
+            raise ValueError(f"unknown condition {c!r}; choose from {list(CONDITIONS)}.")
+    return list(families)
+
+
+def _settings(families: list[str]) -> dict[str, Any]:
+    """The run's settings as the summary records them."""
+    return {"m": M, "gamma": GAMMA, "top_k": TOP_K, "refit_after": REFIT_AFTER,
+            "costs": {"rating": RATING_COST, "ranking": RANKING_COST},
+            "families": {f: {"dim": FAMILIES[f].dim, "description": FAMILIES[f].description,
+                             "model": model_settings(FAMILIES[f]), "pool": FAMILIES[f].pool,
+                             "likert": FAMILIES[f].likert} for f in families}}
 
 
 def run(args) -> int:

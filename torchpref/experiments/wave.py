@@ -45,6 +45,7 @@ from torchpref.experiments.results import (
     write_experiment_files,
 )
 from torchpref.metrics import rating_from_latent, true_positives, wrms
+from torchpref.models import PreferenceGP
 from torchpref.queries import BoxCandidates
 from torchpref.users import SimulatedUser
 from torchpref.utility_functions import WaveFunction, evaluation_grid
@@ -186,18 +187,10 @@ def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str,
             "paired_tests": tests, "fraction_ratings": fraction_ratings(results, strategies)}
 
 
-def run_wave_experiment(
-    trials: int = 100,
-    queries: int = 20,
-    seed: int = 10,
-    out: str | Path | None = "benchmarks/results",
-    executor: Executor | None = None,
-    *,
-    workers: int | None = None,
-    strategies: list[str] | None = None,
-    progress: bool = True,
-    batch_size: int | None = 50,
-) -> dict[str, Any]:
+def run_wave_experiment(trials: int = 100, queries: int = 20, seed: int = 10,
+                        out: str | Path | None = "benchmarks/results", executor: Executor | None = None, *,
+                        workers: int | None = None, strategies: list[str] | None = None, progress: bool = True,
+                        batch_size: int | None = 50) -> dict[str, Any]:
     r"""Run the Fig. 6 experiment and (if ``out`` is given) write its files.
 
     Files in ``out``: ``wave.json`` (``{"trials", "queries", "strategies": {name: {"wrms_mean",
@@ -239,17 +232,23 @@ def run_wave_experiment(
                              "costs": {"rating": RATING_COST, "ranking": RANKING_COST}})
     result = {"trials": trials, "queries": queries, "strategies": summary["per_query"]}
     if out is not None:
-        labels = {"wrms": "WRMS (eq. 14)", "tp": f"true positives (top {TOP_K})"}
-        figures = {
-            "wave.png": dict(panels=metric_panels(summary["per_query"], list(range(queries + 1)), labels),
-                             title=f"Wave functions, {trials} trials (mean ± s.e.)"),
-            "wave_effort.png": dict(panels=metric_panels(summary["per_effort"], summary["budgets"], labels),
-                                    xlabel=f"effort (rating {RATING_COST:g}, best-of-{M} {RANKING_COST:g})",
-                                    title=f"At equal effort, {trials} trials (mean ± s.e.)"),
-        }
-        write_experiment_files(out, "wave", result, summary, figures, effort=summary["per_effort"])
+        _write_files(out, result, summary)
     result["summary"] = summary
     return result
+
+
+def _write_files(out: str | Path, result: dict[str, Any], summary: dict[str, Any]) -> None:
+    """The run's files and figures (see :func:`run_wave_experiment`)."""
+    trials, queries = result["trials"], result["queries"]
+    labels = {"wrms": "WRMS (eq. 14)", "tp": f"true positives (top {TOP_K})"}
+    figures = {
+        "wave.png": dict(panels=metric_panels(summary["per_query"], list(range(queries + 1)), labels),
+                         title=f"Wave functions, {trials} trials (mean ± s.e.)"),
+        "wave_effort.png": dict(panels=metric_panels(summary["per_effort"], summary["budgets"], labels),
+                                xlabel=f"effort (rating {RATING_COST:g}, best-of-{M} {RANKING_COST:g})",
+                                title=f"At equal effort, {trials} trials (mean ± s.e.)"),
+    }
+    write_experiment_files(out, "wave", result, summary, figures, effort=summary["per_effort"])
 
 
 def run(args) -> int:

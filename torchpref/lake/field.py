@@ -170,22 +170,12 @@ class InformationField:
         return InformationField(self.grid * factor, self.extent)
 
     @classmethod
-    def random(
-        cls,
-        *,
-        generator: torch.Generator | None = None,
-        extent: tuple[float, float, float, float] = (-250.0, 250.0, -175.0, 175.0),
-        shape: tuple[int, int] = (141, 201),
-        num_gaussians: int = 8,
-        amplitude: tuple[float, float] = (0.4, 1.0),
-        width: tuple[float, float] = (25.0, 60.0),
-        noise_amplitude: float = 0.4,
-        noise_cells: int = 4,
-        noise_octaves: int = 3,
-        baseline: float = 0.05,
-        saturation: float | None = 0.4,
-        dtype=torch.float64,
-    ) -> InformationField:
+    def random(cls, *, generator: torch.Generator | None = None,
+               extent: tuple[float, float, float, float] = (-250.0, 250.0, -175.0, 175.0),
+               shape: tuple[int, int] = (141, 201), num_gaussians: int = 8, amplitude: tuple[float, float] = (0.4, 1.0),
+               width: tuple[float, float] = (25.0, 60.0), noise_amplitude: float = 0.4, noise_cells: int = 4,
+               noise_octaves: int = 3, baseline: float = 0.05, saturation: float | None = 0.4,
+               dtype=torch.float64) -> InformationField:
         r"""A random field: ``baseline + sum_k a_k exp(-|p - c_k|^2 / (2 s_k^2)) + noise``, clamped at 0.
 
         Args:
@@ -210,26 +200,35 @@ class InformationField:
                 raise ValueError(f"{name} must be a range 0 <= lo <= hi, got {(lo, hi)}.")
         if noise_amplitude < 0:
             raise ValueError(f"noise_amplitude must be non-negative, got {noise_amplitude}.")
+        if saturation is not None and not 0 < saturation <= 1:
+            raise ValueError(f"saturation must be in (0, 1], got {saturation}.")
+        grid = baseline + _gaussian_bumps(extent, shape, num_gaussians, amplitude, width, generator, dtype)
         xmin, xmax, ymin, ymax = extent
-        ny, nx = shape
-        ys = torch.linspace(ymin, ymax, ny, dtype=dtype)
-        xs = torch.linspace(xmin, xmax, nx, dtype=dtype)
-        pts = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1)  # ny x nx x 2
-
-        def uniform(n: int, lo: float, hi: float) -> Tensor:
-            return lo + (hi - lo) * torch.rand(n, generator=generator, dtype=dtype)
-
-        centres = torch.stack([uniform(num_gaussians, xmin, xmax), uniform(num_gaussians, ymin, ymax)], -1)
-        amps = uniform(num_gaussians, *amplitude)
-        widths = uniform(num_gaussians, *width)
-        d2 = (pts.unsqueeze(-2) - centres).pow(2).sum(-1)  # ny x nx x k
-        grid = baseline + (amps * torch.exp(-0.5 * d2 / widths**2)).sum(-1)
         aspect = (xmax - xmin) / (ymax - ymin)
         cells = (max(1, round(noise_cells * aspect)), noise_cells) if aspect >= 1 else (noise_cells, max(1, round(noise_cells / aspect)))
         noise = perlin_grid(shape, cells, octaves=noise_octaves, generator=generator, dtype=dtype)
         grid = (grid + noise_amplitude * noise).clamp_min(0.0)
         if saturation is not None:
-            if not 0 < saturation <= 1:
-                raise ValueError(f"saturation must be in (0, 1], got {saturation}.")
             grid = grid.clamp_max(float(torch.quantile(grid, saturation)))
         return cls(grid, extent)
+
+
+def _gaussian_bumps(extent: tuple[float, float, float, float], shape: tuple[int, int], num_gaussians: int,
+                    amplitude: tuple[float, float], width: tuple[float, float], generator: torch.Generator | None,
+                    dtype) -> Tensor:
+    """``sum_k a_k exp(-|p - c_k|^2 / (2 s_k^2))`` on the ``shape`` grid over ``extent``, with centres
+    ``c_k``, heights ``a_k`` and widths ``s_k`` drawn uniformly (in that order)."""
+    xmin, xmax, ymin, ymax = extent
+    ny, nx = shape
+    ys = torch.linspace(ymin, ymax, ny, dtype=dtype)
+    xs = torch.linspace(xmin, xmax, nx, dtype=dtype)
+    pts = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1)  # ny x nx x 2
+
+    def uniform(n: int, lo: float, hi: float) -> Tensor:
+        return lo + (hi - lo) * torch.rand(n, generator=generator, dtype=dtype)
+
+    centres = torch.stack([uniform(num_gaussians, xmin, xmax), uniform(num_gaussians, ymin, ymax)], -1)
+    amps = uniform(num_gaussians, *amplitude)
+    widths = uniform(num_gaussians, *width)
+    d2 = (pts.unsqueeze(-2) - centres).pow(2).sum(-1)  # ny x nx x k
+    return (amps * torch.exp(-0.5 * d2 / widths**2)).sum(-1)

@@ -86,22 +86,10 @@ def _optimise(lake, field, utility, start: Tensor, steps: int, lr: float, penalt
     return torch.cat([first, inner.detach(), last], dim=1)
 
 
-def plan_with_utility(
-    scenario,
-    utility: Callable[[Tensor], Tensor],
-    *,
-    starts: Tensor | None = None,
-    fallback: Tensor | None = None,
-    pool_paths: Tensor | None = None,
-    pool_X: Tensor | None = None,
-    num_starts: int = 3,
-    num_points: int = 30,
-    steps: int = 150,
-    lr: float = 1.0,
-    penalty: float = 10.0,
-    margin: float = 1.0,
-    step: float = 2.0,
-) -> PlanResult:
+def plan_with_utility(scenario, utility: Callable[[Tensor], Tensor], *, starts: Tensor | None = None,
+                      fallback: Tensor | None = None, pool_paths: Tensor | None = None, pool_X: Tensor | None = None,
+                      num_starts: int = 3, num_points: int = 30, steps: int = 150, lr: float = 1.0,
+                      penalty: float = 10.0, margin: float = 1.0, step: float = 2.0) -> PlanResult:
     r"""Optimise paths for a utility of their objectives and keep the best candidate.
 
     Args:
@@ -141,6 +129,16 @@ def plan_with_utility(
     def u_of(X: Tensor) -> Tensor:
         return utility(X).reshape(X.shape[:-1])
 
+    starts, fallback = _starts_and_fallback(field, u_of, starts, fallback, pool_paths, pool_X, num_starts)
+    planned = _optimise(lake, field, u_of, resample_by_arc_length(starts, num_points), steps, lr, penalty, margin,
+                        step)
+    return _best_candidate(lake, field, u_of, fallback, starts, planned)
+
+
+def _starts_and_fallback(field, u_of: Callable[[Tensor], Tensor], starts: Tensor | None, fallback: Tensor | None,
+                         pool_paths: Tensor | None, pool_X: Tensor | None, num_starts: int) -> tuple[Tensor, Tensor]:
+    """The starting paths and the fallback path, float64, checked; those not given are the
+    pool paths of largest utility."""
     if starts is None or fallback is None:
         if pool_paths is None:
             raise ValueError("give starts and fallback, or pool_paths, with a (lake, field) pair.")
@@ -155,8 +153,13 @@ def plan_with_utility(
     if starts.dim() != 3 or starts.shape[0] < 1 or starts.shape[-1] != 2 or fallback.dim() != 2:
         raise ValueError(f"starts must be k x T x 2 (k >= 1) and fallback T x 2, got shapes {tuple(starts.shape)} "
                          f"and {tuple(fallback.shape)}.")
-    planned = _optimise(lake, field, u_of, resample_by_arc_length(starts, num_points), steps, lr, penalty, margin,
-                        step)
+    return starts, fallback
+
+
+def _best_candidate(lake, field, u_of: Callable[[Tensor], Tensor], fallback: Tensor, starts: Tensor,
+                    planned: Tensor) -> PlanResult:
+    """The candidate of largest utility among those on the water; the fallback unless another's is
+    strictly larger."""
     with torch.no_grad():
         # one batch, so that equal paths get equal objectives (the quadrature follows the batch)
         candidates = pad_paths([fallback, starts, planned])
@@ -164,10 +167,9 @@ def plan_with_utility(
         u = u_of(X)
         ok = lake.path_on_water(candidates)
     source = ["fallback"] + ["start"] * starts.shape[0] + ["planned"] * planned.shape[0]
-    u_fb = float(u[0])
     best = 0
     for i in range(1, candidates.shape[0]):
         if bool(ok[i]) and float(u[i]) > float(u[best]):
             best = i
     path = fallback if best == 0 else candidates[best]
-    return PlanResult(path, X[best], float(u[best]), source[best], fallback, X[0], u_fb)
+    return PlanResult(path, X[best], float(u[best]), source[best], fallback, X[0], float(u[0]))

@@ -28,11 +28,15 @@ def _check_weights(weights) -> Tensor:
     return w
 
 
+def _weighted_cost(length: Tensor, info: Tensor, weights: Tensor, fmax: float) -> Tensor:
+    r"""``v_1 + w v_2 = L + w (f_max L - I)``: a path's (or an edge's) length ``L`` and information
+    ``I`` with weights ``w`` (broadcast)."""
+    return length + weights * (fmax * length - info)
+
+
 def path_cost(paths: Tensor, field: InformationField, weights: Tensor, *, step: float = 1.0) -> Tensor:
     r"""``cost = L + w (f_max L - I)`` for paths ``n_w x T x 2`` and weights ``n_w``; shape ``n_w``."""
-    length = path_length(paths)
-    info = path_information(paths, field, step=step)
-    return length + weights * (field.max * length - info)
+    return _weighted_cost(path_length(paths), path_information(paths, field, step=step), weights, field.max)
 
 
 def shore_distance_grid(lake: Lake, margin: float, spacing: float = 3.0) -> tuple[Tensor, tuple[float, float, float, float]]:
@@ -82,23 +86,73 @@ def resample_by_arc_length(paths: Tensor, num_points: int) -> Tensor:
     return out
 
 
-def stomp(
-    lake: Lake,
-    field: InformationField,
-    weights,
-    *,
-    generator: torch.Generator | None = None,
-    num_waypoints: int = 40,
-    num_rollouts: int = 16,
-    iterations: int = 50,
-    noise_std: float = 30.0,
-    init_std: float = 200.0,
-    temperature: float = 10.0,
-    margin: float = 3.0,
-    penalty: float = 50.0,
-    subdivisions: int = 3,
-    progress: bool = False,
-) -> Tensor:
+def _smooth_noise_factor(n: int) -> Tensor:
+    """``L`` with ``L L^T`` proportional to ``R^{-1}``, ``R = A^T A`` and ``A`` the second differences
+    of ``n`` interior waypoints with fixed ends, scaled so that the largest noise std is 1."""
+    A = torch.zeros(n + 2, n, dtype=torch.float64)
+    idx = torch.arange(n)
+    A[idx, idx], A[idx + 1, idx], A[idx + 2, idx] = 1.0, -2.0, 1.0
+    R_inv = torch.linalg.inv(A.T @ A)
+    return torch.linalg.cholesky(R_inv) / R_inv.diagonal().max().sqrt()
+
+
+class _StompState:
+    """STOMP's path per weight, its smooth noise, the rollouts' cost and the best iterate on the water."""
+
+    def __init__(self, lake: Lake, field: InformationField, w: Tensor, T: int, margin: float, penalty: float,
+                 subdivisions: int, generator: torch.Generator | None):
+        self.lake, self.field, self.w, self.generator = lake, field, w, generator
+        self.margin, self.penalty, self.subdivisions = margin, penalty, subdivisions
+        self.L = _smooth_noise_factor(T - 2)
+        self.sdf, self.sdf_extent = shore_distance_grid(lake, margin)
+        s = torch.linspace(0, 1, T, dtype=torch.float64).unsqueeze(-1)
+        self.straight = (lake.start + s * (lake.goal - lake.start)).expand(w.numel(), T, 2).clone()
+        self.best = self.straight.clone()
+        self.best_cost = torch.full((w.numel(),), float("inf"), dtype=torch.float64)
+
+    def smooth_noise(self, *shape: int) -> Tensor:
+        """``shape x n x 2`` noise, correlated along the path (``n`` interior waypoints)."""
+        z = torch.randn(*shape, 2, self.L.shape[0], generator=self.generator, dtype=torch.float64)
+        return (z @ self.L.T).transpose(-1, -2)
+
+    def rollout_costs(self, paths: Tensor) -> Tensor:
+        """``n_w x K x T x 2`` -> ``n_w x K``: the weighted cost plus the shore penalty."""
+        mid, piece = segment_midpoints(paths, self.subdivisions)  # ... x T-1 x m x 2, ... x T-1
+        f = self.field(mid)
+        shore = torch.relu(bilinear_sample(self.sdf, self.sdf_extent, mid) + self.margin).pow(2)
+        w4 = self.w.view(-1, 1, 1, 1)
+        return (piece.unsqueeze(-1) * (1 + w4 * (self.field.max - f))
+                + self.penalty * shore / self.subdivisions).sum((-1, -2))
+
+    def keep_best(self, paths: Tensor) -> None:
+        """Keep, per weight, ``paths`` where it is on the water and cheaper than the best so far."""
+        ok = self.lake.path_on_water(paths)
+        c = torch.where(ok, path_cost(paths, self.field, self.w, step=2.0), torch.full_like(self.best_cost, float("inf")))
+        better = c < self.best_cost
+        self.best[better] = paths[better]
+        self.best_cost = torch.where(better, c, self.best_cost)
+
+
+def _stomp_step(state: _StompState, theta: Tensor, sigma: float, K: int, temperature: float) -> Tensor:
+    """One STOMP iteration: ``K`` rollouts of noise ``sigma`` around ``theta`` (``n_w x T x 2``, the
+    first rollout unperturbed), moved by the cost-weighted noise and re-spaced along the path."""
+    n_w, T = theta.shape[0], theta.shape[1]
+    eps = sigma * state.smooth_noise(n_w, K)  # n_w x K x n x 2
+    eps[:, 0] = 0.0  # the current path is a rollout too
+    rollouts = theta.unsqueeze(1).repeat(1, K, 1, 1)
+    rollouts[:, :, 1:-1] += eps
+    S = state.rollout_costs(rollouts)  # n_w x K
+    lo, hi = S.min(1, keepdim=True).values, S.max(1, keepdim=True).values
+    P = torch.softmax(-temperature * (S - lo) / (hi - lo).clamp_min(1e-12), dim=1)
+    theta = theta.clone()
+    theta[:, 1:-1] += (P.view(n_w, K, 1, 1) * eps).sum(1)
+    return resample_by_arc_length(theta, T)
+
+
+def stomp(lake: Lake, field: InformationField, weights, *, generator: torch.Generator | None = None,
+          num_waypoints: int = 40, num_rollouts: int = 16, iterations: int = 50, noise_std: float = 30.0,
+          init_std: float = 200.0, temperature: float = 10.0, margin: float = 3.0, penalty: float = 50.0,
+          subdivisions: int = 3, progress: bool = False) -> Tensor:
     r"""STOMP (Kalakrishnan et al. 2011) batched over a sweep of weights.
 
     Each iteration draws ``K`` smooth noisy rollouts ``theta + eps`` per weight, with
@@ -141,81 +195,129 @@ def stomp(
         raise ValueError(f"num_rollouts must be positive, got {num_rollouts}.")
     if iterations < 0:
         raise ValueError(f"iterations must be non-negative, got {iterations}.")
-    n_w, T, K, n = w.numel(), num_waypoints, num_rollouts, num_waypoints - 2
-    dt = torch.float64
-    # A: second differences of the interior waypoints with fixed ends; R = A^T A
-    A = torch.zeros(n + 2, n, dtype=dt)
-    idx = torch.arange(n)
-    A[idx, idx], A[idx + 1, idx], A[idx + 2, idx] = 1.0, -2.0, 1.0
-    R_inv = torch.linalg.inv(A.T @ A)
-    L = torch.linalg.cholesky(R_inv) / R_inv.diagonal().max().sqrt()  # largest noise std is 1
-
-    xmin, xmax, ymin, ymax = lake.bounds
-    sdf, sdf_extent = shore_distance_grid(lake, margin)
-    fmax = field.max
-    w4 = w.view(-1, 1, 1, 1)
-
-    def rollout_costs(paths: Tensor) -> Tensor:  # n_w x K x T x 2 -> n_w x K
-        mid, piece = segment_midpoints(paths, subdivisions)  # ... x T-1 x m x 2, ... x T-1
-        f = field(mid)
-        shore = torch.relu(bilinear_sample(sdf, sdf_extent, mid) + margin).pow(2)
-        return (piece.unsqueeze(-1) * (1 + w4 * (fmax - f)) + penalty * shore / subdivisions).sum((-1, -2))
-
-    s = torch.linspace(0, 1, T, dtype=dt).unsqueeze(-1)
-    straight = (lake.start + s * (lake.goal - lake.start)).expand(n_w, T, 2).clone()
-
-    def smooth_noise(*shape: int) -> Tensor:  # shape x n x 2, correlated along the path
-        z = torch.randn(*shape, 2, n, generator=generator, dtype=dt)
-        return (z @ L.T).transpose(-1, -2)
-
-    theta = straight.clone()
-    theta[:, 1:-1] += init_std * smooth_noise(n_w)
-    best = straight.clone()
-    best_cost = torch.full((n_w,), float("inf"), dtype=dt)
-
-    def keep_best(paths: Tensor) -> None:
-        nonlocal best_cost
-        ok = lake.path_on_water(paths)
-        c = torch.where(ok, path_cost(paths, field, w, step=2.0), torch.full_like(best_cost, float("inf")))
-        better = c < best_cost
-        best[better] = paths[better]
-        best_cost = torch.where(better, c, best_cost)
-
-    keep_best(theta)
+    state = _StompState(lake, field, w, num_waypoints, margin, penalty, subdivisions, generator)
+    theta = state.straight.clone()
+    theta[:, 1:-1] += init_std * state.smooth_noise(w.numel())
+    state.keep_best(theta)
     for it in tqdm(range(iterations), desc="STOMP", disable=not progress):
         sigma = noise_std * (1 - it / max(iterations, 1)) ** 2 + 1.0
-        eps = sigma * smooth_noise(n_w, K)  # n_w x K x n x 2
-        eps[:, 0] = 0.0  # the current path is a rollout too
-        rollouts = theta.unsqueeze(1).repeat(1, K, 1, 1)
-        rollouts[:, :, 1:-1] += eps
-        S = rollout_costs(rollouts)  # n_w x K
-        lo, hi = S.min(1, keepdim=True).values, S.max(1, keepdim=True).values
-        P = torch.softmax(-temperature * (S - lo) / (hi - lo).clamp_min(1e-12), dim=1)
-        theta = theta.clone()
-        theta[:, 1:-1] += (P.view(n_w, K, 1, 1) * eps).sum(1)
-        theta = resample_by_arc_length(theta, T)
+        theta = _stomp_step(state, theta, sigma, num_rollouts, temperature)
         if it % 5 == 4 or it == iterations - 1:
-            keep_best(theta)
-    found = torch.isfinite(best_cost)
-    if not found.all() and not bool(lake.path_on_water(straight[:1])):
+            state.keep_best(theta)
+    found = torch.isfinite(state.best_cost)
+    if not found.all() and not bool(lake.path_on_water(state.straight[:1])):
         raise RuntimeError("STOMP found no path on the water for some weights; the straight start-goal line crosses land.")
-    return best
+    return state.best
 
 
-def rrt_star(
-    lake: Lake,
-    field: InformationField,
-    weights,
-    *,
-    generator: torch.Generator | None = None,
-    num_samples: int = 600,
-    step: float = 30.0,
-    radius: float = 45.0,
-    goal_bias: float = 0.05,
-    info_step: float = 2.0,
-    recompute_every: int = 100,
-    progress: bool = False,
-) -> Tensor:
+def _water_samples(lake: Lake, num_samples: int, goal_bias: float, generator: torch.Generator | None) -> Tensor:
+    """``num_samples x 2`` points on the water drawn uniformly in the lake's bounds, each replaced by
+    the goal with probability ``goal_bias``."""
+    xmin, xmax, ymin, ymax = lake.bounds
+    lo = torch.tensor([xmin, ymin], dtype=torch.float64)
+    span = torch.tensor([xmax - xmin, ymax - ymin], dtype=torch.float64)
+    samples = torch.empty(0, 2, dtype=torch.float64)
+    while samples.shape[0] < num_samples:
+        cand = lo + span * torch.rand(2 * num_samples, 2, generator=generator, dtype=torch.float64)
+        samples = torch.cat([samples, cand[lake.contains(cand)]])
+    samples = samples[:num_samples]
+    to_goal = torch.rand(num_samples, generator=generator, dtype=torch.float64) < goal_bias
+    samples[to_goal] = lake.goal
+    return samples
+
+
+class _Tree:
+    """RRT*'s tree for ``n_w`` weights: shared vertices ``X``, and per weight each vertex's parent,
+    cost from the start, and the length and information of the edge to its parent."""
+
+    def __init__(self, start: Tensor, w: Tensor, fmax: float, size: int):
+        n_w = w.numel()
+        self.wcol, self.fmax = w.unsqueeze(-1), fmax
+        self.X = torch.empty(size, 2, dtype=torch.float64)
+        self.X[0] = start
+        self.parent = torch.zeros(n_w, size, dtype=torch.long)
+        self.cost = torch.zeros(n_w, size, dtype=torch.float64)
+        self.edge_len = torch.zeros(n_w, size, dtype=torch.float64)
+        self.edge_info = torch.zeros(n_w, size, dtype=torch.float64)
+        self.count = 1
+
+    def edge_cost(self, length: Tensor, info: Tensor) -> Tensor:
+        """The weighted cost of edges, ``n_w x k`` from ``k`` lengths and informations."""
+        return _weighted_cost(length, info, self.wcol, self.fmax)
+
+    def refresh(self) -> None:
+        """Recompute every vertex's cost from its parent's (after rewires left them stale)."""
+        n = self.count
+        e = self.edge_cost(self.edge_len[:, :n], self.edge_info[:, :n])
+        e[:, 0] = 0.0
+        for _ in range(n):
+            new = self.cost[:, :n].gather(1, self.parent[:, :n]) + e
+            new[:, 0] = 0.0
+            if torch.equal(new, self.cost[:, :n]):
+                break
+            self.cost[:, :n] = new
+
+    def add(self, new: Tensor, nb: Tensor, length: Tensor, info: Tensor) -> int:
+        """Add vertex ``new`` with, per weight, the cheapest parent among the neighbours ``nb`` (edge
+        lengths and informations ``length``, ``info``), rewire the neighbours that get cheaper
+        through it, and return its index."""
+        ecost = self.edge_cost(length, info)  # n_w x k
+        via = self.cost[:, nb] + ecost
+        best = via.argmin(-1)
+        i = self.count
+        self.X[i] = new
+        self.parent[:, i] = nb[best]
+        self.cost[:, i] = via.gather(1, best.unsqueeze(-1)).squeeze(-1)
+        self.edge_len[:, i], self.edge_info[:, i] = length[best], info[best]
+        self.count += 1
+        through = self.cost[:, i : i + 1] + ecost
+        rewire = through < self.cost[:, nb]
+        if rewire.any():
+            cols = nb.expand(self.parent.shape[0], -1)
+            self.parent[:, nb] = torch.where(rewire, i, self.parent[:, nb])
+            self.cost[:, nb] = torch.where(rewire, through, self.cost[:, nb])
+            self.edge_len[:, nb] = torch.where(rewire, length.expand_as(cols), self.edge_len[:, nb])
+            self.edge_info[:, nb] = torch.where(rewire, info.expand_as(cols), self.edge_info[:, nb])
+        return i
+
+    def paths_to(self, goal_index: int) -> Tensor:
+        """``n_w x T_max x 2``: the path from the start to vertex ``goal_index`` for every weight,
+        shorter ones padded by repeating the goal."""
+        chains = [torch.full((self.parent.shape[0],), goal_index, dtype=torch.long)]
+        while bool((chains[-1] != 0).any()):
+            chains.append(self.parent.gather(1, chains[-1].unsqueeze(-1)).squeeze(-1))
+        order = torch.stack(chains[::-1], dim=-1)  # n_w x T_max, starting with repeated 0s
+        # move the leading repeated starts to the end as repeated goals
+        lead = (order == 0).sum(-1) - 1
+        T = order.shape[-1]
+        pos = (torch.arange(T).unsqueeze(0) + lead.unsqueeze(-1)).clamp(max=T - 1)
+        return self.X[order.gather(1, pos)]
+
+
+def _extend(tree: _Tree, lake: Lake, field: InformationField, s: Tensor, step: float, radius: float,
+            info_step: float) -> Tensor | None:
+    """Steer from the nearest vertex towards sample ``s`` and add the new vertex to ``tree`` from
+    the neighbours within ``radius`` it can reach on the water: the vertex, or ``None`` if none."""
+    X = tree.X[:tree.count]
+    d = (X - s).norm(dim=-1)
+    near = int(d.argmin())
+    if float(d[near]) < 1e-9:
+        return None
+    new = s.clone() if float(d[near]) <= step else X[near] + (s - X[near]) * (step / float(d[near]))
+    dn = (X - new).norm(dim=-1)
+    nb = torch.nonzero(dn <= radius).squeeze(-1)
+    ok = lake.segments_on_water(X[nb], new.expand(nb.numel(), 2))
+    if not bool(ok.any()):
+        return None
+    nb = nb[ok]
+    seg = torch.stack([X[nb], new.expand(nb.numel(), 2)], dim=-2)  # k x 2 x 2
+    tree.add(new, nb, dn[nb], path_information(seg, field, step=info_step))
+    return new
+
+
+def rrt_star(lake: Lake, field: InformationField, weights, *, generator: torch.Generator | None = None,
+             num_samples: int = 600, step: float = 30.0, radius: float = 45.0, goal_bias: float = 0.05,
+             info_step: float = 2.0, recompute_every: int = 100, progress: bool = False) -> Tensor:
     r"""RRT* (Karaman and Frazzoli 2011) for a sweep of weights on one shared tree.
 
     Sampling, nearest-vertex steering and edge validity do not depend on ``w``, so all
@@ -248,89 +350,16 @@ def rrt_star(
         raise ValueError(f"need step > 0 and radius >= step, got step={step}, radius={radius}.")
     if not 0 <= goal_bias < 1:
         raise ValueError(f"goal_bias must be in [0, 1), got {goal_bias}.")
-    dt = torch.float64
-    n_w, N = w.numel(), num_samples + 1
-    fmax = field.max
-    wcol = w.unsqueeze(-1)
-    # candidate samples on the water, drawn in one go
-    xmin, xmax, ymin, ymax = lake.bounds
-    lo = torch.tensor([xmin, ymin], dtype=dt)
-    span = torch.tensor([xmax - xmin, ymax - ymin], dtype=dt)
-    samples = torch.empty(0, 2, dtype=dt)
-    while samples.shape[0] < num_samples:
-        cand = lo + span * torch.rand(2 * num_samples, 2, generator=generator, dtype=dt)
-        samples = torch.cat([samples, cand[lake.contains(cand)]])
-    samples = samples[:num_samples]
-    to_goal = torch.rand(num_samples, generator=generator, dtype=dt) < goal_bias
-    samples[to_goal] = lake.goal
-
-    X = torch.empty(N, 2, dtype=dt)
-    X[0] = lake.start
-    parent = torch.zeros(n_w, N, dtype=torch.long)
-    cost = torch.zeros(n_w, N, dtype=dt)
-    edge_len = torch.zeros(n_w, N, dtype=dt)  # length and information of the edge to the parent
-    edge_info = torch.zeros(n_w, N, dtype=dt)
-    count, goal_index = 1, -1
-
-    def refresh() -> None:
-        nonlocal cost
-        e = edge_len[:, :count] + wcol * (fmax * edge_len[:, :count] - edge_info[:, :count])
-        e[:, 0] = 0.0
-        for _ in range(count):
-            new = cost[:, :count].gather(1, parent[:, :count]) + e
-            new[:, 0] = 0.0
-            if torch.equal(new, cost[:, :count]):
-                break
-            cost[:, :count] = new
-
+    samples = _water_samples(lake, num_samples, goal_bias, generator)
+    tree = _Tree(lake.start, w, field.max, num_samples + 1)
+    goal_index = -1
     for k in tqdm(range(num_samples), desc="RRT*", disable=not progress):
-        s = samples[k]
-        d = (X[:count] - s).norm(dim=-1)
-        near = int(d.argmin())
-        if float(d[near]) < 1e-9:
-            continue
-        new = s.clone() if float(d[near]) <= step else X[near] + (s - X[near]) * (step / float(d[near]))
-        dn = (X[:count] - new).norm(dim=-1)
-        nb = torch.nonzero(dn <= radius).squeeze(-1)
-        ok = lake.segments_on_water(X[nb], new.expand(nb.numel(), 2))
-        if not bool(ok.any()):
-            continue
-        nb = nb[ok]
-        seg = torch.stack([X[nb], new.expand(nb.numel(), 2)], dim=-2)  # k x 2 x 2
-        L = dn[nb]
-        info = path_information(seg, field, step=info_step)
-        ecost = L + wcol * (fmax * L - info)  # n_w x k
-        via = cost[:, nb] + ecost
-        best = via.argmin(-1)
-        i = count
-        X[i] = new
-        parent[:, i] = nb[best]
-        cost[:, i] = via.gather(1, best.unsqueeze(-1)).squeeze(-1)
-        edge_len[:, i], edge_info[:, i] = L[best], info[best]
-        count += 1
-        if goal_index < 0 and torch.equal(new, lake.goal):
-            goal_index = i
-        # rewire: the neighbours that get cheaper through the new vertex
-        through = cost[:, i : i + 1] + ecost
-        rewire = through < cost[:, nb]
-        if rewire.any():
-            cols = nb.expand(n_w, -1)
-            parent[:, nb] = torch.where(rewire, i, parent[:, nb])
-            cost[:, nb] = torch.where(rewire, through, cost[:, nb])
-            edge_len[:, nb] = torch.where(rewire, L.expand_as(cols), edge_len[:, nb])
-            edge_info[:, nb] = torch.where(rewire, info.expand_as(cols), edge_info[:, nb])
+        new = _extend(tree, lake, field, samples[k], step, radius, info_step)
+        if new is not None and goal_index < 0 and torch.equal(new, lake.goal):
+            goal_index = tree.count - 1
         if (k + 1) % recompute_every == 0:
-            refresh()
+            tree.refresh()
     if goal_index < 0:
         raise RuntimeError(f"RRT* did not reach the goal in {num_samples} samples; raise num_samples or goal_bias.")
-    refresh()
-    # backtrack from the goal for every weight
-    chains = [torch.full((n_w,), goal_index, dtype=torch.long)]
-    while bool((chains[-1] != 0).any()):
-        chains.append(parent.gather(1, chains[-1].unsqueeze(-1)).squeeze(-1))
-    order = torch.stack(chains[::-1], dim=-1)  # n_w x T_max, starting with repeated 0s
-    # move the leading repeated starts to the end as repeated goals
-    lead = (order == 0).sum(-1) - 1
-    T = order.shape[-1]
-    pos = (torch.arange(T).unsqueeze(0) + lead.unsqueeze(-1)).clamp(max=T - 1)
-    return X[order.gather(1, pos)]
+    tree.refresh()
+    return tree.paths_to(goal_index)

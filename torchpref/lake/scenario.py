@@ -51,19 +51,10 @@ class LakeScenario:
     test_weights: Tensor
 
 
-def make_scenario(
-    seed: int | None = None,
-    *,
-    generator: torch.Generator | None = None,
-    paths_per_planner: int = 100,
-    weight_range: tuple[float, float] = (0.01, 1000.0),
-    share_five: float | None = 0.1,
-    lake: Lake | None = None,
-    field: InformationField | None = None,
-    stomp_options: dict | None = None,
-    rrt_options: dict | None = None,
-    progress: bool = False,
-) -> LakeScenario:
+def make_scenario(seed: int | None = None, *, generator: torch.Generator | None = None, paths_per_planner: int = 100,
+                  weight_range: tuple[float, float] = (0.01, 1000.0), share_five: float | None = 0.1,
+                  lake: Lake | None = None, field: InformationField | None = None, stomp_options: dict | None = None,
+                  rrt_options: dict | None = None, progress: bool = False) -> LakeScenario:
     r"""Build a lake-monitoring scenario.
 
     Each set has ``paths_per_planner`` STOMP and as many RRT* paths, planned for weights drawn
@@ -93,8 +84,7 @@ def make_scenario(
         generator = torch.Generator().manual_seed(int(seed))
     if paths_per_planner < 1:
         raise ValueError(f"paths_per_planner must be positive, got {paths_per_planner}.")
-    w_min, w_max = weight_range
-    if not 0 < w_min <= w_max:
+    if not 0 < weight_range[0] <= weight_range[1]:
         raise ValueError(f"weight_range must satisfy 0 < w_min <= w_max, got {weight_range}.")
     lake = Lake.random(generator=generator) if lake is None else lake
     if field is None:
@@ -103,32 +93,43 @@ def make_scenario(
     if share_five is not None and not 0 < share_five < 1:
         raise ValueError(f"share_five must be in (0, 1), got {share_five}.")
 
-    def one_set() -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        u = torch.rand(paths_per_planner, generator=generator, dtype=torch.float64)
-        w = torch.exp(math.log(w_min) + u * (math.log(w_max) - math.log(w_min))).sort().values
-        # the cost's information term is f_max L - I: scale w so that it means the same per unit field
-        w_eff = w / field.max
-        a = stomp(lake, field, w_eff, generator=generator, progress=progress, **(stomp_options or {}))
-        b = rrt_star(lake, field, w_eff, generator=generator, progress=progress, **(rrt_options or {}))
-        paths = pad_paths([a, b])
-        planner = torch.cat([torch.zeros(paths_per_planner), torch.ones(paths_per_planner)]).long()
-        return paths, path_objectives(paths, field), planner, torch.cat([w, w])
-
-    train = one_set()
-    test = one_set()
+    train, test = (_plan_set(lake, field, paths_per_planner, weight_range, generator, progress, stomp_options,
+                             rrt_options) for _ in range(2))
     if share_five is not None:
-        X = train[1]
-        short = X[X[:, 0] < 500.0, 1].sort(descending=True).values
-        k = min(max(1, round(share_five * X.shape[0])), short.numel())
-        if k == 0 or not short[0] > 0:
-            raise RuntimeError("no training path is short enough (< 500) to be rated 5.")
-        # the k-th most informative short path lands halfway above 150
-        edge = short[k - 1] if k == short.numel() else 0.5 * (short[k - 1] + short[k])
-        scale = 150.0 / float(edge)
-        field = field.scaled(scale)
-        train = (train[0], train[1] * torch.tensor([1.0, scale], dtype=torch.float64), *train[2:])
-        test = (test[0], test[1] * torch.tensor([1.0, scale], dtype=torch.float64), *test[2:])
+        field, train, test = _scaled_for_share_five(field, train, test, share_five)
     return LakeScenario(lake, field, *train, *test)
+
+
+def _plan_set(lake: Lake, field: InformationField, n: int, weight_range: tuple[float, float],
+              generator: torch.Generator, progress: bool, stomp_options: dict | None,
+              rrt_options: dict | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One set: ``n`` STOMP and ``n`` RRT* paths for weights drawn log-uniformly from
+    ``weight_range`` (sorted): ``(paths, objectives, planner indices, weights)``."""
+    w_min, w_max = weight_range
+    u = torch.rand(n, generator=generator, dtype=torch.float64)
+    w = torch.exp(math.log(w_min) + u * (math.log(w_max) - math.log(w_min))).sort().values
+    # the cost's information term is f_max L - I: scale w so that it means the same per unit field
+    w_eff = w / field.max
+    a = stomp(lake, field, w_eff, generator=generator, progress=progress, **(stomp_options or {}))
+    b = rrt_star(lake, field, w_eff, generator=generator, progress=progress, **(rrt_options or {}))
+    paths = pad_paths([a, b])
+    planner = torch.cat([torch.zeros(n), torch.ones(n)]).long()
+    return paths, path_objectives(paths, field), planner, torch.cat([w, w])
+
+
+def _scaled_for_share_five(field: InformationField, train: tuple, test: tuple, share_five: float) -> tuple:
+    """The field scaled so that a share ``share_five`` of the training paths is rated 5 (information
+    >= 150 and distance < 500), and both sets' objectives scaled with it: ``(field, train, test)``."""
+    X = train[1]
+    short = X[X[:, 0] < 500.0, 1].sort(descending=True).values
+    k = min(max(1, round(share_five * X.shape[0])), short.numel())
+    if k == 0 or not short[0] > 0:
+        raise RuntimeError("no training path is short enough (< 500) to be rated 5.")
+    # the k-th most informative short path lands halfway above 150
+    edge = short[k - 1] if k == short.numel() else 0.5 * (short[k - 1] + short[k])
+    scale = 150.0 / float(edge)
+    factor = torch.tensor([1.0, scale], dtype=torch.float64)
+    return field.scaled(scale), (train[0], train[1] * factor, *train[2:]), (test[0], test[1] * factor, *test[2:])
 
 
 SCENARIO_VERSION = 1
