@@ -66,7 +66,11 @@ class _ScalarParamsMixin:
         if not torch.isfinite(value).all() or (value <= 0).any():
             raise ValueError(f"{name} must be positive and finite, got {value.tolist()}.")
         constraint = getattr(self, f"raw_{name}_constraint")
-        self.initialize(**{f"raw_{name}": constraint.inverse_transform(value)})
+        raw_value = constraint.inverse_transform(value)
+        if not bool(torch.isfinite(raw_value).all()):  # at or beyond a bound of an interval constraint
+            raise ValueError(f"{name} must lie inside its constraint {constraint}, got {value.tolist()}.")
+        with torch.no_grad():  # what ``initialize`` does, without its per-call overhead
+            raw.copy_(raw_value.expand_as(raw))
 
     def _get(self, name: str) -> Tensor:
         return getattr(self, f"raw_{name}_constraint").transform(getattr(self, f"raw_{name}"))

@@ -32,7 +32,7 @@ from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.numerics import pin_coincident
 from torchpref.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood, default_cut_points
 from torchpref.padding import PaddedData
-from torchpref.posterior_state import PosteriorState, fingerprint
+from torchpref.posterior_state import PosteriorState, carries_gradients, fingerprint
 from torchpref.precision import call_in_dtype, check_laplace_dtype, solve_dtype
 
 
@@ -441,11 +441,18 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
             return out
         return pin_coincident(out, X1, X2, evaluate(X1, X1, diag=True))
 
-    def _state(self) -> PosteriorState:
-        """The mode and prediction cache for the current hyperparameters and data (cached)."""
+    def _prior(self) -> tuple[PaddedData, Tensor]:
+        """The problems with their items transformed, and their prior covariance ``K``
+        (``batch x N x N``, padded items independent; differentiable in the hyperparameters)."""
+        padded = self._padded().with_items(self._transformed_train_X())
+        return padded, padded.prior_covariance(self._kernel(padded.X))
+
+    def _state(self, prior: tuple[PaddedData, Tensor] | None = None) -> PosteriorState:
+        """The mode and prediction cache for the current hyperparameters and data (cached);
+        ``prior``: :meth:`_prior`'s result if already computed (then the kernel is not evaluated again)."""
         fp = fingerprint(self)
         if self._cache is None or not self._cache.is_current(self._data, fp):
-            self._cache = PosteriorState.build(self, fp, self._cache)
+            self._cache = PosteriorState.build(self, fp, self._cache, prior)
         return self._cache
 
     @property
@@ -467,16 +474,20 @@ class PreferenceGP(PairwiseGPInterface, Model, GP):
         r"""Laplace evidence ``log q(Y) = log p(Y|f) - f^T K^-1 f / 2 - log|I + W K| / 2`` at the
         mode (``batch_shape``), differentiable, with a gradient that includes the mode's implicit
         dependence on the hyperparameters. Hyperparameter priors are not included (the MLL adds them)."""
-        state = self._state()
-        padded = state.padded
-        K = padded.prior_covariance(self._kernel(self._transformed_train_X()))
+        padded, K = self._prior()
+        state = self._state((padded, K))
         N = padded.num_items
         value = laplace_evidence(K.reshape(-1, N, N), state.obs, state.mode, L=state.pred.L, jitter=state.jitter)
         return value.reshape(self.batch_shape).to(padded.X.dtype)
 
     def _predict(self, X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
-        """Posterior moments at transformed ``X`` (:meth:`PosteriorState.moments`), in ``X``'s dtype."""
-        mean, cov = self._state().moments(self._kernel, X, diag)
+        """Posterior moments at transformed ``X`` (:meth:`PosteriorState.moments`), in ``X``'s dtype;
+        with autograd on and training items or ratings that carry gradients (a fantasy model inside
+        a look-ahead acquisition), differentiable in them through the mode (:meth:`PosteriorState.traced`)."""
+        state = self._state()
+        if torch.is_grad_enabled() and carries_gradients(self._padded()):
+            state = state.traced(*self._prior(), self._observations())
+        mean, cov = state.moments(self._kernel, X, diag)
         return mean.to(X.dtype), cov.to(X.dtype)
 
     def forward(self, X: Tensor) -> MultivariateNormal:
