@@ -49,7 +49,22 @@ def predictive_rating(mean: Tensor, var: Tensor, rating_scale: float | Tensor) -
     return torch.special.ndtr(mean / torch.sqrt(2 * scale.square() + var.clamp_min(0)))
 
 
+def scalar_parameter(name: str, doc: str) -> property:
+    """A property reading and setting the positive scalar hyperparameter ``name`` of a
+    :class:`_ScalarParamsMixin` (stored raw, through its constraint)."""
+
+    def get(self) -> Tensor:
+        return self._get(name)
+
+    def set_(self, value) -> None:
+        self._set(name, value)
+
+    return property(get, set_, doc=doc)
+
+
 class _ScalarParamsMixin:
+    """Positive scalar hyperparameters kept as raw parameters with a constraint and an optional prior."""
+
     def _register(self, name: str, value: float, constraint, prior, learn: bool) -> None:
         raw = torch.nn.Parameter(torch.zeros((), dtype=torch.float64), requires_grad=learn)
         self.register_parameter(f"raw_{name}", raw)
@@ -96,14 +111,7 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
         self._register("comparison_noise", comparison_noise, comparison_noise_constraint or Positive(),
                        comparison_noise_prior, learn)
 
-    @property
-    def comparison_noise(self) -> Tensor:
-        """``sigma_R`` (eq. 3): the noise of a comparison."""
-        return self._get("comparison_noise")
-
-    @comparison_noise.setter
-    def comparison_noise(self, value) -> None:
-        self._set("comparison_noise", value)
+    comparison_noise = scalar_parameter("comparison_noise", "``sigma_R`` (eq. 3): the noise of a comparison.")
 
     def _scale(self) -> Tensor:
         return SQRT2 * self.comparison_noise
@@ -190,23 +198,11 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         self._register("rating_precision", rating_precision, rating_precision_constraint or Interval(1e-2, 1e6),
                        rating_precision_prior, learn)
 
-    @property
-    def rating_scale(self) -> Tensor:
-        """``sigma_B`` (eq. 7): how the latent utility maps onto the rating scale."""
-        return self._get("rating_scale")
+    rating_scale = scalar_parameter("rating_scale",
+                                    "``sigma_B`` (eq. 7): how the latent utility maps onto the rating scale.")
 
-    @rating_scale.setter
-    def rating_scale(self, value) -> None:
-        self._set("rating_scale", value)
-
-    @property
-    def rating_precision(self) -> Tensor:
-        """``nu`` (eqs. 4-7): the precision of a rating's Beta distribution (larger: less noisy ratings)."""
-        return self._get("rating_precision")
-
-    @rating_precision.setter
-    def rating_precision(self, value) -> None:
-        self._set("rating_precision", value)
+    rating_precision = scalar_parameter("rating_precision", "``nu`` (eqs. 4-7): the precision of a rating's Beta "
+                                        "distribution (larger: less noisy ratings).")
 
     def mean_link(self, f: Tensor) -> Tensor:
         r"""``mu = Phi(f / (sqrt 2 sigma_B))``, eq. 7 (:func:`rating_link`)."""
