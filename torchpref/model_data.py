@@ -139,7 +139,10 @@ class ModelData:
         comparisons as the tie's upper category where ties were offered."""
         lik = self.likelihood
         comparison = lik.strict if self.ties_offered else lik.comparison
-        return self._padded().observations(comparison, lik.rating, lik.tie)
+        padded, dtype = self._padded(), self.laplace_dtype
+        if padded.X.dtype != dtype:
+            padded = padded.map(lambda t: t.to(dtype) if t.is_floating_point() else t)
+        return padded.observations(comparison, lik.rating, lik.tie)
 
     def _set_data(self, data: PreferenceData | PaddedData, warm_f: Tensor | None) -> None:
         """Swap in new data; re-solve the mode first and keep the old state if that fails or is

@@ -32,7 +32,9 @@ from torchpref.numerics import pin_coincident
 from torchpref.ordinal import OrdinalRatingLikelihood, TieLikelihood
 from torchpref.padding import PaddedData
 from torchpref.posterior_state import PosteriorState, carries_gradients, fingerprint
+from torchpref.precision import call_in_dtype, check_laplace_dtype, solve_dtype
 from torchpref.predictives import Predictives
+
 
 def _initial_data(train_X, comparisons, ratings, rating_index, rating_eps: float, ties,
                   rating_levels: int | None) -> PreferenceData | PaddedData:
@@ -47,9 +49,8 @@ def _initial_data(train_X, comparisons, ratings, rating_index, rating_eps: float
 def _warn_dtype(dtype: torch.dtype) -> None:
     if dtype != torch.float64:
         warnings.warn(
-            f"train_X is {dtype}; float64 is recommended (as in BoTorch): float32 kernel matrices "
-            "need about 1e4 times more diagonal jitter and posteriors agree with float64 to about "
-            "1e-3 (docs/decisions.md).",
+            f"train_X is {dtype}; float64 is recommended (as in BoTorch). The Laplace problem is "
+            "solved in float64 unless laplace_dtype says otherwise (docs/precision.md).",
             InputDataWarning,
             stacklevel=3,
         )
@@ -99,6 +100,10 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
             of eq. 3 (a forced choice); needed to learn ``tau``. Default ``False``.
         level_noise: the ordinal likelihood's ``sigma``; default ``sqrt(pi) sigma_B / sqrt(nu + 1)``,
             the Beta likelihood's rating noise at mid-scale in latent units (0.197 at the defaults).
+        laplace_dtype: the dtype the kernel matrices and the Laplace problem are computed in
+            (:attr:`laplace_dtype`); default float64 whatever the model's dtype, so a float32 model
+            solves in mixed precision and returns float32 posteriors. ``torch.float32`` solves a
+            float32 model natively (docs/precision.md).
 
     Warns:
         InputDataWarning: (BoTorch's) for inputs in a dtype other than float64, and for training
@@ -134,6 +139,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         cut_points: Tensor | None = None,
         level_noise: float | None = None,
         ties_offered: bool = False,
+        laplace_dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
         data = _initial_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
@@ -149,6 +155,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
             self.input_transform = input_transform
         self.rating_eps = rating_eps
         self.max_newton_iter = max_newton_iter
+        self._laplace_dtype = check_laplace_dtype(laplace_dtype)
         self._scaling_warned = False
         self.to(device=X.device, dtype=X.dtype)
         self._data: PreferenceData | PaddedData = data
@@ -168,6 +175,17 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
             raise ValueError(f"max_newton_iter must be an integer of at least 1, got {value!r}.")
         self._max_newton_iter = int(value)
+
+    @property
+    def laplace_dtype(self) -> torch.dtype:
+        """The dtype of the kernel matrices and the Laplace solve: the ``laplace_dtype`` asked
+        for (default float64), or the model's dtype where that is more precise. Outputs
+        (posteriors, the evidence) come back in the model's dtype; :attr:`mode` stays in this one."""
+        return solve_dtype(self._padded().X.dtype, self._laplace_dtype)
+
+    @laplace_dtype.setter
+    def laplace_dtype(self, value: torch.dtype | None) -> None:
+        self._laplace_dtype, self._cache = check_laplace_dtype(value), None
 
     # ------------------------------------------------------------ likelihoods
     @property
@@ -199,7 +217,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
     def _kernel(self, X1: Tensor, X2: Tensor | None = None, diag: bool = False) -> Tensor:
         """Dense ``k(X1, X2)`` (or its diagonal): the kernel's ``forward`` directly (the values
         ``__call__`` would give, without building a lazy kernel tensor) unless a kernel selects
-        ``active_dims``; below float64, exact at coincident points
+        ``active_dims``; in :attr:`laplace_dtype`; below float64, exact at coincident points
         (:func:`~torchpref.numerics.pin_coincident`)."""
         k = self.covar_module
         X2 = X1 if X2 is None else X2
@@ -209,7 +227,8 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
                 return out if diag else out.to_dense()
         else:
             evaluate = k.forward
-        out = evaluate(X1, X2, diag=diag)
+        dtype = solve_dtype(X1.dtype, self._laplace_dtype)
+        out = call_in_dtype(k, dtype, lambda A, B: evaluate(A, B, diag=diag), X1, X2)
         # kernels such as LinearKernel return a LinearOperator from forward: evaluate it densely
         out = out.to_dense() if isinstance(out, LinearOperator) else out
         if diag or out.dtype == torch.float64:  # float64's round-off there is ~1e-16: not worth a pass
@@ -253,16 +272,17 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         state = self._state((padded, K))
         N = padded.num_items
         value = laplace_evidence(K.reshape(-1, N, N), state.obs, state.mode, L=state.pred.L, jitter=state.jitter)
-        return value.reshape(self.batch_shape)
+        return value.reshape(self.batch_shape).to(padded.X.dtype)
 
     def _predict(self, X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
-        """Posterior moments at transformed ``X``: :meth:`PosteriorState.moments`; with autograd on
-        and training items or ratings that carry gradients (a fantasy model inside a look-ahead
-        acquisition), differentiable in them through the mode (:meth:`PosteriorState.traced`)."""
+        """Posterior moments at transformed ``X`` (:meth:`PosteriorState.moments`), in ``X``'s dtype;
+        with autograd on and training items or ratings that carry gradients (a fantasy model inside
+        a look-ahead acquisition), differentiable in them through the mode (:meth:`PosteriorState.traced`)."""
         state = self._state()
         if torch.is_grad_enabled() and carries_gradients(self._padded()):
             state = state.traced(*self._prior(), self._observations())
-        return state.moments(self._kernel, X, diag)
+        mean, cov = state.moments(self._kernel, X, diag)
+        return mean.to(X.dtype), cov.to(X.dtype)
 
     def forward(self, X: Tensor) -> MultivariateNormal:
         """The Laplace posterior of the latent utility at ``X`` (``batch x q x d``, transformed)."""
