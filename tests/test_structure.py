@@ -1,6 +1,7 @@
 """The package's layout stays as docs/architecture.md describes it: no module of ``torchpref``
-over 450 lines, no function over 60, and the lake world (``torchpref/lake/``) imports nothing of
-learning (the model, the loop, the selectors, the metrics) from the rest of the package."""
+over 450 lines, no function over 60, no import cycle among the modules (module-level imports),
+and the lake world (``torchpref/lake/``) imports nothing of learning (the model, the loop, the
+selectors, the metrics) from the rest of the package."""
 
 import ast
 from pathlib import Path
@@ -79,3 +80,70 @@ def test_the_import_walk_sees_every_form():
            "def f():\n    from torchpref.acquisition import item_ucb\n")
     assert sorted(m for m, _ in _torchpref_imports(ast.parse(src))) == [
         "acquisition", "active", "metrics", "models", "session", "strategies"]
+
+
+def _module_imports(f: Path) -> set[str]:
+    """The torchpref modules ``f`` imports at module level (not inside functions), as dotted names."""
+    package = "torchpref." + ".".join(f.relative_to(PACKAGE).with_suffix("").parts[:-1])
+    package = package.rstrip(".")
+    out = set()
+    for node in ast.parse(f.read_text()).body:
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                module = f"{base}.{node.module}" if node.module else base
+            else:
+                module = node.module or ""
+            names = [module] + [f"{module}.{a.name}" for a in node.names]
+        elif isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        else:
+            continue
+        out |= {n for n in names if n.startswith("torchpref.") and _path(n) is not None}
+    return out
+
+
+def _path(dotted: str) -> Path | None:
+    """The file of module ``dotted`` (a package's ``__init__.py``), or ``None`` if it is not one."""
+    base = PACKAGE.joinpath(*dotted.split(".")[1:])
+    for p in (base.with_suffix(".py"), base / "__init__.py"):
+        if p.is_file():
+            return p
+    return None
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """An import cycle of ``graph`` (module -> modules it imports) as a path, or ``None``."""
+    done, path = set(), []
+
+    def visit(m: str) -> list[str] | None:
+        if m in path:
+            return path[path.index(m):] + [m]
+        if m in done:
+            return None
+        path.append(m)
+        for n in sorted(graph.get(m, ())):
+            if (found := visit(n)) is not None:
+                return found
+        path.pop()
+        done.add(m)
+        return None
+
+    for m in sorted(graph):
+        if (found := visit(m)) is not None:
+            return found
+    return None
+
+
+def test_module_level_imports_form_no_cycle():
+    graph = {f"torchpref.{_name(f)[:-3].replace('/', '.')}".removesuffix(".__init__"): _module_imports(f)
+             for f in _modules()}
+    assert {"torchpref.models", "torchpref.lake.field"} <= graph["torchpref.session_settings"] | graph[
+        "torchpref.lake.plan"] | graph["torchpref.lake.planners"], "is the walk blind?"
+    cycle = _cycle(graph)
+    assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_the_cycle_search_finds_one():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b"}, "b": set(), "c": {"a", "b"}}) is None
