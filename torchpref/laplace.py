@@ -183,30 +183,47 @@ def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor |
     ll, g, weights = obs.evaluate(mode.f)  # the likelihood parameters may carry gradients
     with torch.no_grad():
         L = torch.linalg.cholesky(K.detach() + jit * _eye(n, K)) if L is None else L.detach().reshape(K.shape)
-        a, f, M = mode.a, mode.f, mode.B_chol
-        alpha = _solve_t(L, a)
-        V = torch.linalg.solve_triangular(M, L.mT, upper=False)  # M^-1 L^T
-        Sigma = V.mT @ V
+        Sigma = _posterior_covariance(L, mode.B_chol)
         s = obs.quadratic_forms(Sigma)
-        h = obs.adjoint([dw * sk for dw, sk in zip(obs.curvature_slopes(f), s)], n, like=K)
+        h = obs.adjoint([dw * sk for dw, sk in zip(obs.curvature_slopes(mode.f), s)], n, like=K)
         Sigma_h = (Sigma @ h.unsqueeze(-1)).squeeze(-1)
-        W = obs.W_dense(n, mode.weights, like=K)
-        W_times = obs.W_operator(n, mode.weights, dense=W)
-        b = h - W_times(Sigma_h.unsqueeze(-1)).squeeze(-1)  # (I - W Sigma) h
-        W_Sigma_W = W_times(W_times(Sigma).mT).mT  # W (W Sigma)^T = W Sigma W
-        G = 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - W + W_Sigma_W - b.unsqueeze(-1) * alpha.unsqueeze(-2))
-        # the mode is exact only to the solver's tolerance: one more Newton step's first-order
-        # change of the value makes it second-order accurate (smooth in the hyperparameters)
-        grad_a = (L.mT @ g.detach().unsqueeze(-1)).squeeze(-1) - a
-        step = torch.cholesky_solve(grad_a.unsqueeze(-1), M).squeeze(-1)
-        value = (ll.detach() - 0.5 * (a * a).sum(-1) - torch.log(torch.diagonal(M, dim1=-2, dim2=-1)).sum(-1)
-                 + 0.5 * (grad_a * step).sum(-1) - 0.5 * (h * (L @ step.unsqueeze(-1)).squeeze(-1)).sum(-1))
+        G = _kernel_gradient(_solve_t(L, mode.a), Sigma, h, Sigma_h, obs, mode.weights)
+        value = _second_order_value(ll.detach(), g.detach(), L, mode, h)
     # the likelihood parameters' part, at the fixed mode (constants unless they carry gradients)
     surrogate = (G * K).sum((-2, -1)) + ll - 0.5 * (Sigma_h * g).sum(-1)
     for w, sk in zip(weights, s):
         surrogate = surrogate - 0.5 * (w * sk).sum(-1)
     out = value + (surrogate - surrogate.detach())
     return out[0] if single else out
+
+
+def _posterior_covariance(L: Tensor, M: Tensor) -> Tensor:
+    """``Sigma = (K^-1 + W)^-1 = L B^-1 L^T`` (``B x n x n``) from ``L`` and ``M = chol(B)``."""
+    V = torch.linalg.solve_triangular(M, L.mT, upper=False)  # M^-1 L^T
+    return V.mT @ V
+
+
+def _kernel_gradient(alpha: Tensor, Sigma: Tensor, h: Tensor, Sigma_h: Tensor, obs: Observations,
+                     weights: tuple[Tensor, ...]) -> Tensor:
+    r"""``d log q / d K = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``
+    (``B x n x n``; see :func:`laplace_evidence`)."""
+    n = Sigma.shape[-1]
+    W = obs.W_dense(n, weights, like=Sigma)
+    W_times = obs.W_operator(n, weights, dense=W)
+    b = h - W_times(Sigma_h.unsqueeze(-1)).squeeze(-1)  # (I - W Sigma) h
+    W_Sigma_W = W_times(W_times(Sigma).mT).mT  # W (W Sigma)^T = W Sigma W
+    return 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - W + W_Sigma_W - b.unsqueeze(-1) * alpha.unsqueeze(-2))
+
+
+def _second_order_value(ll: Tensor, g: Tensor, L: Tensor, mode: ModeResult, h: Tensor) -> Tensor:
+    r"""``log p(Y|f) - a^T a / 2 - log|B| / 2`` at the mode (``B`` values), plus the first-order
+    change of one more Newton step: the mode is exact only to the solver's tolerance, and the
+    corrected value is second-order accurate (smooth in the hyperparameters)."""
+    a, M = mode.a, mode.B_chol
+    grad_a = (L.mT @ g.unsqueeze(-1)).squeeze(-1) - a
+    step = torch.cholesky_solve(grad_a.unsqueeze(-1), M).squeeze(-1)
+    return (ll - 0.5 * (a * a).sum(-1) - torch.log(torch.diagonal(M, dim1=-2, dim2=-1)).sum(-1)
+            + 0.5 * (grad_a * step).sum(-1) - 0.5 * (h * (L @ step.unsqueeze(-1)).squeeze(-1)).sum(-1))
 
 
 def _solve_t(L: Tensor, a: Tensor) -> Tensor:
