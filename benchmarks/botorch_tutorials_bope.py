@@ -43,7 +43,7 @@ from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from botorch_tutorials_common import (  # noqa: E402
-    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, seed_all, timed)
+    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, phase, seed_all, timed)
 
 X_DIM, Y_DIM = 5, 4
 NUM_RESTARTS, NUM_OUTCOME_SAMPLES, RAW_SAMPLES, BATCH_LIMIT = 8, 32, 64, 4
@@ -70,8 +70,9 @@ def pair_comparisons(util: torch.Tensor) -> torch.Tensor:
 
 
 def outcome_model_for(X: torch.Tensor, Y: torch.Tensor) -> SingleTaskGP:
-    model = SingleTaskGP(X, Y, input_transform=Normalize(d=X.shape[-1]))
-    fit_gpytorch_mll(ExactMarginalLogLikelihood(model.likelihood, model))
+    with phase("outcome_fit"):
+        model = SingleTaskGP(X, Y, input_transform=Normalize(d=X.shape[-1]))
+        fit_gpytorch_mll(ExactMarginalLogLikelihood(model.likelihood, model))
     return model
 
 
@@ -83,8 +84,9 @@ def candidates(outcome, objective, acqf_name: str, X_baseline: torch.Tensor) -> 
                                             prune_baseline=True)
     else:
         acqf = qSimpleRegret(outcome, sampler=sampler, objective=objective)
-    cand, _ = optimize_acqf(acqf, q=1, bounds=PROBLEM.bounds, num_restarts=NUM_RESTARTS, raw_samples=RAW_SAMPLES,
-                            options={"batch_limit": BATCH_LIMIT}, sequential=True)
+    with phase("learned_objective_acqf"):
+        cand, _ = optimize_acqf(acqf, q=1, bounds=PROBLEM.bounds, num_restarts=NUM_RESTARTS, raw_samples=RAW_SAMPLES,
+                                options={"batch_limit": BATCH_LIMIT}, sequential=True)
     return cand
 
 
@@ -103,8 +105,9 @@ def explore(model_name, outcome, Y, comps, strategy: str, X_baseline) -> tuple[t
             if strategy == "EUBO-zeta":
                 one_sample = FixedSingleSampleModel(model=outcome)
                 acqf = AnalyticExpectedUtilityOfBestOption(pref_model=pref, outcome_model=one_sample)
-                cand_X, _ = optimize_acqf(acqf, q=2, bounds=PROBLEM.bounds, num_restarts=NUM_RESTARTS,
-                                          raw_samples=RAW_SAMPLES, options={"batch_limit": BATCH_LIMIT})
+                with phase("eubo_optimize"):
+                    cand_X, _ = optimize_acqf(acqf, q=2, bounds=PROBLEM.bounds, num_restarts=NUM_RESTARTS,
+                                              raw_samples=RAW_SAMPLES, options={"batch_limit": BATCH_LIMIT})
                 cand_Y = one_sample(cand_X)
             else:
                 cand_Y = outcome.posterior(sobol_designs(2)).sample().squeeze(0)

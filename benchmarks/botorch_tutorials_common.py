@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable
 
@@ -26,13 +27,14 @@ RESULTS = Path(__file__).resolve().parent / "results"
 def fit_preference_model(name: str, X: torch.Tensor, comps: torch.Tensor, **model_kwargs):
     """The tutorials' ``init_and_fit_model`` / ``fit_pref_model``: the construction and MLL lines
     are the only ones that depend on ``name``."""
-    if name == "PairwiseGP":
-        model = PairwiseGP(X, comps, input_transform=Normalize(d=X.shape[-1]))
-        mll = PairwiseLaplaceMarginalLogLikelihood(model.likelihood, model)
-    else:
-        model = PreferenceGP(X, comps, input_transform=Normalize(d=X.shape[-1]), **model_kwargs)
-        mll = LaplaceMarginalLogLikelihood(model)
-    fit_gpytorch_mll(mll)
+    with phase("preference_fit"):
+        if name == "PairwiseGP":
+            model = PairwiseGP(X, comps, input_transform=Normalize(d=X.shape[-1]))
+            mll = PairwiseLaplaceMarginalLogLikelihood(model.likelihood, model)
+        else:
+            model = PreferenceGP(X, comps, input_transform=Normalize(d=X.shape[-1]), **model_kwargs)
+            mll = LaplaceMarginalLogLikelihood(model)
+        fit_gpytorch_mll(mll)
     return model
 
 
@@ -64,10 +66,32 @@ class Record:
             f.write(json.dumps(row) + "\n")
 
 
+#: wall and CPU seconds per named phase of the running trial (``phase``), reset by ``timed``
+PHASES: dict[str, float] = {}
+PHASES_CPU: dict[str, float] = {}
+
+
+@contextmanager
+def phase(name: str):
+    """Add the wall and CPU time of the ``with`` block to ``PHASES[name]`` / ``PHASES_CPU[name]``
+    (where a loop spends its time; the CPU time is robust to load from other processes)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        yield
+    finally:
+        PHASES[name] = PHASES.get(name, 0.0) + time.perf_counter() - t0
+        PHASES_CPU[name] = PHASES_CPU.get(name, 0.0) + time.process_time() - c0
+
+
 def timed(fn: Callable[[], dict]) -> dict:
-    t0 = time.perf_counter()
+    """Run one trial; add its wall time, its CPU time (this process, one thread: the work done
+    rather than the waiting on a loaded machine) and the wall and CPU time per ``phase``."""
+    PHASES.clear()
+    PHASES_CPU.clear()
+    t0, c0 = time.perf_counter(), time.process_time()
     out = fn()
-    return {**out, "wall_s": time.perf_counter() - t0}
+    return {**out, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "phase_s": dict(PHASES),
+            "phase_cpu_s": dict(PHASES_CPU)}
 
 
 def paired_summary(rows: list[dict], key: str, higher_is_better: bool) -> dict:

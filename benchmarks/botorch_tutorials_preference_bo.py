@@ -32,7 +32,7 @@ from botorch.optim import optimize_acqf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from botorch_tutorials_common import (  # noqa: E402
-    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, seed_all, timed)
+    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, phase, seed_all, timed)
 
 DIM, NOISE, Q, Q_COMP = 4, 0.1, 2, 1
 NUM_RESTARTS, RAW_SAMPLES = 3, 512
@@ -79,7 +79,9 @@ def run(model_name: str, seed: int, batches: int, model_kwargs: dict) -> dict:
         for _ in range(batches):
             if arm == "EUBO":
                 acqf = AnalyticExpectedUtilityOfBestOption(pref_model=model)
-                next_X, _ = optimize_acqf(acqf, bounds=bounds, q=Q, num_restarts=NUM_RESTARTS, raw_samples=RAW_SAMPLES)
+                with phase("eubo_optimize"):
+                    next_X, _ = optimize_acqf(acqf, bounds=bounds, q=Q, num_restarts=NUM_RESTARTS,
+                                              raw_samples=RAW_SAMPLES)
                 next_X = next_X.to(X)
                 repeats += repeats_a_pair(next_X, X, comps)
             else:

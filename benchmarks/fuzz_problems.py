@@ -8,15 +8,17 @@ A problem (:func:`make_problem`, from a seed): ``n`` log-uniform in ``1 .. max_n
 likelihood's ``sigma_R``, ``sigma_B`` and ``nu`` as hostile. Comparisons-only problems use
 ``sigma_R = 1``, BoTorch's ``PairwiseGP`` likelihood, so that ``PairwiseGP`` solves the same problem.
 
-:func:`check` runs a problem in float32 and float64 (and ``PairwiseGP`` in float32 on
-comparisons-only problems): the exception raised if any, whether anything is NaN, whether Newton
-converged, and how far float32's posterior is from float64's, with autograd off and on (the
-inputs requiring a gradient, as inside ``optimize_acqf``).
+:func:`check` runs a problem as each model of :data:`RUNS` (float64; float32 solving in float64,
+the default; float32 solving natively) and ``PairwiseGP`` in float32 on comparisons-only problems:
+the exception raised if any, whether anything is NaN, whether Newton converged, the jitter and
+the time taken, and how far each float32 posterior is from float64's, with autograd off and on
+(the inputs requiring a gradient, as inside ``optimize_acqf``).
 """
 
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from dataclasses import dataclass, field
 
@@ -25,10 +27,13 @@ from gpytorch.kernels import RBFKernel, ScaleKernel
 from torch import Tensor
 
 from torchpref import PreferenceGP
-from torchpref.numerics import cholesky_jittered
 
 F32, F64 = torch.float32, torch.float64
 KINDS = ("comparisons", "ratings", "mixed")
+#: The models run on each problem: name -> (dtype, laplace_dtype). ``f32`` is the default float32
+#: model (mixed precision), ``f32n`` a float32 model solving natively (docs/precision.md).
+RUNS = {"f64": (F64, None), "f32": (F32, None), "f32n": (F32, F32)}
+FLOAT32_RUNS = ("f32", "f32n")
 
 
 @dataclass
@@ -105,11 +110,11 @@ def query_points(problem: Problem, num: int = 8) -> Tensor:
     return torch.cat([torch.rand(num, problem.X.shape[-1], generator=g, dtype=F64), problem.X[:4]])
 
 
-def build(problem: Problem, dtype: torch.dtype) -> PreferenceGP:
+def build(problem: Problem, dtype: torch.dtype, laplace_dtype: torch.dtype | None = None) -> PreferenceGP:
     C = problem.comparisons if problem.comparisons.numel() else None
     r, ri = (problem.ratings, problem.rating_index) if problem.ratings.numel() else (None, None)
     return PreferenceGP(problem.X.to(dtype), C, r.to(dtype) if r is not None else None, ri,
-                        covar_module=kernel(problem, dtype), **problem.likelihood)
+                        covar_module=kernel(problem, dtype), laplace_dtype=laplace_dtype, **problem.likelihood)
 
 
 def posterior_moments(model, X: Tensor, grad: bool) -> tuple[Tensor, Tensor]:
@@ -126,21 +131,23 @@ def posterior_moments(model, X: Tensor, grad: bool) -> tuple[Tensor, Tensor]:
     return mvn.mean.detach().double(), mvn.covariance_matrix.detach().double()
 
 
-def _run(problem: Problem, dtype: torch.dtype, Xq: Tensor) -> dict:
-    """One model: its outcome and moments (``None`` where it raised)."""
+def _run(problem: Problem, run: str, Xq: Tensor) -> dict:
+    """One model of :data:`RUNS`: its outcome, moments (``None`` where it raised) and seconds
+    (building, the mode, the posterior with autograd off and on)."""
+    dtype, laplace_dtype = RUNS[run]
     out = {"error": None, "nan": False, "converged": None, "iterations": None, "moments": None, "jitter": None}
+    t = time.perf_counter()
     try:
-        model = build(problem, dtype)
-        with torch.no_grad():  # the jitter the model's factorisation needs (the same function)
-            K = model.covar_module(problem.X.to(dtype)).to_dense()
-            out["jitter"] = cholesky_jittered(K)[1] / problem.outputscale if problem.n else 0.0
+        model = build(problem, dtype, laplace_dtype)
         mode = model.mode
         out["converged"], out["iterations"] = bool(mode.converged), int(mode.iterations)
+        out["jitter"] = float(model._state().jitter) / problem.outputscale  # the diagonal jitter of L
         out["moments"] = {grad: posterior_moments(model, Xq.to(dtype), grad) for grad in (False, True)}
         out["nan"] = not bool(torch.isfinite(mode.f).all()) or any(
             not (torch.isfinite(m).all() and torch.isfinite(S).all()) for m, S in out["moments"].values())
     except Exception as e:  # noqa: BLE001 - the outcome is what is measured
         out["error"] = f"{type(e).__name__}: {str(e)[:160]}"
+    out["seconds"] = time.perf_counter() - t
     return out
 
 
@@ -167,26 +174,30 @@ def relative_gap(a: tuple[Tensor, Tensor], b: tuple[Tensor, Tensor], outputscale
     return float((ma - mb).abs().max()) / mean_scale, float((Sa - Sb).abs().max()) / outputscale
 
 
-def check(problem: Problem, pairwisegp: bool = True) -> dict:
-    """Run ``problem`` in float64 and float32 (and ``PairwiseGP`` in float32 where it has only
-    comparisons); a flat record of the outcomes (see the module docstring)."""
+def check(problem: Problem, pairwisegp: bool = True, runs: tuple[str, ...] = tuple(RUNS)) -> dict:
+    """Run ``problem`` as the models ``runs`` of :data:`RUNS` (``f64`` always; and ``PairwiseGP``
+    in float32 where it has only comparisons); a flat record of the outcomes (see the module
+    docstring): ``{run}_error``, ``_nan``, ``_converged``, ``_iterations``, ``_jitter``,
+    ``_seconds``, and for each float32 run ``{run}_gap_{mean,cov}_{nograd,grad}``."""
     Xq = query_points(problem)
+    runs = ("f64",) + tuple(r for r in runs if r != "f64")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # jitter, boundary and float32 warnings are expected here
-        r64, r32 = _run(problem, F64, Xq), _run(problem, F32, Xq)
+        order = runs[problem.seed % len(runs):] + runs[:problem.seed % len(runs)]  # none always first (timing)
+        res = {run: _run(problem, run, Xq) for run in order}
         pg = _pairwisegp(problem, Xq) if pairwisegp and problem.kind == "comparisons" else None
     rec = {"seed": problem.seed, "kind": problem.kind, "n": problem.n, "d": problem.X.shape[-1],
            "p": problem.comparisons.shape[0], "q": problem.ratings.shape[0], "lengthscale": problem.lengthscale,
            "outputscale": problem.outputscale}
-    for name, r in (("f64", r64), ("f32", r32)):
-        rec.update({f"{name}_error": r["error"], f"{name}_nan": r["nan"], f"{name}_converged": r["converged"],
-                    f"{name}_iterations": r["iterations"], f"{name}_jitter": r["jitter"]})
-    for grad in (False, True):
-        tag = "grad" if grad else "nograd"
-        gaps = (None, None)
-        if r64["moments"] is not None and r32["moments"] is not None:
-            gaps = relative_gap(r32["moments"][grad], r64["moments"][False], problem.outputscale)
-        rec[f"gap_mean_{tag}"], rec[f"gap_cov_{tag}"] = gaps
+    for name, r in res.items():
+        rec.update({f"{name}_{k}": r[k] for k in ("error", "nan", "converged", "iterations", "jitter", "seconds")})
+    for name in runs[1:]:
+        for grad in (False, True):
+            tag = "grad" if grad else "nograd"
+            gaps = (None, None)
+            if res["f64"]["moments"] is not None and res[name]["moments"] is not None:
+                gaps = relative_gap(res[name]["moments"][grad], res["f64"]["moments"][False], problem.outputscale)
+            rec[f"{name}_gap_mean_{tag}"], rec[f"{name}_gap_cov_{tag}"] = gaps
     rec["pairwisegp_error"] = pg["error"] if pg else None
     rec["pairwisegp_nan"] = pg["nan"] if pg else None
     return rec

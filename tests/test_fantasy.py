@@ -179,3 +179,79 @@ def test_batched_kernel_hyperparameters_per_problem(generator):
         one = PreferenceGP(X[j], C[j], covar_module=kj)
         torch.testing.assert_close(post.mean[:, j], one.posterior(Xt[:, j]).mean, rtol=0, atol=1e-6)
         torch.testing.assert_close(evidence[j], one.log_marginal_likelihood(), rtol=0, atol=1e-6)
+
+
+#: The traced derivative is the implicit-function one at the mode as solved (Newton decrement below
+#: 1e-11, a gradient of order 1e-7 left), so it is exact only to first order in that residual:
+#: about 3e-5 relative where a Beta rating (nu = 80, large third derivatives) sits on a fantasy point.
+MODE_TOL_RTOL = 2e-4
+
+
+def _central_difference(fn, X: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """``d fn / d X`` by central differences, entry by entry (float64)."""
+    grad = torch.zeros_like(X)
+    for i in range(X.numel()):
+        d = torch.zeros_like(X).reshape(-1)
+        d[i] = eps
+        d = d.reshape(X.shape)
+        grad.reshape(-1)[i] = (fn(X + d) - fn(X - d)) / (2 * eps)
+    return grad
+
+
+@pytest.mark.parametrize("kind", ["ratings", "comparisons"])
+def test_fantasy_posterior_gradient_in_the_fantasy_points(kind, generator):
+    """A fantasy model's posterior is differentiable in the fantasy points ``X`` through its mode
+    (implicit function theorem): autograd equals central differences in float64."""
+    model = make_model("cpu", generator)
+    Xt = torch.rand(3, 2, generator=generator, dtype=torch.float64)
+    X0 = torch.rand(2, 3, 2, generator=generator, dtype=torch.float64)  # 2 batches of q = 3
+
+    def value(X):
+        sampler = (PairwiseSobolQMCNormalSampler if kind == "comparisons" else SobolQMCNormalSampler)(
+            torch.Size([4]), seed=5)
+        post = model.fantasize(X, sampler).posterior(Xt)
+        return post.mean.sum() + post.distribution.covariance_matrix.sum()
+
+    X = X0.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(value(X), X)
+    with torch.no_grad():
+        fd = _central_difference(value, X0)
+    assert grad.abs().max() > 1e-3  # the fantasy points matter
+    torch.testing.assert_close(grad, fd, rtol=MODE_TOL_RTOL, atol=1e-6)
+
+
+def test_knowledge_gradient_gradient_in_the_candidates(generator):
+    """qKnowledgeGradient's gradient with respect to all its inputs, ``X_actual`` included
+    (rating fantasies, whose answers move with ``X_actual``), equals central differences."""
+    model = make_model("cpu", generator)
+    nf = 3
+    acqf = qKnowledgeGradient(model, num_fantasies=nf, sampler=SobolQMCNormalSampler(torch.Size([nf]), seed=3))
+    X0 = torch.rand(2, 2 + nf, 2, generator=generator, dtype=torch.float64)
+    X = X0.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(acqf(X).sum(), X)
+    with torch.no_grad():
+        fd = _central_difference(lambda Z: acqf(Z).sum(), X0)
+    assert grad[:, :2].abs().max() > 1e-3  # X_actual has a gradient
+    torch.testing.assert_close(grad, fd, rtol=MODE_TOL_RTOL, atol=1e-6)
+
+
+def test_posterior_gradient_in_the_training_items(generator):
+    """With training items that require gradients, the posterior is differentiable in them
+    through the Laplace mode; without autograd, nothing is traced."""
+    g = generator
+    X0 = torch.rand(8, 2, generator=g, dtype=torch.float64)
+    C = random_comparisons(8, 6, g)
+    Xt = torch.rand(4, 2, generator=g, dtype=torch.float64)
+
+    def value(X):
+        post = PreferenceGP(X, C, ratings=torch.tensor([0.3, 0.8]), rating_index=[0, 7], covar_module=kernel("cpu"),
+                            comparison_noise=0.5).posterior(Xt)
+        return post.mean.sum() + post.variance.sum()
+
+    X = X0.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(value(X), X)
+    with torch.no_grad():
+        fd = _central_difference(value, X0)
+        assert not value(X).requires_grad
+    assert grad.abs().max() > 1e-3
+    torch.testing.assert_close(grad, fd, rtol=MODE_TOL_RTOL, atol=1e-6)

@@ -46,31 +46,33 @@ def test_jitter_is_relative_to_the_diagonal_and_the_dtype():
         numerics.cholesky_jittered(-torch.eye(3, dtype=F32))
 
 
-def test_float32_issue_example_factorises(generator):
+@pytest.mark.parametrize("laplace_dtype", [None, F32])  # mixed precision (the default) and native
+def test_float32_issue_example_factorises(generator, laplace_dtype):
     # issue 11: X = torch.rand(200, 2) in float32, RBF lengthscale 0.2, outputscale 1 -> NotPSDError
-    model = comparisons_model(generator, 200, 2, 0.2, dtype=F32)
+    model = comparisons_model(generator, 200, 2, 0.2, dtype=F32, laplace_dtype=laplace_dtype)
     assert model.mode.converged
     assert torch.isfinite(model.posterior(model.train_X[:5]).mean).all()
 
 
-def test_float32_newton_converges_at_its_own_tolerance(generator):
+def test_float32_newton_converges_at_its_own_tolerance(generator):  # native float32
     # the float64 tolerance 1e-11 is below float32's round-off: 100 iterations, then a warning
     assert numerics.default_tolerance(F64) == 1e-11 and 1e-7 < numerics.default_tolerance(F32) < 1e-5
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no convergence warning
         warnings.simplefilter("ignore", InputDataWarning)
-        model = comparisons_model(generator, 300, 2, 0.3, outputscale=100.0, dtype=F32)
+        model = comparisons_model(generator, 300, 2, 0.3, outputscale=100.0, dtype=F32, laplace_dtype=F32)
         mode = model.mode
     assert mode.converged and mode.iterations <= 10
 
 
-def test_kernel_is_exact_at_coincident_points_under_autograd(generator):
+@pytest.mark.parametrize("laplace_dtype", [None, F32])
+def test_kernel_is_exact_at_coincident_points_under_autograd(generator, laplace_dtype):
     # GPyTorch zeroes a point's distance to itself only without gradients: k(x, x) came back
     # off by ~3e-4 of the outputscale in float32 at lengthscale 0.01 with autograd on
     X = rand(60, 3, generator=generator).to(F32)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputDataWarning)
-        model = PreferenceGP(X, covar_module=kernel(3, 0.01, dtype=F32))  # no observations: the prior
+        model = PreferenceGP(X, covar_module=kernel(3, 0.01, dtype=F32), laplace_dtype=laplace_dtype)  # the prior
     s = model.covar_module.outputscale.detach()
     Xq = torch.cat([X[:7], X[:3]]).unsqueeze(0).requires_grad_(True)  # training items, and repeats
     post = model.posterior(Xq)

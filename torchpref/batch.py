@@ -93,7 +93,8 @@ class BatchedPreferenceGP:
                             comparison_noise=float(lik.comparison.comparison_noise),
                             rating_scale=float(lik.rating.rating_scale),
                             rating_precision=float(lik.rating.rating_precision),
-                            rating_eps=t.rating_eps, max_newton_iter=t.max_newton_iter)
+                            rating_eps=t.rating_eps, max_newton_iter=t.max_newton_iter,
+                            laplace_dtype=t._laplace_dtype)
 
     # ------------------------------------------------------------------ inference
     def _current(self) -> PreferenceGP:

@@ -63,8 +63,9 @@ class PairwiseGPInterface:
 
     @property
     def utility(self) -> Tensor:
-        r"""``batch_shape x n`` posterior-mode utilities of the items (``PairwiseGP.utility``)."""
-        return self.mode.f.reshape(*self.batch_shape, -1)
+        r"""``batch_shape x n`` posterior-mode utilities of the items (``PairwiseGP.utility``), in
+        the model's dtype."""
+        return self.mode.f.reshape(*self.batch_shape, -1).to(self.train_X.dtype)
 
     @property
     def has_data(self) -> bool:

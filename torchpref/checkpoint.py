@@ -7,7 +7,7 @@ are the data. A checkpoint is a plain dictionary of tensors, numbers and strings
 * ``"data"``: ``train_X``, ``comparisons``, ``ratings``, ``rating_index``, ``ties``;
 * ``"state_dict"``: the model's ``state_dict`` (kernel, likelihoods, input transform);
 * ``"settings"``: ``rating_eps``, ``max_newton_iter``, ``learn_likelihood``, ``rating_levels``,
-  ``ties_offered``.
+  ``ties_offered``, ``laplace_dtype`` (``None`` or a ``torch.dtype``).
 
 The loaded model solves its mode afresh: its posterior is the saved one's to the Newton
 tolerance (``1e-11`` in log-posterior units in float64, about ``1e-6`` in the posterior mean).
@@ -49,7 +49,7 @@ def model_checkpoint(model: PreferenceGP) -> dict[str, Any]:
         "state_dict": model.state_dict(),
         "settings": {"rating_eps": float(model.rating_eps), "max_newton_iter": int(model.max_newton_iter),
                      "learn_likelihood": learn, "rating_levels": model.rating_levels,
-                     "ties_offered": bool(model.ties_offered)},
+                     "ties_offered": bool(model.ties_offered), "laplace_dtype": model._laplace_dtype},
     }
 
 

@@ -19,7 +19,9 @@ import argparse
 import datetime as _dt
 import importlib
 import os
+import signal
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -152,9 +154,25 @@ def one_line(exc: BaseException) -> str:
     return text if len(text) < 2000 else text[:1997] + "..."
 
 
+def _import(name: str):
+    """Import module ``name`` with Ctrl-C held until the import is done, then raise it: an import
+    of NumPy or SciPy interrupted half-way leaves them broken (a RecursionError on next use)."""
+    if threading.current_thread() is not threading.main_thread():
+        return importlib.import_module(name)
+    pressed = []
+    previous = signal.signal(signal.SIGINT, lambda *_: pressed.append(True))
+    try:
+        module = importlib.import_module(name)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if pressed:
+        raise KeyboardInterrupt
+    return module
+
+
 def _reproduce(args) -> int:
     args.out = str(output_folder(args.out, args.experiment))
-    module = importlib.import_module(REPRODUCE[args.experiment])
+    module = _import(REPRODUCE[args.experiment])
     code = int(module.run(args) or 0)
     legend = LEGEND.get(args.experiment, "mean ± standard error over the trials")
     print(f"({legend}{'; one trial has no standard error' if args.trials == 1 else ''})")
@@ -169,7 +187,7 @@ def _elicit(args) -> int:
         raise UsageError("give --session FILE or --no-session, not both")
     if args.id_column is not None and args.features is None:
         raise UsageError("--id names a column of the --features CSV")
-    return int(importlib.import_module(ELICIT).run(args) or 0)
+    return int(_import(ELICIT).run(args) or 0)
 
 
 def main(argv: list[str] | None = None) -> int:

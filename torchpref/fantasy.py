@@ -129,7 +129,7 @@ def fantasize(model: "PreferenceGP", X: Tensor, sampler: MCSampler, kind: str | 
         if isinstance(sampler, PairwiseMCSampler):
             raise ValueError("rating fantasies need a sampler of utilities, not a PairwiseMCSampler.")
         f = sampler(model.posterior(X)).squeeze(-1)  # sample_shape x batch x q
-        u = model.likelihood.rating.mean_link(f).detach()
+        u = model.likelihood.rating.mean_link(f)  # differentiable in X, as BoTorch's fantasies are
         index = torch.arange(X.shape[-2], device=u.device).expand(u.shape)
         return condition_batch(model, X, ratings=u, rating_index=index)
     raise ValueError(f"kind must be 'comparisons' or 'ratings', got {kind!r}.")

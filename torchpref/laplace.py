@@ -183,24 +183,12 @@ def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor |
     ll, g, weights = obs.evaluate(mode.f)  # the likelihood parameters may carry gradients
     with torch.no_grad():
         L = torch.linalg.cholesky(K.detach() + jit * _eye(n, K)) if L is None else L.detach().reshape(K.shape)
-        a, f, M = mode.a, mode.f, mode.B_chol
-        alpha = _solve_t(L, a)
-        V = torch.linalg.solve_triangular(M, L.mT, upper=False)  # M^-1 L^T
-        Sigma = V.mT @ V
+        Sigma = _posterior_covariance(L, mode.B_chol)
         s = obs.quadratic_forms(Sigma)
-        h = obs.adjoint([dw * sk for dw, sk in zip(obs.curvature_slopes(f), s)], n, like=K)
+        h = obs.adjoint([dw * sk for dw, sk in zip(obs.curvature_slopes(mode.f), s)], n, like=K)
         Sigma_h = (Sigma @ h.unsqueeze(-1)).squeeze(-1)
-        b = h - obs.W_times(mode.weights, Sigma_h.unsqueeze(-1)).squeeze(-1)  # (I - W Sigma) h
-        WS = obs.W_times(mode.weights, Sigma)
-        W_Sigma_W = obs.W_times(mode.weights, WS.mT.contiguous()).mT  # W (W Sigma)^T = W Sigma W
-        G = 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - obs.W_dense(n, mode.weights, like=K) + W_Sigma_W
-                   - b.unsqueeze(-1) * alpha.unsqueeze(-2))
-        # the mode is exact only to the solver's tolerance: one more Newton step's first-order
-        # change of the value makes it second-order accurate (smooth in the hyperparameters)
-        grad_a = (L.mT @ g.detach().unsqueeze(-1)).squeeze(-1) - a
-        step = torch.cholesky_solve(grad_a.unsqueeze(-1), M).squeeze(-1)
-        value = (ll.detach() - 0.5 * (a * a).sum(-1) - torch.log(torch.diagonal(M, dim1=-2, dim2=-1)).sum(-1)
-                 + 0.5 * (grad_a * step).sum(-1) - 0.5 * (h * (L @ step.unsqueeze(-1)).squeeze(-1)).sum(-1))
+        G = _kernel_gradient(_solve_t(L, mode.a), Sigma, h, Sigma_h, obs, mode.weights)
+        value = _second_order_value(ll.detach(), g.detach(), L, mode, h)
     # the likelihood parameters' part, at the fixed mode (constants unless they carry gradients)
     surrogate = (G * K).sum((-2, -1)) + ll - 0.5 * (Sigma_h * g).sum(-1)
     for w, sk in zip(weights, s):
@@ -209,29 +197,82 @@ def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor |
     return out[0] if single else out
 
 
+def _posterior_covariance(L: Tensor, M: Tensor) -> Tensor:
+    """``Sigma = (K^-1 + W)^-1 = L B^-1 L^T`` (``B x n x n``) from ``L`` and ``M = chol(B)``."""
+    V = torch.linalg.solve_triangular(M, L.mT, upper=False)  # M^-1 L^T
+    return V.mT @ V
+
+
+def _kernel_gradient(alpha: Tensor, Sigma: Tensor, h: Tensor, Sigma_h: Tensor, obs: Observations,
+                     weights: tuple[Tensor, ...]) -> Tensor:
+    r"""``d log q / d K = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``
+    (``B x n x n``; see :func:`laplace_evidence`)."""
+    n = Sigma.shape[-1]
+    W = obs.W_dense(n, weights, like=Sigma)
+    W_times = obs.W_operator(n, weights, dense=W)
+    b = h - W_times(Sigma_h.unsqueeze(-1)).squeeze(-1)  # (I - W Sigma) h
+    W_Sigma_W = W_times(W_times(Sigma).mT).mT  # W (W Sigma)^T = W Sigma W
+    return 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - W + W_Sigma_W - b.unsqueeze(-1) * alpha.unsqueeze(-2))
+
+
+def _second_order_value(ll: Tensor, g: Tensor, L: Tensor, mode: ModeResult, h: Tensor) -> Tensor:
+    r"""``log p(Y|f) - a^T a / 2 - log|B| / 2`` at the mode (``B`` values), plus the first-order
+    change of one more Newton step: the mode is exact only to the solver's tolerance, and the
+    corrected value is second-order accurate (smooth in the hyperparameters)."""
+    a, M = mode.a, mode.B_chol
+    grad_a = (L.mT @ g.unsqueeze(-1)).squeeze(-1) - a
+    step = torch.cholesky_solve(grad_a.unsqueeze(-1), M).squeeze(-1)
+    return (ll - 0.5 * (a * a).sum(-1) - torch.log(torch.diagonal(M, dim1=-2, dim2=-1)).sum(-1)
+            + 0.5 * (grad_a * step).sum(-1) - 0.5 * (h * (L @ step.unsqueeze(-1)).squeeze(-1)).sum(-1))
+
+
 def _solve_t(L: Tensor, a: Tensor) -> Tensor:
     """``L^-T a`` for ``B x n`` ``a``."""
     return torch.linalg.solve_triangular(L.mT, a.unsqueeze(-1), upper=True).squeeze(-1)
 
 
-def _laplace_evidence_traced(L: Tensor, obs: Observations, mode: ModeResult) -> Tensor:
-    r"""The evidence with its gradient traced by autograd (``L``, ``B x n x n``, carries them).
+def traced_mode(L: Tensor, obs: Observations, mode: ModeResult, keep_value: bool = False
+                ) -> tuple[Tensor, Tensor, Tensor]:
+    r"""The mode as a differentiable function of ``L`` and the observations' targets.
 
-    One Newton step from the detached mode, ``a~ = a + B^{-1} grad Psi(a)``, leaves the value
-    unchanged (the gradient is zero at the mode) while its derivative is exactly the
-    implicit-function derivative ``d a / d theta``, so autograd of the result includes the
-    dependence of the mode on the hyperparameters, including through ``W``.
+    One Newton step from the detached mode, ``a~ = a + B^{-1} grad Psi(a)``, taken with autograd
+    on: its value is the mode's (the gradient is zero there, up to the solver's tolerance) and its
+    derivative is exactly the implicit-function derivative ``d a / d theta`` (with ``B`` fixed,
+    ``d a~ = B^{-1} d(grad Psi)``, and ``grad Psi(a(theta), theta) = 0`` gives ``B da = d(grad Psi)``).
+
+    Args:
+        L: ``B x n x n`` ``chol(K + jitter I)``, carrying the gradients.
+        obs: the observations (their likelihoods' parameters and targets may carry gradients).
+        mode: the detached mode for the same values, batched.
+        keep_value: return exactly the mode's value (only the derivative of the step); else the
+            value after the step (second-order closer to the exact mode).
+
+    Returns:
+        ``a~`` (``B x n``), the log-likelihood at ``f~ = L a~`` (``B``) and ``M``, the Cholesky
+        factor of ``B = I + L^T W L`` there (``B x n x n``; Fisher ``W`` where ``mode`` used it).
+
+    Raises:
+        NotPSDError: ``B`` is not positive definite.
     """
-    single = L.dim() == 2
-    L, mode = (L[None], mode.batched()) if single else (L, mode)
     a = mode.a
     g = obs.evaluate((L @ a.unsqueeze(-1)).squeeze(-1)).grad
     grad = (L.mT @ g.unsqueeze(-1)).squeeze(-1) - a
-    a_t = a + torch.cholesky_solve(grad.unsqueeze(-1), mode.B_chol).squeeze(-1)
+    step = torch.cholesky_solve(grad.unsqueeze(-1), mode.B_chol).squeeze(-1)
+    a_t = a + (step - step.detach() if keep_value else step)
     ll, _, weights = obs.evaluate((L @ a_t.unsqueeze(-1)).squeeze(-1), fisher=mode.fisher_fallback)
     M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, weights))
     if bool((info > 0).any()):
         raise NotPSDError("B = I + L^T W L is not positive definite at the Laplace mode")
+    return a_t, ll, M
+
+
+def _laplace_evidence_traced(L: Tensor, obs: Observations, mode: ModeResult) -> Tensor:
+    r"""The evidence with its gradient traced by autograd (``L``, ``B x n x n``, carries them)
+    through :func:`traced_mode`, so that it includes the dependence of the mode on the
+    hyperparameters, including through ``W``."""
+    single = L.dim() == 2
+    L, mode = (L[None], mode.batched()) if single else (L, mode)
+    a_t, ll, M = traced_mode(L, obs, mode)
     out = ll - 0.5 * (a_t * a_t).sum(-1) - torch.log(torch.diagonal(M, dim1=-2, dim2=-1)).sum(-1)
     return out[0] if single else out
 
@@ -257,6 +298,19 @@ class PredictiveCache:
         mode = mode.batched()
         L = L.reshape(mode.B_chol.shape)
         return cls(L, _solve_t(L, mode.a), mode.B_chol)
+
+    @classmethod
+    def traced(cls, K: Tensor, jitter: float | Tensor, obs: Observations, mode: ModeResult) -> "PredictiveCache":
+        """The cache for ``mode`` as a differentiable function of ``K`` (``B x n x n``) and of the
+        observations' targets (:func:`traced_mode`): predictions then have gradients with
+        respect to the training items (e.g. a fantasy model's fantasy points) and targets. The
+        values are those of :meth:`from_mode`."""
+        mode = mode.batched()
+        n = K.shape[-1]
+        jit = torch.as_tensor(jitter, dtype=K.dtype, device=K.device).reshape(-1, 1, 1)
+        L = torch.linalg.cholesky(K.reshape(mode.B_chol.shape) + jit * _eye(n, K))
+        a_t, _, M = traced_mode(L, obs, mode, keep_value=True)
+        return cls(L, _solve_t(L, a_t), M)
 
     @property
     def A(self) -> Tensor:

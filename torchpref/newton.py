@@ -98,6 +98,9 @@ class Problem:
 
     def __init__(self, L: Tensor, obs: Observations):
         self.L, self.obs = L, obs
+        # L is fixed during a solve: where it pays, each term's rows D L are formed once and
+        # serve the predictors, the gradient and B (Observations.whitened_rows)
+        self.rows = obs.whitened_rows(L)
         self._L32: Tensor | None = None
 
     def whiten(self, f0: Tensor | None) -> Tensor:
@@ -111,8 +114,12 @@ class Problem:
         """``Psi``, its gradient ``L^T grad log p - a`` and the weights at ``a``: one likelihood
         pass serves the line search's test and, if the point is accepted, the next step."""
         f = (self.L @ a.unsqueeze(-1)).squeeze(-1)
-        lt = self.obs.evaluate(f)
-        grad = (self.L.mT @ lt.grad.unsqueeze(-1)).squeeze(-1) - a
+        if self.rows is None:
+            lt = self.obs.evaluate(f)
+            grad = (self.L.mT @ lt.grad.unsqueeze(-1)).squeeze(-1) - a
+        else:
+            lt = self.obs.evaluate_whitened(a, self.rows)
+            grad = lt.grad - a
         return NewtonPoint(a, f, lt.log_lik - 0.5 * (a * a).sum(-1), grad, lt.weights)
 
     @staticmethod
@@ -123,12 +130,12 @@ class Problem:
 
     def factorise(self, point: NewtonPoint) -> Factor:
         """Cholesky of ``B`` at ``point``; Fisher weights for the problems where ``B`` is not PD."""
-        M, info = torch.linalg.cholesky_ex(self.obs.whitened_hessian(self.L, point.weights))
+        M, info = torch.linalg.cholesky_ex(self.obs.whitened_hessian(self.L, point.weights, self.rows))
         fisher = info > 0
         if not bool(fisher.any()):
             return Factor(M, point.weights, fisher)
         weights = self.obs.evaluate(point.f, fisher).weights
-        M2, info = torch.linalg.cholesky_ex(self.obs.whitened_hessian(self.L, weights))
+        M2, info = torch.linalg.cholesky_ex(self.obs.whitened_hessian(self.L, weights, self.rows))
         if bool((info > 0).any()):
             bad = (info > 0).nonzero().reshape(-1).tolist()
             raise NotPSDError(f"the Fisher-scoring Newton matrix B of problems {bad} is not positive definite")
@@ -138,8 +145,9 @@ class Problem:
         """Cholesky of ``B`` in float32 at ``point`` (exact weights), or ``None`` if it fails."""
         if self._L32 is None:
             self._L32 = self.L.float()
+            self._rows32 = None if self.rows is None else tuple(R.float() for R in self.rows)
         M, info = torch.linalg.cholesky_ex(
-            self.obs.whitened_hessian(self._L32, tuple(w.float() for w in point.weights)))
+            self.obs.whitened_hessian(self._L32, tuple(w.float() for w in point.weights), self._rows32))
         return None if bool((info > 0).any()) else M
 
     def line_search(self, point: NewtonPoint, step: Tensor, decrement: Tensor, active: Tensor,

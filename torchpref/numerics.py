@@ -283,13 +283,55 @@ def normal_interval(upper: Tensor, lower: Tensor, scale: Tensor | float, third: 
     Returns:
         ``(log P, d log P / dm, d^2 log P / dm^2)`` and, with ``third``, ``d^3 log P / dm^3``.
     """
+    a, b, a_inf, b_inf = _standardised_bounds(upper, lower, scale)
+    middle, log_mid, r_a_mid, r_b_mid = _central_interval(a, b, a_inf, b_inf)
+    mirror, log_tail, r_hi, e = _tail_interval(a, b, a_inf, b_inf)
+    log_p = torch.where(middle, log_mid, log_tail)
+    r_a = torch.where(middle, r_a_mid, torch.where(mirror, e * r_hi, r_hi))
+    r_b = torch.where(middle, r_b_mid, torch.where(mirror, r_hi, e * r_hi))
+    s = torch.as_tensor(scale, dtype=a.dtype, device=a.device)
+    d1 = (r_b - r_a) / s
+    p2 = (b * r_b - a * r_a) / s**2  # P'' / P
+    d2 = p2 - d1 * d1
+    if not third:
+        return log_p, d1, d2
+    p3 = ((1 - a * a) * r_a - (1 - b * b) * r_b) / s**3  # P''' / P
+    return log_p, d1, d2, p3 - 3 * d1 * p2 + 2 * d1**3
+
+
+def _standardised_bounds(upper: Tensor, lower: Tensor, scale: Tensor | float):
+    """``(a, b, a_inf, b_inf)``: :func:`normal_interval`'s bounds over ``scale``, with finite
+    stand-ins where a bound is infinite (``a_inf`` / ``b_inf`` say where)."""
     upper, lower = torch.broadcast_tensors(upper, lower)
     a_inf, b_inf = torch.isinf(upper), torch.isinf(lower)
-    a = torch.where(a_inf, lower.detach() + 1, upper) / scale  # finite stand-ins where infinite
+    a = torch.where(a_inf, lower.detach() + 1, upper) / scale
     b = torch.where(b_inf, upper.detach() - 1, lower) / scale
     a = torch.where(a_inf & b_inf, torch.ones_like(a), a)
     b = torch.where(a_inf & b_inf, -torch.ones_like(b), b)
-    mirror = b > 0  # an upper-tail interval: use P = Phi(-b) - Phi(-a)
+    return a, b, a_inf, b_inf
+
+
+def _central_interval(a: Tensor, b: Tensor, a_inf: Tensor, b_inf: Tensor):
+    """``(middle, log P, r_a, r_b)`` for the intervals across zero (``middle``): no tail to lose,
+    but ``0.5 - 0.5`` cancels for short ones; ``erf`` does not."""
+    mirror = b > 0
+    hi, hi_inf = torch.where(mirror, -b, a), torch.where(mirror, b_inf, a_inf)
+    middle = (hi > 0) | hi_inf
+    a_m = torch.where(middle & ~a_inf, a, torch.ones_like(a))
+    b_m = torch.where(middle & ~b_inf, b, -torch.ones_like(b))
+    P_mid = 0.5 * (torch.where(a_inf, torch.ones_like(a), torch.erf(a_m / math.sqrt(2)))
+                   - torch.where(b_inf, -torch.ones_like(b), torch.erf(b_m / math.sqrt(2))))
+    log_mid = torch.log(P_mid)
+    r_a_mid = torch.where(a_inf, torch.zeros_like(a), torch.exp(-0.5 * a_m * a_m - LOG_2PI_HALF - log_mid))
+    r_b_mid = torch.where(b_inf, torch.zeros_like(b), torch.exp(-0.5 * b_m * b_m - LOG_2PI_HALF - log_mid))
+    return middle, log_mid, r_a_mid, r_b_mid
+
+
+def _tail_interval(a: Tensor, b: Tensor, a_inf: Tensor, b_inf: Tensor):
+    """``(mirror, log P, r_hi, e)`` for the intervals in a tail. An upper-tail one (``mirror``)
+    is mirrored below zero, ``P = Phi(-b) - Phi(-a)``; the ratios ``phi / P`` are ``r_hi`` at the
+    upper bound of the (mirrored) interval and ``e r_hi`` at its lower one."""
+    mirror = b > 0
     hi, lo = torch.where(mirror, -b, a), torch.where(mirror, -a, b)
     hi_inf, lo_inf = torch.where(mirror, b_inf, a_inf), torch.where(mirror, a_inf, b_inf)
     # a lower-tail interval (hi <= 0): Phi(z) = erfcx(-z / sqrt 2) exp(-z^2 / 2) / 2 keeps the ratios
@@ -302,23 +344,4 @@ def normal_interval(upper: Tensor, lower: Tensor, scale: Tensor | float, third: 
     q = e * torch.special.erfcx(-lo_t / math.sqrt(2)) / cx_hi
     log_tail = log_ndtr(hi_t) + torch.log1p(-q)
     r_hi = math.sqrt(2 / math.pi) / cx_hi / (1 - q)
-    # an interval across zero: no tail to lose, but 0.5 - 0.5 cancels for short ones; erf does not
-    middle = (hi > 0) | hi_inf
-    a_m = torch.where(middle & ~a_inf, a, torch.ones_like(a))
-    b_m = torch.where(middle & ~b_inf, b, -torch.ones_like(b))
-    P_mid = 0.5 * (torch.where(a_inf, torch.ones_like(a), torch.erf(a_m / math.sqrt(2)))
-                   - torch.where(b_inf, -torch.ones_like(b), torch.erf(b_m / math.sqrt(2))))
-    log_mid = torch.log(P_mid)
-    log_p = torch.where(middle, log_mid, log_tail)
-    r_a_mid = torch.where(a_inf, torch.zeros_like(a), torch.exp(-0.5 * a_m * a_m - LOG_2PI_HALF - log_mid))
-    r_b_mid = torch.where(b_inf, torch.zeros_like(b), torch.exp(-0.5 * b_m * b_m - LOG_2PI_HALF - log_mid))
-    r_a = torch.where(middle, r_a_mid, torch.where(mirror, e * r_hi, r_hi))
-    r_b = torch.where(middle, r_b_mid, torch.where(mirror, r_hi, e * r_hi))
-    s = torch.as_tensor(scale, dtype=a.dtype, device=a.device)
-    d1 = (r_b - r_a) / s
-    p2 = (b * r_b - a * r_a) / s**2  # P'' / P
-    d2 = p2 - d1 * d1
-    if not third:
-        return log_p, d1, d2
-    p3 = ((1 - a * a) * r_a - (1 - b * b) * r_b) / s**3  # P''' / P
-    return log_p, d1, d2, p3 - 3 * d1 * p2 + 2 * d1**3
+    return mirror, log_tail, r_hi, e

@@ -20,7 +20,7 @@ gradient and weight). Its index and target must still be values the likelihood c
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import NamedTuple, Protocol, Sequence
+from typing import Callable, NamedTuple, Protocol, Sequence
 
 import torch
 from torch import Tensor
@@ -109,10 +109,12 @@ class Term:
                 out = out + ci * ce * flat.gather(-1, self.index[..., c] * n + self.index[..., e])
         return out
 
-    def evaluate(self, f: Tensor, fisher: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    def evaluate(self, f: Tensor, fisher: Tensor | None = None, eta: Tensor | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor]:
         """``(log p summed per problem (B), d log p / d eta (B x m), weights w (B x m))``;
-        ``fisher`` (``B`` bool) swaps in the Fisher weights for those problems."""
-        eta = self.predictor(f)
+        ``fisher`` (``B`` bool) swaps in the Fisher weights for those problems; ``eta``: the
+        predictors at ``f`` if already computed."""
+        eta = self.predictor(f) if eta is None else eta
         lp, d1, d2 = self.likelihood.derivatives(eta, *self._args())
         w = -d2
         if fisher is not None and not self.log_concave and bool(fisher.any()):
@@ -136,9 +138,21 @@ class Term:
             self._patterns[n] = (torch.cat(rows), torch.cat(cols))
         return self._patterns[n]
 
+    def W_flat_index(self, n: int) -> Tensor:
+        """:meth:`W_entries` as positions in the flattened ``B x n x n`` batch of ``W`` matrices."""
+        key = ("flat", n)
+        if key not in self._patterns:
+            rows, cols = self.W_entries(n)
+            self._patterns[key] = rows * n + cols % n
+        return self._patterns[key]
+
     def W_values(self, w: Tensor) -> Tensor:
         """The values matching :meth:`W_entries`: ``coef_c coef_e w_k``."""
-        return torch.cat([ci * ce * w.reshape(-1) for ci in self.coef for ce in self.coef])
+        key = ("coef", w.dtype, w.device)
+        if key not in self._patterns:  # the c^2 products coef_c coef_e, one per row
+            self._patterns[key] = torch.tensor([ci * ce for ci in self.coef for ce in self.coef], dtype=w.dtype,
+                                               device=w.device).unsqueeze(-1)
+        return (self._patterns[key] * w.reshape(1, -1)).reshape(-1)
 
 
 def pairwise_term(likelihood, comparisons: Tensor, mask: Tensor | None = None, **kw) -> Term:
@@ -209,6 +223,26 @@ class Observations:
             weights.append(w)
         return LikelihoodTerms(ll, grad, tuple(weights))
 
+    def evaluate_whitened(self, a: Tensor, rows: Sequence[Tensor]) -> LikelihoodTerms:
+        """:meth:`evaluate` at ``f = L a`` given each term's rows ``D L`` (:meth:`whitened_rows`),
+        with the gradient in ``a``: ``L^T d log p / d f`` (``B x n``)."""
+        ll, grad, weights = a.new_zeros(a.shape[0]), torch.zeros_like(a), []
+        for t, R in zip(self.terms, rows):
+            lp, d1, w = t.evaluate(a, eta=(R @ a.unsqueeze(-1)).squeeze(-1))
+            ll, grad = ll + lp, grad + (R.mT @ d1.unsqueeze(-1)).squeeze(-1)
+            weights.append(w)
+        return LikelihoodTerms(ll, grad, tuple(weights))
+
+    def whitened_rows(self, L: Tensor) -> tuple[Tensor, ...] | None:
+        """Each term's rows ``D L`` (``B x m x n``) for ``L`` (``B x n x n``), where forming them
+        once pays: when :meth:`whitened_hessian` takes the rows' path (``m n^2`` against the
+        ``n^3`` of ``L^T (W L)``: up to ``2 n`` observations for a small ``n``, fewer than
+        ``n / 2`` for a large one); else ``None``."""
+        n, m = L.shape[-1], self.num_observations
+        if not self.terms or m > (2 * n if n <= DENSE_W_MAX_ITEMS else n // 2):
+            return None
+        return tuple(t.rows(L) for t in self.terms)
+
     def adjoint(self, values: Sequence[Tensor], n: int, like: Tensor) -> Tensor:
         """``sum over terms and k of x_k d_k`` (``B x n``, dtype and device of ``like``) for
         per-term values."""
@@ -238,14 +272,20 @@ class Observations:
         vals = vals.new_zeros(index.shape[-1]).index_add(0, slot, vals)
         return torch.sparse_coo_tensor(index, vals, (N, N), is_coalesced=True, check_invariants=False)
 
+    def W_operator(self, n: int, weights: Sequence[Tensor], dense: Tensor | None = None) -> Callable[[Tensor], Tensor]:
+        """``X -> W X`` (``B x n x k`` to ``B x n x k``) with ``W`` formed once for repeated
+        products: dense for small ``n`` (``dense``, if given, is that matrix), else block-sparse."""
+        if not self.terms:
+            return torch.zeros_like
+        if n <= DENSE_W_MAX_ITEMS:
+            W = self.W_dense(n, weights) if dense is None else dense
+            return W.__matmul__
+        W_sparse = self.W_blocks(n, weights)
+        return lambda X: torch.sparse.mm(W_sparse, X.reshape(-1, X.shape[-1])).reshape(X.shape)
+
     def W_times(self, weights: Sequence[Tensor], X: Tensor) -> Tensor:
         """``W X`` (``B x n x k``) for ``B x n x k`` ``X``: dense for small ``n``, else block-sparse."""
-        B, n, k = X.shape
-        if not self.terms:
-            return torch.zeros_like(X)
-        if n <= DENSE_W_MAX_ITEMS:
-            return self.W_dense(n, weights) @ X
-        return torch.sparse.mm(self.W_blocks(n, weights), X.reshape(B * n, k)).reshape(B, n, k)
+        return self.W_operator(X.shape[-2], weights)(X)
 
     def W_dense(self, n: int, weights: Sequence[Tensor], like: Tensor | None = None) -> Tensor:
         """``W`` (``B x n x n``, eq. 8) densely, for the evidence's gradient, inspection and tests
@@ -254,26 +294,25 @@ class Observations:
         W = torch.zeros(self.batch, n, n, dtype=ref.dtype if ref is not None else torch.float64,
                         device=ref.device if ref is not None else None)
         for t, w in zip(self.terms, weights):
-            rows, cols = t.W_entries(n)
-            W.view(-1).index_put_((rows * n + cols % n,), t.W_values(w), accumulate=True)
+            W.view(-1).index_put_((t.W_flat_index(n),), t.W_values(w), accumulate=True)
         return W
 
-    def whitened_hessian(self, L: Tensor, weights: Sequence[Tensor]) -> Tensor:
+    def whitened_hessian(self, L: Tensor, weights: Sequence[Tensor], rows: Sequence[Tensor] | None = None) -> Tensor:
         r"""``B = I + L^T W L`` (``B x n x n``) for ``L`` (``B x n x n``).
 
-        With many observations per item and no gradient to track, ``L^T (W L)`` with a sparse
-        ``W`` (one ``n^3`` product); otherwise ``sum_terms (D L)^T diag(w) (D L)`` (``m n^2`` per
-        term, differentiable).
+        Given each term's rows ``D L`` (``rows``, :meth:`whitened_rows`), or with a gradient to
+        track, or with few observations per item: ``sum_terms (D L)^T diag(w) (D L)`` (``m n^2``
+        per term, differentiable). Otherwise ``L^T (W L)`` (one ``n^3`` product).
         """
         n = L.shape[-1]
         tracked = torch.is_grad_enabled() and (L.requires_grad or any(w.requires_grad for w in weights))
-        if not tracked and 2 * self.num_observations > n:
+        if rows is None and not tracked and 2 * self.num_observations > n:
             WL = self.W_times(weights, L)
             H = lower_t_matmul(L[0], WL[0]).unsqueeze(0) if L.shape[0] == 1 else L.mT @ WL
         else:
             H = torch.zeros_like(L)
-            for t, w in zip(self.terms, weights):
-                DL = t.rows(L)
+            for t, w, DL in zip(self.terms, weights, rows if rows is not None else [None] * len(self.terms)):
+                DL = t.rows(L) if DL is None else DL
                 H = H + DL.mT @ (w.unsqueeze(-1) * DL)
         H.diagonal(dim1=-2, dim2=-1).add_(1.0)
         return H

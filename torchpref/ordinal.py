@@ -21,7 +21,7 @@ from gpytorch.likelihoods import Likelihood
 from torch import Tensor
 from torch.distributions import Bernoulli, Categorical
 
-from torchpref.likelihoods import SQRT2, PairwiseProbitLikelihood, _ScalarParamsMixin
+from torchpref.likelihoods import SQRT2, PairwiseProbitLikelihood, _ScalarParamsMixin, scalar_parameter
 from torchpref.numerics import normal_interval
 
 
@@ -57,14 +57,8 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
         self._register("tie_threshold", tie_threshold, tie_threshold_constraint or Positive(), tie_threshold_prior,
                        learn)
 
-    @property
-    def tie_threshold(self) -> Tensor:
-        """``tau``, the largest perceived difference answered with "no preference"."""
-        return self._get("tie_threshold")
-
-    @tie_threshold.setter
-    def tie_threshold(self, value) -> None:
-        self._set("tie_threshold", value)
+    tie_threshold = scalar_parameter("tie_threshold",
+                                     '``tau``, the largest perceived difference answered with "no preference".')
 
     def forward(self, function_samples: Tensor, ties: Tensor) -> Bernoulli:
         """Distribution of "no preference" for each row ``[i, j]`` of ``ties`` (``t x 2`` long)
@@ -209,14 +203,8 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
             self.register_prior("cut_points_prior", cut_points_prior, lambda m: m.cut_points,
                                 lambda m, v: setattr(m, "cut_points", v))
 
-    @property
-    def level_noise(self) -> Tensor:
-        """``sigma``, the noise on the latent utility when a level is picked."""
-        return self._get("level_noise")
-
-    @level_noise.setter
-    def level_noise(self, value) -> None:
-        self._set("level_noise", value)
+    level_noise = scalar_parameter("level_noise",
+                                   "``sigma``, the noise on the latent utility when a level is picked.")
 
     @property
     def cut_points(self) -> Tensor:

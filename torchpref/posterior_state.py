@@ -9,7 +9,7 @@ replaced when either changes. Building it solves the Laplace modes of all the mo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Callable
 
 import torch
@@ -22,6 +22,10 @@ from torchpref.padding import PaddedData
 
 if TYPE_CHECKING:
     from torchpref.models import PreferenceGP
+
+#: Up to this many test points (all blocks together) one kernel call on ``[train_X; X]`` gives both
+#: the cross-covariances and the test blocks (a few wasted entries cost less than a second call).
+JOINT_KERNEL_MAX_POINTS = 64
 
 
 def fingerprint(module: Module) -> Tensor:
@@ -54,6 +58,11 @@ def prior_factor(K: Tensor, jitter: float | None) -> tuple[Tensor, float | Tenso
     return batched_cholesky(K.reshape(-1, N, N), name="kernel matrix")
 
 
+def carries_gradients(padded: PaddedData) -> bool:
+    """Whether the items or the ratings of ``padded`` require gradients."""
+    return any(t is not None and t.requires_grad for t in (padded.X, padded.ratings))
+
+
 @dataclass(frozen=True)
 class PosteriorState:
     """Everything prediction and the evidence need, for one data object and one set of
@@ -73,12 +82,15 @@ class PosteriorState:
         return self.data is data and torch.equal(self.fingerprint, fingerprint)
 
     @classmethod
-    def build(cls, model: "PreferenceGP", fp: Tensor, previous: "PosteriorState | None") -> "PosteriorState":
-        """Solve the modes of ``model``'s problems, warm-started from ``previous`` where sizes match."""
+    def build(cls, model: "PreferenceGP", fp: Tensor, previous: "PosteriorState | None",
+              prior: "tuple[PaddedData, Tensor] | None" = None) -> "PosteriorState":
+        """Solve the modes of ``model``'s problems, warm-started from ``previous`` where sizes match.
+        ``prior``: the model's :meth:`~torchpref.PreferenceGP._prior` if already computed."""
         with torch.no_grad():
-            padded = model._padded().with_items(model._transformed_train_X())
+            padded, K = model._prior() if prior is None else prior
+            padded = padded.with_items(padded.X.detach())  # gradients in the items: see ``traced``
             prev_jitter = previous.jitter if (previous is not None and isinstance(previous.jitter, float)) else None
-            L, jitter = prior_factor(padded.prior_covariance(model._kernel(padded.X)), prev_jitter)
+            L, jitter = prior_factor(K.detach(), prev_jitter)
             same_size = previous is not None and previous.mode.f.shape == L.shape[:-1]
             warm = previous.mode.f if same_size else model._warm_f
             # the observations' index structure depends on the data only: kept across hyperparameters
@@ -87,6 +99,14 @@ class PosteriorState:
             mode = find_mode(L, obs, f0=warm, max_iter=model.max_newton_iter)
             pred = PredictiveCache.from_mode(L, mode)
         return cls(model.data, fp, padded, jitter, model.likelihood, obs, mode, pred)
+
+    def traced(self, padded: PaddedData, K: Tensor, obs: Observations) -> "PosteriorState":
+        """This state with a prediction cache traced through the mode
+        (:meth:`~torchpref.laplace.PredictiveCache.traced`), for the problems ``padded`` whose
+        items or ratings carry gradients, their prior covariance ``K`` and observations ``obs``
+        (built with autograd on): built afresh for each prediction, so that each has its own
+        autograd graph."""
+        return replace(self, padded=padded, obs=obs, pred=PredictiveCache.traced(K, self.jitter, obs, self.mode))
 
     def moments(self, kernel: Callable[..., Tensor], X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
         r"""Posterior mean ``... x q`` and covariance ``... x q x q`` (eqs. 9-10) at transformed
@@ -99,12 +119,21 @@ class PosteriorState:
         shape = torch.broadcast_shapes(X.shape[:-2], S)
         E = shape[: len(shape) - len(S)].numel()
         Xe = X.expand(*shape, q, d).reshape(E, *S, q, d)  # test blocks first, then the problems
-        k_ss = kernel(Xe, diag=diag)  # E x S x q (x q)
+        N, K_xs = padded.num_items, None
+        if not S and not diag and N and E * q <= JOINT_KERNEL_MAX_POINTS:
+            # one problem, a few test points: one kernel call gives K_X* and the test blocks
+            Xf = Xe.reshape(E * q, d)
+            K = kernel(torch.cat([padded.X, Xf]), Xf)  # (N + E q) x E q
+            K_xs = K[:N].reshape(1, N, E, q)
+            k_ss = K[N:].reshape(E, q, E, q).diagonal(dim1=0, dim2=2).permute(2, 0, 1)  # E x q x q
+        else:
+            k_ss = kernel(Xe, diag=diag)  # E x S x q (x q)
         tail = k_ss.shape[len(S) + 2:]  # () for variances, (q,) for covariances
-        if padded.num_items == 0:  # no items yet: the prior
+        if N == 0:  # no items yet: the prior
             return k_ss.new_zeros(shape + (q,)), k_ss.reshape(*shape, q, *tail)
         if not S:  # one problem: one kernel call for all test points
-            K_xs = kernel(padded.X, Xe.reshape(E * q, d)).reshape(1, -1, E, q)
+            if K_xs is None:
+                K_xs = kernel(padded.X, Xe.reshape(E * q, d)).reshape(1, -1, E, q)
         else:
             K_xs = kernel(padded.X.expand(E, *padded.X.shape), Xe)  # E x S x N x q
             K_xs = padded.cross_covariance(K_xs).movedim(0, -2).reshape(S.numel(), -1, E, q)

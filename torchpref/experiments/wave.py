@@ -52,9 +52,7 @@ from torchpref.utility_functions import WaveFunction, evaluation_grid
 
 #: the authors' model hyperparameters for this experiment (docs/decisions.md): their 1-D run's
 #: ``log_hyp = log([0.02, 0.6, 0.2, 0.8, 60])`` is ``[lengthscale, sigma_f, sigma_R, sigma_B, nu]``,
-#: so the kernel variance is ``sigma_f^2 = 0.36``. (A later GPpref.py forced the variance to 1; the
-#: authors' numbers quoted in the issue reproduce with 0.36, not with 1: random rankings' WRMS at
-#: 20 queries 0.0642 vs 0.0737 with their code on seed 10, theirs 0.0637.)
+#: so the kernel variance is ``sigma_f^2 = 0.36`` (not 1: the evidence is in docs/wave.md).
 MODEL_SETTINGS = {"lengthscale": 0.02, "outputscale": 0.36, "comparison_noise": 0.2, "rating_scale": 0.8,
                   "rating_precision": 60.0}
 M = 5  # items per ranking query
