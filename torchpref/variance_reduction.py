@@ -38,6 +38,7 @@ from typing import Sequence
 
 import torch
 from botorch.models.model import Model
+from gpytorch.likelihoods import Likelihood
 from torch import Tensor
 
 from torchpref.acquisition import choice_probabilities
@@ -48,7 +49,7 @@ from torchpref.strategies import Selector, _joint, _ranking, _rating, effort_mod
 SQRT2 = 2.0**0.5
 
 
-def rating_hessian(F: Tensor, rating_likelihood) -> Tensor:
+def rating_hessian(F: Tensor, rating_likelihood: Likelihood) -> Tensor:
     r"""Expected Hessian of one rating of each item: ``E_f[I(f_i)]`` over samples.
 
     Args:
@@ -70,7 +71,7 @@ def choice_answer_probabilities(F: Tensor, comparison_noise: Tensor, num_quadrat
     return choice_probabilities(F, comparison_noise, num_quadrature).mean(-2)
 
 
-def ranking_mode_hessians(mean: Tensor, cov: Tensor, comparison_likelihood, num_iter: int = 12) -> Tensor:
+def ranking_mode_hessians(mean: Tensor, cov: Tensor, comparison_likelihood: Likelihood, num_iter: int = 12) -> Tensor:
     r"""The Hessian a best-of-``q`` answer adds at the new Laplace mode, for each answer.
 
     Answer ``j`` (item ``j`` is best) adds the comparisons ``j > k``, ``k != j``: the log
@@ -192,7 +193,7 @@ class VariancePerEffort(Selector):
         self.num_samples, self.top_fraction, self.num_plausible = num_samples, top_fraction, num_plausible
         self.num_hessian_samples = max(1, min(num_hessian_samples, num_samples))
 
-    def weights(self, F: Tensor, mean: Tensor, var: Tensor, rating_likelihood) -> tuple[Tensor, Tensor]:
+    def weights(self, F: Tensor, mean: Tensor, var: Tensor, rating_likelihood: Likelihood) -> tuple[Tensor, Tensor]:
         r"""The top-set probabilities ``w`` and rating slopes ``g`` (``T x N`` each) from samples
         ``F`` (``T x S x N``) and the marginals: ``g`` is the derivative of the likelihood's
         ``expected_rating(mean, var)`` in ``mean`` (central difference; Beta ratings:
@@ -226,7 +227,7 @@ class VariancePerEffort(Selector):
         return rating_row, rating_value / self.rating_cost, cand.gather(1, chosen), value / self.ranking_cost
 
     def _greedy(self, Fc: Tensor, mean: Tensor, cov: Tensor, weights: tuple[Tensor, Tensor], cand: Tensor,
-                comparison) -> tuple[Tensor, Tensor]:
+                comparison: Likelihood) -> tuple[Tensor, Tensor]:
         """Greedy best-of-``m`` set among the ``K`` plausible items: ``T x m`` columns, ``T`` values."""
         T, S, K = Fc.shape
         j, k = torch.triu_indices(K, K, 1, device=Fc.device)
