@@ -1,33 +1,23 @@
 """The lake experiment on a tiny synthetic scenario (a real one takes seconds to plan)."""
 
 import json
-import math
 
 import pytest
 import torch
 
-from torchpref.lake import InformationField, Lake, LakeOperator, LakeScenario, path_objectives
+from torchpref.lake import LakeOperator, LakeScenario, path_objectives
 from torchpref.experiments.lake import STRATEGIES, make_model, normalise, pool_bounds, run_lake_experiment
 from torchpref.experiments.lake_plan import model_utility
 from torchpref.lake.plan import plan_with_utility
 
-
-def _paths(lake, offsets, T=20):
-    t = torch.linspace(0, 1, T, dtype=torch.float64).unsqueeze(-1)
-    d = lake.goal - lake.start
-    n = torch.stack([-d[1], d[0]]) / d.norm()
-    base = lake.start + t * d
-    return torch.stack([base + o * torch.sin(math.pi * t) * n for o in offsets])
+from lake_worlds import bent_paths, lake_and_field
 
 
 @pytest.fixture(scope="module")
 def scenario():
-    g = torch.Generator().manual_seed(0)
-    lake = Lake.random(generator=g)
-    xmin, xmax, ymin, ymax = lake.bounds
-    field = InformationField.random(generator=g, extent=(xmin - 5, xmax + 5, ymin - 5, ymax + 5), shape=(60, 80))
+    lake, field = lake_and_field(0)
     offsets = torch.linspace(-150, 150, 121, dtype=torch.float64)
-    paths = _paths(lake, offsets)
+    paths = bent_paths(lake, offsets)
     paths = paths[lake.path_on_water(paths)]
     X = path_objectives(paths, field)
     # scale the field so that the operator's levels spread over the paths

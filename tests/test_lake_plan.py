@@ -1,33 +1,23 @@
 """Planning through a utility of the objectives: a known optimum, the shoreline, the risk-aware
 criterion and the scenario cache."""
 
-import math
-
 import pytest
 import torch
 
 from torchpref.experiments.lake import make_model, normalise, pool_bounds
 from torchpref.experiments.lake_plan import compare, improvement_bound
-from torchpref.lake import InformationField, Lake, LakeOperator, LakeScenario, path_objectives
+from torchpref.lake import LakeOperator, LakeScenario, path_objectives
 from torchpref.lake import scenario as scenario_module
 from torchpref.lake.plan import plan_with_utility
 from torchpref.lake.scenario import cached_scenario, load_scenario, save_scenario, scenario_cache_path
 
-
-def _bent_paths(lake, offsets, T=20):
-    t = torch.linspace(0, 1, T, dtype=torch.float64).unsqueeze(-1)
-    d = lake.goal - lake.start
-    n = torch.stack([-d[1], d[0]]) / d.norm()
-    return torch.stack([lake.start + t * d + o * torch.sin(math.pi * t) * n for o in offsets])
+from lake_worlds import bent_paths, lake_and_field
 
 
 @pytest.fixture(scope="module")
 def world():
-    g = torch.Generator().manual_seed(3)
-    lake = Lake.random(generator=g)
-    xmin, xmax, ymin, ymax = lake.bounds
-    field = InformationField.random(generator=g, extent=(xmin - 5, xmax + 5, ymin - 5, ymax + 5), shape=(60, 80))
-    paths = _bent_paths(lake, torch.linspace(-120, 120, 41, dtype=torch.float64))
+    lake, field = lake_and_field(3)
+    paths = bent_paths(lake, torch.linspace(-120, 120, 41, dtype=torch.float64))
     paths = paths[lake.path_on_water(paths)]
     X = path_objectives(paths, field)
     z = torch.zeros(len(paths), dtype=torch.long)
@@ -50,7 +40,7 @@ def test_planned_paths_stay_on_the_water(world):
     """Utility = +distance pushes the waypoints into the shore: every returned path is on the water."""
     lake = world.lake
     for offsets in ([-100.0, 0.0, 100.0], [40.0]):
-        starts = _bent_paths(lake, torch.tensor(offsets, dtype=torch.float64))
+        starts = bent_paths(lake, torch.tensor(offsets, dtype=torch.float64))
         starts = starts[lake.path_on_water(starts)]
         res = plan_with_utility(world, lambda X: X[..., 0], starts=starts, fallback=starts[0], steps=150, lr=5.0)
         assert bool(lake.path_on_water(res.path))

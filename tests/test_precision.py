@@ -168,3 +168,49 @@ def test_laplace_dtype_survives_a_checkpoint_and_a_batch_trial(tmp_path):
     torch.testing.assert_close(loaded.posterior(m32.train_X[:4]).mean, m32.posterior(m32.train_X[:4]).mean)
     trials = BatchedPreferenceGP(m32, [m32.data, m32.data])
     assert trials.trial_model(1).laplace_dtype == F32
+
+
+# ------------------------------------------- the Beta likelihood where mu rounds to 0 or 1
+
+
+@pytest.mark.parametrize("dtype, eta", [(F32, -3.3331), (F32, -10.0), (F64, -10.0), (F64, 9.0)])
+def test_beta_derivatives_are_finite_where_phi_underflows(dtype, eta):
+    # Phi(eta / (sqrt 2 sigma_B)) underflows below t ~ -13 (float32) and -37 (float64): psi(nu mu)
+    # was infinite there, the gradient inf or NaN, and Newton raised FloatingPointError (fuzz
+    # seeds 456 and 522). Reference: mpmath's derivatives of the direct log density.
+    mp = pytest.importorskip("mpmath")
+    from torchpref.likelihoods import BetaRatingLikelihood
+
+    lik = BetaRatingLikelihood(0.1724578, 933.7958).to(dtype)
+    u = torch.tensor([1 - 1e-6, 0.3], dtype=dtype)
+    e = torch.full_like(u, eta)
+    out = [*lik.derivatives(e, u), lik.third_derivative(e, u)]
+    assert all(bool(torch.isfinite(x).all()) for x in out)
+    sB, nu = float(lik.rating_scale), float(lik.rating_precision)
+    mp.mp.dps = 60
+
+    def logp(x, ui):
+        mu, mu_c = mp.ncdf(x / (mp.sqrt(2) * sB)), mp.ncdf(-x / (mp.sqrt(2) * sB))  # mu, 1 - mu
+        return ((nu * mu - 1) * mp.log(ui) + (nu * mu_c - 1) * mp.log(1 - ui)
+                + mp.loggamma(nu) - mp.loggamma(nu * mu) - mp.loggamma(nu * mu_c))
+
+    for i, ui in enumerate(u.double().tolist()):
+        ref = [float(mp.diff(lambda x: logp(x, mp.mpf(ui)), mp.mpf(eta), k)) for k in range(3)]
+        # float64: to round-off; float32: the value and slope to its own resolution of the parts
+        rtol = (1e-9, 1e-9, 1e-6) if dtype == F64 else (1e-5, 1e-3, None)
+        for k, tol in enumerate(rtol):
+            if tol is not None:
+                assert abs(float(out[k][i]) - ref[k]) <= tol * max(abs(ref[k]), 1.0), (k, float(out[k][i]), ref[k])
+
+
+def test_native_float32_solves_ratings_where_phi_underflows():
+    # fuzz seed 456 (sigma_B 0.17, nu 934, 27 items): FloatingPointError before
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import fuzz_problems as fp
+
+    rec = fp.check(fp.make_problem(456), pairwisegp=False)
+    assert rec["f32n_error"] is None and rec["f32n_converged"] and rec["f64_converged"]
+    assert max(rec["f32_gap_mean_nograd"], rec["f32_gap_cov_nograd"]) < 1e-5

@@ -33,8 +33,10 @@ from botorch.utils.transforms import t_batch_mode_transform
 from torch import Tensor
 from torch.distributions import Beta
 
+from torchpref.batch import BatchedPreferenceGP
 from torchpref.choice_sets import greedy_choice_set
 from torchpref.information import entropy, membership_information, sample_information, top_set_membership
+from torchpref.models import PreferenceGP
 from torchpref.numerics import gauss_hermite, log_ndtr
 from torchpref.ordinal import OrdinalRatingLikelihood
 
@@ -59,10 +61,10 @@ def latent_ucb(model: Model, gamma: float = 3.0) -> UpperConfidenceBound:
 
 def item_ucb(model, X: Tensor, gamma: float = 3.0) -> tuple[Tensor, Tensor, Tensor]:
     r"""Eq. 12's ``mean + gamma * std`` of the latent utility at each point of ``X`` (``... x d``),
-    with the posterior mean and std (each ``...``). Uses ``model.marginals`` where the model has
-    it (:class:`~torchpref.PreferenceGP`, :class:`~torchpref.BatchedPreferenceGP` with ``T x N x d``
+    with the posterior mean and std (each ``...``). Uses the marginals of a
+    :class:`~torchpref.PreferenceGP` or a :class:`~torchpref.BatchedPreferenceGP` (``T x N x d``
     points), else any BoTorch model's posterior."""
-    if hasattr(model, "marginals"):
+    if isinstance(model, (PreferenceGP, BatchedPreferenceGP)):
         mean, var = model.marginals(X)
     else:
         post = model.posterior(X.unsqueeze(-2))

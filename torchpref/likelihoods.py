@@ -214,19 +214,33 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         nu = self.rating_precision
         return Beta(nu * torch.special.ndtr(t), nu * torch.special.ndtr(-t))
 
-    def _shape(self, eta: Tensor):
+    def _log_shape(self, eta: Tensor):
+        """``c = sqrt 2 sigma_B``, ``t = eta / c``, ``nu``, ``log mu`` and ``log(1 - mu)``."""
         c = SQRT2 * self.rating_scale
         t = eta / c
-        nu = self.rating_precision
-        log_mu, log_1mmu = log_ndtr(t), log_ndtr(-t)
+        return c, t, self.rating_precision, log_ndtr(t), log_ndtr(-t)
+
+    def _shape(self, eta: Tensor):
+        c, t, nu, log_mu, log_1mmu = self._log_shape(eta)
+        return c, t, nu, nu * torch.exp(log_mu), nu * torch.exp(log_1mmu)
+
+    def _parts(self, eta: Tensor, u: Tensor):
+        r"""``log p`` (with ``lgamma(a) = lgamma(a + 1) - log a``, ``log a = log nu + log mu``), the
+        first derivative ``g``, the :meth:`fisher` weight ``F``, and ``c, t, nu, a, b`` and the
+        ratios ``mu' / mu``, ``mu' / (1 - mu)``: all finite where ``mu`` rounds to 0 or 1."""
+        c, t, nu, log_mu, log_1mmu = self._log_shape(eta)
         a, b = nu * torch.exp(log_mu), nu * torch.exp(log_1mmu)
-        return c, t, nu, a, b
+        r_a, r_b = inv_mills(t) / c, inv_mills(-t) / c  # mu' / mu, mu' / (1 - mu)
+        dmu = normal_pdf(t) / c
+        logp = ((a - 1) * torch.log(u) + (b - 1) * torch.log1p(-u) + torch.lgamma(nu)
+                - torch.lgamma(a + 1) - torch.lgamma(b + 1) + 2 * torch.log(nu) + log_mu + log_1mmu)
+        g = nu * (torch.log(u) - torch.log1p(-u) - torch.digamma(a + 1) + torch.digamma(b + 1)) * dmu + r_a - r_b
+        F = r_a**2 + r_b**2 + nu**2 * (torch.polygamma(1, a + 1) + torch.polygamma(1, b + 1)) * dmu**2
+        return logp, g, F, (c, t, nu, a, b, r_a, r_b, dmu)
 
     def log_prob(self, eta: Tensor, u: Tensor) -> Tensor:
         """``log Beta(u; a, b)`` of each rating ``u`` given its item's latent value ``eta``."""
-        _, _, nu, a, b = self._shape(eta)
-        return ((a - 1) * torch.log(u) + (b - 1) * torch.log1p(-u)
-                + torch.lgamma(nu) - torch.lgamma(a) - torch.lgamma(b))
+        return self._parts(eta, u)[0]
 
     def derivatives(self, eta: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         r"""``(log p, d log p / d eta, d^2 log p / d eta^2)``, elementwise.
@@ -236,28 +250,27 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         ``d log p / d mu = nu (log u - log(1-u) - psi(a) + psi(b))`` and
         ``d^2 log p / d mu^2 = -nu^2 (psi'(a) + psi'(b))``. The second derivative in ``eta``
         can be positive far from the data (the Beta log-likelihood is not log-concave in f).
+
+        Computed with ``psi(x) = psi(x + 1) - 1 / x``, so that ``nu psi(a) mu' = nu psi(a + 1) mu'
+        - mu' / mu`` (an inverse Mills ratio over ``c``): the first derivative is ``g = nu (log u -
+        log(1-u) - psi(a + 1) + psi(b + 1)) mu' + mu' / mu - mu' / (1 - mu)`` and the second
+        ``-F - t g / c`` with ``F`` the :meth:`fisher` weight. Finite where ``mu`` rounds to 0 or 1
+        (``Phi(t)`` underflows below ``t`` of about -13 in float32 and -37 in float64, where the
+        direct form's ``psi(a)`` is infinite).
         """
-        c, t, nu, a, b = self._shape(eta)
-        logp = ((a - 1) * torch.log(u) + (b - 1) * torch.log1p(-u)
-                + torch.lgamma(nu) - torch.lgamma(a) - torch.lgamma(b))
-        phi = normal_pdf(t)
-        dmu = phi / c
-        d2mu = -t * phi / (c * c)
-        g_mu = nu * (torch.log(u) - torch.log1p(-u) - torch.digamma(a) + torch.digamma(b))
-        h_mu = -(nu**2) * (torch.polygamma(1, a) + torch.polygamma(1, b))
-        return logp, g_mu * dmu, h_mu * dmu**2 + g_mu * d2mu
+        logp, g, F, (c, t, *_) = self._parts(eta, u)
+        return logp, g, -F - t * g / c
 
     def third_derivative(self, eta: Tensor, u: Tensor) -> Tensor:
         r"""``d^3 log p / d eta^3``, elementwise: ``l3 mu'^3 + 3 l2 mu' mu'' + l1 mu'''`` with
         ``l1, l2`` the ``mu``-derivatives of :meth:`derivatives`,
-        ``l3 = -nu^3 (psi''(a) - psi''(b))`` and ``mu''' = (t^2 - 1) phi(t) / c^3``."""
-        c, t, nu, a, b = self._shape(eta)
-        phi = normal_pdf(t)
-        dmu, d2mu, d3mu = phi / c, -t * phi / c**2, (t * t - 1) * phi / c**3
-        l1 = nu * (torch.log(u) - torch.log1p(-u) - torch.digamma(a) + torch.digamma(b))
-        l2 = -(nu**2) * (torch.polygamma(1, a) + torch.polygamma(1, b))
-        l3 = -(nu**3) * (torch.polygamma(2, a) - torch.polygamma(2, b))
-        return l3 * dmu**3 + 3 * l2 * dmu * d2mu + l1 * d3mu
+        ``l3 = -nu^3 (psi''(a) - psi''(b))`` and ``mu''' = (t^2 - 1) phi(t) / c^3``. With
+        ``psi''(x) = psi''(x + 1) - 2 / x^3``: ``l3 mu'^3 = -nu^3 (psi''(a + 1) - psi''(b + 1)) mu'^3
+        + 2 (mu' / mu)^3 - 2 (mu' / (1 - mu))^3``, ``3 l2 mu' mu'' = 3 F t / c`` and
+        ``l1 mu''' = g (t^2 - 1) / c^2`` (``g``, ``F`` as in :meth:`derivatives`)."""
+        _, g, F, (c, t, nu, a, b, r_a, r_b, dmu) = self._parts(eta, u)
+        l3 = -(nu**3) * (torch.polygamma(2, a + 1) - torch.polygamma(2, b + 1)) * dmu**3 + 2 * r_a**3 - 2 * r_b**3
+        return l3 + 3 * F * t / c + g * (t * t - 1) / (c * c)
 
     def fisher(self, eta: Tensor) -> Tensor:
         r"""Expected negative second derivative ``nu^2 (psi'(a) + psi'(b)) mu'^2 >= 0`` (Fisher

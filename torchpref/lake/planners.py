@@ -355,7 +355,9 @@ def rrt_star(lake: Lake, field: InformationField, weights, *, generator: torch.G
     goal_index = -1
     for k in tqdm(range(num_samples), desc="RRT*", disable=not progress):
         new = _extend(tree, lake, field, samples[k], step, radius, info_step)
-        if new is not None and goal_index < 0 and torch.equal(new, lake.goal):
+        if new is None:  # no vertex added: nothing to refresh either
+            continue
+        if goal_index < 0 and torch.equal(new, lake.goal):
             goal_index = tree.count - 1
         if (k + 1) % recompute_every == 0:
             tree.refresh()
