@@ -107,7 +107,7 @@ def test_values_match_laplace_refits_on_fantasies():
         post = model.posterior(Xc)
         mean, cov = post.mean.reshape(1, -1), post.distribution.covariance_matrix.unsqueeze(0)
         F, _ = joint_samples(mean, cov, [torch.Generator().manual_seed(1)], 512)
-        w, s = sel.weights(F, mean, cov.diagonal(dim1=-2, dim2=-1), model.likelihood.rating.rating_scale)
+        w, s = sel.weights(F, mean, cov.diagonal(dim1=-2, dim2=-1), model.likelihood.rating)
 
         def loss(m):
             return (m.posterior(Xc).variance.reshape(-1, 40) * w * s * s).sum(-1)
@@ -118,6 +118,7 @@ def test_values_match_laplace_refits_on_fantasies():
         i = int(red.argmax())
         mu = model.likelihood.rating.mean_link(F[0, :, i])
         u = torch.from_numpy(beta.rvs(10 * mu.numpy(), 10 * (1 - mu.numpy()), random_state=np.random.default_rng(0)))
+        u = u.clamp(1e-3, 1 - 1e-3)  # as the model stores ratings at 0 or 1
         refit = condition_batch(model, Xc[i:i + 1], ratings=u.reshape(-1, 1), rating_index=torch.zeros(512, 1).long())
         assert float(red[i]) == pytest.approx(L0 - float(loss(refit).mean()), rel=0.1)
 
@@ -183,3 +184,20 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="m >= 2"):
         VariancePerEffort(m=1)
     assert math.isclose(VariancePerEffort(m=5).ranking_cost, 2.0)
+
+
+def test_rating_slopes_and_an_ordinal_model(generator):
+    """The slope of the expected rating is phi(m / s) / s for Beta ratings (s = sqrt(2 sigma_B^2
+    + v)); an ordered-probit model (ratings as levels) is served through its own
+    ``expected_rating`` and ``fisher``."""
+    sel = VariancePerEffort(m=3)
+    mean, var = torch.randn(1, 9, generator=generator, dtype=D), torch.rand(1, 9, generator=generator, dtype=D)
+    X = _line()
+    lik = _model(X).likelihood.rating
+    _, g = sel.weights(torch.randn(1, 16, 9, generator=generator, dtype=D), mean, var, lik)
+    s = (2 * 0.8**2 + var).sqrt()
+    assert torch.allclose(g, torch.exp(-0.5 * (mean / s) ** 2) / (s * math.sqrt(2 * math.pi)), rtol=1e-6)
+    ordinal = PreferenceGP(X, torch.tensor([[1, 0], [5, 2]]), torch.tensor([4.0, 2.0]), torch.tensor([3, 6]),
+                           covar_module=fixed_rbf_kernel(0.1, 1.0, X), rating_levels=5)
+    q = sel.select(ordinal, X, None, 0, 5, generator)
+    assert isinstance(q, (RatingQuery, RankingQuery))

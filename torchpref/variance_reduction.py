@@ -38,6 +38,7 @@ from typing import Sequence
 
 import torch
 from botorch.models.model import Model
+from gpytorch.likelihoods import Likelihood
 from torch import Tensor
 
 from torchpref.acquisition import choice_probabilities
@@ -48,7 +49,7 @@ from torchpref.strategies import Selector, _joint, _ranking, _rating, effort_mod
 SQRT2 = 2.0**0.5
 
 
-def rating_hessian(F: Tensor, rating_likelihood) -> Tensor:
+def rating_hessian(F: Tensor, rating_likelihood: Likelihood) -> Tensor:
     r"""Expected Hessian of one rating of each item: ``E_f[I(f_i)]`` over samples.
 
     Args:
@@ -70,7 +71,7 @@ def choice_answer_probabilities(F: Tensor, comparison_noise: Tensor, num_quadrat
     return choice_probabilities(F, comparison_noise, num_quadrature).mean(-2)
 
 
-def ranking_mode_hessians(mean: Tensor, cov: Tensor, comparison_likelihood, num_iter: int = 12) -> Tensor:
+def ranking_mode_hessians(mean: Tensor, cov: Tensor, comparison_likelihood: Likelihood, num_iter: int = 12) -> Tensor:
     r"""The Hessian a best-of-``q`` answer adds at the new Laplace mode, for each answer.
 
     Answer ``j`` (item ``j`` is best) adds the comparisons ``j > k``, ``k != j``: the log
@@ -192,15 +193,17 @@ class VariancePerEffort(Selector):
         self.num_samples, self.top_fraction, self.num_plausible = num_samples, top_fraction, num_plausible
         self.num_hessian_samples = max(1, min(num_hessian_samples, num_samples))
 
-    def weights(self, F: Tensor, mean: Tensor, var: Tensor, rating_scale: Tensor) -> tuple[Tensor, Tensor]:
+    def weights(self, F: Tensor, mean: Tensor, var: Tensor, rating_likelihood: Likelihood) -> tuple[Tensor, Tensor]:
         r"""The top-set probabilities ``w`` and rating slopes ``g`` (``T x N`` each) from samples
-        ``F`` (``T x S x N``) and the marginals."""
+        ``F`` (``T x S x N``) and the marginals: ``g`` is the derivative of the likelihood's
+        ``expected_rating(mean, var)`` in ``mean`` (central difference; Beta ratings:
+        ``phi(m / s) / s``, ``s = sqrt(2 sigma_B^2 + v)``)."""
         N = F.shape[-1]
         w = top_set_membership(F, max(1, min(N, round(self.top_fraction * N)))).to(F).mean(-2)
-        scale = (2 * rating_scale.to(F) ** 2 + var).sqrt()
-        g = torch.exp(-0.5 * (mean / scale) ** 2) / (scale * (2 * torch.pi) ** 0.5)
+        h = 1e-4
+        up, down = rating_likelihood.expected_rating(mean + h, var), rating_likelihood.expected_rating(mean - h, var)
+        g = (up - down) / (2 * h)
         return w, g
-
 
     def values(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]):
         r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
@@ -210,7 +213,7 @@ class VariancePerEffort(Selector):
         T, S, N = F.shape
         lik = model.likelihood
         var = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0)
-        w, g = self.weights(F, mean, var, lik.rating.rating_scale)
+        w, g = self.weights(F, mean, var, lik.rating)
         all_rows = torch.arange(N, device=F.device).reshape(1, N, 1).expand(T, N, 1)
         h = rating_hessian(F[:, : self.num_hessian_samples], lik.rating)
         rating = variance_reduction(cov, w, all_rows, h.reshape(T, N, 1, 1), g)
@@ -224,7 +227,7 @@ class VariancePerEffort(Selector):
         return rating_row, rating_value / self.rating_cost, cand.gather(1, chosen), value / self.ranking_cost
 
     def _greedy(self, Fc: Tensor, mean: Tensor, cov: Tensor, weights: tuple[Tensor, Tensor], cand: Tensor,
-                comparison) -> tuple[Tensor, Tensor]:
+                comparison: Likelihood) -> tuple[Tensor, Tensor]:
         """Greedy best-of-``m`` set among the ``K`` plausible items: ``T x m`` columns, ``T`` values."""
         T, S, K = Fc.shape
         j, k = torch.triu_indices(K, K, 1, device=Fc.device)
