@@ -43,7 +43,8 @@ from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from botorch_tutorials_common import (  # noqa: E402
-    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, phase, seed_all, timed)
+    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, phase, phase_summary, seed_all,
+    timed)
 
 X_DIM, Y_DIM = 5, 4
 NUM_RESTARTS, NUM_OUTCOME_SAMPLES, RAW_SAMPLES, BATCH_LIMIT = 8, 32, 64, 4
@@ -154,15 +155,16 @@ def main() -> None:
     summary = {f"{s}_util": paired_summary(rows, f"{s}_util", higher_is_better=True) for s in args.strategies}
     summary.update({f"{s}_last_check": paired_summary([{**r, "last": r[f"{s}_checks"][-1]} for r in rows], "last",
                                                       higher_is_better=True) for s in args.strategies})
+    summary["phases"] = phase_summary(rows)
     summary["config"] = record.config
     stem.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
     with stem.with_suffix(".csv").open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["seed", "model", *[f"{s}_util" for s in args.strategies],
-                    *[f"{s}_last_check" for s in args.strategies], "wall_s"])
+                    *[f"{s}_last_check" for s in args.strategies], "wall_s", "cpu_s"])
         for r in sorted(rows, key=lambda r: (r["seed"], r["model"])):
             w.writerow([r["seed"], r["model"], *[r[f"{s}_util"] for s in args.strategies],
-                        *[r[f"{s}_checks"][-1] for s in args.strategies], r["wall_s"]])
+                        *[r[f"{s}_checks"][-1] for s in args.strategies], r["wall_s"], r.get("cpu_s")])
     plot(rows, args.strategies, stem.with_suffix(".png"))
     print(json.dumps(summary, indent=1))
 

@@ -112,11 +112,28 @@ def paired_summary(rows: list[dict], key: str, higher_is_better: bool) -> dict:
            "PreferenceGP_sem": _sem(a), "PairwiseGP_sem": _sem(b),
            "wall_s_PairwiseGP": float(tw.sum()), "wall_s_PreferenceGP": float(ow.sum()),
            "wall_time_ratio": float(tw.sum() / ow.sum()) if len(seeds) else math.nan}
+    if all("cpu_s" in by[m][s] for m in MODELS for s in seeds) and seeds:
+        tc = sum(by["PairwiseGP"][s]["cpu_s"] for s in seeds)
+        oc = sum(by["PreferenceGP"][s]["cpu_s"] for s in seeds)
+        out.update({"cpu_s_PairwiseGP": tc, "cpu_s_PreferenceGP": oc, "cpu_time_ratio": tc / oc})
     if len(seeds) >= 2 and np.any(diff != 0):
         out["p_worse"] = float(stats.ttest_1samp(diff, 0.0, alternative="less").pvalue)
         out["p_wilcoxon"] = float(stats.wilcoxon(diff, alternative="less").pvalue)
     else:
         out["p_worse"] = out["p_wilcoxon"] = math.nan if len(seeds) < 2 else 1.0
+    return out
+
+
+def phase_summary(rows: list[dict]) -> dict:
+    """Per model, the CPU seconds of each ``phase`` summed over the seeds, the whole loop's CPU
+    seconds and each phase's share of it (rows without phase times are left out)."""
+    out = {}
+    for m in MODELS:
+        rs = [r for r in rows if r["model"] == m and "phase_cpu_s" in r]
+        total = sum(r["cpu_s"] for r in rs)
+        phases = {k: sum(r["phase_cpu_s"].get(k, 0.0) for r in rs) for r in rs for k in r["phase_cpu_s"]}
+        out[m] = {"seeds": len(rs), "cpu_s": total, "phase_cpu_s": phases,
+                  "share": {k: v / total for k, v in phases.items()} if total else {}}
     return out
 
 

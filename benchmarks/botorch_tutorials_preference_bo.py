@@ -32,7 +32,8 @@ from botorch.optim import optimize_acqf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from botorch_tutorials_common import (  # noqa: E402
-    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, phase, seed_all, timed)
+    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, phase, phase_summary, seed_all,
+    timed)
 
 DIM, NOISE, Q, Q_COMP = 4, 0.1, 2, 1
 NUM_RESTARTS, RAW_SAMPLES = 3, 512
@@ -119,14 +120,14 @@ def main() -> None:
                "auc_regret": paired_summary(rows, "EUBO_auc_regret", higher_is_better=False),
                "repeats": {m: int(sum(r["EUBO_repeats"] for r in rows if r["model"] == m)) for m in MODELS},
                "proposals": {m: args.batches * sum(r["model"] == m for r in rows) for m in MODELS},
-               "config": record.config}
+               "phases": phase_summary(rows), "config": record.config}
     stem.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
     with stem.with_suffix(".csv").open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["seed", "model", "EUBO_regret", "rand_regret", "EUBO_auc_regret", "EUBO_repeats", "wall_s"])
+        w.writerow(["seed", "model", "EUBO_regret", "rand_regret", "EUBO_auc_regret", "EUBO_repeats", "wall_s", "cpu_s"])
         for r in sorted(rows, key=lambda r: (r["seed"], r["model"])):
             w.writerow([r["seed"], r["model"], r["EUBO_regret"], r["rand_regret"], r["EUBO_auc_regret"],
-                        r["EUBO_repeats"], r["wall_s"]])
+                        r["EUBO_repeats"], r["wall_s"], r.get("cpu_s")])
     plot(rows, stem.with_suffix(".png"))
     print(json.dumps(summary, indent=1))
 
