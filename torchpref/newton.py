@@ -242,10 +242,11 @@ def newton_mode(L: Tensor, obs: Observations, f0: Tensor | None, opts: NewtonOpt
             bad = (active & ~torch.isfinite(dec)).nonzero().reshape(-1).tolist()
             raise FloatingPointError(f"non-finite Newton step while finding the Laplace modes of problems {bad}")
         decrement = torch.where(active, dec, decrement)
-        floor = prob.floor(point)
         # stalled: a whole iteration (step and chord steps) did not contract the decrement, which
         # is below the round-off floor: no further progress can be resolved in this dtype
-        stalled = (dec > 0.25 * newton_dec) & (dec / 2 < floor)
+        stalled = dec > 0.25 * newton_dec
+        floor = prob.floor(point) if bool(stalled.any()) else None  # rarely needed: formed on demand
+        stalled = stalled if floor is None else stalled & (dec / 2 < floor)
         newton_dec = torch.where(active, dec, newton_dec)
         done = active & ((dec / 2 < opts.tol) | stalled)  # the point stays: keep this factorisation
         if bool(done.any()):
@@ -255,6 +256,7 @@ def newton_mode(L: Tensor, obs: Observations, f0: Tensor | None, opts: NewtonOpt
             break
         point, stuck = prob.line_search(point, step, dec, active)
         if bool(stuck.any()):  # no ascent possible in floating point: at the optimum up to round-off
+            floor = prob.floor(point) if floor is None else floor
             converged, active = converged | (stuck & (dec / 2 < floor.clamp(min=STUCK_TOL))), active & ~stuck
         # far from the mode the old B is a poor model: refactorise (in float32 where allowed)
         far = far_allowed and bool((dec[active] > 1.0).any())

@@ -229,11 +229,14 @@ class Observations:
     def evaluate_whitened(self, a: Tensor, rows: Sequence[Tensor]) -> LikelihoodTerms:
         """:meth:`evaluate` at ``f = L a`` given each term's rows ``D L`` (:meth:`whitened_rows`),
         with the gradient in ``a``: ``L^T d log p / d f`` (``B x n``)."""
-        ll, grad, weights = a.new_zeros(a.shape[0]), torch.zeros_like(a), []
+        ll, grad, weights = None, None, []
         for t, R in zip(self.terms, rows):
             lp, d1, w = t.evaluate(a, eta=(R @ a.unsqueeze(-1)).squeeze(-1))
-            ll, grad = ll + lp, grad + (R.mT @ d1.unsqueeze(-1)).squeeze(-1)
+            g = (R.mT @ d1.unsqueeze(-1)).squeeze(-1)
+            ll, grad = (lp, g) if ll is None else (ll + lp, grad + g)
             weights.append(w)
+        if ll is None:
+            ll, grad = a.new_zeros(a.shape[0]), torch.zeros_like(a)
         return LikelihoodTerms(ll, grad, tuple(weights))
 
     def whitened_rows(self, L: Tensor) -> tuple[Tensor, ...] | None:
