@@ -114,11 +114,15 @@ def find_mode(
     tol = default_tolerance(L.dtype) if tol is None else tol
     opts = NewtonOptions(max_iter, tol, max_chord if n >= chord_min_size else 0,
                          L.dtype == torch.float64 and n >= single_precision_min_size)
-    with torch.no_grad():
+    # inference mode: no autograd bookkeeping on the many small tensors of the iterations; the
+    # results are cloned out of it, as later autograd passes may save them for backward
+    with torch.inference_mode():
         out = newton_mode(L.detach(), obs, None if f0 is None else f0.detach().to(L), opts)
-    mode = ModeResult(out.point.a, out.point.f, out.factor.M, out.factor.weights, out.iterations,
-                      out.converged, out.factor.fisher)
-    _warn(mode, out.decrement)
+    mode = ModeResult(out.point.a.clone(), out.point.f.clone(), out.factor.M.clone(),
+                      tuple(w.clone() for w in out.factor.weights), out.iterations, out.converged.clone(),
+                      out.factor.fisher.clone())
+    decrement = out.decrement.clone()
+    _warn(mode, decrement)
     return mode.select(0) if single else mode
 
 

@@ -142,8 +142,9 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
         """
         s = self._scale()
         z = eta / s
-        r = inv_mills(z)
-        return log_ndtr(z), r / s, -r * (z + r) / (s * s)
+        log_cdf = log_ndtr(z)
+        r = inv_mills(z, log_cdf)
+        return log_cdf, r / s, -r * (z + r) / (s * s)
 
     def third_derivative(self, eta: Tensor) -> Tensor:
         r"""``d^3 log p / d eta^3 = -r (1 - (z + r)(z + 2 r)) / s^3``, elementwise (how fast the

@@ -21,7 +21,7 @@ follow alone.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -44,11 +44,12 @@ class NewtonOptions:
 
 @dataclass(frozen=True)
 class NewtonPoint:
-    """One iterate per problem: ``a`` (``B x n``), ``f = L a``, ``Psi(a)`` (``B``), its gradient
-    ``grad`` (``B x n``) and the likelihood weights there (per term, ``B x m``)."""
+    """One iterate per problem: ``a`` (``B x n``), ``f = L a`` (``None`` where the likelihood was
+    evaluated from the rows ``D L``: :meth:`Problem.utilities` forms it on demand), ``Psi(a)``
+    (``B``), its gradient ``grad`` (``B x n``) and the likelihood weights there (per term, ``B x m``)."""
 
     a: Tensor
-    f: Tensor
+    f: Tensor | None
     psi: Tensor
     grad: Tensor
     weights: tuple[Tensor, ...]
@@ -60,7 +61,8 @@ class NewtonPoint:
 
         def pick(x: Tensor, y: Tensor) -> Tensor:
             return torch.where(take.reshape(-1, *[1] * (x.dim() - 1)), x, y)
-        return NewtonPoint(pick(self.a, other.a), pick(self.f, other.f), pick(self.psi, other.psi),
+        f = None if self.f is None or other.f is None else pick(self.f, other.f)
+        return NewtonPoint(pick(self.a, other.a), f, pick(self.psi, other.psi),
                            pick(self.grad, other.grad),
                            tuple(pick(x, y) for x, y in zip(self.weights, other.weights)))
 
@@ -113,14 +115,18 @@ class Problem:
     def evaluate(self, a: Tensor) -> NewtonPoint:
         """``Psi``, its gradient ``L^T grad log p - a`` and the weights at ``a``: one likelihood
         pass serves the line search's test and, if the point is accepted, the next step."""
-        f = (self.L @ a.unsqueeze(-1)).squeeze(-1)
         if self.rows is None:
+            f = (self.L @ a.unsqueeze(-1)).squeeze(-1)
             lt = self.obs.evaluate(f)
             grad = (self.L.mT @ lt.grad.unsqueeze(-1)).squeeze(-1) - a
-        else:
-            lt = self.obs.evaluate_whitened(a, self.rows)
+        else:  # f is not needed on this path: formed only where asked for (utilities)
+            f, lt = None, self.obs.evaluate_whitened(a, self.rows)
             grad = lt.grad - a
         return NewtonPoint(a, f, lt.log_lik - 0.5 * (a * a).sum(-1), grad, lt.weights)
+
+    def utilities(self, point: NewtonPoint) -> Tensor:
+        """``f = L a`` (``B x n``) at ``point``."""
+        return point.f if point.f is not None else (self.L @ point.a.unsqueeze(-1)).squeeze(-1)
 
     @staticmethod
     def floor(point: NewtonPoint) -> Tensor:
@@ -134,7 +140,7 @@ class Problem:
         fisher = info > 0
         if not bool(fisher.any()):
             return Factor(M, point.weights, fisher)
-        weights = self.obs.evaluate(point.f, fisher).weights
+        weights = self.obs.evaluate(self.utilities(point), fisher).weights
         M2, info = torch.linalg.cholesky_ex(self.obs.whitened_hessian(self.L, weights, self.rows))
         if bool((info > 0).any()):
             bad = (info > 0).nonzero().reshape(-1).tolist()
@@ -232,30 +238,33 @@ def newton_mode(L: Tensor, obs: Observations, f0: Tensor | None, opts: NewtonOpt
             far = far_allowed = False  # float32 does not suffice for these problems
         factor = prob.factorise(point)
         step, dec = newton_direction(factor.M, point.grad)
-        if not bool((torch.isfinite(dec) | ~active).all()):
+        if not bool(torch.isfinite(dec).all()) and not bool((torch.isfinite(dec) | ~active).all()):
             bad = (active & ~torch.isfinite(dec)).nonzero().reshape(-1).tolist()
             raise FloatingPointError(f"non-finite Newton step while finding the Laplace modes of problems {bad}")
         decrement = torch.where(active, dec, decrement)
-        floor = prob.floor(point)
         # stalled: a whole iteration (step and chord steps) did not contract the decrement, which
         # is below the round-off floor: no further progress can be resolved in this dtype
-        stalled = (dec > 0.25 * newton_dec) & (dec / 2 < floor)
+        stalled = dec > 0.25 * newton_dec
+        floor = prob.floor(point) if bool(stalled.any()) else None  # rarely needed: formed on demand
+        stalled = stalled if floor is None else stalled & (dec / 2 < floor)
         newton_dec = torch.where(active, dec, newton_dec)
         done = active & ((dec / 2 < opts.tol) | stalled)  # the point stays: keep this factorisation
-        final = factor if final is None else factor.where(done, final)
+        if bool(done.any()):
+            final = factor if final is None else factor.where(done, final)
         converged, has_factor, active = converged | done, has_factor | done, active & ~done
         if not bool(active.any()):
             break
         point, stuck = prob.line_search(point, step, dec, active)
-        # no ascent possible in floating point: at the optimum up to round-off
-        converged, active = converged | (stuck & (dec / 2 < floor.clamp(min=STUCK_TOL))), active & ~stuck
+        if bool(stuck.any()):  # no ascent possible in floating point: at the optimum up to round-off
+            floor = prob.floor(point) if floor is None else floor
+            converged, active = converged | (stuck & (dec / 2 < floor.clamp(min=STUCK_TOL))), active & ~stuck
         # far from the mode the old B is a poor model: refactorise (in float32 where allowed)
         far = far_allowed and bool((dec[active] > 1.0).any())
-        near = active & (dec <= 1.0)
-        if opts.max_chord and bool(near.any()):
+        near = active & (dec <= 1.0) if opts.max_chord else None
+        if near is not None and bool(near.any()):
             point, chord_dec = chord_steps(prob, point, factor.M, dec, near, opts)
             decrement = torch.where(near, chord_dec, decrement)
     if not bool(has_factor.all()):  # stuck or out of iterations: a factor at the final points
         fresh = prob.factorise(point)
         final = fresh if final is None else final.where(has_factor, fresh)
-    return NewtonResult(point, final, converged, decrement, it)
+    return NewtonResult(replace(point, f=prob.utilities(point)), final, converged, decrement, it)

@@ -67,9 +67,10 @@ def log_ndtr(z: Tensor) -> Tensor:
     return torch.special.log_ndtr(z)
 
 
-def inv_mills(z: Tensor) -> Tensor:
-    r"""``phi(z) / Phi(z)``, computed in log space (finite for all finite ``z``)."""
-    return torch.exp(-0.5 * z * z - LOG_2PI_HALF - log_ndtr(z))
+def inv_mills(z: Tensor, log_cdf: Tensor | None = None) -> Tensor:
+    r"""``phi(z) / Phi(z)``, computed in log space (finite for all finite ``z``); ``log_cdf``:
+    ``log Phi(z)`` if already computed."""
+    return torch.exp(-0.5 * z * z - LOG_2PI_HALF - (log_ndtr(z) if log_cdf is None else log_cdf))
 
 
 def normal_pdf(z: Tensor) -> Tensor:

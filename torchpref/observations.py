@@ -93,10 +93,13 @@ class Term:
 
     def rows(self, L: Tensor) -> Tensor:
         """``D L`` (``B x m x n``): each observation's row ``d_k`` times ``L`` (``B x n x n``)."""
-        n = L.shape[-1]
-        out = 0.0
+        B, n = L.shape[0], L.shape[-1]
+        flat = L.reshape(B * n, n)  # the rows of all problems: one index_select per coefficient
+        offset = (torch.arange(B, device=L.device) * n).reshape(-1, 1) if B > 1 else 0
+        out = None
         for c, coef in enumerate(self.coef):
-            out = out + coef * L.gather(-2, self.index[..., c : c + 1].expand(-1, -1, n))
+            picked = flat.index_select(0, (self.index[..., c] + offset).reshape(-1)).reshape(B, -1, n)
+            out = (picked if coef == 1.0 else coef * picked) if out is None else out.add_(picked, alpha=coef)
         return out
 
     def quadratic_forms(self, S: Tensor) -> Tensor:
@@ -226,11 +229,14 @@ class Observations:
     def evaluate_whitened(self, a: Tensor, rows: Sequence[Tensor]) -> LikelihoodTerms:
         """:meth:`evaluate` at ``f = L a`` given each term's rows ``D L`` (:meth:`whitened_rows`),
         with the gradient in ``a``: ``L^T d log p / d f`` (``B x n``)."""
-        ll, grad, weights = a.new_zeros(a.shape[0]), torch.zeros_like(a), []
+        ll, grad, weights = None, None, []
         for t, R in zip(self.terms, rows):
             lp, d1, w = t.evaluate(a, eta=(R @ a.unsqueeze(-1)).squeeze(-1))
-            ll, grad = ll + lp, grad + (R.mT @ d1.unsqueeze(-1)).squeeze(-1)
+            g = (R.mT @ d1.unsqueeze(-1)).squeeze(-1)
+            ll, grad = (lp, g) if ll is None else (ll + lp, grad + g)
             weights.append(w)
+        if ll is None:
+            ll, grad = a.new_zeros(a.shape[0]), torch.zeros_like(a)
         return LikelihoodTerms(ll, grad, tuple(weights))
 
     def whitened_rows(self, L: Tensor) -> tuple[Tensor, ...] | None:
@@ -310,9 +316,9 @@ class Observations:
             WL = self.W_times(weights, L)
             H = lower_t_matmul(L[0], WL[0]).unsqueeze(0) if L.shape[0] == 1 else L.mT @ WL
         else:
-            H = torch.zeros_like(L)
+            H = torch.zeros_like(L) if not self.terms else None
             for t, w, DL in zip(self.terms, weights, rows if rows is not None else [None] * len(self.terms)):
                 DL = t.rows(L) if DL is None else DL
-                H = H + DL.mT @ (w.unsqueeze(-1) * DL)
+                H = DL.mT @ (w.unsqueeze(-1) * DL) if H is None else torch.baddbmm(H, DL.mT, w.unsqueeze(-1) * DL)
         H.diagonal(dim1=-2, dim2=-1).add_(1.0)
         return H
