@@ -7,7 +7,8 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	# the CPU build of torch first, so that the range in pyproject.toml installs nothing more
+	# the pinned torch first (the CPU build where pip's configuration offers it), so that the
+	# range in pyproject.toml installs nothing more
 	$(BIN)/pip install --quiet "torch==2.13.0"
 	$(BIN)/pip install --quiet -e ".[test,notebooks,benchmarks]"
 	touch $(STAMP)
