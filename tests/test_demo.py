@@ -16,6 +16,13 @@ def test_demo_writes_its_files_and_reports_progress(tmp_path, capsys):
     assert json.loads((tmp_path / "demo_fig5.json").read_text())["newton_iterations"] >= 1
 
 
+def test_demo_json_is_the_same_on_a_rerun(tmp_path):
+    """The committed ``demo_fig5.json`` must not change when a new user runs ``make demo``."""
+    first = main(["--out", str(tmp_path / "a")]), (tmp_path / "a" / "demo_fig5.json").read_bytes()
+    second = main(["--out", str(tmp_path / "b")]), (tmp_path / "b" / "demo_fig5.json").read_bytes()
+    assert first == second
+
+
 def test_predictive_density_on_the_demo_grid_is_elementwise():
     """Each element's adaptive quadrature stops on its own (the work shrinks with the unfinished
     elements): the whole 100 x 201 grid at once equals each element computed alone."""

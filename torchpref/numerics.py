@@ -20,9 +20,6 @@ LOG_2PI_HALF = 0.5 * math.log(2 * math.pi)
 #: round-off in its factorisation.
 RELATIVE_JITTER = {torch.float64: (1e-10, 1e-6), torch.float32: (1e-6, 1e-3)}
 
-#: The largest diagonal jitter for float64 matrices with a unit diagonal.
-MAX_JITTER = RELATIVE_JITTER[torch.float64][1]
-
 
 class NotPSDError(_LinearOperatorNotPSDError):
     """A matrix that must be positive definite is not, even with the largest allowed jitter.

@@ -159,6 +159,19 @@ def no_preference_observations(model, query: RankingQuery) -> None:
     model.add_observations(query.items, ties=torch.combinations(torch.arange(query.m), 2))
 
 
+def rating_query(X: Tensor, indices: Tensor | None, i: int) -> RatingQuery:
+    """A :class:`RatingQuery` of row ``i`` of the candidates ``X`` (``N x d``; ``indices``: their
+    ``N`` pool rows, or ``None``)."""
+    return RatingQuery(X[i], None if indices is None else int(indices[i]))
+
+
+def ranking_query(X: Tensor, indices: Tensor | None, rows: Tensor) -> RankingQuery:
+    """A :class:`RankingQuery` of the ``rows`` (``m``) of the candidates ``X`` (``N x d``;
+    ``indices``: their ``N`` pool rows, or ``None``)."""
+    rows = rows.reshape(-1)
+    return RankingQuery(X[rows], None if indices is None else tuple(int(indices[r]) for r in rows))
+
+
 def ask_user(user, query: Query):
     """The answer of a user (``rate(x)`` / ``choose(X)``) to ``query``, as given (it is validated
     where it is used, by :func:`record_answer`)."""

@@ -25,16 +25,8 @@ from torchpref.acquisition import (
     top_set_membership,
 )
 from torchpref.numerics import cholesky_batch
-from torchpref.queries import Query, RankingQuery, RatingQuery
-
-
-def _rating(X: Tensor, indices: Tensor | None, i: int) -> RatingQuery:
-    return RatingQuery(X[i], None if indices is None else int(indices[i]))
-
-
-def _ranking(X: Tensor, indices: Tensor | None, rows: Tensor) -> RankingQuery:
-    rows = rows.reshape(-1)
-    return RankingQuery(X[rows], None if indices is None else tuple(int(indices[r]) for r in rows))
+from torchpref.batch import BatchedPreferenceGP
+from torchpref.queries import Query, ranking_query, rating_query
 
 
 def _ranking_size(m: int) -> int:
@@ -92,7 +84,7 @@ class RandomRatings(Selector):
 
     def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
-        return [_rating(X[b], indices[b], int(torch.randint(X.shape[1], (1,), generator=g)))
+        return [rating_query(X[b], indices[b], int(torch.randint(X.shape[1], (1,), generator=g)))
                 for b, g in enumerate(generators)]
 
 
@@ -107,7 +99,7 @@ class RandomRankings(Selector):
     def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
         _check_m(self.m, X[0])
-        return [_ranking(X[b], indices[b], torch.randperm(X.shape[1], generator=g)[: self.m])
+        return [ranking_query(X[b], indices[b], torch.randperm(X.shape[1], generator=g)[: self.m])
                 for b, g in enumerate(generators)]
 
 
@@ -135,9 +127,10 @@ def _ucb(model, X: Tensor, gamma: float) -> Tensor:
         return item_ucb(model, X, gamma)[0]
 
 
-def _joint(model, X: Tensor) -> tuple[Tensor, Tensor]:
-    """Joint posterior mean ``T x N`` and covariance ``T x N x N`` at ``X`` (``T x N x d``)."""
-    if hasattr(model, "joint"):
+def joint_posterior(model: Model | BatchedPreferenceGP, X: Tensor) -> tuple[Tensor, Tensor]:
+    """Joint posterior mean ``T x N`` and covariance ``T x N x N`` at ``X`` (``T x N x d``): a
+    :class:`~torchpref.batch.BatchedPreferenceGP`'s ``joint``, else (``T = 1``) ``model.posterior``."""
+    if isinstance(model, BatchedPreferenceGP):
         return model.joint(X)
     mvn = model.posterior(X).distribution
     T, N = X.shape[:2]
@@ -172,7 +165,7 @@ class UCBRatings(Selector):
     def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
         best = _ucb(model, X, self.gamma).argmax(-1).tolist()
-        return [_rating(X[b], indices[b], i) for b, i in enumerate(best)]
+        return [rating_query(X[b], indices[b], i) for b, i in enumerate(best)]
 
 
 class UCBC(Selector):
@@ -208,7 +201,7 @@ class UCBC(Selector):
         for b, g in enumerate(generators):
             coin = float(torch.rand((), generator=g, dtype=torch.float64))
             if coin >= self.ranking_probability(step, num_steps):
-                out.append(_rating(X[b], indices[b], int(ucb[b].argmax())))
+                out.append(rating_query(X[b], indices[b], int(ucb[b].argmax())))
                 continue
             _check_m(self.m, X[b])
             logits = ucb[b].clone()
@@ -219,7 +212,7 @@ class UCBC(Selector):
                 r = int(torch.multinomial(p, 1, generator=g))
                 rows.append(r)
                 logits[r] = -math.inf
-            out.append(_ranking(X[b], indices[b], torch.tensor(rows)))
+            out.append(ranking_query(X[b], indices[b], torch.tensor(rows)))
         return out
 
 
@@ -313,7 +306,7 @@ class InformationPerEffort(Selector):
     def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
                      generators: Sequence[torch.Generator]) -> list[Query]:
         with torch.no_grad():
-            mean, cov = _joint(model, X)
+            mean, cov = joint_posterior(model, X)
             F, std = joint_samples(mean, cov, generators, self.num_samples)  # T x S x N
             T, S, N = F.shape
             lik = model.likelihood
@@ -352,9 +345,9 @@ class InformationPerEffort(Selector):
             best_rating = cand.gather(1, rating_info.argmax(-1, keepdim=True)).squeeze(-1).tolist()
             rating_value = rating_info.max(-1).values / self.rating_cost
             if cand.shape[1] < self.m or self.m < 2:
-                return [_rating(X[b], indices[b], best_rating[b]) for b in range(T)]
+                return [rating_query(X[b], indices[b], best_rating[b]) for b in range(T)]
             chosen, value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, info, start=0)
             ranking = (value / self.ranking_cost > rating_value).tolist()
             rows = cand.gather(1, chosen)  # T x m
-        return [_ranking(X[b], indices[b], rows[b]) if ranking[b] else _rating(X[b], indices[b], best_rating[b])
-                for b in range(T)]
+        return [ranking_query(X[b], indices[b], rows[b]) if ranking[b]
+                else rating_query(X[b], indices[b], best_rating[b]) for b in range(T)]

@@ -43,8 +43,8 @@ from torch import Tensor
 
 from torchpref.acquisition import choice_probabilities
 from torchpref.information import top_set_membership
-from torchpref.queries import Query
-from torchpref.strategies import Selector, _joint, _ranking, _rating, effort_model, joint_samples
+from torchpref.queries import Query, ranking_query, rating_query
+from torchpref.strategies import Selector, effort_model, joint_posterior, joint_samples
 
 SQRT2 = 2.0**0.5
 
@@ -208,7 +208,7 @@ class VariancePerEffort(Selector):
     def values(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]):
         r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
         T x m, ranking values T)``, values per unit of effort."""
-        mean, cov = _joint(model, X)
+        mean, cov = joint_posterior(model, X)
         F, _ = joint_samples(mean, cov, generators, self.num_samples)
         T, S, N = F.shape
         lik = model.likelihood
@@ -260,7 +260,7 @@ class VariancePerEffort(Selector):
         out = []
         for b in range(X.shape[0]):
             if ranking_rows is not None and bool(ranking_value[b] > rating_value[b]):
-                out.append(_ranking(X[b], indices[b], ranking_rows[b]))
+                out.append(ranking_query(X[b], indices[b], ranking_rows[b]))
             else:
-                out.append(_rating(X[b], indices[b], int(rating_row[b])))
+                out.append(rating_query(X[b], indices[b], int(rating_row[b])))
         return out
