@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m torchpref.demo --out benchmarks/results
+	$(BIN)/python -m torchpref.demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
