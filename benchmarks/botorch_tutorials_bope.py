@@ -24,7 +24,6 @@ import json
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from botorch.acquisition import LearnedObjective  # noqa: E402
@@ -43,7 +42,7 @@ from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from botorch_tutorials_common import (  # noqa: E402
-    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, phase, phase_summary, seed_all,
+    MODELS, RESULTS, Record, fit_preference_model, paired_summary, phase, phase_summary, plot_curves, seed_all,
     timed)
 
 X_DIM, Y_DIM = 5, 4
@@ -165,23 +164,9 @@ def main() -> None:
         for r in sorted(rows, key=lambda r: (r["seed"], r["model"])):
             w.writerow([r["seed"], r["model"], *[r[f"{s}_util"] for s in args.strategies],
                         *[r[f"{s}_checks"][-1] for s in args.strategies], r["wall_s"], r.get("cpu_s")])
-    plot(rows, args.strategies, stem.with_suffix(".png"))
+    plot_curves(rows, args.strategies, "{}_checks", lambda n: EVERY_N_COMPS * np.arange(n) + 1, stem.with_suffix(".png"),
+                xlabel="comparisons", ylabel="true utility of the max-posterior-mean design", title="bope tutorial")
     print(json.dumps(summary, indent=1))
-
-
-def plot(rows, strategies, path) -> None:
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for name, style in zip(MODELS, ("-", "--")):
-        for s in strategies:
-            ys = np.array([r[f"{s}_checks"] for r in rows if r["model"] == name])
-            if len(ys):
-                errorbar_curve(ax, EVERY_N_COMPS * np.arange(ys.shape[1]) + 1, ys, ls=style, label=f"{name} {s}")
-    ax.set(xlabel="comparisons", ylabel="true utility of the max-posterior-mean design",
-           title=f"bope tutorial, {len({r['seed'] for r in rows})} seeds (mean, 95% CI)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 if __name__ == "__main__":

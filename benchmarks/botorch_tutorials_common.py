@@ -143,6 +143,27 @@ def errorbar_curve(ax, x, ys: np.ndarray, **kwargs) -> None:
     ax.errorbar(x, ys.mean(0), yerr=1.96 * sem, capsize=2, **kwargs)
 
 
+def plot_curves(rows: list[dict], arms, key: str, x_of: Callable[[int], np.ndarray], path, *, xlabel: str,
+                ylabel: str, title: str, optimum: float | None = None) -> None:
+    """One curve per model (line style) and arm: the rows' ``key.format(arm)`` lists against
+    ``x_of(length)``, mean with a 95% band over the seeds; the number of seeds ends ``title``."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for name, style in zip(MODELS, ("-", "--")):
+        for arm in arms:
+            ys = np.array([r[key.format(arm)] for r in rows if r["model"] == name])
+            if len(ys):
+                errorbar_curve(ax, x_of(ys.shape[1]), ys, ls=style, label=f"{name} {arm}")
+    if optimum is not None:
+        ax.axhline(optimum, color="k", lw=1, label="optimum")
+    ax.set(xlabel=xlabel, ylabel=ylabel, title=f"{title}, {len({r['seed'] for r in rows})} seeds (mean, 95% CI)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def _mean(x):
     return float(np.mean(x)) if len(x) else math.nan
 

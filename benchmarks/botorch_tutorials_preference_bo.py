@@ -24,7 +24,6 @@ from itertools import combinations
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from botorch.acquisition.preference import AnalyticExpectedUtilityOfBestOption  # noqa: E402
@@ -32,7 +31,7 @@ from botorch.optim import optimize_acqf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from botorch_tutorials_common import (  # noqa: E402
-    MODELS, RESULTS, Record, errorbar_curve, fit_preference_model, paired_summary, phase, phase_summary, seed_all,
+    MODELS, RESULTS, Record, fit_preference_model, paired_summary, phase, phase_summary, plot_curves, seed_all,
     timed)
 
 DIM, NOISE, Q, Q_COMP = 4, 0.1, 2, 1
@@ -128,24 +127,10 @@ def main() -> None:
         for r in sorted(rows, key=lambda r: (r["seed"], r["model"])):
             w.writerow([r["seed"], r["model"], r["EUBO_regret"], r["rand_regret"], r["EUBO_auc_regret"],
                         r["EUBO_repeats"], r["wall_s"], r.get("cpu_s")])
-    plot(rows, stem.with_suffix(".png"))
+    plot_curves(rows, ("EUBO", "rand"), "{}_best", np.arange, stem.with_suffix(".png"),
+                xlabel="query (q = 2, one comparison each)", ylabel="best utility seen", title="preference_bo tutorial",
+                optimum=utility(torch.ones(1, DIM, dtype=torch.float64)).item())
     print(json.dumps(summary, indent=1))
-
-
-def plot(rows: list[dict], path) -> None:
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for name, style in zip(MODELS, ("-", "--")):
-        for arm in ("EUBO", "rand"):
-            ys = np.array([r[f"{arm}_best"] for r in rows if r["model"] == name])
-            if len(ys):
-                errorbar_curve(ax, np.arange(ys.shape[1]), ys, ls=style, label=f"{name} {arm}")
-    ax.axhline(utility(torch.ones(1, DIM, dtype=torch.float64)).item(), color="k", lw=1, label="optimum")
-    ax.set(xlabel="query (q = 2, one comparison each)", ylabel="best utility seen",
-           title=f"preference_bo tutorial, {len({r['seed'] for r in rows})} seeds (mean, 95% CI)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 if __name__ == "__main__":
