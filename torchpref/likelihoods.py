@@ -68,6 +68,9 @@ class _ScalarParamsMixin:
     def _register(self, name: str, value: float, constraint, prior, learn: bool) -> None:
         raw = torch.nn.Parameter(torch.zeros((), dtype=torch.float64), requires_grad=learn)
         self.register_parameter(f"raw_{name}", raw)
+        for key, bound in constraint.named_buffers(recurse=False):  # GPyTorch makes them in the default dtype:
+            if bound.is_floating_point() and bound.dtype != raw.dtype:  # convert now, as ``to`` would
+                setattr(constraint, key, bound.to(raw.dtype))
         self.register_constraint(f"raw_{name}", constraint)
         if prior is not None:
             self.register_prior(
