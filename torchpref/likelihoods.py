@@ -68,15 +68,19 @@ class _ScalarParamsMixin:
     def _register(self, name: str, value: float, constraint, prior, learn: bool) -> None:
         raw = torch.nn.Parameter(torch.zeros((), dtype=torch.float64), requires_grad=learn)
         self.register_parameter(f"raw_{name}", raw)
-        for key, bound in constraint.named_buffers(recurse=False):  # GPyTorch makes them in the default dtype:
-            if bound.is_floating_point() and bound.dtype != raw.dtype:  # convert now, as ``to`` would
-                setattr(constraint, key, bound.to(raw.dtype))
         self.register_constraint(f"raw_{name}", constraint)
         if prior is not None:
             self.register_prior(
                 f"{name}_prior", prior, lambda m, n=name: getattr(m, n), lambda m, v, n=name: m._set(n, v)
             )
         self._set(name, value)
+        # GPyTorch makes the bounds in the default dtype: convert them, as the model's ``to`` would, so that a
+        # model in the parameter's dtype needs no ``to``. (The raw value above is computed before, as it was
+        # when ``to`` did this: with float32 bounds an Interval's width rounds, e.g. nu = 80 is stored as
+        # 79.9999992, and changing that would move every result with ratings by 1e-8.)
+        for key, bound in constraint.named_buffers(recurse=False):
+            if bound.is_floating_point() and bound.dtype != raw.dtype:
+                setattr(constraint, key, bound.to(raw.dtype))
 
     def _set(self, name: str, value) -> None:
         raw = getattr(self, f"raw_{name}")
