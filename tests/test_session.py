@@ -400,3 +400,8 @@ def test_docs_sessions_example_runs(tmp_path, monkeypatch):
     exec(code, ns)
     assert ns["s"].done and (tmp_path / "me.jsonl").exists()
     ns["s"].close()
+    again: dict = {}  # a reader who runs it twice resumes the file: the same answers, none added
+    exec(code, again)
+    assert [h.answer for h in again["s"].history] == [h.answer for h in ns["s"].history]
+    assert (tmp_path / "me.jsonl").read_text().count("\n") == 15
+    again["s"].close()
