@@ -405,3 +405,10 @@ def test_docs_sessions_example_runs(tmp_path, monkeypatch):
     assert [h.answer for h in again["s"].history] == [h.answer for h in ns["s"].history]
     assert (tmp_path / "me.jsonl").read_text().count("\n") == 15
     again["s"].close()
+
+
+@pytest.mark.parametrize("metadata", [{"who": object()}, {"score": float("nan")}, ["not", "a", "dict"]])
+def test_metadata_that_json_cannot_hold_is_refused_before_the_file_is_made(tmp_path, metadata):
+    with pytest.raises(ValueError, match="metadata must"):
+        PreferenceSession(pool(6), session_file=tmp_path / "s.jsonl", metadata=metadata)
+    assert not (tmp_path / "s.jsonl").exists()
