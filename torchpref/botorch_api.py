@@ -22,6 +22,7 @@ from torch import Tensor
 
 from torchpref.data import PreferenceData
 from torchpref.fantasy import condition_batch
+from torchpref.model_data import create_data
 
 
 class TrainDataMismatchError(ValueError, RuntimeError):
@@ -194,9 +195,7 @@ class PairwiseGPInterface:
             if rating_index is None:
                 rating_index = torch.arange(ratings.shape[-1], device=X.device).expand(ratings.shape)
         if not self.has_data and self._data.dim == 0:  # prior-only: these become the data
-            new = copy.deepcopy(self)
-            new.set_train_data(X, comparisons, ratings, rating_index)
-            return new
+            return _condition_prior_only(self, X, comparisons, ratings, rating_index)
         batched = (self.batch_shape or X.dim() > 2 or (comparisons is not None and comparisons.dim() > 2)
                    or (ratings is not None and ratings.dim() > 1))
         if batched:
@@ -237,6 +236,27 @@ def ranking_comparisons(items: Tensor, ranks: Tensor) -> Tensor:
                & (ranks.view(-1, 1, 1, ranks.shape[-1]) < rj.unsqueeze(-1))).any(-1)
     k, i, j = ((ri < rj) & ~between).nonzero(as_tuple=True)
     return torch.stack([items[k, i], items[k, j]], dim=-1).long()
+
+
+def _condition_prior_only(model, X: Tensor, comparisons, ratings, rating_index):
+    """A copy of a prior-only ``model`` whose data are these; batched ``X`` or observations give
+    one problem per batch element, as the constructor builds them (BoTorch's fantasies)."""
+    new = copy.deepcopy(model)
+    batch = X.shape[:-2]
+    for obs, event_dims in ((comparisons, 2), (ratings, 1)):
+        if obs is not None and obs.dim() > event_dims:
+            batch = torch.broadcast_shapes(batch, obs.shape[:-event_dims])
+    if not batch:
+        new.set_train_data(X, comparisons, ratings, rating_index)
+        return new
+    X = X.to(model.train_X).expand(*batch, *X.shape[-2:])
+    if comparisons is not None:
+        comparisons = comparisons.expand(*batch, *comparisons.shape[-2:])
+    if ratings is not None:
+        ratings, rating_index = ratings.expand(*batch, ratings.shape[-1]), rating_index.expand(*batch, ratings.shape[-1])
+    new._set_data(create_data(X, comparisons, ratings, rating_index, model.rating_eps,
+                              rating_levels=model.rating_levels), None)
+    return new
 
 
 def _comparisons_from_Y(Y: Tensor) -> Tensor:
