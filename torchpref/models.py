@@ -337,13 +337,20 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
                 raise ValueError(f"X is {X.dtype} but the model is {dtype}: convert one of them "
                                  f"(X.to({dtype}) or model.to(...)).")
             X = X.to(dtype)  # BoTorch's optimisers and objectives hand over float32 candidates
-        finite = torch.isfinite(X.detach())
-        if not bool(finite.all()):
-            bad = X.detach()[~finite][:3].tolist()
-            raise ValueError(f"X must be finite, got {int((~finite).sum())} non-finite value(s) such as {bad}.")
         if self.training:
             self.eval()
-        return self.transform_inputs(X)
+        Xt = self.transform_inputs(X)
+        # one check (one synchronisation) for both: finite, and small enough that the kernel's
+        # squared distances (x / lengthscale)^2, lengthscales >= 1e-4, do not overflow to inf - inf
+        if not bool((Xt.detach().abs() <= torch.finfo(Xt.dtype).max ** 0.5 * 1e-5).all()):
+            finite = torch.isfinite(X.detach())
+            if not bool(finite.all()):
+                bad = X.detach()[~finite][:3].tolist()
+                raise ValueError(f"X must be finite, got {int((~finite).sum())} non-finite value(s) such as {bad}.")
+            raise ValueError(f"X is too large for the kernel: values up to {float(Xt.detach().abs().max()):.3g} "
+                             "(after any input transform) overflow its squared distances; the model expects "
+                             "items in the unit cube (scale them, or pass input_transform=Normalize(d, bounds)).")
+        return Xt
 
     def __call__(self, X: Tensor) -> MultivariateNormal:  # skip gpytorch's GP.__call__ machinery
         return self.forward(X)
