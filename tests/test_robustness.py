@@ -200,3 +200,14 @@ def test_conditioning_on_batches_that_do_not_broadcast_is_named():
     with pytest.raises(ValueError, match="do not broadcast"):
         PreferenceGP(None, None).condition_on_observations(X, torch.tensor([[0, 1]]).expand(4, 1, 2))
     assert torch.equal(model.posterior(model.train_X).mean.detach(), before)
+
+
+def test_evidence_called_with_other_comparisons_is_named_not_ignored():
+    from torchpref import LaplaceMarginalLogLikelihood, TrainDataMismatchError
+
+    model = _model()
+    mll = LaplaceMarginalLogLikelihood(model)
+    torch.testing.assert_close(mll(model(model.train_X), model.comparisons.clone()), mll())  # PairwiseGP's call
+    for other in (torch.tensor([[1, 0], [2, 3]]), torch.tensor([[0, 1]])):
+        with pytest.raises(TrainDataMismatchError, match="other comparisons"):
+            mll(model(model.train_X), other)

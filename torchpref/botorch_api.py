@@ -26,10 +26,11 @@ from torchpref.model_data import create_data
 
 
 class TrainDataMismatchError(ValueError, RuntimeError):
-    """``set_train_data(..., strict=True)`` was given data of another shape, dtype or device.
+    """``set_train_data(..., strict=True)`` was given data of another shape, dtype or device, or
+    a :class:`~torchpref.models.LaplaceMarginalLogLikelihood` comparisons other than its model's.
 
     A ``ValueError`` (bad input) that is also the ``RuntimeError`` GPyTorch's and BoTorch's
-    models raise in this case, so code written for either catches it.
+    models raise in these cases, so code written for either catches it.
     """
 
 

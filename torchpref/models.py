@@ -20,7 +20,7 @@ from gpytorch.models import GP
 from linear_operator.operators import DenseLinearOperator, LinearOperator
 from torch import Tensor
 
-from torchpref.botorch_api import PairwiseGPInterface, prior_only_data
+from torchpref.botorch_api import PairwiseGPInterface, TrainDataMismatchError, prior_only_data
 from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.fantasy import fantasize
 from torchpref.laplace import ModeResult, laplace_evidence
@@ -366,6 +366,15 @@ class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
         super().__init__(model.likelihood, model)
 
     def forward(self, *args: Any, **kwargs: Any) -> Tensor:
+        """The evidence of the model's own data. ``mll(output, comparisons)``, as BoTorch calls
+        ``PairwiseLaplaceMarginalLogLikelihood``, is accepted; comparisons other than the
+        model's raise :class:`~torchpref.botorch_api.TrainDataMismatchError` (``PairwiseGP``:
+        ``RuntimeError``) rather than being ignored."""
+        given = args[1] if len(args) > 1 else None
+        if isinstance(given, Tensor) and not (given.shape == self.model.comparisons.shape
+                                              and torch.equal(given.to(self.model.comparisons), self.model.comparisons)):
+            raise TrainDataMismatchError(f"the evidence is of the model's own comparisons; got other comparisons "
+                                         f"(shape {tuple(given.shape)}): use set_train_data to change them.")
         res = self.model.log_marginal_likelihood()
         for _, module, prior, closure, _ in self.named_priors():
             res = res + prior.log_prob(closure(module)).sum()
