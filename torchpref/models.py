@@ -8,6 +8,7 @@ from typing import Any
 
 import torch
 from botorch.acquisition.objective import PosteriorTransform
+from botorch.exceptions import warnings as botorch_warnings
 from botorch.exceptions.warnings import InputDataWarning
 from botorch.models.model import Model
 from botorch.models.transforms.input import InputTransform
@@ -47,9 +48,13 @@ def _initial_data(train_X, comparisons, ratings, rating_index, rating_eps: float
 
 
 def _warn_dtype(dtype: torch.dtype) -> None:
+    """BoTorch's single-precision ``InputDataWarning`` (its text first, so that filters written for
+    ``PairwiseGP``'s warning catch this one), and what it means here."""
     if dtype != torch.float64:
+        botorch_text = getattr(botorch_warnings, "_get_single_precision_warning", None)
+        head = botorch_text(str(dtype)) + " " if botorch_text is not None else ""
         warnings.warn(
-            f"train_X is {dtype}; float64 is recommended (as in BoTorch). The Laplace problem is "
+            f"{head}train_X is {dtype}; float64 is recommended (as in BoTorch). The Laplace problem is "
             "solved in float64 unless laplace_dtype says otherwise (docs/precision.md).",
             InputDataWarning,
             stacklevel=3,
