@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numbers
 import warnings
+from itertools import chain
 from typing import Any
 
 import torch
@@ -59,6 +60,13 @@ def _warn_dtype(dtype: torch.dtype) -> None:
             InputDataWarning,
             stacklevel=3,
         )
+
+
+def _follows(module: torch.nn.Module, device: torch.device, dtype: torch.dtype) -> bool:
+    """Whether ``module.to(device=device, dtype=dtype)`` would change nothing: every parameter and
+    buffer on ``device``, the floating ones in ``dtype``."""
+    return all(t.device == device and (t.dtype == dtype or not (t.is_floating_point() or t.is_complex()))
+               for t in chain(module.parameters(), module.buffers()))
 
 
 class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
@@ -162,7 +170,8 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         self.max_newton_iter = max_newton_iter
         self._laplace_dtype = check_laplace_dtype(laplace_dtype)
         self._scaling_warned = False
-        self.to(device=X.device, dtype=X.dtype)
+        if not _follows(self, X.device, X.dtype):
+            self.to(device=X.device, dtype=X.dtype)
         self._data: PreferenceData | PaddedData = data
         self._cache: PosteriorState | None = None
         self._warm_f: Tensor | None = None

@@ -216,10 +216,14 @@ def chord_steps(prob: Problem, point: NewtonPoint, M: Tensor, decrement: Tensor,
     return point, decrement
 
 
-def newton_mode(L: Tensor, obs: Observations, f0: Tensor | None, opts: NewtonOptions) -> NewtonResult:
-    """The modes of ``B`` problems (see the module docstring); all inputs detached."""
+def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: NewtonOptions) -> NewtonResult:
+    """The modes of ``B`` problems (see the module docstring), each from the candidate start (``B x n``
+    each; zeros if none) of highest ``Psi``; all inputs detached."""
     prob = Problem(L, obs)
-    point = prob.evaluate(prob.whiten(f0))
+    point = prob.evaluate(prob.whiten(starts[0] if starts else None))
+    for start in starts[1:]:
+        other = prob.evaluate(prob.whiten(start))
+        point = other.where(other.psi > point.psi, point)
     B = L.shape[0]
     active = torch.ones(B, dtype=torch.bool, device=L.device)
     converged, has_factor = torch.zeros_like(active), torch.zeros_like(active)
