@@ -159,3 +159,55 @@ def test_save_model_names_a_folder_or_a_missing_folder(tmp_path):
     with pytest.raises(FileNotFoundError, match="the folder .*nowhere does not exist"):
         torchpref.save_model(model, tmp_path / "nowhere" / "model.pt")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.pt"]
+
+
+# ------------------------------------------------------------------ hostile inputs to the model
+def _model():
+    g = torch.Generator().manual_seed(1)
+    return PreferenceGP(torch.rand(5, 2, generator=g, dtype=F64), torch.tensor([[0, 1], [2, 3]]),
+                        torch.tensor([0.3, 0.8], dtype=F64), torch.tensor([1, 4]))
+
+
+@pytest.mark.parametrize("noise, match", [
+    (torch.ones(3, dtype=F64), r"shape \(5, 1\)"),
+    (-torch.ones(5, 1, dtype=F64), "finite variances >= 0, got \\[-1.0"),
+    (torch.full((5, 1), float("nan"), dtype=F64), "finite variances >= 0, got \\[nan"),
+])
+def test_observation_noise_of_the_wrong_shape_or_sign_is_named(noise, match):
+    model = _model()
+    with pytest.raises(ValueError, match=match):
+        model.posterior(model.train_X, observation_noise=noise)
+
+
+def test_items_too_large_for_the_kernel_are_named_not_nan():
+    from botorch.sampling.pairwise_samplers import PairwiseSobolQMCNormalSampler
+
+    model = _model()
+    huge = model.train_X[:2] * 1e300  # finite, but (x / lengthscale)^2 is inf and inf - inf NaN
+    with pytest.raises(ValueError, match="too large for the kernel"):
+        model.posterior(huge)
+    with pytest.raises(ValueError, match="too large for the kernel"):
+        model.fantasize(huge, PairwiseSobolQMCNormalSampler(torch.Size([2])))
+    assert torch.isfinite(model.posterior(model.train_X * 1e100).mean).all()  # large but representable
+
+
+def test_conditioning_on_batches_that_do_not_broadcast_is_named():
+    model = _model()
+    before = model.posterior(model.train_X).mean.detach().clone()
+    X = torch.rand(3, 2, 2, dtype=F64)
+    with pytest.raises(ValueError, match=r"do not broadcast: X \(3,\), the model \(\), comparisons \(4,\)"):
+        model.condition_on_observations(X, torch.tensor([[0, 1]]).expand(4, 1, 2))
+    with pytest.raises(ValueError, match="do not broadcast"):
+        PreferenceGP(None, None).condition_on_observations(X, torch.tensor([[0, 1]]).expand(4, 1, 2))
+    assert torch.equal(model.posterior(model.train_X).mean.detach(), before)
+
+
+def test_evidence_called_with_other_comparisons_is_named_not_ignored():
+    from torchpref import LaplaceMarginalLogLikelihood, TrainDataMismatchError
+
+    model = _model()
+    mll = LaplaceMarginalLogLikelihood(model)
+    torch.testing.assert_close(mll(model(model.train_X), model.comparisons.clone()), mll())  # PairwiseGP's call
+    for other in (torch.tensor([[1, 0], [2, 3]]), torch.tensor([[0, 1]])):
+        with pytest.raises(TrainDataMismatchError, match="other comparisons"):
+            mll(model(model.train_X), other)

@@ -21,15 +21,16 @@ from linear_operator.operators import DenseLinearOperator
 from torch import Tensor
 
 from torchpref.data import PreferenceData
-from torchpref.fantasy import condition_batch
+from torchpref.fantasy import batch_shape_of, condition_batch
 from torchpref.model_data import create_data
 
 
 class TrainDataMismatchError(ValueError, RuntimeError):
-    """``set_train_data(..., strict=True)`` was given data of another shape, dtype or device.
+    """``set_train_data(..., strict=True)`` was given data of another shape, dtype or device, or
+    a :class:`~torchpref.models.LaplaceMarginalLogLikelihood` comparisons other than its model's.
 
     A ``ValueError`` (bad input) that is also the ``RuntimeError`` GPyTorch's and BoTorch's
-    models raise in this case, so code written for either catches it.
+    models raise in these cases, so code written for either catches it.
     """
 
 
@@ -212,7 +213,14 @@ class PairwiseGPInterface:
             noise = observation_noise.to(cov)
             if noise.dim() > 1 and noise.shape[-1] == 1:
                 noise = noise.squeeze(-1)
-            noise = noise.expand(cov.shape[:-1])
+            try:
+                noise = noise.expand(cov.shape[:-1])
+            except RuntimeError:
+                raise ValueError(f"observation_noise must be variances of shape {(*cov.shape[:-1], 1)} (or "
+                                 f"broadcast to it), got shape {tuple(observation_noise.shape)}.") from None
+            ok = (noise.detach() >= 0) & noise.detach().isfinite()
+            if not bool(ok.all()):
+                raise ValueError(f"observation_noise must be finite variances >= 0, got {noise.detach()[~ok][:3].tolist()}.")
         else:
             noise = (self.likelihood.comparison.comparison_noise**2).to(cov).expand(cov.shape[:-1])
         return MultivariateNormal(mvn.mean, DenseLinearOperator(cov + torch.diag_embed(noise)))
@@ -242,10 +250,7 @@ def _condition_prior_only(model, X: Tensor, comparisons, ratings, rating_index):
     """A copy of a prior-only ``model`` whose data are these; batched ``X`` or observations give
     one problem per batch element, as the constructor builds them (BoTorch's fantasies)."""
     new = copy.deepcopy(model)
-    batch = X.shape[:-2]
-    for obs, event_dims in ((comparisons, 2), (ratings, 1)):
-        if obs is not None and obs.dim() > event_dims:
-            batch = torch.broadcast_shapes(batch, obs.shape[:-event_dims])
+    batch = batch_shape_of(X, comparisons, ratings)
     if not batch:
         new.set_train_data(X, comparisons, ratings, rating_index)
         return new
