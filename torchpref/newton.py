@@ -113,6 +113,15 @@ class Problem:
         a = torch.linalg.solve_triangular(self.L, f0.unsqueeze(-1), upper=False).squeeze(-1)
         return torch.where(torch.isfinite(a).all(-1, keepdim=True), a, 0.0)
 
+    def start(self, starts: tuple[Tensor, ...]) -> NewtonPoint:
+        """The point of highest ``Psi`` among the candidate ``starts`` (each ``B x n`` utilities;
+        zeros if none), problem by problem."""
+        point = self.evaluate(self.whiten(starts[0] if starts else None))
+        for start in starts[1:]:
+            other = self.evaluate(self.whiten(start))
+            point = _pick(other, (other.psi > point.psi).tolist(), point)
+        return point
+
     def evaluate(self, a: Tensor) -> NewtonPoint:
         """``Psi``, its gradient ``L^T grad log p - a`` and the weights at ``a``: one likelihood
         pass serves the line search's test and, if the point is accepted, the next step."""
@@ -240,10 +249,7 @@ def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: 
     each; zeros if none) of highest ``Psi``; all inputs detached. The per-problem tests run on the
     host, on one copy of each iteration's decrements (a few numbers)."""
     prob = Problem(L, obs)
-    point = prob.evaluate(prob.whiten(starts[0] if starts else None))
-    for start in starts[1:]:
-        other = prob.evaluate(prob.whiten(start))
-        point = _pick(other, (other.psi > point.psi).tolist(), point)
+    point = prob.start(starts)
     B = L.shape[0]
     tol, stuck_tol = _in_dtype(opts.tol, L.dtype), _in_dtype(STUCK_TOL, L.dtype)
     active, converged, has_factor = [True] * B, [False] * B, [False] * B
@@ -296,6 +302,5 @@ def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: 
     if not all(has_factor):  # stuck or out of iterations: a factor at the final points
         fresh = prob.factorise(point)
         final = fresh if final is None else _pick(final, has_factor, fresh)
-    as_tensor = dict(device=L.device)
-    return NewtonResult(replace(point, f=prob.utilities(point)), final, torch.tensor(converged, **as_tensor),
-                        torch.tensor(decrement, dtype=L.dtype, **as_tensor), it)
+    return NewtonResult(replace(point, f=prob.utilities(point)), final, torch.tensor(converged, device=L.device),
+                        torch.tensor(decrement, dtype=L.dtype, device=L.device), it)
