@@ -42,6 +42,8 @@ def test_version(capsys):
     (["elicit", "--features", "x.csv", "--session", "s", "--no-session"], "not both"),
     (["elicit", "lake", "--id", "name"], "--id names a column"),
     (["elicit", "--features", "/no/such/file.csv"], "No such file or directory"),
+    (["elicit", "lake", "--out", "/proc/no/such/folder"], "--out /proc/no/such/folder: cannot write there"),
+    (["elicit", "lake", "--out", __file__], "is a file, not a folder"),  # before the lake is built
 ])
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch's own, when this file runs first and imports it
 def test_bad_arguments_are_one_line_errors(capsys, argv, match):

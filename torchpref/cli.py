@@ -208,6 +208,8 @@ def _elicit(args) -> int:
         raise UsageError("give --session FILE or --no-session, not both")
     if args.id_column is not None and args.features is None:
         raise UsageError("--id names a column of the --features CSV")
+    if args.world is not None:  # the lake's figures: checked before its scenario is built
+        writable_folder(args.out, "--out")
     return int(_import(ELICIT).run(args) or 0)
 
 
