@@ -44,8 +44,8 @@ def fingerprint(module: Module) -> Tensor:
                     seen.add(id(v))
                     out.append(v)
     vals = params + [b for b in bufs if b.is_floating_point()]
-    with torch.no_grad():  # torch.cat promotes the dtypes
-        return torch.cat([v.reshape(-1) for v in vals]) if vals else torch.zeros(0)
+    with torch.no_grad():  # one call: torch.cat of the flattened values (which promotes the dtypes)
+        return torch._utils._flatten_dense_tensors(vals) if vals else torch.zeros(0)
 
 
 def prior_factor(K: Tensor, jitter: float | None) -> tuple[Tensor, float | Tensor]:
