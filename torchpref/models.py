@@ -34,7 +34,7 @@ from torchpref.model_defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FI
 from torchpref.numerics import pin_coincident
 from torchpref.ordinal import OrdinalRatingLikelihood, TieLikelihood
 from torchpref.padding import PaddedData
-from torchpref.posterior_state import PosteriorState, carries_gradients, fingerprint
+from torchpref.posterior_state import PosteriorState, carries_gradients, fingerprint, submodules
 from torchpref.precision import call_in_dtype, check_laplace_dtype, solve_dtype
 from torchpref.predictives import Predictives
 
@@ -236,7 +236,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         (:func:`~torchpref.numerics.pin_coincident`)."""
         k = self.covar_module
         X2 = X1 if X2 is None else X2
-        if any(getattr(m, "active_dims", None) is not None for m in k.modules()):
+        if any(getattr(m, "active_dims", None) is not None for m in submodules(k)):
             def evaluate(A, B, diag):
                 out = k(A, B, diag=diag)
                 return out if diag else out.to_dense()
