@@ -30,6 +30,7 @@ from gpytorch.constraints import Interval, Positive
 from gpytorch.priors import Prior
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.likelihoods import Likelihood
+from gpytorch.module import Module as GModule
 from torch import Tensor
 from torch.distributions import Bernoulli, Beta
 
@@ -62,6 +63,25 @@ def scalar_parameter(name: str, doc: str) -> property:
         self._set(name, value)
 
     return property(get, set_, doc=doc)
+
+
+def weak_load_hook(module: GModule) -> None:
+    """Hold ``module`` weakly in GPyTorch's ``load_state_dict`` pre-hook.
+
+    GPyTorch's ``Module`` registers its bound method ``_load_state_hook_ignore_shapes`` as a hook,
+    which makes every module a reference cycle: a model dropped (and its mode's matrices) is then
+    freed only at a pass of Python's cyclic garbage collector, and a loop that builds a model per
+    step leaves them to pile up and to make those passes more frequent. The same function is
+    registered instead with the module passed in by torch (held weakly)."""
+    hooks = module._load_state_dict_pre_hooks
+    for key, wrapped in list(hooks.items()):
+        hook = getattr(wrapped, "hook", None)
+        if getattr(hook, "__self__", None) is module and getattr(hook, "__func__", None) is _IGNORE_SHAPES:
+            del hooks[key]
+            module.register_load_state_dict_pre_hook(_IGNORE_SHAPES)
+
+
+_IGNORE_SHAPES = GModule._load_state_hook_ignore_shapes
 
 
 #: The default constraints of the scalar hyperparameters, by name.
@@ -106,6 +126,10 @@ def _raw_value(name: str, value, constraint: Interval, like: Tensor) -> Tensor:
 
 class _ScalarParamsMixin:
     """Positive scalar hyperparameters kept as raw parameters with a constraint and an optional prior."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        weak_load_hook(self)
 
     def _register(self, name: str, value: float, constraint: Interval | None, prior, learn: bool,
                   default: str = "positive") -> None:

@@ -27,7 +27,7 @@ from torchpref.botorch_api import PairwiseGPInterface, TrainDataMismatchError, p
 from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.fantasy import fantasize
 from torchpref.laplace import ModeResult, laplace_evidence
-from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood, weak_load_hook
 from torchpref.model_data import ModelData, create_data
 from torchpref.model_defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS: re-exported)
     MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS, PreferenceLikelihood, default_covar_module)
@@ -156,6 +156,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         laplace_dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
+        weak_load_hook(self)
         data = _initial_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
         X = data.train_X if isinstance(data, PreferenceData) else data.X
         _warn_dtype(X.dtype)
@@ -393,6 +394,7 @@ class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
 
     def __init__(self, model: PreferenceGP):
         super().__init__(model.likelihood, model)
+        weak_load_hook(self)
 
     def forward(self, *args: Any, **kwargs: Any) -> Tensor:
         """The evidence of the model's own data. ``mll(output, comparisons)``, as BoTorch calls
