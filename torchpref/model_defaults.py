@@ -11,7 +11,8 @@ from gpytorch.module import Module
 from gpytorch.priors import GammaPrior, LogNormalPrior
 from torch import Tensor
 
-from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood, shared_constraint, weak_load_hook
+from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.scalar_params import shared_constraint, weak_load_hook
 from torchpref.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood, default_cut_points
 
 #: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that

@@ -27,7 +27,8 @@ from torchpref.botorch_api import PairwiseGPInterface, TrainDataMismatchError, p
 from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.fantasy import fantasize
 from torchpref.laplace import ModeResult, laplace_evidence
-from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood, weak_load_hook
+from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.scalar_params import weak_load_hook
 from torchpref.model_data import ModelData, create_data
 from torchpref.model_defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS: re-exported)
     MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS, PreferenceLikelihood, default_covar_module)

@@ -21,7 +21,8 @@ from gpytorch.likelihoods import Likelihood
 from torch import Tensor
 from torch.distributions import Bernoulli, Categorical
 
-from torchpref.likelihoods import SQRT2, PairwiseProbitLikelihood, _ScalarParamsMixin, scalar_parameter, weak_load_hook
+from torchpref.likelihoods import SQRT2, PairwiseProbitLikelihood
+from torchpref.scalar_params import _ScalarParamsMixin, scalar_parameter, weak_load_hook
 from torchpref.numerics import normal_interval
 
 
