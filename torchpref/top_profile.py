@@ -134,6 +134,10 @@ class ProfileVariancePerEffort(Selector):
         self.num_samples, self.top_fraction = num_samples, top_fraction
         self.num_plausible, self.num_bins = num_plausible, num_bins
 
+    def profile(self, F: Tensor, k: int, rating_likelihood: Likelihood) -> Tensor:
+        """The target whose variance is reduced, ``T x S x N``: :func:`top_profile`."""
+        return top_profile(F, k, rating_likelihood)
+
     def values(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]):
         r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
         T x m or None, ranking values T)``, values per unit of effort."""
@@ -141,7 +145,7 @@ class ProfileVariancePerEffort(Selector):
         F, _ = joint_samples(mean, cov, generators, self.num_samples)
         T, S, N = F.shape
         lik = model.likelihood
-        V = top_profile(F, max(1, min(N, round(self.top_fraction * N))), lik.rating)
+        V = self.profile(F, max(1, min(N, round(self.top_fraction * N))), lik.rating)
         var = V.var(-2)  # T x N
         n = max(1, int((var > 0).sum(-1).max()))  # the items that matter (zero columns add nothing)
         V = V.gather(2, var.argsort(-1, descending=True)[:, :n].unsqueeze(1).expand(T, S, n))
