@@ -37,7 +37,7 @@ noisy than each value.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import torch
 from botorch.models.model import Model
@@ -77,23 +77,43 @@ def profile_variance_reduction(P: Tensor, V: Tensor, bias_correction: bool = Tru
         ``T x B`` reductions (may be slightly negative with the correction: no clamp, so that
         ranking the queries stays unbiased).
     """
+    if V.dim() != 3 or P.dim() != 4 or V.shape[:2] != (P.shape[0], P.shape[2]):
+        raise ValueError(f"V must be T x S x n with T, S those of P (T x B x S x Y: {tuple(P.shape)}), got shape "
+                         f"{tuple(V.shape)}.")
+    return _reduction(P, _Moments.of(V), bias_correction)
+
+
+class _Moments(NamedTuple):
+    """What every query of a trial shares: the profile ``V`` (``T x S x n``), ``[V, V^2]``
+    (``T x S x 2n``), its mean and its sample variance over the samples (``T x 1 x n`` each)."""
+
+    V: Tensor
+    VV: Tensor
+    mean: Tensor
+    var: Tensor
+
+    @classmethod
+    def of(cls, V: Tensor) -> "_Moments":
+        return cls(V, torch.cat([V, V.square()], -1), V.mean(-2, keepdim=True), V.var(-2, keepdim=True))
+
+
+def _reduction(P: Tensor, mom: _Moments, bias_correction: bool) -> Tensor:
+    """:func:`profile_variance_reduction` with the profile's moments computed once."""
     T, B, S, Y = P.shape
-    if V.shape[:2] != (T, S):
-        raise ValueError(f"V must be T x S x n with T={T}, S={S}, got shape {tuple(V.shape)}.")
+    n = mom.V.shape[-1]
     tiny = torch.finfo(P.dtype).tiny
-    p_y = P.mean(-2)  # T x B x Y
-    A = torch.einsum("tbsy,tsn->tbyn", P, V) / S  # T x B x Y x n
-    vbar = V.mean(-2)  # T x n
-    between = (A.square() / p_y.clamp_min(tiny).unsqueeze(-1)).sum(-2) - vbar.unsqueeze(1).square()  # T x B x n
+    Pt = P.transpose(-1, -2).reshape(T, B * Y, S)  # answers before samples: one matmul per trial
+    p_y = P.mean(-2).unsqueeze(-1).clamp_min(tiny)  # T x B x Y x 1
+    A = (Pt @ mom.V).reshape(T, B, Y, n) / S  # A_yi
+    between = (A.square() / p_y).sum(-2) - mom.mean.square()  # T x B x n
     if not bias_correction or S < 2:
         return between.sum(-1)
-    m = A / p_y.clamp_min(tiny).unsqueeze(-1)  # m_yi = E[v_i | y]
-    P2 = P.square()
-    q0 = P2.sum(-2).unsqueeze(-1)  # T x B x Y x 1
-    q1 = torch.einsum("tbsy,tsn->tbyn", P2, V)
-    q2 = torch.einsum("tbsy,tsn->tbyn", P2, V.square())
+    m = A / p_y  # m_yi = E[v_i | y]
+    P2 = Pt.square()
+    q0 = P2.sum(-1).reshape(T, B, Y, 1)
+    q1, q2 = (P2 @ mom.VV).reshape(T, B, Y, 2 * n).split(n, -1)  # sums of P^2 v, P^2 v^2
     var_y = (q2 - 2 * m * q1 + m.square() * q0).clamp_min(0) / (S - 1)  # Var_s(P_sy (v_s - m_y))
-    bias = (var_y / (S * p_y.clamp_min(tiny).unsqueeze(-1))).sum(-2) - (V.var(-2) / S).unsqueeze(1)
+    bias = (var_y / (S * p_y)).sum(-2) - mom.var / S
     return (between - bias).sum(-1)
 
 
@@ -147,14 +167,15 @@ class ProfileVariancePerEffort(Selector):
         lik = model.likelihood
         V = self.profile(F, max(1, min(N, round(self.top_fraction * N))), lik.rating)
         var = V.var(-2)  # T x N
+        order = var.argsort(-1, descending=True)
         n = max(1, int((var > 0).sum(-1).max()))  # the items that matter (zero columns add nothing)
-        V = V.gather(2, var.argsort(-1, descending=True)[:, :n].unsqueeze(1).expand(T, S, n))
+        mom = _Moments.of(V.gather(2, order[:, :n].unsqueeze(1).expand(T, S, n)))
         K = min(self.num_plausible, N)
-        cand = var.argsort(-1, descending=True)[:, :K]  # T x K
+        cand = order[:, :K]  # T x K
         Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))  # T x S x K
 
         def value(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
-            return profile_variance_reduction(P, V)
+            return _reduction(P, mom, True)
 
         rating = value(rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # T x K
         rating_value, best = rating.max(-1)
