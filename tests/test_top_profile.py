@@ -35,7 +35,7 @@ def _answers(F, kind, lik):
     return rating_bin_probabilities(F[..., 0], lik.rating, 10)  # a binned rating of item 0
 
 
-def _grid_reduction(kind, lik, n=801):
+def _grid_reduction(kind, lik, n=801, clipped=False):
     """``sum_i Var(v_i) - E_y Var(v_i | y)`` for the top-1 profile of N(MEAN, COV), by a
     midpoint rule on a grid of whitened coordinates (+-7 sd)."""
     z = torch.linspace(-7, 7, n, dtype=D)
@@ -43,7 +43,7 @@ def _grid_reduction(kind, lik, n=801):
     F = MEAN + Z @ torch.linalg.cholesky(COV).T
     w = torch.exp(-0.5 * (Z * Z).sum(-1))
     w = w / w.sum()
-    V = top_profile(F.unsqueeze(0), 1, lik.rating)[0]  # n^2 x 2
+    V = top_profile(F.unsqueeze(0), 1, lik.rating, clipped)[0]  # n^2 x 2
     P = _answers(F, kind, lik)  # n^2 x Y
 
     def var(weights):
@@ -59,14 +59,15 @@ def _samples(S, seed):
     return MEAN + torch.randn(S, 2, generator=g, dtype=D) @ torch.linalg.cholesky(COV).T
 
 
+@pytest.mark.parametrize("clipped", [False, True])
 @pytest.mark.parametrize("kind", ["pair", "rating"])
-def test_reduction_matches_quadrature(kind):
+def test_reduction_matches_quadrature(kind, clipped):
     """With many samples the estimate is the expected reduction of the profile's variance under
     the exact posterior given each answer (Bayes' rule on a grid), to Monte Carlo error."""
     lik = _lik()
-    want = _grid_reduction(kind, lik)
+    want = _grid_reduction(kind, lik, clipped=clipped)
     F = _samples(200_000, 0)
-    V = top_profile(F.unsqueeze(0), 1, lik.rating)
+    V = top_profile(F.unsqueeze(0), 1, lik.rating, clipped)
     got = float(profile_variance_reduction(_answers(F, kind, lik).reshape(1, 1, *F.shape[:1], -1), V))
     assert want > 1e-3
     assert got == pytest.approx(want, rel=0.03)
@@ -136,6 +137,19 @@ def test_batch_matches_single_trials():
 def _shown(q):
     """A query's kind and its items, as nested lists."""
     return q.kind, q.items.tolist()
+
+
+def test_profiles(generator):
+    """The profile is the rating on the top k and 0 elsewhere; the clipped one the rating on the
+    top k and the k-th largest rating elsewhere."""
+    lik = _lik()
+    F = torch.randn(3, 7, 9, generator=generator, dtype=D)
+    r = lik.rating.expected_rating(F, torch.zeros_like(F))
+    kth = r.sort(-1, descending=True).values[..., 2:3]
+    top = r >= kth
+    assert torch.equal(top_profile(F, 3, lik.rating), torch.where(top, r, 0.0))
+    assert torch.equal(top_profile(F, 3, lik.rating, clipped=True), torch.where(top, r, kth))
+    assert bool((top.sum(-1) == 3).all())
 
 
 def test_bad_arguments_and_an_ordinal_model(generator):

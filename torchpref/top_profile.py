@@ -53,15 +53,23 @@ from torchpref.strategies import Selector, effort_model, joint_posterior, joint_
 __all__ = ["ProfileVariancePerEffort", "profile_variance_reduction", "top_profile"]
 
 
-def top_profile(F: Tensor, k: int, rating_likelihood: Likelihood) -> Tensor:
-    r"""The top-set rating profile ``v = r(f) 1[f in top k]`` of each sample, ``... x S x N``.
+def top_profile(F: Tensor, k: int, rating_likelihood: Likelihood, clipped: bool = False) -> Tensor:
+    r"""The top-set rating profile of each sample, ``... x S x N``: ``v = r(f) 1[f in top k]``,
+    or with ``clipped`` ``v = max(r(f), tau)``, ``tau`` the sample's ``k``-th largest rating.
+
+    The clipped profile reads every item below the top set as the top set's threshold: a
+    membership flip of an item near the threshold costs the rating difference it makes (not
+    the whole rating), and the threshold's absolute level is shared by the ``N - k`` items below it.
 
     Args:
         F: ``... x S x N`` joint posterior samples.
         k: the top set's size.
         rating_likelihood: has ``expected_rating(mean, var)``; ``r(f)`` is its value at ``var = 0``.
+        clipped: the clipped profile.
     """
     r = rating_likelihood.expected_rating(F, torch.zeros_like(F))
+    if clipped:
+        return torch.maximum(r, r.topk(k, dim=-1).values[..., -1:])
     return torch.where(top_set_membership(F, k), r, 0.0)
 
 
@@ -138,12 +146,14 @@ class ProfileVariancePerEffort(Selector):
         top_fraction: the top set's share of the candidates.
         num_plausible: candidates considered for ratings and rankings.
         num_bins: bins of a rating's answer.
+        clipped: value the clipped profile ``max(r(f_i), tau)`` instead (:func:`top_profile`).
     """
 
     name = "profile per effort"
 
     def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
-                 num_samples: int = 256, top_fraction: float = 0.2, num_plausible: int = 15, num_bins: int = 10):
+                 num_samples: int = 256, top_fraction: float = 0.2, num_plausible: int = 15, num_bins: int = 10,
+                 clipped: bool = False):
         m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
         if num_samples < 2 or num_plausible < 1 or num_bins < 2:
             raise ValueError(f"need num_samples >= 2, num_plausible >= 1 and num_bins >= 2, got {num_samples}, "
@@ -152,11 +162,7 @@ class ProfileVariancePerEffort(Selector):
             raise ValueError(f"top_fraction must be in (0, 1), got {top_fraction}.")
         self.m, self.rating_cost, self.ranking_cost = m, rating_cost, ranking_cost
         self.num_samples, self.top_fraction = num_samples, top_fraction
-        self.num_plausible, self.num_bins = num_plausible, num_bins
-
-    def profile(self, F: Tensor, k: int, rating_likelihood: Likelihood) -> Tensor:
-        """The target whose variance is reduced, ``T x S x N``: :func:`top_profile`."""
-        return top_profile(F, k, rating_likelihood)
+        self.num_plausible, self.num_bins, self.clipped = num_plausible, num_bins, clipped
 
     def values(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]):
         r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
@@ -165,7 +171,7 @@ class ProfileVariancePerEffort(Selector):
         F, _ = joint_samples(mean, cov, generators, self.num_samples)
         T, S, N = F.shape
         lik = model.likelihood
-        V = self.profile(F, max(1, min(N, round(self.top_fraction * N))), lik.rating)
+        V = top_profile(F, max(1, min(N, round(self.top_fraction * N))), lik.rating, self.clipped)
         var = V.var(-2)  # T x N
         order = var.argsort(-1, descending=True)
         n = max(1, int((var > 0).sum(-1).max()))  # the items that matter (zero columns add nothing)

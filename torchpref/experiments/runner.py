@@ -146,6 +146,8 @@ _FACTORIES: dict[str, Callable[..., Selector]] = {
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost),
     "profile per effort": lambda m, rating_cost, ranking_cost, **_: ProfileVariancePerEffort(
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost),
+    "clipped profile": lambda m, rating_cost, ranking_cost, **_: ProfileVariancePerEffort(
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, clipped=True),
 }
 
 #: every strategy :func:`make_selector` knows, by name
