@@ -120,11 +120,14 @@ def test_prior_model_posterior(impl):
     torch.testing.assert_close(post.mean, torch.zeros(2, 1, dtype=torch.float64))
 
 
-def test_condition_prior_model(impl):
-    X, C = mini_data()
+@pytest.mark.parametrize("batch", BATCHES)
+def test_condition_prior_model(impl, batch):
+    X, C = mini_data(batch)
     prior = model_class(impl)(None, None).to(dtype=torch.float64)
     cond = prior.condition_on_observations(X, C)
     assert torch.equal(cond.datapoints, X) and torch.equal(cond.comparisons, C)
+    assert cond.batch_shape == torch.Size(batch)
+    assert cond.posterior(torch.rand(4, 2, dtype=torch.float64)).mean.shape == (*batch, 4, 1)
 
 
 def test_prior_model_with_ratings_keyword(impl):

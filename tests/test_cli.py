@@ -42,7 +42,10 @@ def test_version(capsys):
     (["elicit", "--features", "x.csv", "--session", "s", "--no-session"], "not both"),
     (["elicit", "lake", "--id", "name"], "--id names a column"),
     (["elicit", "--features", "/no/such/file.csv"], "No such file or directory"),
+    (["elicit", "lake", "--out", "/proc/no/such/folder"], "--out /proc/no/such/folder: cannot write there"),
+    (["elicit", "lake", "--out", __file__], "is a file, not a folder"),  # before the lake is built
 ])
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch's own, when this file runs first and imports it
 def test_bad_arguments_are_one_line_errors(capsys, argv, match):
     code, out, err = run_main(capsys, *argv)
     assert code == 2 and match in err and "Traceback" not in err + out
@@ -66,6 +69,21 @@ def test_out_is_checked_before_any_work(capsys, tmp_path, monkeypatch):
     assert used.parent == Path("torchpref-results") and used.name.startswith("wave-") and used.is_dir()
     assert "one trial has no standard error" in out and "start-up included" in out
     assert output_folder(None, "wave") != used  # a fresh folder every time
+
+
+def test_a_run_refused_or_failed_before_writing_leaves_no_folder(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run_main(capsys, "reproduce", "suite", "--families", "nope")
+    assert code == 2 and "unknown family 'nope'" in err
+    code, _, err = run_main(capsys, "reproduce", "suite", "--families", "nope", "--out", "mine")
+    assert code == 2 and not (tmp_path / "mine").exists()
+    (tmp_path / "a_file").write_text("")
+    code, _, err = run_main(capsys, "reproduce", "lake", "--cache", tmp_path / "a_file")
+    assert code == 2 and "--cache" in err and "is a file" in err  # checked before any lake is built
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+    (tmp_path / "kept").mkdir()
+    code, _, _ = run_main(capsys, "reproduce", "suite", "--families", "nope", "--out", "kept")
+    assert code == 2 and (tmp_path / "kept").is_dir()  # a folder that was there stays
 
 
 def test_reproduce_in_a_fresh_clone_leaves_git_status_clean(tmp_path):

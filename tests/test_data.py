@@ -139,6 +139,41 @@ def test_best_of_m():
         best_of_m(1, [1])
 
 
+@pytest.mark.parametrize("chosen, shown, match", [
+    (1.5, [0, 1, 2], r"chosen must hold integer indices, got \[1.5\]"),  # was truncated to 1
+    (True, [0, 1, 2], "chosen must hold integer indices, got a bool"),
+    ("1", [0, 1, 2], "chosen must hold integer indices, got str"),
+    (None, [0, 1], "chosen must hold integer indices"),
+    ([0, 1], [0, 1, 2], "chosen must be one item index"),
+    (1, [0.0, 1.5, 2.0], r"shown must hold integer indices, got \[0.0, 1.5, 2.0\]"),  # was [0, 1, 2]
+    (1, "012", "shown must hold integer indices, got str"),
+])
+def test_best_of_m_refuses_what_is_not_an_item_index(chosen, shown, match):
+    with pytest.raises(ValueError, match=match):
+        best_of_m(chosen, shown)
+    assert best_of_m(1.0, torch.tensor([0.0, 1.0])).tolist() == [[1, 0]]  # whole floats are indices
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: likert_to_unit([1, 2], num_levels=2.5), "num_levels must be an integer"),
+    (lambda: likert_to_unit([1, 2], num_levels="5"), "num_levels must be an integer"),
+    (lambda: likert_to_unit([True]), "levels must hold numbers, got a bool"),
+    (lambda: likert_to_unit(["3"]), "levels must hold numbers, got list"),
+    (lambda: unit_to_likert([float("nan")]), "values must be finite"),  # was -9223372036854775807
+    (lambda: unit_to_likert([1.5]), r"values must lie in \[0, 1\], got \[1.5\]"),
+    (lambda: prepare_ratings([True, False]), "ratings must hold numbers, got a bool"),
+    (lambda: PreferenceData.create(None), "train_X must hold numbers, got NoneType"),
+    (lambda: PreferenceData.create("abc"), "train_X must hold numbers, got str"),
+    (lambda: PreferenceData.create(torch.ones(3, 2, dtype=torch.bool)), "train_X must hold numbers, got a bool"),
+    (lambda: PreferenceData.create(torch.rand(3, 2, dtype=torch.complex128)), "train_X must hold real numbers"),
+    (lambda: PreferenceData.create(torch.rand(3, 2, dtype=F64), torch.tensor([[0.0, 1e30]], dtype=F64)),
+     r"comparisons must hold integer indices, got \[1e\+30\]"),  # named the wrapped long before
+])
+def test_helpers_name_what_is_not_a_number_or_index(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
 def test_likert_to_unit_both_modes():
     levels = torch.arange(1, 6)
     centre = likert_to_unit(levels)

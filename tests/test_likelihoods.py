@@ -372,3 +372,38 @@ def test_beta_fisher_is_finite_where_mu_rounds_to_0_or_1():
     torch.testing.assert_close(got[ok], direct[ok], rtol=1e-10, atol=0)
     # the inverse Mills ratio phi(t) / Phi(t) ~ |t| as t -> -inf
     assert abs(float(got[0]) / (60.0 / c) ** 2 - 1) < 0.01
+
+
+# ------------------------------------------------- shared default constraints (construction cost)
+def _models(n=6):
+    from torchpref import PreferenceGP
+
+    X = torch.rand(n, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    C = torch.tensor([[0, 1], [2, 3], [4, 5]])
+    return X, (PreferenceGP(X, comparisons=C, ratings=torch.tensor([0.3, 0.8]), rating_index=torch.tensor([0, 4]))
+               for _ in iter(int, 1))
+
+
+def test_default_constraints_are_shared_but_never_changed_through_a_model():
+    X, models = _models()
+    a, b = next(models), next(models)
+    lik_a, lik_b = a.likelihood.rating, b.likelihood.rating
+    assert lik_a.raw_rating_precision_constraint is lik_b.raw_rating_precision_constraint  # one instance
+    # the values a model's own new constraint gave (made in float32 by GPyTorch, then converted by ``to``)
+    ref = BetaRatingLikelihood(1.0, 80.0).to(torch.float64)
+    assert ref.raw_rating_precision_constraint is not lik_a.raw_rating_precision_constraint
+    assert torch.equal(lik_a.raw_rating_precision, ref.raw_rating_precision)
+    assert torch.equal(lik_a.rating_precision, ref.rating_precision)
+    a.to(torch.float32)  # converts a private copy: b keeps float64 bounds
+    assert lik_a.raw_rating_precision_constraint.lower_bound.dtype == torch.float32
+    assert lik_b.raw_rating_precision_constraint.lower_bound.dtype == torch.float64
+    assert a.posterior(X.float()).mean.dtype == torch.float32
+    # loading other bounds gives the loading model a private copy; loading the same ones keeps sharing
+    c = next(models)
+    c.load_state_dict(b.state_dict())
+    assert c.likelihood.rating.raw_rating_precision_constraint is lik_b.raw_rating_precision_constraint
+    key = "likelihood.rating.raw_rating_precision_constraint.lower_bound"
+    c.load_state_dict({**b.state_dict(), key: torch.tensor(0.5, dtype=torch.float64)})
+    assert float(c.likelihood.rating.raw_rating_precision_constraint.lower_bound) == 0.5
+    assert float(lik_b.raw_rating_precision_constraint.lower_bound) == pytest.approx(1e-2)
+    assert float(next(models).likelihood.rating.raw_rating_precision_constraint.lower_bound) == pytest.approx(1e-2)

@@ -1,5 +1,6 @@
 """Hundreds of small random problems, extreme hyperparameters included: the mode converges and
-nothing is NaN (mode, posterior mean / variance, evidence and its gradient)."""
+nothing is NaN (mode, posterior mean / variance, evidence and its gradient). Damaged, truncated
+and foreign checkpoint files: a named error, nothing half-loaded."""
 
 import sys
 import warnings
@@ -75,3 +76,138 @@ def test_random_problems(chunk):
         if problems:
             failures.append(f"{cfg}: {'; '.join(problems)}")
     assert not failures, f"{len(failures)} of {PER_CHUNK} configurations failed:\n" + "\n".join(failures)
+
+
+# ------------------------------------------------------------------ damaged and foreign checkpoints
+def _saved(tmp_path):
+    import torchpref
+
+    g = torch.Generator().manual_seed(0)
+    model = PreferenceGP(torch.rand(5, 2, generator=g, dtype=F64), torch.tensor([[0, 1], [2, 3]]),
+                         torch.tensor([0.3, 0.8], dtype=F64), torch.tensor([1, 4]))
+    path = tmp_path / "model.pt"
+    torchpref.save_model(model, path)
+    return model, path
+
+
+class _Code:
+    def __reduce__(self):
+        return (print, ("this must never run",))
+
+
+def _foreign_files(raw: bytes) -> dict:
+    import io
+
+    code = io.BytesIO()
+    torch.save({"format": "torchpref.PreferenceGP", "x": _Code()}, code)
+    return {"truncated to half": raw[: len(raw) // 2], "truncated to 10 bytes": raw[:10], "empty": b"",
+            "json": b'{"a": 1}', "a session file": b'{"type":"header","version":1}\n',
+            "random bytes": bytes(range(256)) * 8, "a pickle holding code": code.getvalue()}
+
+
+def test_damaged_or_foreign_checkpoint_files_are_named(tmp_path, capfd):
+    import torchpref
+
+    _, path = _saved(tmp_path)
+    for name, data in _foreign_files(path.read_bytes()).items():
+        bad = tmp_path / "bad.pt"
+        bad.write_bytes(data)
+        with pytest.raises(torchpref.CheckpointError, match="bad.pt"):
+            torchpref.load_model(bad)
+    assert "must never run" not in capfd.readouterr().out
+
+
+def _edited(ck, change):
+    import copy
+
+    ck = copy.deepcopy(ck)
+    change(ck)
+    return ck
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda c: c.pop("data"), "'data' is missing"),
+    (lambda c: c.__setitem__("settings", [1]), "'settings' is missing or not a dictionary"),
+    (lambda c: c["settings"].__setitem__("evil", 1), r"unknown settings entries \['evil'\]"),
+    (lambda c: c["data"].__setitem__("evil", 1), r"unknown data entries \['evil'\]"),
+    (lambda c: c["data"].__setitem__("train_X", "abc"), "no train_X tensor"),
+    (lambda c: c["data"].__setitem__("ratings", [0.5]), "data 'ratings' must be a tensor"),
+    (lambda c: c["state_dict"].__setitem__("covar_module.raw_outputscale", torch.tensor(float("nan"), dtype=F64)),
+     "'covar_module.raw_outputscale' is not finite"),
+    (lambda c: c["state_dict"].__setitem__("covar_module.raw_outputscale", "x"), "must be a tensor, got str"),
+    (lambda c: c["state_dict"].__setitem__("covar_module.base_kernel.raw_lengthscale", torch.zeros(1, 5, dtype=F64)),
+     "do not fit .*size mismatch"),
+    (lambda c: c["data"].__setitem__("comparisons", torch.tensor([[0, 9]])), "comparisons out of range"),
+])
+def test_checkpoint_contents_are_checked_by_name(tmp_path, change, match):
+    import torchpref
+
+    model, path = _saved(tmp_path)
+    ck = torch.load(path, weights_only=True)
+    with pytest.raises(ValueError, match=match):
+        torchpref.load_model(_edited(ck, change))
+    loaded = torchpref.load_model(ck)  # the checkpoint itself was not touched
+    torch.testing.assert_close(loaded.posterior(model.train_X).mean, model.posterior(model.train_X).mean)
+
+
+def test_save_model_names_a_folder_or_a_missing_folder(tmp_path):
+    import torchpref
+
+    model, path = _saved(tmp_path)
+    with pytest.raises(ValueError, match="is a directory"):
+        torchpref.save_model(model, tmp_path)
+    with pytest.raises(FileNotFoundError, match="the folder .*nowhere does not exist"):
+        torchpref.save_model(model, tmp_path / "nowhere" / "model.pt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.pt"]
+
+
+# ------------------------------------------------------------------ hostile inputs to the model
+def _model():
+    g = torch.Generator().manual_seed(1)
+    return PreferenceGP(torch.rand(5, 2, generator=g, dtype=F64), torch.tensor([[0, 1], [2, 3]]),
+                        torch.tensor([0.3, 0.8], dtype=F64), torch.tensor([1, 4]))
+
+
+@pytest.mark.parametrize("noise, match", [
+    (torch.ones(3, dtype=F64), r"shape \(5, 1\)"),
+    (-torch.ones(5, 1, dtype=F64), "finite variances >= 0, got \\[-1.0"),
+    (torch.full((5, 1), float("nan"), dtype=F64), "finite variances >= 0, got \\[nan"),
+])
+def test_observation_noise_of_the_wrong_shape_or_sign_is_named(noise, match):
+    model = _model()
+    with pytest.raises(ValueError, match=match):
+        model.posterior(model.train_X, observation_noise=noise)
+
+
+def test_items_too_large_for_the_kernel_are_named_not_nan():
+    from botorch.sampling.pairwise_samplers import PairwiseSobolQMCNormalSampler
+
+    model = _model()
+    huge = model.train_X[:2] * 1e300  # finite, but (x / lengthscale)^2 is inf and inf - inf NaN
+    with pytest.raises(ValueError, match="too large for the kernel"):
+        model.posterior(huge)
+    with pytest.raises(ValueError, match="too large for the kernel"):
+        model.fantasize(huge, PairwiseSobolQMCNormalSampler(torch.Size([2])))
+    assert torch.isfinite(model.posterior(model.train_X * 1e100).mean).all()  # large but representable
+
+
+def test_conditioning_on_batches_that_do_not_broadcast_is_named():
+    model = _model()
+    before = model.posterior(model.train_X).mean.detach().clone()
+    X = torch.rand(3, 2, 2, dtype=F64)
+    with pytest.raises(ValueError, match=r"do not broadcast: X \(3,\), the model \(\), comparisons \(4,\)"):
+        model.condition_on_observations(X, torch.tensor([[0, 1]]).expand(4, 1, 2))
+    with pytest.raises(ValueError, match="do not broadcast"):
+        PreferenceGP(None, None).condition_on_observations(X, torch.tensor([[0, 1]]).expand(4, 1, 2))
+    assert torch.equal(model.posterior(model.train_X).mean.detach(), before)
+
+
+def test_evidence_called_with_other_comparisons_is_named_not_ignored():
+    from torchpref import LaplaceMarginalLogLikelihood, TrainDataMismatchError
+
+    model = _model()
+    mll = LaplaceMarginalLogLikelihood(model)
+    torch.testing.assert_close(mll(model(model.train_X), model.comparisons.clone()), mll())  # PairwiseGP's call
+    for other in (torch.tensor([[1, 0], [2, 3]]), torch.tensor([[0, 1]])):
+        with pytest.raises(TrainDataMismatchError, match="other comparisons"):
+            mll(model(model.train_X), other)

@@ -400,3 +400,15 @@ def test_docs_sessions_example_runs(tmp_path, monkeypatch):
     exec(code, ns)
     assert ns["s"].done and (tmp_path / "me.jsonl").exists()
     ns["s"].close()
+    again: dict = {}  # a reader who runs it twice resumes the file: the same answers, none added
+    exec(code, again)
+    assert [h.answer for h in again["s"].history] == [h.answer for h in ns["s"].history]
+    assert (tmp_path / "me.jsonl").read_text().count("\n") == 15
+    again["s"].close()
+
+
+@pytest.mark.parametrize("metadata", [{"who": object()}, {"score": float("nan")}, ["not", "a", "dict"]])
+def test_metadata_that_json_cannot_hold_is_refused_before_the_file_is_made(tmp_path, metadata):
+    with pytest.raises(ValueError, match="metadata must"):
+        PreferenceSession(pool(6), session_file=tmp_path / "s.jsonl", metadata=metadata)
+    assert not (tmp_path / "s.jsonl").exists()

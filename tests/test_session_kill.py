@@ -4,6 +4,10 @@ each time, and check that nothing is lost or doubled and the posterior is the un
 Writes are slowed (half a record, a pause, the rest) so that kills can land mid-write; two of the
 kills wait for a write to start, so the partial-line path is always exercised: the restarted
 process must detect it, report it, repair it, and ask that question again.
+
+Also killed: a process half-way through writing an undo (the undo is dropped on repair, every
+answer stays in force), one half-way through ``save_model`` (the file holds the last complete
+checkpoint), and ``torchpref elicit`` in a terminal (no acknowledged answer is lost).
 """
 
 import importlib.util
@@ -198,3 +202,170 @@ def test_sigkill_at_random_points_loses_nothing(tmp_path):
     torch.testing.assert_close(m1, m2, rtol=0, atol=1e-8)
     torch.testing.assert_close(s1, s2, rtol=0, atol=1e-8)
     print(f"{kills} kills, {len(corrupt_after)} mid-write, {elapsed:.1f} s")
+
+
+# ------------------------------------------------------------------ a kill in the middle of an undo
+UNDO_CHILD = r'''
+import sys
+import time
+
+import torch
+
+import torchpref.journal as journal
+from torchpref.session import PreferenceSession
+
+path, pause = sys.argv[1], float(sys.argv[2])
+write_all = journal._write_all
+
+
+def slow_write(fd, data):  # half the undo record, a pause (the kill lands here), the rest
+    write_all(fd, data[: len(data) // 2])
+    print("WRITING", flush=True)
+    time.sleep(pause)
+    write_all(fd, data[len(data) // 2:])
+
+
+s = PreferenceSession.load(path)
+journal._write_all = slow_write
+s.undo()
+print("UNDONE", flush=True)
+'''
+
+
+def _answered_session(path, n):
+    from torchpref.session import PreferenceSession
+
+    g = torch.Generator().manual_seed(3)
+    s = PreferenceSession(torch.rand(12, 2, generator=g, dtype=torch.float64), session_file=path, seed=3, num_queries=10)
+    for _ in range(n):
+        q = s.ask()
+        s.tell(q, 4 if q.kind == "rating" else 0)
+    s.close()
+
+
+def test_sigkill_in_the_middle_of_an_undo_keeps_the_answer(tmp_path):
+    import warnings
+
+    from torchpref.session import PreferenceSession, SessionFileCorrupt, SessionRepairWarning
+
+    path = tmp_path / "s.jsonl"
+    _answered_session(path, 4)
+    before = path.read_bytes()
+    script = tmp_path / "undo_child.py"
+    script.write_text(UNDO_CHILD)
+    proc = subprocess.Popen([sys.executable, str(script), str(path), "30"], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "WRITING"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    proc.stdout.close()
+    assert path.read_bytes().startswith(before) and len(path.read_bytes()) > len(before)  # half an undo
+    with pytest.raises(SessionFileCorrupt, match="line 6"):
+        PreferenceSession.load(path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        s = PreferenceSession.load(path, repair=True)
+    assert any(issubclass(w.category, SessionRepairWarning) for w in caught)
+    assert path.read_bytes() == before and s.step == 4  # the undo never happened: all 4 answers in force
+    undone = s.undo()  # and can be given again
+    assert undone.seq == 4 and s.step == 3
+    s.close()
+    assert PreferenceSession.load(path).step == 3
+
+
+# ------------------------------------------------------------------ a kill in the middle of save_model
+SAVE_CHILD = r'''
+import io
+import sys
+import time
+
+import torch
+
+import torchpref
+import torchpref.checkpoint as checkpoint
+
+path, pause = sys.argv[1], float(sys.argv[2])
+real_save = torch.save
+
+
+def slow_save(obj, fh):  # half the file, a pause (room for a kill), the rest
+    buf = io.BytesIO()
+    real_save(obj, buf)
+    data = buf.getvalue()
+    fh.write(data[: len(data) // 2])
+    fh.flush()
+    print(f"SAVING {len(obj['data']['ratings'])}", flush=True)
+    time.sleep(pause)
+    fh.write(data[len(data) // 2:])
+
+
+checkpoint.torch.save = slow_save
+g = torch.Generator().manual_seed(0)
+X = torch.rand(12, 2, generator=g, dtype=torch.float64)
+for k in range(1, 13):
+    model = torchpref.PreferenceGP(X, ratings=torch.linspace(0.1, 0.9, 12, dtype=torch.float64)[:k],
+                                   rating_index=torch.arange(k))
+    torchpref.save_model(model, path)
+    print(f"SAVED {k}", flush=True)
+'''
+
+
+def test_sigkill_during_save_model_leaves_the_last_complete_checkpoint(tmp_path):
+    import torchpref
+
+    path = tmp_path / "model.pt"
+    script = tmp_path / "save_child.py"
+    script.write_text(SAVE_CHILD)
+    rng = random.Random(5)
+    for trial in range(4):
+        path.unlink(missing_ok=True)
+        proc = subprocess.Popen([sys.executable, str(script), str(path), "0.05"], stdout=subprocess.PIPE, text=True)
+        target = rng.randint(2, 10)  # kill while the target-th save is half written, or at a random moment
+        saved = 0
+        for line in proc.stdout:
+            saved = int(line.split()[1]) if line.startswith("SAVED") else saved
+            if line.startswith(f"SAVING {target}"):
+                if trial % 2:
+                    time.sleep(rng.uniform(0.0, 0.1))  # sometimes past the write, into fsync and rename
+                break
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+        loaded = torchpref.load_model(path)  # always a complete checkpoint: the old one or the new one
+        assert len(loaded.ratings) in ((saved,) if trial % 2 == 0 else (saved, saved + 1)), (trial, saved)
+        assert torch.isfinite(loaded.posterior(loaded.train_X).mean).all()
+        if trial % 2 == 0:  # the half-written save is a temporary file beside it, not the checkpoint
+            assert list(tmp_path.glob("model.pt.*.tmp"))
+
+
+# ------------------------------------------------------------------ a kill of the terminal front end
+def test_sigkill_of_torchpref_elicit_loses_no_acknowledged_answer(tmp_path):
+    pytest.importorskip("pexpect")
+    from test_elicit_fuzz import CSV, PROMPT, answers_in_file, spawn
+
+    items, session = tmp_path / "items.csv", tmp_path / "s.jsonl"
+    items.write_text(CSV)
+    rng = random.Random(7)
+    acked: list = []  # answers acknowledged by the next prompt
+    repairs = 0
+    for run in range(5):
+        child = spawn("--features", items, "--session", session, "--queries", 30)
+        if child.expect([PROMPT, "Repair the file now"]) == 1:
+            repairs += 1
+            child.sendline("y")
+            child.expect(PROMPT)
+        in_file = answers_in_file(session) if session.exists() else []
+        # every acknowledged answer is there; the one in flight at the kill is there or not, whole
+        assert in_file[: len(acked)] == acked and len(in_file) <= len(acked) + 1, (run, in_file, acked)
+        acked = in_file
+        for k in range(rng.randint(1, 3) + 1):
+            answer = 0 if child.match.group(2) is not None else 3
+            child.sendline("A" if answer == 0 else "3")
+            if k == 0 and run % 2:  # kill right after the keystroke: inside tell or its write
+                time.sleep(rng.uniform(0.0, 0.05))
+                break
+            child.expect(PROMPT)
+            acked.append(answer)
+        child.kill(signal.SIGKILL)
+        child.close(force=True)
+    final = answers_in_file(session)
+    assert final[: len(acked)] == acked and len(final) <= len(acked) + 1 and len(final) >= 5

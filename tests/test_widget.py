@@ -117,6 +117,18 @@ def test_as_picture_kinds(tmp_path):
         as_picture(3)
 
 
+@pytest.mark.parametrize("render", [lambda item, index: 1 / 0, lambda item, index: 42])
+def test_a_broken_render_hook_shows_the_table_and_the_session_goes_on(pool, tmp_path, render):
+    f = tmp_path / "s.jsonl"
+    s = PreferenceSession(pool, session_file=f, selector=RandomRankings(m=3), names=["cost", "speed"])
+    w = PreferenceWidget(s, render)
+    note, table = _pictures(w)[0].children
+    assert "render hook failed" in note.value and ("ZeroDivisionError" in note.value or "TypeError" in note.value)
+    assert "cost" in table.value
+    w.buttons[0].click()  # the answer is recorded and the next query shown, its buttons live
+    assert s.step == 1 and f.read_text().count("\n") == 2 and not any(b.disabled for b in w.buttons)
+
+
 def test_bad_arguments(pool):
     with pytest.raises(TypeError, match="PreferenceSession"):
         PreferenceWidget(pool)

@@ -18,7 +18,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.acquisition import QueryInformation, QueryUCB, latent_ucb
     from torchpref.active import History, QueryRecord, fit_model, run_active_learning, run_active_learning_batch
     from torchpref.batch import BatchedPreferenceGP
-    from torchpref.checkpoint import load_model, model_checkpoint, save_model
+    from torchpref.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
     from torchpref.data import (
         PreferenceData,
         RatingBoundaryWarning,
@@ -46,6 +46,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
 # public name -> the torchpref module that defines it
 _EXPORTS = {
     "BatchedPreferenceGP": "batch",
+    "CheckpointError": "checkpoint",
     "load_model": "checkpoint",
     "model_checkpoint": "checkpoint",
     "save_model": "checkpoint",

@@ -21,14 +21,16 @@ from linear_operator.operators import DenseLinearOperator
 from torch import Tensor
 
 from torchpref.data import PreferenceData
-from torchpref.fantasy import condition_batch
+from torchpref.fantasy import batch_shape_of, condition_batch
+from torchpref.model_data import create_data
 
 
 class TrainDataMismatchError(ValueError, RuntimeError):
-    """``set_train_data(..., strict=True)`` was given data of another shape, dtype or device.
+    """``set_train_data(..., strict=True)`` was given data of another shape, dtype or device, or
+    a :class:`~torchpref.models.LaplaceMarginalLogLikelihood` comparisons other than its model's.
 
     A ``ValueError`` (bad input) that is also the ``RuntimeError`` GPyTorch's and BoTorch's
-    models raise in this case, so code written for either catches it.
+    models raise in these cases, so code written for either catches it.
     """
 
 
@@ -194,9 +196,7 @@ class PairwiseGPInterface:
             if rating_index is None:
                 rating_index = torch.arange(ratings.shape[-1], device=X.device).expand(ratings.shape)
         if not self.has_data and self._data.dim == 0:  # prior-only: these become the data
-            new = copy.deepcopy(self)
-            new.set_train_data(X, comparisons, ratings, rating_index)
-            return new
+            return _condition_prior_only(self, X, comparisons, ratings, rating_index)
         batched = (self.batch_shape or X.dim() > 2 or (comparisons is not None and comparisons.dim() > 2)
                    or (ratings is not None and ratings.dim() > 1))
         if batched:
@@ -213,7 +213,14 @@ class PairwiseGPInterface:
             noise = observation_noise.to(cov)
             if noise.dim() > 1 and noise.shape[-1] == 1:
                 noise = noise.squeeze(-1)
-            noise = noise.expand(cov.shape[:-1])
+            try:
+                noise = noise.expand(cov.shape[:-1])
+            except RuntimeError:
+                raise ValueError(f"observation_noise must be variances of shape {(*cov.shape[:-1], 1)} (or "
+                                 f"broadcast to it), got shape {tuple(observation_noise.shape)}.") from None
+            ok = (noise.detach() >= 0) & noise.detach().isfinite()
+            if not bool(ok.all()):
+                raise ValueError(f"observation_noise must be finite variances >= 0, got {noise.detach()[~ok][:3].tolist()}.")
         else:
             noise = (self.likelihood.comparison.comparison_noise**2).to(cov).expand(cov.shape[:-1])
         return MultivariateNormal(mvn.mean, DenseLinearOperator(cov + torch.diag_embed(noise)))
@@ -237,6 +244,24 @@ def ranking_comparisons(items: Tensor, ranks: Tensor) -> Tensor:
                & (ranks.view(-1, 1, 1, ranks.shape[-1]) < rj.unsqueeze(-1))).any(-1)
     k, i, j = ((ri < rj) & ~between).nonzero(as_tuple=True)
     return torch.stack([items[k, i], items[k, j]], dim=-1).long()
+
+
+def _condition_prior_only(model, X: Tensor, comparisons, ratings, rating_index):
+    """A copy of a prior-only ``model`` whose data are these; batched ``X`` or observations give
+    one problem per batch element, as the constructor builds them (BoTorch's fantasies)."""
+    new = copy.deepcopy(model)
+    batch = batch_shape_of(X, comparisons, ratings)
+    if not batch:
+        new.set_train_data(X, comparisons, ratings, rating_index)
+        return new
+    X = X.to(model.train_X).expand(*batch, *X.shape[-2:])
+    if comparisons is not None:
+        comparisons = comparisons.expand(*batch, *comparisons.shape[-2:])
+    if ratings is not None:
+        ratings, rating_index = ratings.expand(*batch, ratings.shape[-1]), rating_index.expand(*batch, ratings.shape[-1])
+    new._set_data(create_data(X, comparisons, ratings, rating_index, model.rating_eps,
+                              rating_levels=model.rating_levels), None)
+    return new
 
 
 def _comparisons_from_Y(Y: Tensor) -> Tensor:

@@ -136,15 +136,25 @@ def output_folder(out: str | None, experiment: str) -> Path:
             path = base.with_name(f"{base.name}-{k}")
     else:
         path = Path(out)
+    return writable_folder(path, "--out")
+
+
+def writable_folder(path: str | os.PathLike, flag: str) -> Path:
+    """``path`` as a folder (created if missing) that this process can write to.
+
+    Raises:
+        UsageError: naming ``flag``: ``path`` is a file, cannot be created or cannot be written to.
+    """
+    path = Path(path)
     if path.exists() and not path.is_dir():
-        raise UsageError(f"--out {out}: is a file, not a folder")
+        raise UsageError(f"{flag} {path}: is a file, not a folder")
     try:
         path.mkdir(parents=True, exist_ok=True)
         probe = path / f".torchpref-write-test-{os.getpid()}"
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as exc:
-        raise UsageError(f"--out {path}: cannot write there ({exc.strerror or exc})") from None
+        raise UsageError(f"{flag} {path}: cannot write there ({exc.strerror or exc})") from None
     return path
 
 
@@ -171,9 +181,20 @@ def _import(name: str):
 
 
 def _reproduce(args) -> int:
-    args.out = str(output_folder(args.out, args.experiment))
-    module = _import(REPRODUCE[args.experiment])
-    code = int(module.run(args) or 0)
+    if getattr(args, "cache", None) is not None:
+        writable_folder(args.cache, "--cache")
+    made = [p for p in (Path(args.out or RESULTS),) if not p.exists()]  # the folders this run creates
+    folder = output_folder(args.out, args.experiment)
+    made = ([folder] if args.out is None else []) + made
+    args.out = str(folder)
+    try:
+        module = _import(REPRODUCE[args.experiment])
+        code = int(module.run(args) or 0)
+    except BaseException:
+        for p in made:  # a run that failed (or was interrupted) before writing anything leaves no folder
+            if p.is_dir() and not any(p.iterdir()):
+                p.rmdir()
+        raise
     legend = LEGEND.get(args.experiment, "mean ± standard error over the trials")
     print(f"({legend}{'; one trial has no standard error' if args.trials == 1 else ''})")
     print(f"Total wall time {seconds_since_start():.1f} s, start-up included; files in {args.out}")
@@ -187,6 +208,8 @@ def _elicit(args) -> int:
         raise UsageError("give --session FILE or --no-session, not both")
     if args.id_column is not None and args.features is None:
         raise UsageError("--id names a column of the --features CSV")
+    if args.world is not None:  # the lake's figures: checked before its scenario is built
+        writable_folder(args.out, "--out")
     return int(_import(ELICIT).run(args) or 0)
 
 

@@ -33,15 +33,25 @@ class RatingBoundaryWarning(UserWarning):
     """A rating at exactly 0 or 1 was moved inside the open interval (docs/decisions.md)."""
 
 
-def _as_tensor(value, dtype=None, device=None) -> Tensor:
+def _as_tensor(value, dtype=None, device=None, name: str = "the input", what: str = "numbers") -> Tensor:
+    """``value`` as a tensor; text, ``None``, ragged lists and bools (a mask is never data here)
+    raise ``ValueError`` naming ``name``."""
+    try:
+        t = value if isinstance(value, Tensor) else torch.as_tensor(value, device=device)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise ValueError(f"{name} must hold {what}, got {type(value).__name__} {value!r:.60} ({err}).") from None
+    if t.dtype == torch.bool:
+        raise ValueError(f"{name} must hold {what}, got a bool tensor {t.flatten()[:5].tolist()} "
+                         "(for a mask, use mask.nonzero()).")
+    if t.is_complex():
+        raise ValueError(f"{name} must hold real {what}, got {t.dtype} values {t.flatten()[:3].tolist()}.")
     if isinstance(value, Tensor):
         return value.to(device=device if device is not None else value.device, dtype=dtype or value.dtype)
-    if dtype is not None:
-        return torch.as_tensor(value, dtype=dtype, device=device)
-    t = torch.as_tensor(value, device=device)
-    # python floats become float64, not torch's float32 default; convert from the original values
-    # (going through float32 first would round 0.1 to 0.10000000149 and 1 - 1e-9 to exactly 1)
-    return torch.as_tensor(value, dtype=torch.float64, device=device) if t.is_floating_point() else t
+    if dtype is not None or t.is_floating_point():
+        # python floats become float64, not torch's float32 default; convert from the original values
+        # (going through float32 first would round 0.1 to 0.10000000149 and 1 - 1e-9 to exactly 1)
+        return torch.as_tensor(value, dtype=dtype or torch.float64, device=device)
+    return t
 
 
 def _check_finite(name: str, t: Tensor) -> None:
@@ -65,9 +75,9 @@ def likert_to_unit(levels: TensorLike, num_levels: int = 5, mode: str = "centre"
     Returns:
         A float64 tensor of the shape of ``levels``.
     """
-    if num_levels < 2:
-        raise ValueError(f"num_levels must be at least 2, got {num_levels}.")
-    lv = _as_tensor(levels, dtype=torch.float64)
+    if isinstance(num_levels, bool) or not hasattr(num_levels, "__index__") or num_levels < 2:
+        raise ValueError(f"num_levels must be an integer of at least 2, got {num_levels!r}.")
+    lv = _as_tensor(levels, dtype=torch.float64, name="levels")
     _check_finite("levels", lv)
     if (lv != lv.round()).any() or (lv < 1).any() or (lv > num_levels).any():
         raise ValueError(f"Likert levels must be integers in 1..{num_levels}, got {lv.flatten().tolist()[:5]}.")
@@ -79,8 +89,15 @@ def likert_to_unit(levels: TensorLike, num_levels: int = 5, mode: str = "centre"
 
 
 def unit_to_likert(values: TensorLike, num_levels: int = 5) -> Tensor:
-    """Inverse of :func:`likert_to_unit` in ``"centre"`` mode: the bin each value falls in."""
-    v = _as_tensor(values, dtype=torch.float64)
+    """Inverse of :func:`likert_to_unit` in ``"centre"`` mode: the bin each value falls in.
+
+    Raises:
+        ValueError: a value outside ``[0, 1]`` or not finite.
+    """
+    v = _as_tensor(values, dtype=torch.float64, name="values")
+    _check_finite("values", v)
+    if ((v < 0) | (v > 1)).any():
+        raise ValueError(f"values must lie in [0, 1], got {v[(v < 0) | (v > 1)][:3].tolist()}.")
     return (v * num_levels).floor().clamp(0, num_levels - 1).long() + 1
 
 
@@ -94,12 +111,15 @@ def best_of_m(chosen: int, shown: Sequence[int] | Tensor) -> Tensor:
     Returns:
         A ``(m - 1) x 2`` long tensor.
     """
-    shown_t = _as_tensor(shown, dtype=torch.long).flatten()
+    shown_t = _indices("shown", shown)
     if shown_t.numel() < 2:
         raise ValueError(f"a ranking query needs at least 2 items, got {shown_t.tolist()}.")
     if shown_t.unique().numel() != shown_t.numel():
         raise ValueError(f"the items shown must be distinct, got {shown_t.tolist()}.")
-    chosen = int(chosen)
+    chosen_t = _indices("chosen", chosen)
+    if chosen_t.numel() != 1:
+        raise ValueError(f"chosen must be one item index, got {chosen_t.tolist()}.")
+    chosen = int(chosen_t)
     if chosen not in shown_t.tolist():
         raise ValueError(f"the chosen item {chosen} is not among those shown {shown_t.tolist()}.")
     others = shown_t[shown_t != chosen]
@@ -120,8 +140,8 @@ def best_of_m_with_ties(best: Sequence[int] | Tensor, shown: Sequence[int] | Ten
         ``(comparisons, ties)``: ``b (m - b) x 2`` rows ``[best, other]`` and ``b (b - 1) / 2 x 2``
         rows ``[best_a, best_b]``. One best item gives :func:`best_of_m`'s comparisons and no tie.
     """
-    shown_t = _as_tensor(shown, dtype=torch.long).flatten()
-    best_t = _as_tensor(best, dtype=torch.long).flatten()
+    shown_t = _indices("shown", shown)
+    best_t = _indices("best", best)
     if best_t.numel() < 1 or best_t.unique().numel() != best_t.numel():
         raise ValueError(f"the best items must be one or more distinct indices, got {best_t.tolist()}.")
     missing = [b for b in best_t.tolist() if b not in shown_t.tolist()]
@@ -137,7 +157,7 @@ def best_of_m_with_ties(best: Sequence[int] | Tensor, shown: Sequence[int] | Ten
 def prepare_levels(levels: TensorLike, num_levels: int, dtype: torch.dtype = torch.float64,
                    device: torch.device | str | None = None) -> Tensor:
     """Validate rating levels: integers in ``1..num_levels`` (kept as values of ``dtype``)."""
-    lv = _as_tensor(levels, dtype=dtype, device=device).flatten()
+    lv = _as_tensor(levels, dtype=dtype, device=device, name="rating levels").flatten()
     _check_finite("rating levels", lv)
     bad = (lv != lv.round()) | (lv < 1) | (lv > num_levels)
     if bad.any():
@@ -148,7 +168,7 @@ def prepare_levels(levels: TensorLike, num_levels: int, dtype: torch.dtype = tor
 def prepare_ratings(ratings: TensorLike, eps: float = DEFAULT_RATING_EPS, dtype: torch.dtype = torch.float64,
                     device: torch.device | str | None = None) -> Tensor:
     """Validate ratings and move exact 0 and 1 in to ``eps`` and ``1 - eps`` (with a warning)."""
-    r = _as_tensor(ratings, dtype=dtype, device=device).flatten()
+    r = _as_tensor(ratings, dtype=dtype, device=device, name="ratings").flatten()
     _check_finite("ratings", r)
     if ((r < 0) | (r > 1)).any():
         bad = r[(r < 0) | (r > 1)][:3].tolist()
@@ -213,7 +233,7 @@ class PreferenceData:
         """
         if rating_levels is not None and (int(rating_levels) != rating_levels or rating_levels < 2):
             raise ValueError(f"rating_levels must be an integer of at least 2, got {rating_levels}.")
-        X = _as_tensor(train_X)
+        X = _as_tensor(train_X, name="train_X")
         if not X.is_floating_point():
             X = X.to(torch.float64)
         if X.dim() != 2:
@@ -252,7 +272,7 @@ class PreferenceData:
         Returns:
             The data with the new items appended, and the ``m`` indices.
         """
-        X = _as_tensor(X, dtype=self.train_X.dtype, device=self.train_X.device)
+        X = _as_tensor(X, dtype=self.train_X.dtype, device=self.train_X.device, name="items")
         if X.dim() == 1:
             X = X.unsqueeze(0)
         if X.dim() != 2 or X.shape[-1] != self.dim:
@@ -320,15 +340,20 @@ class PreferenceData:
                               self.ties.to(X.device), self.rating_levels)
 
 
-def _check_index(name: str, index, n: int, device) -> Tensor:
-    t = _as_tensor(index, device=device)
-    if t.dtype == torch.bool:  # a mask would be read as the indices 0 and 1
-        raise ValueError(f"{name} must hold integer indices, got a bool tensor {t.flatten()[:5].tolist()} "
-                         "(for a mask, use mask.nonzero()).")
+def _indices(name: str, index, device=None) -> Tensor:
+    """``index`` as a flat long tensor; bools (a mask would be read as the indices 0 and 1),
+    fractions, text and non-finite values raise ``ValueError`` naming ``name``."""
+    t = _as_tensor(index, device=device, name=name, what="integer indices")
     if t.is_floating_point():
         if not torch.isfinite(t).all() or (t != t.round()).any():
             raise ValueError(f"{name} must hold integer indices, got {t.flatten()[:5].tolist()}.")
-    t = t.long().flatten()
+        if t.numel() and t.abs().max() > 2**62:
+            raise ValueError(f"{name} must hold integer indices, got {t.flatten()[t.flatten().abs() > 2**62][:5].tolist()}.")
+    return t.long().flatten()
+
+
+def _check_index(name: str, index, n: int, device) -> Tensor:
+    t = _indices(name, index, device)
     if t.numel() and ((t < 0) | (t >= n)).any():
         bad = t[(t < 0) | (t >= n)][:5].tolist()
         raise ValueError(f"{name} out of range for {n} items (valid 0..{n - 1}), got {bad}.")
@@ -355,7 +380,7 @@ def _check_comparisons(comparisons, n: int, device, name: str = "comparisons") -
     """Validated ``p x 2`` index pairs (``comparisons`` or ``ties``): in range, no item paired with itself."""
     if comparisons is None:
         return torch.zeros(0, 2, dtype=torch.long, device=device)
-    C = _as_tensor(comparisons, device=device)
+    C = _as_tensor(comparisons, device=device, name=name, what="integer indices")
     if C.numel() == 0:
         return torch.zeros(0, 2, dtype=torch.long, device=device)
     if C.dim() != 2 or C.shape[-1] != 2:

@@ -34,6 +34,26 @@ def _check_indices(name: str, index: Tensor, m: int) -> Tensor:
     return index.long()
 
 
+def batch_shape_of(X: Tensor, comparisons: Tensor | None, ratings: Tensor | None,
+                   model_batch: torch.Size = torch.Size()) -> torch.Size:
+    r"""The batch shape that ``batch_X x m x d`` items, ``batch_C x k x 2`` comparisons,
+    ``batch_R x r`` ratings and a model of batch shape ``model_batch`` broadcast to.
+
+    Raises:
+        ValueError: the shapes do not broadcast, naming them.
+    """
+    shapes = {"X": X.shape[:-2], "the model": model_batch}
+    if comparisons is not None:
+        shapes["comparisons"] = comparisons.shape[:-2]
+    if ratings is not None:
+        shapes["ratings"] = torch.as_tensor(ratings).shape[:-1]
+    try:
+        return torch.broadcast_shapes(*shapes.values())
+    except RuntimeError:
+        named = ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
+        raise ValueError(f"the batch shapes do not broadcast: {named}.") from None
+
+
 def condition_batch(model: "PreferenceGP", X: Tensor, comparisons: Tensor | None = None,
                     ratings: Tensor | None = None, rating_index: Tensor | None = None) -> "PreferenceGP":
     r"""A new model with the items ``X`` and observations among them added to every problem.
@@ -66,6 +86,7 @@ def condition_batch(model: "PreferenceGP", X: Tensor, comparisons: Tensor | None
             ratings = prepare_levels(ratings, model.rating_levels, dtype=X.dtype, device=X.device).reshape(shape)
         else:
             ratings = prepare_ratings(ratings, model.rating_eps, dtype=X.dtype, device=X.device).reshape(shape)
+    batch_shape_of(X, comparisons, ratings, model.batch_shape)
     new_data = model._padded().append(X, comparisons, ratings, rating_index)
     with torch.no_grad():  # warm start: the old mode, the old posterior mean at X
         S, N = model.batch_shape, model.train_X.shape[-2]

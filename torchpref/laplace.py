@@ -74,7 +74,7 @@ class ModeResult:
 def find_mode(
     L: Tensor,
     obs: Observations,
-    f0: Tensor | None = None,
+    f0: Tensor | tuple[Tensor, ...] | None = None,
     max_iter: int = 100,
     tol: float | None = None,
     max_chord: int = 3,
@@ -95,7 +95,8 @@ def find_mode(
     Args:
         L: ``B x n x n`` (or ``n x n``) lower Cholesky factors of the (jittered) kernel matrices.
         obs: the observations of the ``B`` problems.
-        f0: ``B x n`` (or ``n``) warm start (e.g. the previous mode); zeros by default.
+        f0: ``B x n`` (or ``n``) warm start (e.g. the previous mode), or a tuple of candidate
+            starts, of which each problem starts from the one of highest ``Psi``; zeros by default.
         max_iter: iteration budget (factorisations).
         tol: a problem has converged when half its Newton decrement ``grad^T B^{-1} grad / 2``
             (an estimate of the distance to the optimum in log-posterior units) is below ``tol``;
@@ -109,7 +110,7 @@ def find_mode(
     """
     single = L.dim() == 2
     if single:
-        L, f0 = L[None], None if f0 is None else f0[None]
+        L = L[None]
     n = L.shape[-1]
     tol = default_tolerance(L.dtype) if tol is None else tol
     opts = NewtonOptions(max_iter, tol, max_chord if n >= chord_min_size else 0,
@@ -117,13 +118,28 @@ def find_mode(
     # inference mode: no autograd bookkeeping on the many small tensors of the iterations; the
     # results are cloned out of it, as later autograd passes may save them for backward
     with torch.inference_mode():
-        out = newton_mode(L.detach(), obs, None if f0 is None else f0.detach().to(L), opts)
+        starts = () if f0 is None else tuple(f.detach().to(L).reshape(L.shape[:-1]) for f in
+                                               (f0 if isinstance(f0, tuple) else (f0,)))
+        out = newton_mode(L.detach(), obs, starts, opts)
     mode = ModeResult(out.point.a.clone(), out.point.f.clone(), out.factor.M.clone(),
                       tuple(w.clone() for w in out.factor.weights), out.iterations, out.converged.clone(),
                       out.factor.fisher.clone())
     decrement = out.decrement.clone()
     _warn(mode, decrement)
     return mode.select(0) if single else mode
+
+
+def predicted_mode(f: Tensor, cache: "PredictiveCache", L: Tensor) -> Tensor:
+    r"""A start for the modes under new prior factors ``L`` (``B x n x n``, ``L L^T = K + jitter I``):
+    the old modes ``f`` (``B x n``) moved to first order in the change of ``K`` (implicit function
+    theorem, the likelihoods unchanged), ``f + (I + K_old W)^-1 (K - K_old) alpha`` with
+    ``alpha = K_old^-1 f`` from the old modes' prediction ``cache``; computed as
+    ``L_old B_old^-1 L_old^-1 (K alpha - f)``, since ``K_old alpha = f``. Where that is not finite, ``f``."""
+    alpha = cache.alpha.unsqueeze(-1)
+    change = L @ (L.mT @ alpha) - f.unsqueeze(-1)  # (K - K_old) alpha
+    step = cache.L @ torch.cholesky_solve(torch.linalg.solve_triangular(cache.L, change, upper=False), cache.B_chol)
+    start = f + step.squeeze(-1)
+    return torch.where(torch.isfinite(start).all(-1, keepdim=True), start, f)
 
 
 def _warn(mode: ModeResult, decrement: Tensor) -> None:
@@ -187,11 +203,13 @@ def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor |
     ll, g, weights = obs.evaluate(mode.f)  # the likelihood parameters may carry gradients
     with torch.no_grad():
         L = torch.linalg.cholesky(K.detach() + jit * _eye(n, K)) if L is None else L.detach().reshape(K.shape)
-        Sigma = _posterior_covariance(L, mode.B_chol)
-        s = obs.quadratic_forms(Sigma)
+        V = torch.linalg.solve_triangular(mode.B_chol, L.mT, upper=False)  # M^-1 L^T: Sigma = V^T V
+        P = obs.rows(V.mT)  # per term, the rows d_k V^T: d_k^T Sigma d_k = |d_k V^T|^2
+        s = tuple((Pt * Pt).sum(-1) for Pt in P)
         h = obs.adjoint([dw * sk for dw, sk in zip(obs.curvature_slopes(mode.f), s)], n, like=K)
-        Sigma_h = (Sigma @ h.unsqueeze(-1)).squeeze(-1)
-        G = _kernel_gradient(_solve_t(L, mode.a), Sigma, h, Sigma_h, obs, mode.weights)
+        Sigma_h = (V.mT @ (V @ h.unsqueeze(-1))).squeeze(-1)
+        WV_t = obs.adjoint_rows([w.unsqueeze(-1) * Pt for w, Pt in zip(mode.weights, P)], n, like=V)  # W V^T
+        G = _kernel_gradient(_solve_t(L, mode.a), WV_t, h, Sigma_h, obs, mode.weights)
         value = _second_order_value(ll.detach(), g.detach(), L, mode, h)
     # the likelihood parameters' part, at the fixed mode (constants unless they carry gradients)
     surrogate = (G * K).sum((-2, -1)) + ll - 0.5 * (Sigma_h * g).sum(-1)
@@ -201,22 +219,15 @@ def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor |
     return out[0] if single else out
 
 
-def _posterior_covariance(L: Tensor, M: Tensor) -> Tensor:
-    """``Sigma = (K^-1 + W)^-1 = L B^-1 L^T`` (``B x n x n``) from ``L`` and ``M = chol(B)``."""
-    V = torch.linalg.solve_triangular(M, L.mT, upper=False)  # M^-1 L^T
-    return V.mT @ V
-
-
-def _kernel_gradient(alpha: Tensor, Sigma: Tensor, h: Tensor, Sigma_h: Tensor, obs: Observations,
+def _kernel_gradient(alpha: Tensor, WV_t: Tensor, h: Tensor, Sigma_h: Tensor, obs: Observations,
                      weights: tuple[Tensor, ...]) -> Tensor:
     r"""``d log q / d K = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``
-    (``B x n x n``; see :func:`laplace_evidence`)."""
-    n = Sigma.shape[-1]
-    W = obs.W_dense(n, weights, like=Sigma)
-    W_times = obs.W_operator(n, weights, dense=W)
-    b = h - W_times(Sigma_h.unsqueeze(-1)).squeeze(-1)  # (I - W Sigma) h
-    W_Sigma_W = W_times(W_times(Sigma).mT).mT  # W (W Sigma)^T = W Sigma W
-    return 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - W + W_Sigma_W - b.unsqueeze(-1) * alpha.unsqueeze(-2))
+    (``B x n x n``; see :func:`laplace_evidence`), given ``W V^T`` (``Sigma = V^T V``), whose
+    product with its transpose is ``W Sigma W``."""
+    n = WV_t.shape[-1]
+    W = obs.W_dense(n, weights, like=WV_t)
+    b = h - obs.W_vector(weights, Sigma_h)  # (I - W Sigma) h
+    return 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - W + WV_t @ WV_t.mT - b.unsqueeze(-1) * alpha.unsqueeze(-2))
 
 
 def _second_order_value(ll: Tensor, g: Tensor, L: Tensor, mode: ModeResult, h: Tensor) -> Tensor:

@@ -11,7 +11,7 @@ from gpytorch.module import Module
 from gpytorch.priors import GammaPrior, LogNormalPrior
 from torch import Tensor
 
-from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood, shared_constraint
 from torchpref.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood, default_cut_points
 
 #: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
@@ -58,13 +58,16 @@ class PreferenceLikelihood(Module):
         r"""The model's likelihoods from its settings (:class:`~torchpref.models.PreferenceGP`'s
         arguments of the same names): a Beta rating likelihood, or for ``rating_levels`` an ordinal
         one whose ``level_noise`` defaults to ``sqrt(pi) sigma_B / sqrt(nu + 1)``."""
-        comparison = PairwiseProbitLikelihood(comparison_noise, learn=learn)
+        positive = shared_constraint("positive")  # the model's likelihoods share their default constraints
+        comparison = PairwiseProbitLikelihood(comparison_noise, learn=learn, comparison_noise_constraint=positive)
         if rating_levels is None:
-            rating = BetaRatingLikelihood(rating_scale, rating_precision, learn=learn)
+            rating = BetaRatingLikelihood(rating_scale, rating_precision, learn=learn, rating_scale_constraint=positive,
+                                          rating_precision_constraint=shared_constraint("precision"))
         else:
             if cut_points is None:
                 cut_points = default_cut_points(int(rating_levels), rating_scale)
             if level_noise is None:  # sd of Beta(nu/2, nu/2) over d mu / d f at f = 0
                 level_noise = math.sqrt(math.pi) * rating_scale / math.sqrt(rating_precision + 1)
             rating = OrdinalRatingLikelihood(int(rating_levels), cut_points, level_noise, learn=learn)
-        return cls(comparison, rating, TieLikelihood(tie_threshold, comparison, learn=learn))
+        return cls(comparison, rating, TieLikelihood(tie_threshold, comparison, learn=learn,
+                                                     tie_threshold_constraint=positive))

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import numbers
 import warnings
+from itertools import chain
 from typing import Any
 
 import torch
 from botorch.acquisition.objective import PosteriorTransform
+from botorch.exceptions import warnings as botorch_warnings
 from botorch.exceptions.warnings import InputDataWarning
 from botorch.models.model import Model
 from botorch.models.transforms.input import InputTransform
@@ -17,10 +19,11 @@ from gpytorch.distributions import MultivariateNormal
 from gpytorch.kernels import Kernel
 from gpytorch.mlls import MarginalLogLikelihood
 from gpytorch.models import GP
+from gpytorch.module import Module as GModule
 from linear_operator.operators import DenseLinearOperator, LinearOperator
 from torch import Tensor
 
-from torchpref.botorch_api import PairwiseGPInterface, prior_only_data
+from torchpref.botorch_api import PairwiseGPInterface, TrainDataMismatchError, prior_only_data
 from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.fantasy import fantasize
 from torchpref.laplace import ModeResult, laplace_evidence
@@ -47,13 +50,24 @@ def _initial_data(train_X, comparisons, ratings, rating_index, rating_eps: float
 
 
 def _warn_dtype(dtype: torch.dtype) -> None:
+    """BoTorch's single-precision ``InputDataWarning`` (its text first, so that filters written for
+    ``PairwiseGP``'s warning catch this one), and what it means here."""
     if dtype != torch.float64:
+        botorch_text = getattr(botorch_warnings, "_get_single_precision_warning", None)
+        head = botorch_text(str(dtype)) + " " if botorch_text is not None else ""
         warnings.warn(
-            f"train_X is {dtype}; float64 is recommended (as in BoTorch). The Laplace problem is "
+            f"{head}train_X is {dtype}; float64 is recommended (as in BoTorch). The Laplace problem is "
             "solved in float64 unless laplace_dtype says otherwise (docs/precision.md).",
             InputDataWarning,
             stacklevel=3,
         )
+
+
+def _follows(module: torch.nn.Module, device: torch.device, dtype: torch.dtype) -> bool:
+    """Whether ``module.to(device=device, dtype=dtype)`` would change nothing: every parameter and
+    buffer on ``device``, the floating ones in ``dtype``."""
+    return all(t.device == device and (t.dtype == dtype or not (t.is_floating_point() or t.is_complex()))
+               for t in chain(module.parameters(), module.buffers()))
 
 
 class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
@@ -157,7 +171,8 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         self.max_newton_iter = max_newton_iter
         self._laplace_dtype = check_laplace_dtype(laplace_dtype)
         self._scaling_warned = False
-        self.to(device=X.device, dtype=X.dtype)
+        if not _follows(self, X.device, X.dtype):
+            self.to(device=X.device, dtype=X.dtype)
         self._data: PreferenceData | PaddedData = data
         self._cache: PosteriorState | None = None
         self._warm_f: Tensor | None = None
@@ -337,18 +352,39 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
                 raise ValueError(f"X is {X.dtype} but the model is {dtype}: convert one of them "
                                  f"(X.to({dtype}) or model.to(...)).")
             X = X.to(dtype)  # BoTorch's optimisers and objectives hand over float32 candidates
-        finite = torch.isfinite(X.detach())
-        if not bool(finite.all()):
-            bad = X.detach()[~finite][:3].tolist()
-            raise ValueError(f"X must be finite, got {int((~finite).sum())} non-finite value(s) such as {bad}.")
         if self.training:
             self.eval()
-        return self.transform_inputs(X)
+        Xt = self.transform_inputs(X)
+        # one check (one synchronisation) for both: finite, and small enough that the kernel's
+        # squared distances (x / lengthscale)^2, lengthscales >= 1e-4, do not overflow to inf - inf
+        if not bool((Xt.detach().abs() <= torch.finfo(Xt.dtype).max ** 0.5 * 1e-5).all()):
+            finite = torch.isfinite(X.detach())
+            if not bool(finite.all()):
+                bad = X.detach()[~finite][:3].tolist()
+                raise ValueError(f"X must be finite, got {int((~finite).sum())} non-finite value(s) such as {bad}.")
+            raise ValueError(f"X is too large for the kernel: values up to {float(Xt.detach().abs().max()):.3g} "
+                             "(after any input transform) overflow its squared distances; the model expects "
+                             "items in the unit cube (scale them, or pass input_transform=Normalize(d, bounds)).")
+        return Xt
 
     def __call__(self, X: Tensor) -> MultivariateNormal:  # skip gpytorch's GP.__call__ machinery
         return self.forward(X)
 
     # ------------------------------------------------------- predictives (eq. 11)
+
+
+def _priors(root: torch.nn.Module):
+    """``(module, prior, closure)`` for each prior that GPyTorch's ``root.named_priors()`` lists, in
+    its order (depth first, a module's children each once per parent), without building names."""
+    stack = [root]
+    while stack:
+        module = stack.pop()
+        if isinstance(module, GModule):
+            for prior, closure, _ in module._priors.values():
+                if prior is not None:
+                    yield module, prior, closure
+        children = list(dict.fromkeys(c for c in module._modules.values() if c is not None))
+        stack.extend(reversed(children))
 
 
 class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
@@ -359,8 +395,17 @@ class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
         super().__init__(model.likelihood, model)
 
     def forward(self, *args: Any, **kwargs: Any) -> Tensor:
+        """The evidence of the model's own data. ``mll(output, comparisons)``, as BoTorch calls
+        ``PairwiseLaplaceMarginalLogLikelihood``, is accepted; comparisons other than the
+        model's raise :class:`~torchpref.botorch_api.TrainDataMismatchError` (``PairwiseGP``:
+        ``RuntimeError``) rather than being ignored."""
+        given = args[1] if len(args) > 1 else None
+        if isinstance(given, Tensor) and not (given.shape == self.model.comparisons.shape
+                                              and torch.equal(given.to(self.model.comparisons), self.model.comparisons)):
+            raise TrainDataMismatchError(f"the evidence is of the model's own comparisons; got other comparisons "
+                                         f"(shape {tuple(given.shape)}): use set_train_data to change them.")
         res = self.model.log_marginal_likelihood()
-        for _, module, prior, closure, _ in self.named_priors():
+        for module, prior, closure in _priors(self):
             res = res + prior.log_prob(closure(module)).sum()
         return res
 

@@ -79,38 +79,48 @@ class Term:
 
     def predictor(self, f: Tensor) -> Tensor:
         """``eta`` (``B x m``) at ``f`` (``B x n``)."""
-        eta = 0.0
+        B, n = f.shape
+        flat, eta = f.reshape(-1), None
         for c, coef in enumerate(self.coef):
-            eta = eta + coef * f.gather(-1, self.index[..., c])
+            x = flat.index_select(0, self._flat_index(c, B, n)).view(B, -1)
+            eta = (x if coef == 1.0 else coef * x) if eta is None else (eta - x if coef == -1.0 else eta + coef * x)
         return eta
 
     def adjoint(self, x: Tensor, n: int) -> Tensor:
         """``sum_k x_k d_k`` (``B x n``) for per-observation values ``x`` (``B x m``)."""
-        out = x.new_zeros(x.shape[0], n)
+        B = x.shape[0]
+        out = x.new_zeros(B * n)
         for c, coef in enumerate(self.coef):
-            out = out.scatter_add(-1, self.index[..., c], coef * x)
-        return out
+            out.index_add_(0, self._flat_index(c, B, n), x.reshape(-1), alpha=coef)
+        return out.view(B, n)
+
+    def _flat_index(self, c: int, B: int, n: int) -> Tensor:
+        """The items of coefficient ``c`` as positions among the ``B n`` items (or rows of ``B``
+        stacked ``n x k`` matrices) of all problems."""
+        key = ("flat_rows", c, B, n)
+        if key not in self._patterns:
+            with torch.inference_mode(False):  # kept for later autograd passes even if first asked for in a solve
+                offset = (torch.arange(B, device=self.index.device) * n).reshape(-1, 1) if B > 1 else 0
+                self._patterns[key] = (self.index[..., c] + offset).reshape(-1)
+        return self._patterns[key]
 
     def rows(self, L: Tensor) -> Tensor:
-        """``D L`` (``B x m x n``): each observation's row ``d_k`` times ``L`` (``B x n x n``)."""
-        B, n = L.shape[0], L.shape[-1]
-        flat = L.reshape(B * n, n)  # the rows of all problems: one index_select per coefficient
-        offset = (torch.arange(B, device=L.device) * n).reshape(-1, 1) if B > 1 else 0
+        """``D L`` (``B x m x k``): each observation's row ``d_k`` times ``L`` (``B x n x k``)."""
+        B, n, k = L.shape
+        flat = L.reshape(B * n, k)  # the rows of all problems: one index_select per coefficient
         out = None
         for c, coef in enumerate(self.coef):
-            picked = flat.index_select(0, (self.index[..., c] + offset).reshape(-1)).reshape(B, -1, n)
+            picked = flat.index_select(0, self._flat_index(c, B, n)).reshape(B, -1, k)
             out = (picked if coef == 1.0 else coef * picked) if out is None else out.add_(picked, alpha=coef)
         return out
 
-    def quadratic_forms(self, S: Tensor) -> Tensor:
-        """``d_k^T S d_k`` (``B x m``) for ``B x n x n`` matrices ``S``."""
-        n = S.shape[-1]
-        flat = S.reshape(S.shape[0], n * n)
-        out = 0.0
-        for c, ci in enumerate(self.coef):
-            for e, ce in enumerate(self.coef):
-                out = out + ci * ce * flat.gather(-1, self.index[..., c] * n + self.index[..., e])
-        return out
+    def adjoint_rows(self, X: Tensor, n: int) -> Tensor:
+        """``D^T X`` (``B x n x k``) for one row per observation, ``X`` (``B x m x k``): the transpose of :meth:`rows`."""
+        B, k = X.shape[0], X.shape[-1]
+        out = X.new_zeros(B * n, k)
+        for c, coef in enumerate(self.coef):
+            out.index_add_(0, self._flat_index(c, B, n), X.reshape(-1, k), alpha=coef)
+        return out.reshape(B, n, k)
 
     def evaluate(self, f: Tensor, fisher: Tensor | None = None, eta: Tensor | None = None
                  ) -> tuple[Tensor, Tensor, Tensor]:
@@ -261,9 +271,21 @@ class Observations:
         """Each term's :meth:`Term.curvature_slope` at ``f``."""
         return tuple(t.curvature_slope(f) for t in self.terms)
 
-    def quadratic_forms(self, S: Tensor) -> tuple[Tensor, ...]:
-        """``d_k^T S d_k`` per term (each ``B x m``)."""
-        return tuple(t.quadratic_forms(S) for t in self.terms)
+    def rows(self, X: Tensor) -> tuple[Tensor, ...]:
+        """Each term's rows ``D X`` (``B x m x k``) for ``X`` (``B x n x k``)."""
+        return tuple(t.rows(X) for t in self.terms)
+
+    def adjoint_rows(self, values: Sequence[Tensor], n: int, like: Tensor) -> Tensor:
+        """``sum over terms of D^T X`` (``B x n x k``, dtype and device of ``like``) for per-term
+        rows ``X`` (``B x m x k``)."""
+        out = like.new_zeros(self.batch, n, like.shape[-1])
+        for t, X in zip(self.terms, values):
+            out = out + t.adjoint_rows(X, n)
+        return out
+
+    def W_vector(self, weights: Sequence[Tensor], x: Tensor) -> Tensor:
+        """``W x = sum_k w_k d_k (d_k^T x)`` (``B x n``) for ``x`` (``B x n``), from the terms."""
+        return self.adjoint([w * t.predictor(x) for t, w in zip(self.terms, weights)], x.shape[-1], like=x)
 
     def W_blocks(self, n: int, weights: Sequence[Tensor]) -> Tensor:
         """``W`` of all problems as one block-diagonal sparse ``Bn x Bn`` COO matrix (coalesced)."""

@@ -14,7 +14,7 @@ import math
 from typing import Sequence
 
 import torch
-from gpytorch.constraints import Interval, Positive
+from gpytorch.constraints import Interval
 from gpytorch.priors import Prior
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.likelihoods import Likelihood
@@ -54,7 +54,7 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
                  tie_threshold_constraint: Interval | None = None):
         super().__init__()
         self.comparison = comparison if comparison is not None else PairwiseProbitLikelihood()
-        self._register("tie_threshold", tie_threshold, tie_threshold_constraint or Positive(), tie_threshold_prior,
+        self._register("tie_threshold", tie_threshold, tie_threshold_constraint, tie_threshold_prior,
                        learn)
 
     tie_threshold = scalar_parameter("tie_threshold",
@@ -191,7 +191,7 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
         if int(num_levels) != num_levels or num_levels < 2:
             raise ValueError(f"num_levels must be an integer of at least 2, got {num_levels}.")
         self.num_levels = int(num_levels)
-        self._register("level_noise", level_noise, Positive(), level_noise_prior, learn_noise)
+        self._register("level_noise", level_noise, None, level_noise_prior, learn_noise)
         self.register_parameter("raw_cut_points", torch.nn.Parameter(
             torch.zeros(self.num_levels - 1, dtype=torch.float64), requires_grad=learn))
         self.cut_points = default_cut_points(self.num_levels) if cut_points is None else cut_points

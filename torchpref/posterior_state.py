@@ -16,7 +16,7 @@ import torch
 from gpytorch.module import Module
 from torch import Tensor
 
-from torchpref.laplace import ModeResult, Observations, PredictiveCache, find_mode, predict
+from torchpref.laplace import ModeResult, Observations, PredictiveCache, find_mode, predict, predicted_mode
 from torchpref.numerics import batched_cholesky, cholesky_jittered
 from torchpref.padding import PaddedData
 
@@ -92,10 +92,13 @@ class PosteriorState:
             prev_jitter = previous.jitter if (previous is not None and isinstance(previous.jitter, float)) else None
             L, jitter = prior_factor(K.detach(), prev_jitter)
             same_size = previous is not None and previous.mode.f.shape == L.shape[:-1]
-            warm = previous.mode.f if same_size else model._warm_f
             # the observations' index structure depends on the data only: kept across hyperparameters
             same_data = previous is not None and previous.data is model.data and previous.likelihood is model.likelihood
             obs = previous.obs if same_data else model._observations()
+            if same_data and same_size:  # new hyperparameters: the old modes moved to first order
+                warm = (previous.mode.f, predicted_mode(previous.mode.f, previous.pred, L))
+            else:
+                warm = previous.mode.f if same_size else model._warm_f
             mode = find_mode(L, obs, f0=warm, max_iter=model.max_newton_iter)
             pred = PredictiveCache.from_mode(L, mode)
         return cls(model.data, fp, padded, jitter, model.likelihood, obs, mode, pred)

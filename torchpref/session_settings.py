@@ -207,7 +207,19 @@ class SessionSettings:
                    None if names is None else [str(n) for n in names])
 
     def header(self, metadata: dict | None) -> dict:
-        """A new session file's header record."""
+        """A new session file's header record.
+
+        Raises:
+            ValueError: ``metadata`` is not a dictionary that JSON writes and reads back
+                (strings, finite numbers, booleans, ``None``, lists and dictionaries of them).
+        """
+        if metadata is not None and not isinstance(metadata, dict):
+            raise ValueError(f"metadata must be a dictionary, got {type(metadata).__name__}.")
+        try:
+            json.loads(json.dumps(metadata or {}, allow_nan=False))
+        except (TypeError, ValueError, RecursionError) as err:
+            raise ValueError(f"metadata must hold only JSON values (strings, finite numbers, booleans, None, "
+                             f"lists, dictionaries): {err}") from None
         return {
             "type": "header",
             "version": FORMAT_VERSION,

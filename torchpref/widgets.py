@@ -185,12 +185,21 @@ class PreferenceWidget:
 
     # ------------------------------------------------------------------ drawing
     def picture(self, item: Tensor, index: int | None):
-        """The widget showing one option (the render hook's picture, or the table fallback)."""
-        if self.render is None:
-            return as_picture(table_picture(item, index, self.session.names))
-        pic = as_picture(self.render(item, index), self.picture_width)
-        pic.add_class("torchpref-picture")
-        return pic
+        """The widget showing one option (the render hook's picture, or the table fallback).
+
+        A render hook that raises, or returns something that is no picture, gets the table with
+        the error above it: the session goes on (an answer already told stays recorded)."""
+        failure = None
+        if self.render is not None:
+            try:
+                pic = as_picture(self.render(item, index), self.picture_width)
+                pic.add_class("torchpref-picture")
+                return pic
+            except Exception as exc:  # noqa: BLE001  (the hook is the caller's code: show its failure)
+                failure = _widgets().HTML(f"<span style='color:#b00'>render hook failed: "
+                                          f"{html.escape(type(exc).__name__ + ': ' + str(exc))}</span>")
+        table = as_picture(table_picture(item, index, self.session.names))
+        return table if failure is None else _widgets().VBox([failure, table])
 
     def _button(self, label: str, answer: Any, style: str = ""):
         w = _widgets()
