@@ -431,3 +431,22 @@ def test_a_query_told_twice_or_from_another_session_is_refused(tmp_path):
     a.undo()
     a.tell(q, 1)  # once its answer is undone, the query may be answered again
     assert a.step == 1 and a.history[-1].answer == 1
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(selector="ucb"), TypeError, "selector must be a Selector"),  # an AttributeError at the first ask
+    (dict(model_factory=3), TypeError, "model_factory must be callable"),
+    (dict(model_factory=lambda X: 3), TypeError, "model_factory must return a PreferenceGP, got int"),
+])
+def test_selector_and_model_factory_are_checked_when_the_session_opens(tmp_path, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        PreferenceSession(pool(6), session_file=tmp_path / "s.jsonl", **kwargs)
+
+
+def test_a_pool_with_nan_items_is_named():
+    from torchpref import FinitePool
+
+    X = pool(4)
+    X[1, 0] = float("nan")
+    with pytest.raises(ValueError, match="the pool's items must be finite"):
+        PreferenceSession(FinitePool(X))

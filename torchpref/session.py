@@ -105,6 +105,10 @@ class PreferenceSession:
         self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
         self.num_queries, self.num_levels, self.names = settings.num_queries, settings.num_levels, settings.names
         n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
+        if selector is not None and not callable(getattr(selector, "select", None)):
+            raise TypeError(f"selector must be a Selector (with select(model, candidates, ...)), got {selector!r:.80}.")
+        if model_factory is not None and not callable(model_factory):
+            raise TypeError(f"model_factory must be callable(X) -> PreferenceGP, got {model_factory!r:.80}.")
         self.selector = selector if selector is not None else UCBC(m=default_ranking_size(n_pool) if n_pool else 5)
         self.model_factory = model_factory if model_factory is not None else default_session_model
         self._anchor = self.transform(self._pool[:1] if self._pool is not None else self.bounds.mean(0, keepdim=True))
@@ -208,6 +212,8 @@ class PreferenceSession:
 
     def _replay(self, records: list[dict]) -> PreferenceGP:
         model = self.model_factory(self._anchor.clone())
+        if not isinstance(model, PreferenceGP):
+            raise TypeError(f"model_factory must return a PreferenceGP, got {type(model).__name__}.")
         for rec in records:
             query = self._model_query(rec["kind"], torch.tensor(rec["items"], dtype=torch.float64))
             record_answer(model, query, rec["answer"], num_levels=self.num_levels)
