@@ -19,6 +19,7 @@ from gpytorch.distributions import MultivariateNormal
 from gpytorch.kernels import Kernel
 from gpytorch.mlls import MarginalLogLikelihood
 from gpytorch.models import GP
+from gpytorch.module import Module as GModule
 from linear_operator.operators import DenseLinearOperator, LinearOperator
 from torch import Tensor
 
@@ -372,6 +373,20 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
     # ------------------------------------------------------- predictives (eq. 11)
 
 
+def _priors(root: torch.nn.Module):
+    """``(module, prior, closure)`` for each prior that GPyTorch's ``root.named_priors()`` lists, in
+    its order (depth first, a module's children each once per parent), without building names."""
+    stack = [root]
+    while stack:
+        module = stack.pop()
+        if isinstance(module, GModule):
+            for prior, closure, _ in module._priors.values():
+                if prior is not None:
+                    yield module, prior, closure
+        children = list(dict.fromkeys(c for c in module._modules.values() if c is not None))
+        stack.extend(reversed(children))
+
+
 class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
     r"""Laplace evidence of a :class:`PreferenceGP` plus the log densities of its hyperparameter
     priors; works with ``botorch.fit.fit_gpytorch_mll``."""
@@ -390,7 +405,7 @@ class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
             raise TrainDataMismatchError(f"the evidence is of the model's own comparisons; got other comparisons "
                                          f"(shape {tuple(given.shape)}): use set_train_data to change them.")
         res = self.model.log_marginal_likelihood()
-        for _, module, prior, closure, _ in self.named_priors():
+        for module, prior, closure in _priors(self):
             res = res + prior.log_prob(closure(module)).sum()
         return res
 

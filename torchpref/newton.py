@@ -21,6 +21,7 @@ follow alone.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import torch
@@ -112,6 +113,15 @@ class Problem:
         a = torch.linalg.solve_triangular(self.L, f0.unsqueeze(-1), upper=False).squeeze(-1)
         return torch.where(torch.isfinite(a).all(-1, keepdim=True), a, 0.0)
 
+    def start(self, starts: tuple[Tensor, ...]) -> NewtonPoint:
+        """The point of highest ``Psi`` among the candidate ``starts`` (each ``B x n`` utilities;
+        zeros if none), problem by problem."""
+        point = self.evaluate(self.whiten(starts[0] if starts else None))
+        for start in starts[1:]:
+            other = self.evaluate(self.whiten(start))
+            point = _pick(other, (other.psi > point.psi).tolist(), point)
+        return point
+
     def evaluate(self, a: Tensor) -> NewtonPoint:
         """``Psi``, its gradient ``L^T grad log p - a`` and the weights at ``a``: one likelihood
         pass serves the line search's test and, if the point is accepted, the next step."""
@@ -156,8 +166,8 @@ class Problem:
             self.obs.whitened_hessian(self._L32, tuple(w.float() for w in point.weights), self._rows32))
         return None if bool((info > 0).any()) else M
 
-    def line_search(self, point: NewtonPoint, step: Tensor, decrement: Tensor, active: Tensor,
-                    full: Tensor | None = None) -> tuple[NewtonPoint, Tensor]:
+    def line_search(self, point: NewtonPoint, step: Tensor, decrement: Tensor, active: list[bool],
+                    full: list[bool] | None = None) -> tuple[NewtonPoint, list[bool]]:
         """Armijo backtracking for the ``active`` problems; the ``full`` ones take the whole step
         untested. All problems still searching share the step length (each halves it from 1 until
         its test passes), so one evaluation per length serves them all. Returns the new point and
@@ -165,16 +175,30 @@ class Problem:
         t, pending, new = 1.0, active, point
         while True:
             trial = self.evaluate(point.a + t * step)
-            ok = pending & torch.isfinite(trial.psi) & (trial.psi >= point.psi + ARMIJO * t * decrement)
-            if full is not None:
-                ok |= pending & full
-            new = trial.where(ok, new)
-            pending = pending & ~ok
-            if not bool(pending.any()):
+            passed = (torch.isfinite(trial.psi) & (trial.psi >= point.psi + ARMIJO * t * decrement)).tolist()
+            ok = [p and (a or f) for p, a, f in zip(pending, passed, full or passed)]
+            new = _pick(trial, ok, new)
+            pending = [p and not o for p, o in zip(pending, ok)]
+            if not any(pending):
                 return new, pending
             t *= 0.5
             if t <= MIN_STEP:
                 return new, pending
+
+
+def _pick(this, take: list[bool], other):
+    """``this`` (a :class:`NewtonPoint` or :class:`Factor`) for the problems in ``take``, ``other`` elsewhere."""
+    if all(take):
+        return this
+    if not any(take):
+        return other
+    return this.where(torch.tensor(take, device=(this.M if isinstance(this, Factor) else this.a).device), other)
+
+
+def _in_dtype(value: float, dtype: torch.dtype) -> float:
+    """``value`` rounded to ``dtype``: compared with a tensor's values, a Python number is (so that
+    the tests on the host below decide as the same tests on tensors would)."""
+    return torch.tensor(value, dtype=dtype).item()
 
 
 def newton_direction(M: Tensor, grad: Tensor) -> tuple[Tensor, Tensor]:
@@ -183,7 +207,7 @@ def newton_direction(M: Tensor, grad: Tensor) -> tuple[Tensor, Tensor]:
     return step, (grad * step).sum(-1)
 
 
-def float32_step(prob: Problem, point: NewtonPoint, active: Tensor, tol: float):
+def float32_step(prob: Problem, point: NewtonPoint, active: list[bool], tol: float):
     """One step with ``B`` factorised in float32: ``(new point, decrements)``, or ``None`` when
     float32 does not suffice (failed factorisation, or a step that does not increase ``Psi``)."""
     M = prob.factorise_float32(point)
@@ -192,42 +216,44 @@ def float32_step(prob: Problem, point: NewtonPoint, active: Tensor, tol: float):
     step32, _ = newton_direction(M, point.grad.float())
     step = step32.to(point.grad.dtype)
     decrement = (point.grad * step).sum(-1)
-    moving = active & (decrement / 2 >= tol)
-    if not bool((torch.isfinite(decrement) | ~active).all()) or not bool(moving.any()):
+    dec = decrement.tolist()
+    moving = [a and d / 2 >= tol for a, d in zip(active, dec)]
+    if not all(math.isfinite(d) or not a for a, d in zip(active, dec)) or not any(moving):
         return None
     new, failed = prob.line_search(point, step, decrement, moving)
-    return None if bool(failed.any()) else (new, decrement)
+    return None if any(failed) else (new, dec)
 
 
-def chord_steps(prob: Problem, point: NewtonPoint, M: Tensor, decrement: Tensor, eligible: Tensor,
-                opts: NewtonOptions) -> tuple[NewtonPoint, Tensor]:
+def chord_steps(prob: Problem, point: NewtonPoint, M: Tensor, decrement: list[float], eligible: list[bool],
+                opts: NewtonOptions) -> tuple[NewtonPoint, list[float]]:
     """Up to ``opts.max_chord`` steps with the factor ``M`` of an earlier point (a new gradient,
     the old ``B``), for each ``eligible`` problem while its decrement contracts fourfold."""
+    tol, tiny = _in_dtype(opts.tol, M.dtype), _in_dtype(1e-8, M.dtype)
     for _ in range(opts.max_chord):
-        step, dec = newton_direction(M, point.grad)
-        eligible = eligible & (dec < 0.25 * decrement)  # not contracting (or not finite): refactorise
-        if not bool(eligible.any()):
+        step, dec_t = newton_direction(M, point.grad)
+        dec = dec_t.tolist()
+        # not contracting (or not finite): refactorise
+        eligible = [e and d < 0.25 * old for e, d, old in zip(eligible, dec, decrement)]
+        if not any(eligible):
             break
-        full = dec < 1e-8  # Psi would change by less than its round-off: the full step
-        point, failed = prob.line_search(point, step, dec, eligible, full)
-        eligible = eligible & ~failed
-        decrement = torch.where(eligible, dec, decrement)
-        eligible = eligible & (decrement / 2 >= opts.tol)  # converged: confirmed with a fresh B
+        full = [d < tiny for d in dec]  # Psi would change by less than its round-off: the full step
+        point, failed = prob.line_search(point, step, dec_t, eligible, full)
+        eligible = [e and not f for e, f in zip(eligible, failed)]
+        decrement = [d if e else old for e, d, old in zip(eligible, dec, decrement)]
+        eligible = [e and d / 2 >= tol for e, d in zip(eligible, decrement)]  # converged: confirmed with a fresh B
     return point, decrement
 
 
 def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: NewtonOptions) -> NewtonResult:
     """The modes of ``B`` problems (see the module docstring), each from the candidate start (``B x n``
-    each; zeros if none) of highest ``Psi``; all inputs detached."""
+    each; zeros if none) of highest ``Psi``; all inputs detached. The per-problem tests run on the
+    host, on one copy of each iteration's decrements (a few numbers)."""
     prob = Problem(L, obs)
-    point = prob.evaluate(prob.whiten(starts[0] if starts else None))
-    for start in starts[1:]:
-        other = prob.evaluate(prob.whiten(start))
-        point = other.where(other.psi > point.psi, point)
+    point = prob.start(starts)
     B = L.shape[0]
-    active = torch.ones(B, dtype=torch.bool, device=L.device)
-    converged, has_factor = torch.zeros_like(active), torch.zeros_like(active)
-    decrement = torch.full((B,), float("inf"), dtype=L.dtype, device=L.device)
+    tol, stuck_tol = _in_dtype(opts.tol, L.dtype), _in_dtype(STUCK_TOL, L.dtype)
+    active, converged, has_factor = [True] * B, [False] * B, [False] * B
+    decrement = [math.inf] * B
     newton_dec = decrement  # the decrement of each problem's last factorisation
     final: Factor | None = None
     far = far_allowed = opts.float32_far
@@ -237,38 +263,44 @@ def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: 
             taken = float32_step(prob, point, active, opts.tol)
             if taken is not None:
                 point, dec32 = taken
-                far = bool((dec32[active] > 1.0).any())
+                far = any(d > 1.0 for a, d in zip(active, dec32) if a)
                 continue
             far = far_allowed = False  # float32 does not suffice for these problems
         factor = prob.factorise(point)
-        step, dec = newton_direction(factor.M, point.grad)
-        if not bool(torch.isfinite(dec).all()) and not bool((torch.isfinite(dec) | ~active).all()):
-            bad = (active & ~torch.isfinite(dec)).nonzero().reshape(-1).tolist()
+        step, dec_t = newton_direction(factor.M, point.grad)
+        dec = dec_t.tolist()
+        bad = [i for i, (a, d) in enumerate(zip(active, dec)) if a and not math.isfinite(d)]
+        if bad:
             raise FloatingPointError(f"non-finite Newton step while finding the Laplace modes of problems {bad}")
-        decrement = torch.where(active, dec, decrement)
+        decrement = [d if a else old for a, d, old in zip(active, dec, decrement)]
         # stalled: a whole iteration (step and chord steps) did not contract the decrement, which
         # is below the round-off floor: no further progress can be resolved in this dtype
-        stalled = dec > 0.25 * newton_dec
-        floor = prob.floor(point) if bool(stalled.any()) else None  # rarely needed: formed on demand
-        stalled = stalled if floor is None else stalled & (dec / 2 < floor)
-        newton_dec = torch.where(active, dec, newton_dec)
-        done = active & ((dec / 2 < opts.tol) | stalled)  # the point stays: keep this factorisation
-        if bool(done.any()):
-            final = factor if final is None else factor.where(done, final)
-        converged, has_factor, active = converged | done, has_factor | done, active & ~done
-        if not bool(active.any()):
+        stalled = [d > 0.25 * old for d, old in zip(dec, newton_dec)]
+        floor = prob.floor(point).tolist() if any(stalled) else None  # rarely needed: formed on demand
+        if floor is not None:
+            stalled = [s and d / 2 < fl for s, d, fl in zip(stalled, dec, floor)]
+        newton_dec = [d if a else old for a, d, old in zip(active, dec, newton_dec)]
+        done = [a and (d / 2 < tol or s) for a, d, s in zip(active, dec, stalled)]  # the point stays: keep B
+        if any(done):
+            final = factor if final is None else _pick(factor, done, final)
+        converged = [c or d for c, d in zip(converged, done)]
+        has_factor = [h or d for h, d in zip(has_factor, done)]
+        active = [a and not d for a, d in zip(active, done)]
+        if not any(active):
             break
-        point, stuck = prob.line_search(point, step, dec, active)
-        if bool(stuck.any()):  # no ascent possible in floating point: at the optimum up to round-off
-            floor = prob.floor(point) if floor is None else floor
-            converged, active = converged | (stuck & (dec / 2 < floor.clamp(min=STUCK_TOL))), active & ~stuck
+        point, stuck = prob.line_search(point, step, dec_t, active)
+        if any(stuck):  # no ascent possible in floating point: at the optimum up to round-off
+            floor = prob.floor(point).tolist() if floor is None else floor
+            converged = [c or (s and d / 2 < max(fl, stuck_tol)) for c, s, d, fl in zip(converged, stuck, dec, floor)]
+            active = [a and not s for a, s in zip(active, stuck)]
         # far from the mode the old B is a poor model: refactorise (in float32 where allowed)
-        far = far_allowed and bool((dec[active] > 1.0).any())
-        near = active & (dec <= 1.0) if opts.max_chord else None
-        if near is not None and bool(near.any()):
+        far = far_allowed and any(d > 1.0 for a, d in zip(active, dec) if a)
+        near = [a and d <= 1.0 for a, d in zip(active, dec)] if opts.max_chord else None
+        if near is not None and any(near):
             point, chord_dec = chord_steps(prob, point, factor.M, dec, near, opts)
-            decrement = torch.where(near, chord_dec, decrement)
-    if not bool(has_factor.all()):  # stuck or out of iterations: a factor at the final points
+            decrement = [c if nr else old for nr, c, old in zip(near, chord_dec, decrement)]
+    if not all(has_factor):  # stuck or out of iterations: a factor at the final points
         fresh = prob.factorise(point)
-        final = fresh if final is None else final.where(has_factor, fresh)
-    return NewtonResult(replace(point, f=prob.utilities(point)), final, converged, decrement, it)
+        final = fresh if final is None else _pick(final, has_factor, fresh)
+    return NewtonResult(replace(point, f=prob.utilities(point)), final, torch.tensor(converged, device=L.device),
+                        torch.tensor(decrement, dtype=L.dtype, device=L.device), it)

@@ -79,24 +79,29 @@ class Term:
 
     def predictor(self, f: Tensor) -> Tensor:
         """``eta`` (``B x m``) at ``f`` (``B x n``)."""
-        eta = 0.0
+        B, n = f.shape
+        flat, eta = f.reshape(-1), None
         for c, coef in enumerate(self.coef):
-            eta = eta + coef * f.gather(-1, self.index[..., c])
+            x = flat.index_select(0, self._flat_index(c, B, n)).view(B, -1)
+            eta = (x if coef == 1.0 else coef * x) if eta is None else (eta - x if coef == -1.0 else eta + coef * x)
         return eta
 
     def adjoint(self, x: Tensor, n: int) -> Tensor:
         """``sum_k x_k d_k`` (``B x n``) for per-observation values ``x`` (``B x m``)."""
-        out = x.new_zeros(x.shape[0], n)
+        B = x.shape[0]
+        out = x.new_zeros(B * n)
         for c, coef in enumerate(self.coef):
-            out = out.scatter_add(-1, self.index[..., c], coef * x)
-        return out
+            out.index_add_(0, self._flat_index(c, B, n), x.reshape(-1), alpha=coef)
+        return out.view(B, n)
 
     def _flat_index(self, c: int, B: int, n: int) -> Tensor:
-        """The items of coefficient ``c`` as rows of the ``B n`` rows of ``B`` stacked ``n x k`` matrices."""
+        """The items of coefficient ``c`` as positions among the ``B n`` items (or rows of ``B``
+        stacked ``n x k`` matrices) of all problems."""
         key = ("flat_rows", c, B, n)
         if key not in self._patterns:
-            offset = (torch.arange(B, device=self.index.device) * n).reshape(-1, 1) if B > 1 else 0
-            self._patterns[key] = (self.index[..., c] + offset).reshape(-1)
+            with torch.inference_mode(False):  # kept for later autograd passes even if first asked for in a solve
+                offset = (torch.arange(B, device=self.index.device) * n).reshape(-1, 1) if B > 1 else 0
+                self._patterns[key] = (self.index[..., c] + offset).reshape(-1)
         return self._patterns[key]
 
     def rows(self, L: Tensor) -> Tensor:
