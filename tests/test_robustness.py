@@ -211,3 +211,14 @@ def test_evidence_called_with_other_comparisons_is_named_not_ignored():
     for other in (torch.tensor([[1, 0], [2, 3]]), torch.tensor([[0, 1]])):
         with pytest.raises(TrainDataMismatchError, match="other comparisons"):
             mll(model(model.train_X), other)
+
+
+def test_condition_on_observations_takes_lists_as_the_rest_of_the_api_does():
+    model = _model()
+    X = model.train_X[:2] + 0.01
+    by_tensor = model.condition_on_observations(X, torch.tensor([[0, 1]]))
+    for cond in (model.condition_on_observations(X.tolist(), torch.tensor([[0, 1]])),
+                 model.condition_on_observations(X, comparisons=[[0, 1]])):  # an AttributeError before
+        torch.testing.assert_close(cond.posterior(X).mean, by_tensor.posterior(X).mean)
+    prior = PreferenceGP(None, None).condition_on_observations(X, comparisons=[[0, 1]])
+    assert prior.comparisons.tolist() == [[0, 1]]
