@@ -238,3 +238,10 @@ def test_a_saved_prior_only_model_loads(tmp_path):
     fitted = loaded.condition_on_observations(X, torch.tensor([[0, 1]]))
     assert fitted.train_X.shape == (3, 2)
     assert isinstance(loaded.covar_module, ScaleKernel) and isinstance(loaded.covar_module.base_kernel, RBFKernel)
+
+
+@pytest.mark.parametrize("sampler", [None, "sobol"])
+def test_fantasize_without_a_sampler_is_named(sampler):
+    model = _model()
+    with pytest.raises(TypeError, match="sampler must be a BoTorch MCSampler"):
+        model.fantasize(model.train_X[:2], sampler)  # "'NoneType' object is not callable" before
