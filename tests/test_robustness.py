@@ -211,3 +211,37 @@ def test_evidence_called_with_other_comparisons_is_named_not_ignored():
     for other in (torch.tensor([[1, 0], [2, 3]]), torch.tensor([[0, 1]])):
         with pytest.raises(TrainDataMismatchError, match="other comparisons"):
             mll(model(model.train_X), other)
+
+
+def test_condition_on_observations_takes_lists_as_the_rest_of_the_api_does():
+    model = _model()
+    X = model.train_X[:2] + 0.01
+    by_tensor = model.condition_on_observations(X, torch.tensor([[0, 1]]))
+    for cond in (model.condition_on_observations(X.tolist(), torch.tensor([[0, 1]])),
+                 model.condition_on_observations(X, comparisons=[[0, 1]])):  # an AttributeError before
+        torch.testing.assert_close(cond.posterior(X).mean, by_tensor.posterior(X).mean)
+    prior = PreferenceGP(None, None).condition_on_observations(X, comparisons=[[0, 1]])
+    assert prior.comparisons.tolist() == [[0, 1]]
+
+
+def test_a_saved_prior_only_model_loads(tmp_path):
+    import torchpref
+    from gpytorch.kernels import RBFKernel, ScaleKernel
+
+    prior = PreferenceGP(None, None)
+    prior.covar_module.outputscale = 2.5
+    torchpref.save_model(prior, tmp_path / "prior.pt")  # it saved, and then would not load
+    loaded = torchpref.load_model(tmp_path / "prior.pt")
+    X = torch.rand(3, 2, dtype=F64)
+    torch.testing.assert_close(loaded.posterior(X).variance, prior.posterior(X).variance)
+    assert float(loaded.posterior(X).variance.detach().max()) == pytest.approx(2.5)
+    fitted = loaded.condition_on_observations(X, torch.tensor([[0, 1]]))
+    assert fitted.train_X.shape == (3, 2)
+    assert isinstance(loaded.covar_module, ScaleKernel) and isinstance(loaded.covar_module.base_kernel, RBFKernel)
+
+
+@pytest.mark.parametrize("sampler", [None, "sobol"])
+def test_fantasize_without_a_sampler_is_named(sampler):
+    model = _model()
+    with pytest.raises(TypeError, match="sampler must be a BoTorch MCSampler"):
+        model.fantasize(model.train_X[:2], sampler)  # "'NoneType' object is not callable" before

@@ -412,3 +412,41 @@ def test_metadata_that_json_cannot_hold_is_refused_before_the_file_is_made(tmp_p
     with pytest.raises(ValueError, match="metadata must"):
         PreferenceSession(pool(6), session_file=tmp_path / "s.jsonl", metadata=metadata)
     assert not (tmp_path / "s.jsonl").exists()
+
+
+def test_a_query_told_twice_or_from_another_session_is_refused(tmp_path):
+    from torchpref import RandomRankings
+
+    a = PreferenceSession(pool(8, seed=1), session_file=tmp_path / "a.jsonl", selector=RandomRankings(m=3))
+    b = PreferenceSession(pool(8, seed=2), session_file=tmp_path / "b.jsonl", selector=RandomRankings(m=3))
+    q = a.ask()
+    size = (tmp_path / "b.jsonl").stat().st_size
+    with pytest.raises(ValueError, match="not this session's pool rows"):
+        b.tell(q, 0)  # before the model is touched: no warning, nothing rebuilt
+    assert b.step == 0 and (tmp_path / "b.jsonl").stat().st_size == size and b._model_seqs == ()
+    a.tell(q, 0)
+    with pytest.raises(ValueError, match="already answered"):
+        a.tell(q, 1)  # a second click on the same question
+    assert a.step == 1 and len(a.records) == 1
+    a.undo()
+    a.tell(q, 1)  # once its answer is undone, the query may be answered again
+    assert a.step == 1 and a.history[-1].answer == 1
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(selector="ucb"), TypeError, "selector must be a Selector"),  # an AttributeError at the first ask
+    (dict(model_factory=3), TypeError, "model_factory must be callable"),
+    (dict(model_factory=lambda X: 3), TypeError, "model_factory must return a PreferenceGP, got int"),
+])
+def test_selector_and_model_factory_are_checked_when_the_session_opens(tmp_path, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        PreferenceSession(pool(6), session_file=tmp_path / "s.jsonl", **kwargs)
+
+
+def test_a_pool_with_nan_items_is_named():
+    from torchpref import FinitePool
+
+    X = pool(4)
+    X[1, 0] = float("nan")
+    with pytest.raises(ValueError, match="the pool's items must be finite"):
+        PreferenceSession(FinitePool(X))

@@ -6,6 +6,7 @@ import torch
 from torchpref.experiments.wave import make_model
 from torchpref.queries import RankingQuery, RatingQuery
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
+from torchpref.top_profile import ProfileVariancePerEffort
 from torchpref.variance_reduction import VariancePerEffort
 
 
@@ -20,7 +21,8 @@ def model():
 
 SELECTORS = [RandomRatings(), RandomRankings(m=4), RandomMixed(m=3), UCBRatings(), UCBC(m=5),
              InformationPerEffort(m=4), InformationPerEffort(m=4, target="maximizer"),
-             InformationPerEffort(m=3, target="utility", ranking_cost=5.0), VariancePerEffort(m=4)]
+             InformationPerEffort(m=3, target="utility", ranking_cost=5.0), VariancePerEffort(m=4),
+             ProfileVariancePerEffort(m=4)]
 
 
 @pytest.mark.parametrize("selector", SELECTORS, ids=lambda s: type(s).__name__)

@@ -15,6 +15,7 @@ from torchpref.kernels import fixed_rbf_kernel
 from torchpref.likelihoods import PairwiseProbitLikelihood
 from torchpref.queries import RankingQuery, RatingQuery
 from torchpref.strategies import joint_samples
+from torchpref.top_profile import ProfileVariancePerEffort
 from torchpref.variance_reduction import (VariancePerEffort, choice_answer_probabilities, rating_hessian,
                                           ranking_mode_hessians, variance_reduction)
 
@@ -134,23 +135,28 @@ def _line(n=8):
     return torch.linspace(0.3, 0.7, n, dtype=D).unsqueeze(-1)
 
 
-def test_rating_when_the_scale_is_uncalibrated():
+BOTH = pytest.mark.parametrize("selector", [VariancePerEffort, ProfileVariancePerEffort], ids=lambda c: c.__name__)
+
+
+@BOTH
+def test_rating_when_the_scale_is_uncalibrated(selector):
     """Items close together, their order known from many precise comparisons, no rating: a
-    ranking can only repeat what is known (differences), a rating gives the level."""
+    ranking can only repeat what is known (differences, the top set), a rating gives the level."""
     X = _line()
     C = torch.tensor([[k + 1, k] for k in range(7)] * 4)
     model = _model(X, C, comparison_noise=0.05)
-    q = VariancePerEffort(m=4).select(model, X, None, 0, 10, torch.Generator().manual_seed(0))
+    q = selector(m=4).select(model, X, None, 0, 10, torch.Generator().manual_seed(0))
     assert isinstance(q, RatingQuery)
 
 
-def test_ranking_when_the_top_is_unresolved():
+@BOTH
+def test_ranking_when_the_top_is_unresolved(selector):
     """The same items, each rated 3 times (0.7): the level is known, the order of the items is
     not (ratings are imprecise, nu = 10); precise comparisons resolve it."""
     X = _line()
     idx = torch.arange(8).repeat(3)
     model = _model(X, ratings=torch.full((24,), 0.7, dtype=D), rating_index=idx, comparison_noise=0.05)
-    q = VariancePerEffort(m=4).select(model, X, None, 0, 10, torch.Generator().manual_seed(0))
+    q = selector(m=4).select(model, X, None, 0, 10, torch.Generator().manual_seed(0))
     assert isinstance(q, RankingQuery)
 
 

@@ -38,6 +38,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
     from torchpref.session import PreferenceSession
     from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
+    from torchpref.top_profile import ProfileVariancePerEffort
     from torchpref.utility_functions import WaveFunction, evaluation_grid
     from torchpref.variance_reduction import VariancePerEffort
     from torchpref.users import SimulatedUser, User
@@ -74,6 +75,7 @@ _EXPORTS = {
     "PreferenceData": "data",
     "PreferenceGP": "models",
     "PreferenceSession": "session",
+    "ProfileVariancePerEffort": "top_profile",
     "prepare_ratings": "data",
     "QueryInformation": "acquisition",
     "QueryRecord": "active",

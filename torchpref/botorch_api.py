@@ -185,10 +185,14 @@ class PairwiseGPInterface:
                 apart: use ``ratings=`` or a long ``Y``), an integer ``Y`` not of shape
                 ``m x 2``, or ``Y`` together with ``comparisons=``.
         """
+        if not isinstance(X, Tensor):  # nested lists of numbers, as everywhere else in the API
+            X = torch.as_tensor(X, dtype=self.train_X.dtype, device=self.train_X.device)
         if Y is not None:
             if comparisons is not None:
                 raise ValueError("give comparisons either as Y or as comparisons=, not both.")
             comparisons = _comparisons_from_Y(Y)
+        elif comparisons is not None:
+            comparisons = torch.as_tensor(comparisons)
         if ratings is not None:
             ratings = torch.as_tensor(ratings)
             if ratings.dim() > 1 and ratings.shape[-1] == 1:  # BoTorch's m x 1 outcomes

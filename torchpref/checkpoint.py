@@ -112,10 +112,14 @@ def load_model(
     ck = source if isinstance(source, dict) else _read(source, map_location)
     _check_contents(ck, where)
     settings = ck["settings"]
-    data = PreferenceData.create(**ck["data"], rating_eps=settings.get("rating_eps", DEFAULT_RATING_EPS),
-                                 rating_levels=settings.get("rating_levels"))
-    model = PreferenceGP(data.train_X, data.comparisons, data.ratings, data.rating_index, ties=data.ties,
-                         covar_module=covar_module, input_transform=input_transform, **settings)
+    if ck["data"]["train_X"].shape[-1] == 0:  # a prior-only PreferenceGP(None, None): no items, d unknown
+        model = PreferenceGP(None, None, covar_module=covar_module, input_transform=input_transform, **settings)
+        model.to(ck["data"]["train_X"].dtype)
+    else:
+        data = PreferenceData.create(**ck["data"], rating_eps=settings.get("rating_eps", DEFAULT_RATING_EPS),
+                                     rating_levels=settings.get("rating_levels"))
+        model = PreferenceGP(data.train_X, data.comparisons, data.ratings, data.rating_index, ties=data.ties,
+                             covar_module=covar_module, input_transform=input_transform, **settings)
     missing, unexpected = _key_mismatch(model, ck["state_dict"])
     if missing or unexpected:
         raise CheckpointError(f"the saved hyperparameters do not fit this kernel / input transform: missing {missing}, "

@@ -141,6 +141,8 @@ def fantasize(model: "PreferenceGP", X: Tensor, sampler: MCSampler, kind: str | 
     Returns:
         A model of batch shape ``sampler.sample_shape x broadcast(batch, model.batch_shape)``.
     """
+    if not isinstance(sampler, MCSampler):
+        raise TypeError(f"sampler must be a BoTorch MCSampler (e.g. PairwiseSobolQMCNormalSampler), got {sampler!r:.60}.")
     kind = kind or ("comparisons" if isinstance(sampler, PairwiseMCSampler) else "ratings")
     if kind == "comparisons":
         if not isinstance(sampler, PairwiseMCSampler):

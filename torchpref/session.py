@@ -105,10 +105,15 @@ class PreferenceSession:
         self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
         self.num_queries, self.num_levels, self.names = settings.num_queries, settings.num_levels, settings.names
         n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
+        if selector is not None and not callable(getattr(selector, "select", None)):
+            raise TypeError(f"selector must be a Selector (with select(model, candidates, ...)), got {selector!r:.80}.")
+        if model_factory is not None and not callable(model_factory):
+            raise TypeError(f"model_factory must be callable(X) -> PreferenceGP, got {model_factory!r:.80}.")
         self.selector = selector if selector is not None else UCBC(m=default_ranking_size(n_pool) if n_pool else 5)
         self.model_factory = model_factory if model_factory is not None else default_session_model
         self._anchor = self.transform(self._pool[:1] if self._pool is not None else self.bounds.mean(0, keepdim=True))
         self._pending: tuple[int, Query] | None = None  # (step, query) until answered
+        self._answered: tuple[int, Query] | None = None  # (seq, query) of the last query told
         self._journal: Journal | None = None
         self._memory: list[dict] = []  # the records when there is no file
         self._memory_header = settings.header(metadata)
@@ -207,6 +212,8 @@ class PreferenceSession:
 
     def _replay(self, records: list[dict]) -> PreferenceGP:
         model = self.model_factory(self._anchor.clone())
+        if not isinstance(model, PreferenceGP):
+            raise TypeError(f"model_factory must return a PreferenceGP, got {type(model).__name__}.")
         for rec in records:
             query = self._model_query(rec["kind"], torch.tensor(rec["items"], dtype=torch.float64))
             record_answer(model, query, rec["answer"], num_levels=self.num_levels)
@@ -304,15 +311,34 @@ class PreferenceSession:
         (see :func:`~torchpref.queries.record_answer`).
 
         Raises:
-            ValueError: an invalid answer (naming it); the session and the file are unchanged.
+            ValueError: an invalid answer (naming it), a query already answered (a second click),
+                or one whose pool rows are not this session's (another session's query); the
+                session and the file are unchanged.
         """
         if not isinstance(query, (RatingQuery, RankingQuery)):
             raise TypeError(f"query must be a RatingQuery or RankingQuery, got {type(query).__name__}.")
+        last = self._answered
+        if last is not None and last[1] is query and any(r["seq"] == last[0] for r in self._active):
+            raise ValueError(f"this query is already answered (answer {last[0]}); ask() gives the next one. Another "
+                             "answer about the same items: tell_rating, tell_choice or tell_no_preference.")
         pending = self._pending is not None and self._pending[1] is query and self._pending[0] == self.step
         rows = [query.index] if isinstance(query, RatingQuery) else query.indices
         info = {"kind": query.kind, "step": self.step if pending else None,
                 "pool_indices": None if rows is None or rows[0] is None else [int(i) for i in rows]}
+        if info["pool_indices"] is not None:
+            self._check_pool_rows(query, info["pool_indices"])
         self._tell(query, answer, info)
+        self._answered = (self._records[-1]["seq"], query)
+
+    def _check_pool_rows(self, query: Query, rows: list[int]) -> None:
+        """The query's items are this session's pool rows ``rows`` (checked before the model is
+        touched; the file's format checks it again)."""
+        pool = self._pool
+        items = as_items(query.items, self.dim, "the query's items")
+        if (pool is None or not all(0 <= i < pool.shape[0] for i in rows)
+                or not torch.equal(pool[rows].to(items), items)):
+            raise ValueError(f"the query's items are not this session's pool rows {rows}: a query of another "
+                             "session, or one edited after ask().")
 
     def tell_rating(self, x: Tensor, rating: int | float) -> None:
         """A rating of any item ``x`` (``d``), given out of turn: a Likert level (or ``[0, 1]``)."""

@@ -133,7 +133,7 @@ def _candidates_spec(candidates) -> tuple[Candidates, dict, Tensor, Tensor]:
     if isinstance(candidates, Tensor):
         candidates = FinitePool(as_items(candidates, candidates.shape[-1], "candidates"))
     if isinstance(candidates, FinitePool):
-        pool = candidates.X.to(torch.float64)
+        pool = as_items(candidates.X, candidates.X.shape[-1], "the pool's items").to(torch.float64)
         return FinitePool(pool), {"kind": "pool", "items": pool.tolist()}, pool.min(0).values, pool.max(0).values
     if isinstance(candidates, BoxCandidates):
         b = candidates.bounds.to(torch.float64)

@@ -40,6 +40,7 @@ from torch import Tensor
 from torchpref.kernels import fixed_rbf_kernel
 from torchpref.models import PreferenceGP
 from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, Selector, UCBRatings
+from torchpref.top_profile import ProfileVariancePerEffort
 from torchpref.variance_reduction import VariancePerEffort
 
 
@@ -143,6 +144,10 @@ _FACTORIES: dict[str, Callable[..., Selector]] = {
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma, target="top+levels"),
     "variance per effort": lambda m, rating_cost, ranking_cost, **_: VariancePerEffort(
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost),
+    "profile per effort": lambda m, rating_cost, ranking_cost, **_: ProfileVariancePerEffort(
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost),
+    "clipped profile": lambda m, rating_cost, ranking_cost, **_: ProfileVariancePerEffort(
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, clipped=True),
 }
 
 #: every strategy :func:`make_selector` knows, by name

@@ -54,7 +54,7 @@ CONDITIONS = ("fixed", "learned")
 #: verdicts after these many queries (and the last) and at these efforts
 CHECKPOINTS = (10, 20)
 STRATEGIES = ["UCBC", "random ratings", "random rankings", "UCB ratings", "info per effort", "top & level info",
-              "variance per effort"]
+              "variance per effort", "profile per effort", "clipped profile"]
 METRICS = ("wrms", "tp", "regret")
 #: the learned condition refits after these many queries
 REFIT_AFTER = (3, 6, 10, 15)
