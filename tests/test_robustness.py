@@ -255,3 +255,11 @@ def test_fitting_a_model_without_items_is_named(model):
 
     with pytest.raises(ValueError, match="no items"):  # a RuntimeError from a reshape before
         fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+
+
+@pytest.mark.parametrize("gamma", [-1.0, float("nan"), float("inf")])
+def test_latent_ucb_refuses_a_gamma_it_would_silently_change(gamma):
+    import torchpref
+
+    with pytest.raises(ValueError, match="gamma must be a finite number >= 0"):
+        torchpref.latent_ucb(_model(), gamma=gamma)  # -1 became beta = 1 (an upper bound), NaN gave NaN
