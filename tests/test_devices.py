@@ -14,6 +14,7 @@ from torchpref import BatchedPreferenceGP, PreferenceGP
 from torchpref.acquisition import QueryInformation, QueryUCB, latent_ucb
 from torchpref.models import LaplaceMarginalLogLikelihood
 from torchpref.strategies import UCBC, InformationPerEffort
+from torchpref.top_profile import ProfileVariancePerEffort
 
 
 def build(device, seed=0, n=9):
@@ -58,7 +59,8 @@ def test_acquisition_on_device(device):
     close(info, info_ref, atol=1e-6)
 
 
-@pytest.mark.parametrize("selector", [UCBC(m=3), InformationPerEffort(m=3, num_samples=32)])
+@pytest.mark.parametrize("selector", [UCBC(m=3), InformationPerEffort(m=3, num_samples=32),
+                                      ProfileVariancePerEffort(m=3, num_samples=32)])
 def test_batch_and_selector_on_device(device, selector):
     models = [build(device, seed) for seed in range(3)]
     refs = [build("cpu", seed) for seed in range(3)]
