@@ -245,3 +245,21 @@ def test_fantasize_without_a_sampler_is_named(sampler):
     model = _model()
     with pytest.raises(TypeError, match="sampler must be a BoTorch MCSampler"):
         model.fantasize(model.train_X[:2], sampler)  # "'NoneType' object is not callable" before
+
+
+@pytest.mark.parametrize("model", [PreferenceGP(None, None), PreferenceGP(torch.zeros(0, 2, dtype=F64))])
+def test_fitting_a_model_without_items_is_named(model):
+    from botorch.fit import fit_gpytorch_mll
+
+    from torchpref import LaplaceMarginalLogLikelihood
+
+    with pytest.raises(ValueError, match="no items"):  # a RuntimeError from a reshape before
+        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+
+
+@pytest.mark.parametrize("gamma", [-1.0, float("nan"), float("inf")])
+def test_latent_ucb_refuses_a_gamma_it_would_silently_change(gamma):
+    import torchpref
+
+    with pytest.raises(ValueError, match="gamma must be a finite number >= 0"):
+        torchpref.latent_ucb(_model(), gamma=gamma)  # -1 became beta = 1 (an upper bound), NaN gave NaN

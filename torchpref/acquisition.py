@@ -55,7 +55,13 @@ __all__ = [
 
 
 def latent_ucb(model: Model, gamma: float = 3.0) -> UpperConfidenceBound:
-    r"""Eq. 12, ``mean + gamma * std`` of the latent utility, as BoTorch's UCB (``beta = gamma^2``)."""
+    r"""Eq. 12, ``mean + gamma * std`` of the latent utility, as BoTorch's UCB (``beta = gamma^2``).
+
+    Raises:
+        ValueError: ``gamma`` negative (``beta = gamma^2`` would turn it into ``+|gamma|``) or not finite.
+    """
+    if not math.isfinite(gamma) or gamma < 0:
+        raise ValueError(f"gamma must be a finite number >= 0, got {gamma}.")
     return UpperConfidenceBound(model, beta=gamma**2)
 
 

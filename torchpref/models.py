@@ -284,7 +284,14 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
     def log_marginal_likelihood(self) -> Tensor:
         r"""Laplace evidence ``log q(Y) = log p(Y|f) - f^T K^-1 f / 2 - log|I + W K| / 2`` at the
         mode (``batch_shape``), differentiable, with a gradient that includes the mode's implicit
-        dependence on the hyperparameters. Hyperparameter priors are not included (the MLL adds them)."""
+        dependence on the hyperparameters. Hyperparameter priors are not included (the MLL adds them).
+
+        Raises:
+            ValueError: the model has no items (prior-only or empty): there is nothing to fit.
+        """
+        if self.train_X.shape[-2] == 0:
+            raise ValueError("the evidence needs data: this model has no items (a prior-only or empty model); "
+                             "add observations before fitting its hyperparameters.")
         padded, K = self._prior()
         state = self._state((padded, K))
         N = padded.num_items
