@@ -247,3 +247,20 @@ def test_checkpoint_keeps_ties_levels_and_settings(tmp_path):
     back = load_model(tmp_path / "m.pt", covar_module=kernel(0.4, 1.3, 2))
     assert back.rating_levels == 5 and back.ties_offered and torch.equal(back.ties, model.ties)
     torch.testing.assert_close(back.mode.f, model.mode.f, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["levels", "beta"])
+def test_mll_counts_each_prior_once(kind):
+    """The MLL is the Laplace evidence plus each prior's log density once, the likelihood's priors
+    (reachable from the MLL both as its ``likelihood`` and as ``model.likelihood``) included: the
+    sum GPyTorch's exact MLL forms from ``model.named_priors()``."""
+    from gpytorch.priors import GammaPrior
+
+    model = build(kind, seed=5, learn=True)
+    model.likelihood.comparison.register_prior(
+        "extra_noise_prior", GammaPrior(2.0, 4.0), lambda m: m.comparison_noise)
+    mll = LaplaceMarginalLogLikelihood(model)
+    priors = [(name, p.log_prob(c(mod)).sum()) for name, mod, p, c, _ in model.named_priors()]
+    assert any(n.startswith("likelihood.") for n, _ in priors), priors
+    expected = model.log_marginal_likelihood() + sum(v for _, v in priors)
+    assert torch.allclose(mll(), expected, rtol=0, atol=1e-12)

@@ -415,7 +415,9 @@ class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
             raise TrainDataMismatchError(f"the evidence is of the model's own comparisons; got other comparisons "
                                          f"(shape {tuple(given.shape)}): use set_train_data to change them.")
         res = self.model.log_marginal_likelihood()
-        for module, prior, closure in _priors(self):
+        # the model's priors, its likelihood's among them, each once (GPyTorch's exact MLL walks
+        # ``model.named_priors()`` alike; walking ``self`` would count the likelihood's twice)
+        for module, prior, closure in _priors(self.model):
             res = res + prior.log_prob(closure(module)).sum()
         return res
 
