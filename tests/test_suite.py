@@ -88,3 +88,17 @@ def test_suite_on_a_dask_cluster():
         for s in kw["strategies"]:
             for m in ("wrms_mean", "tp_mean", "regret_mean"):
                 assert remote["summary"]["curves"][key]["queries"][s][m] == pytest.approx(cv["queries"][s][m], abs=1e-9)
+
+
+def test_suite_strategies_option(tmp_path):
+    """``--strategies`` runs exactly the strategies named, any of the registry's (one outside the
+    default set among them); an unknown name is refused before anything runs."""
+    assert "top & level info" not in suite.STRATEGIES
+    argv = ["reproduce", "suite", "--families", "waves", "--strategies", "top & level info", "UCBC",
+            "--trials", "2", "--queries", "2", "--seed", "3", "--out", str(tmp_path), "--workers", "1"]
+    assert main(argv) == 0
+    curves = json.loads((tmp_path / "suite.json").read_text())
+    assert set(curves["waves/fixed"]["queries"]) == {"top & level info", "UCBC"}
+    bad = tmp_path / "bad"
+    assert main(argv[:4] + ["--strategies", "nope"] + argv[7:-3] + [str(bad), "--workers", "1"]) != 0
+    assert not (bad / "suite.json").exists()

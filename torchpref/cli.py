@@ -2,7 +2,7 @@ r"""The ``torchpref`` command line.
 
     torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
     torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
-    torchpref reproduce suite [--families F ...] [--trials N] [--queries Q] [--seed S] [--out DIR]
+    torchpref reproduce suite [--families F ...] [--strategies S ...] [--trials N] [--queries Q] [--seed S] [--out DIR]
     torchpref elicit lake [--session FILE]
     torchpref elicit --features items.csv [--id COLUMN] [--session FILE]
     torchpref --version
@@ -88,6 +88,9 @@ def build_parser() -> argparse.ArgumentParser:
     suite = rep_sub.add_parser("suite", help="every strategy on the user-family benchmark suite (docs/suite.md)")
     _experiment_args(suite, 50, 20)
     suite.add_argument("--families", nargs="+", default=None, help="families to run (default: all)")
+    suite.add_argument("--strategies", nargs="+", default=None, metavar="STRATEGY",
+                       help="strategies to compare, e.g. 'UCBC' 'profile per effort' (default: the suite's eight; "
+                            "any of torchpref.experiments.runner.STRATEGIES)")
     el = sub.add_parser("elicit", help="learn your preferences in the terminal")
     el.add_argument("world", nargs="?", choices=["lake"], help="a built-in world to elicit over")
     el.add_argument("--features", help="CSV of items' objective values (a header row, one row per item)")

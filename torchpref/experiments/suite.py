@@ -19,7 +19,7 @@ best-of-``m`` ranking :data:`RANKING_COST`.
 
 Trials run batched (:class:`~torchpref.BatchedPreferenceGP`), one executor call per family,
 condition, strategy and batch of trials (:func:`run_batch`). Command line:
-``torchpref reproduce suite [--families ...] [--trials N] [--queries Q] [--seed S] [--out DIR]``;
+``torchpref reproduce suite [--families ...] [--strategies ...] [--trials N] [--queries Q] [--seed S] [--out DIR]``;
 from Python: :func:`run_suite`. Results: ``docs/suite.md``.
 """
 
@@ -53,7 +53,12 @@ RANKING_COST = 1.0 + (M - 1) / 4
 CONDITIONS = ("fixed", "learned")
 #: verdicts after these many queries (and the last) and at these efforts
 CHECKPOINTS = (10, 20)
-STRATEGIES = ["UCBC", "random ratings", "random rankings", "UCB ratings", "info per effort", "top & level info",
+#: the strategies a run compares by default; any other of the registry's
+#: (:data:`~torchpref.experiments.runner.STRATEGIES`, e.g. ``"top & level info"``) can be named
+#: (``strategies=`` / ``--strategies``). "top & level info" left the default when the two profile
+#: selectors came in: it was best or tied in the fewest cells but random ratings' and costs as
+#: much CPU as the costliest, and the default run must fit in 10 minutes (docs/suite.md).
+STRATEGIES = ["UCBC", "random ratings", "random rankings", "UCB ratings", "info per effort",
               "variance per effort", "profile per effort", "clipped profile"]
 METRICS = ("wrms", "tp", "regret")
 #: the learned condition refits after these many queries
@@ -193,7 +198,8 @@ def run_suite(families: Sequence[str] | None = None, trials: int = 50, queries: 
         out: output folder, or ``None``.
         executor: any ``concurrent.futures.Executor`` (a Dask client's ``get_executor()``, ...).
         workers: processes of the default pool.
-        strategies: a subset of the registry's strategies (default :data:`STRATEGIES`).
+        strategies: any of the registry's strategies
+            (:data:`~torchpref.experiments.runner.STRATEGIES`; default :data:`STRATEGIES`).
         conditions: ``"fixed"`` and/or ``"learned"``.
         batch_size: trials per executor call.
         progress: show a progress bar.
@@ -255,7 +261,8 @@ def _settings(families: list[str]) -> dict[str, Any]:
 def run(args) -> int:
     """``torchpref reproduce suite``: run and report."""
     res = run_suite(families=args.families, trials=args.trials, queries=args.queries, seed=args.seed,
-                    out=args.out, workers=getattr(args, "workers", None))
+                    out=args.out, workers=getattr(args, "workers", None),
+                    strategies=getattr(args, "strategies", None))
     s = res["summary"]
     print(f"{len(res['families'])} families x {len(res['conditions'])} conditions x {args.trials} trials x "
           f"{args.queries} queries in {s['wall_time_s']:.1f} s ({s['cpu_time_s']:.0f} s of trial CPU time); "
