@@ -283,3 +283,26 @@ def test_marginals_equal_the_posteriors_diagonal(model, generator):
         torch.testing.assert_close(var, post.variance.reshape(3, 4), rtol=1e-10, atol=1e-12)
     with pytest.raises(ValueError, match="columns"):
         model.marginals(rand(4, 3, generator=generator))
+
+
+def test_a_dropped_model_is_freed_without_the_cycle_collector(model, generator):
+    """No reference cycle in the model's own modules (GPyTorch's load_state_dict hook holds them
+    weakly), so a model and its mode's matrices go when the last reference does; loading a state
+    dict still runs that hook (it ignores shapes)."""
+    import gc
+    import weakref
+
+    d = model.data
+    m = PreferenceGP(d.train_X, d.comparisons, d.ratings, d.rating_index, covar_module=kernel(2))
+    mll = LaplaceMarginalLogLikelihood(m)
+    m.mode  # noqa: B018
+    refs = [weakref.ref(x) for x in (m, mll, m.likelihood, m.likelihood.rating, m.likelihood.strict, m._cache)]
+    gc.disable()
+    try:
+        del m, mll
+        assert all(r() is None for r in refs)
+    finally:
+        gc.enable()
+    other = PreferenceGP(d.train_X, d.comparisons, d.ratings, d.rating_index, covar_module=kernel(2))
+    other.load_state_dict(model.state_dict())
+    torch.testing.assert_close(other.posterior(d.train_X).mean, model.posterior(d.train_X).mean)

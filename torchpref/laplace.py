@@ -362,5 +362,6 @@ def predict(cache: PredictiveCache, K_xs: Tensor, k_ss: Tensor) -> tuple[Tensor,
     Av = cache.A @ v
     if k_ss.dim() == 3:
         return mean, k_ss - (v * Av).sum(-2).reshape(B, t, q)
-    cov = k_ss - torch.einsum("bntq,bntr->btqr", v.reshape(B, n, t, q), Av.reshape(B, n, t, q))
+    # v_t^T A v_t per block: (B x t x q x n) @ (B x t x n x q)
+    cov = k_ss - v.reshape(B, n, t, q).permute(0, 2, 3, 1) @ Av.reshape(B, n, t, q).transpose(1, 2)
     return mean, cov

@@ -11,7 +11,8 @@ from gpytorch.module import Module
 from gpytorch.priors import GammaPrior, LogNormalPrior
 from torch import Tensor
 
-from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood, shared_constraint
+from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.scalar_params import shared_constraint, weak_load_hook
 from torchpref.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood, default_cut_points
 
 #: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
@@ -46,6 +47,7 @@ class PreferenceLikelihood(Module):
     def __init__(self, comparison: PairwiseProbitLikelihood, rating: BetaRatingLikelihood | OrdinalRatingLikelihood,
                  tie: TieLikelihood | None = None):
         super().__init__()
+        weak_load_hook(self)
         self.comparison = comparison
         self.rating = rating
         self.tie = tie if tie is not None else TieLikelihood(comparison=comparison)

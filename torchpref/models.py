@@ -28,13 +28,14 @@ from torchpref.data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.fantasy import fantasize
 from torchpref.laplace import ModeResult, laplace_evidence
 from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.scalar_params import weak_load_hook
 from torchpref.model_data import ModelData, create_data
 from torchpref.model_defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS: re-exported)
     MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS, PreferenceLikelihood, default_covar_module)
 from torchpref.numerics import pin_coincident
 from torchpref.ordinal import OrdinalRatingLikelihood, TieLikelihood
 from torchpref.padding import PaddedData
-from torchpref.posterior_state import PosteriorState, carries_gradients, fingerprint
+from torchpref.posterior_state import PosteriorState, carries_gradients, fingerprint, submodules
 from torchpref.precision import call_in_dtype, check_laplace_dtype, solve_dtype
 from torchpref.predictives import Predictives
 
@@ -156,6 +157,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         laplace_dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
+        weak_load_hook(self)
         data = _initial_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
         X = data.train_X if isinstance(data, PreferenceData) else data.X
         _warn_dtype(X.dtype)
@@ -236,7 +238,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         (:func:`~torchpref.numerics.pin_coincident`)."""
         k = self.covar_module
         X2 = X1 if X2 is None else X2
-        if any(getattr(m, "active_dims", None) is not None for m in k.modules()):
+        if any(getattr(m, "active_dims", None) is not None for m in submodules(k)):
             def evaluate(A, B, diag):
                 out = k(A, B, diag=diag)
                 return out if diag else out.to_dense()
@@ -400,6 +402,7 @@ class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
 
     def __init__(self, model: PreferenceGP):
         super().__init__(model.likelihood, model)
+        weak_load_hook(self)
 
     def forward(self, *args: Any, **kwargs: Any) -> Tensor:
         """The evidence of the model's own data. ``mll(output, comparisons)``, as BoTorch calls

@@ -21,7 +21,8 @@ from gpytorch.likelihoods import Likelihood
 from torch import Tensor
 from torch.distributions import Bernoulli, Categorical
 
-from torchpref.likelihoods import SQRT2, PairwiseProbitLikelihood, _ScalarParamsMixin, scalar_parameter
+from torchpref.likelihoods import SQRT2, PairwiseProbitLikelihood
+from torchpref.scalar_params import _ScalarParamsMixin, scalar_parameter, weak_load_hook
 from torchpref.numerics import normal_interval
 
 
@@ -121,6 +122,7 @@ class StrictPreferenceLikelihood(Likelihood):
 
     def __init__(self, tie: TieLikelihood):
         super().__init__()
+        weak_load_hook(self)
         self.tie = tie
 
     def _bounds(self, eta: Tensor) -> tuple[Tensor, Tensor]:

@@ -28,24 +28,25 @@ if TYPE_CHECKING:
 JOINT_KERNEL_MAX_POINTS = 64
 
 
+def submodules(module: torch.nn.Module) -> list[torch.nn.Module]:
+    """``module`` and all modules below it, breadth first (a shared module once per parent),
+    without the generators of ``Module.modules()``."""
+    modules, i = [module], 0
+    while i < len(modules):
+        modules.extend([c for c in modules[i]._modules.values() if c is not None])
+        i += 1
+    return modules
+
+
 def fingerprint(module: Module) -> Tensor:
-    """The values of all parameters, then all floating buffers (as ``parameters()`` /
-    ``buffers()``), concatenated: equal fingerprints mean equal hyperparameters."""
-    params, bufs, seen = [], [], set()
-    stack, modules = [module], []
-    while stack:  # the modules in ``module.modules()`` order, without its generator overhead
-        m = stack.pop()
-        modules.append(m)
-        stack.extend(c for c in reversed(m._modules.values()) if c is not None)
-    for m in modules:
-        for t, out in ((m._parameters, params), (m._buffers, bufs)):
-            for v in t.values():
-                if v is not None and id(v) not in seen:
-                    seen.add(id(v))
-                    out.append(v)
-    vals = params + [b for b in bufs if b.is_floating_point()]
-    with torch.no_grad():  # torch.cat promotes the dtypes
-        return torch.cat([v.reshape(-1) for v in vals]) if vals else torch.zeros(0)
+    """The values of all parameters, then all floating buffers, concatenated (each tensor once):
+    equal fingerprints mean equal hyperparameters."""
+    modules = submodules(module)
+    params = {id(v): v for m in modules for v in m._parameters.values() if v is not None}
+    bufs = {id(v): v for m in modules for v in m._buffers.values() if v is not None and v.is_floating_point()}
+    vals = list(params.values()) + [b for key, b in bufs.items() if key not in params]
+    with torch.no_grad():  # one call: torch.cat of the flattened values (which promotes the dtypes)
+        return torch._utils._flatten_dense_tensors(vals) if vals else torch.zeros(0)
 
 
 def prior_factor(K: Tensor, jitter: float | None) -> tuple[Tensor, float | Tensor]:
@@ -119,7 +120,7 @@ class PosteriorState:
         padded = self.padded
         S = padded.batch_shape
         q, d = X.shape[-2:]
-        shape = torch.broadcast_shapes(X.shape[:-2], S)
+        shape = torch.broadcast_shapes(X.shape[:-2], S) if S else X.shape[:-2]
         E = shape[: len(shape) - len(S)].numel()
         Xe = X.expand(*shape, q, d).reshape(E, *S, q, d)  # test blocks first, then the problems
         N, K_xs = padded.num_items, None
