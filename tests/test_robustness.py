@@ -263,3 +263,17 @@ def test_latent_ucb_refuses_a_gamma_it_would_silently_change(gamma):
 
     with pytest.raises(ValueError, match="gamma must be a finite number >= 0"):
         torchpref.latent_ucb(_model(), gamma=gamma)  # -1 became beta = 1 (an upper bound), NaN gave NaN
+
+
+def test_editing_the_callers_tensors_in_place_does_not_edit_the_model():
+    g = torch.Generator().manual_seed(0)
+    X, C = torch.rand(6, 2, generator=g, dtype=F64), torch.tensor([[0, 1], [2, 3], [4, 5]])
+    r, ri = torch.tensor([0.3, 0.9], dtype=F64), torch.tensor([1, 2])
+    model = PreferenceGP(X, C, r, ri)
+    Xt = torch.rand(3, 2, generator=g, dtype=F64)
+    before = model.posterior(Xt).mean.detach().clone()
+    X[0] += 0.3  # the posterior was neither the old model's nor the edited data's (off by 0.013)
+    C[0] = torch.tensor([1, 0])
+    r[0], ri[0] = 0.8, 4
+    torch.testing.assert_close(model.posterior(Xt).mean.detach(), before, rtol=0, atol=0)
+    assert model.train_X[0].tolist() != X[0].tolist() and model.comparisons[0].tolist() == [0, 1]

@@ -246,7 +246,10 @@ class PreferenceData:
         C = _check_comparisons(comparisons, n, dev)
         t = _check_comparisons(ties, n, dev, name="ties")
         r, ri = _check_ratings(ratings, rating_index, n, rating_eps, rating_levels, X.dtype, dev)
-        return cls(X, C, r, ri, t, None if rating_levels is None else int(rating_levels))
+        # copies: a caller who edits their tensors in place afterwards must not edit the data
+        # under a model's cached factorisation (its posterior would be neither model's)
+        return cls(X.clone(), C.clone(), r.clone(), ri.clone(), t.clone(),
+                   None if rating_levels is None else int(rating_levels))
 
     @property
     def n(self) -> int:
