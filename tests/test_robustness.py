@@ -189,6 +189,8 @@ def test_items_too_large_for_the_kernel_are_named_not_nan():
     with pytest.raises(ValueError, match="too large for the kernel"):
         model.fantasize(huge, PairwiseSobolQMCNormalSampler(torch.Size([2])))
     assert torch.isfinite(model.posterior(model.train_X * 1e100).mean).all()  # large but representable
+    ints = torch.tensor([[0, 1], [1, 0]])  # integer items are numbers too (the check broke them once)
+    torch.testing.assert_close(model.posterior(ints).mean, model.posterior(ints.to(F64)).mean)
 
 
 def test_conditioning_on_batches_that_do_not_broadcast_is_named():

@@ -361,12 +361,14 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
                 raise ValueError(f"X is {X.dtype} but the model is {dtype}: convert one of them "
                                  f"(X.to({dtype}) or model.to(...)).")
             X = X.to(dtype)  # BoTorch's optimisers and objectives hand over float32 candidates
+        elif not X.is_floating_point():  # integer items: predictions in the model's dtype, not truncated
+            X = X.to(dtype)
         if self.training:
             self.eval()
         Xt = self.transform_inputs(X)
         # one check (one synchronisation) for both: finite, and small enough that the kernel's
         # squared distances (x / lengthscale)^2, lengthscales >= 1e-4, do not overflow to inf - inf
-        if not bool((Xt.detach().abs() <= torch.finfo(Xt.dtype).max ** 0.5 * 1e-5).all()):
+        if not bool((Xt.detach().abs() <= torch.finfo(dtype).max ** 0.5 * 1e-5).all()):
             finite = torch.isfinite(X.detach())
             if not bool(finite.all()):
                 bad = X.detach()[~finite][:3].tolist()
