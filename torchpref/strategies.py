@@ -77,6 +77,24 @@ class Selector:
         raise NotImplementedError(f"{type(self).__name__} implements no select_batch: it runs one trial at a time.")
 
 
+class PerEffortSelector(Selector):
+    r"""A selector that values each trial's best rating and best ranking per unit of effort
+    (:meth:`values`) and asks the larger (the rating where they are equal)."""
+
+    def values(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]):
+        r"""``(rating rows T, rating values T, ranking rows T x m or None, ranking values T)``,
+        values per unit of effort."""
+        raise NotImplementedError
+
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        with torch.no_grad():
+            rating_row, rating_value, ranking_rows, ranking_value = self.values(model, X, generators)
+        return [ranking_query(X[b], indices[b], ranking_rows[b])
+                if ranking_rows is not None and bool(ranking_value[b] > rating_value[b])
+                else rating_query(X[b], indices[b], int(rating_row[b])) for b in range(X.shape[0])]
+
+
 class RandomRatings(Selector):
     """Rate a uniformly random candidate."""
 

@@ -47,8 +47,7 @@ from torch import Tensor
 from torchpref.acquisition import rating_bin_probabilities
 from torchpref.choice_sets import greedy_choice_set
 from torchpref.information import top_set_membership
-from torchpref.queries import Query, ranking_query, rating_query
-from torchpref.strategies import Selector, effort_model, joint_posterior, joint_samples
+from torchpref.strategies import PerEffortSelector, effort_model, joint_posterior, joint_samples
 
 __all__ = ["ProfileVariancePerEffort", "profile_variance_reduction", "top_profile"]
 
@@ -125,7 +124,7 @@ def _reduction(P: Tensor, mom: _Moments, bias_correction: bool) -> Tensor:
     return (between - bias).sum(-1)
 
 
-class ProfileVariancePerEffort(Selector):
+class ProfileVariancePerEffort(PerEffortSelector):
     r"""Ask the query of largest expected reduction of the top-set rating profile's variance per
     unit of effort (:mod:`torchpref.top_profile`).
 
@@ -190,11 +189,3 @@ class ProfileVariancePerEffort(Selector):
             return rating_row, rating_value / self.rating_cost, None, torch.full_like(rating_value, -torch.inf)
         chosen, ranking_value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, value)
         return rating_row, rating_value / self.rating_cost, cand.gather(1, chosen), ranking_value / self.ranking_cost
-
-    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
-                     generators: Sequence[torch.Generator]) -> list[Query]:
-        with torch.no_grad():
-            rating_row, rating_value, ranking_rows, ranking_value = self.values(model, X, generators)
-        return [ranking_query(X[b], indices[b], ranking_rows[b])
-                if ranking_rows is not None and bool(ranking_value[b] > rating_value[b])
-                else rating_query(X[b], indices[b], int(rating_row[b])) for b in range(X.shape[0])]

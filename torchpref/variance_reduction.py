@@ -43,8 +43,7 @@ from torch import Tensor
 
 from torchpref.acquisition import choice_probabilities
 from torchpref.information import top_set_membership
-from torchpref.queries import Query, ranking_query, rating_query
-from torchpref.strategies import Selector, effort_model, joint_posterior, joint_samples
+from torchpref.strategies import PerEffortSelector, effort_model, joint_posterior, joint_samples
 
 SQRT2 = 2.0**0.5
 
@@ -155,7 +154,7 @@ def variance_reduction(cov: Tensor, weights: Tensor, rows: Tensor, H: Tensor, sl
     return ((M @ cross) * cross * w).sum((-1, -2))  # sum_i w_i c_i^T M c_i
 
 
-class VariancePerEffort(Selector):
+class VariancePerEffort(PerEffortSelector):
     r"""Ask the query of largest expected reduction of the top region's rating-scale variance per
     unit of effort (:mod:`torchpref.variance_reduction`).
 
@@ -252,15 +251,3 @@ class VariancePerEffort(Selector):
             taken = torch.zeros(T, K, dtype=torch.bool, device=Fc.device).scatter_(1, best, True)
             rest = (~taken).nonzero()[:, 1].reshape(T, K - q)
             sets = torch.cat([best.unsqueeze(1).expand(T, K - q, q), rest.unsqueeze(-1)], -1)
-
-    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
-                     generators: Sequence[torch.Generator]) -> list[Query]:
-        with torch.no_grad():
-            rating_row, rating_value, ranking_rows, ranking_value = self.values(model, X, generators)
-        out = []
-        for b in range(X.shape[0]):
-            if ranking_rows is not None and bool(ranking_value[b] > rating_value[b]):
-                out.append(ranking_query(X[b], indices[b], ranking_rows[b]))
-            else:
-                out.append(rating_query(X[b], indices[b], int(rating_row[b])))
-        return out
