@@ -42,7 +42,7 @@ if os.environ.get("TP_SHIM") == "1":
     import botorch.models as bm
     import botorch.models.pairwise_gp as pg
 
-    from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
+    from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
 
     class PairwiseGP(PreferenceGP):
         def __init__(self, datapoints, comparisons, likelihood=None, covar_module=None, input_transform=None,

@@ -18,7 +18,7 @@ from botorch.models.pairwise_gp import PairwiseGP, PairwiseLaplaceMarginalLogLik
 from botorch.models.transforms.input import Normalize
 from scipy import stats
 
-from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
+from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
 
 MODELS = ("PairwiseGP", "PreferenceGP")
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -39,14 +39,14 @@ import torch
 from tqdm import tqdm
 
 from botorch.fit import fit_gpytorch_mll
-from torchpref.data import best_of_m, likert_to_unit, unit_to_likert
+from torchpref.data.preference_data import best_of_m, likert_to_unit, unit_to_likert
 from torchpref.experiments.results import paired_tests, write_json
 from torchpref.experiments.runner import make_model as fixed_model
 from torchpref.experiments.runner import single_threaded, trial_seeds
-from torchpref.metrics import true_positives, wrms
-from torchpref.models import LaplaceMarginalLogLikelihood
-from torchpref.users import SimulatedUser
-from torchpref.utility_functions import WaveFunction, evaluation_grid
+from torchpref.simulation.metrics import true_positives, wrms
+from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood
+from torchpref.simulation.users import SimulatedUser
+from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
 
 RESULTS = Path(__file__).resolve().parent / "results"
 K = 5
@@ -186,7 +186,7 @@ def likert_trial(kind: str, seed: int, queries: int, lake=None) -> dict:
 def level_model(X, C, settings: dict, learn: bool):
     """A fixed-kernel model with 5-level ordinal ratings (cut points trainable with ``learn``)."""
     base = fixed_model(X, C, settings)
-    from torchpref.models import PreferenceGP
+    from torchpref.models.preference_gp import PreferenceGP
 
     model = PreferenceGP(X, C, covar_module=base.covar_module, comparison_noise=settings["comparison_noise"],
                          rating_scale=settings["rating_scale"], rating_precision=settings["rating_precision"],
@@ -213,7 +213,7 @@ def tie_trial(kind: str, margin_share: float, seed: int, queries: int) -> dict:
         if arm == "ignored":
             model = base
         else:
-            from torchpref.models import PreferenceGP
+            from torchpref.models.preference_gp import PreferenceGP
 
             model = PreferenceGP(X, C, covar_module=base.covar_module, ties=T, learn_likelihood=arm == "learned",
                                  tie_threshold=margin if arm == "used" else 0.1, ties_offered=True,

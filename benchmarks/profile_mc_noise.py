@@ -3,7 +3,7 @@ r"""How much of a query's value the profile selectors lose to Monte-Carlo noise.
 For models after 8 queries of a few trials of several suite families (fixed hyperparameters,
 the profile selector asking), the selector picks a query from the same 100 candidates with
 ``--seeds`` different sample seeds; each pick is then valued by a reference estimate from 16,384
-joint samples (:func:`~torchpref.top_profile.profile_variance_reduction`, value per effort).
+joint samples (:func:`~torchpref.selection.top_profile.profile_variance_reduction`, value per effort).
 Reported per state: the mean and the smallest reference value of the picks relative to the best
 pick, and how often the picks agree on the query's kind. A ratio near 1 means the noise does not
 change which query is worth asking; the reference best of the picks is a lower bound on the
@@ -24,13 +24,13 @@ from pathlib import Path
 
 import torch
 
-from torchpref.acquisition import choice_probabilities, rating_bin_probabilities
-from torchpref.active import run_active_learning
+from torchpref.acquisition.functions import choice_probabilities, rating_bin_probabilities
+from torchpref.selection.active import run_active_learning
 from torchpref.experiments import runner
 from torchpref.experiments.families import FAMILIES, model_settings, setup
-from torchpref.queries import BoxCandidates
-from torchpref.strategies import joint_posterior, joint_samples
-from torchpref.top_profile import ProfileVariancePerEffort, profile_variance_reduction, top_profile
+from torchpref.data.queries import BoxCandidates
+from torchpref.selection.strategies import joint_posterior, joint_samples
+from torchpref.selection.top_profile import ProfileVariancePerEffort, profile_variance_reduction, top_profile
 
 FAMILY_NAMES = ("two-bumps", "narrow-peak", "waves", "hartmann6", "plateau")
 REFERENCE_SAMPLES = 16384

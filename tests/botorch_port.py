@@ -17,7 +17,7 @@ import torch
 from botorch.exceptions.warnings import InputDataWarning
 from botorch.models.pairwise_gp import PairwiseGP, PairwiseLaplaceMarginalLogLikelihood
 
-from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
+from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
 
 IMPLS = ("PreferenceGP", "PairwiseGP")
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy import integrate, stats
 
-from torchpref.acquisition import (
+from torchpref.acquisition.functions import (
     QueryInformation,
     QueryUCB,
     choice_probabilities,

@@ -4,9 +4,9 @@ result is that of the 2-D call on its slice."""
 import pytest
 import torch
 
-import torchpref.choice_sets as choice_sets
-import torchpref.information as information
-from torchpref.acquisition import (
+import torchpref.acquisition.choice_sets as choice_sets
+import torchpref.acquisition.information as information
+from torchpref.acquisition.functions import (
     choice_probabilities,
     greedy_choice_set,
     membership_information,
@@ -73,7 +73,7 @@ def test_membership_information_trials_none_kept_and_shapes():
     for t in range(T):
         torch.testing.assert_close(out[t], membership_information(P[t], Z[t], 2), rtol=1e-12, atol=1e-14)
     # ratings: T x K x S x G bins of T trials' samples
-    from torchpref.likelihoods import BetaRatingLikelihood
+    from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood
 
     F = torch.randn(T, S, N, generator=g, dtype=torch.float64)
     lik = BetaRatingLikelihood()

@@ -3,13 +3,13 @@
 import pytest
 import torch
 
-import torchpref.active as active
-from torchpref.active import run_active_learning
+import torchpref.selection.active as active
+from torchpref.selection.active import run_active_learning
 from torchpref.experiments.wave import make_model
-from torchpref.queries import BoxCandidates, RankingQuery, RatingQuery
-from torchpref.strategies import RandomMixed
-from torchpref.utility_functions import WaveFunction
-from torchpref.users import SimulatedUser
+from torchpref.data.queries import BoxCandidates, RankingQuery, RatingQuery
+from torchpref.selection.strategies import RandomMixed
+from torchpref.simulation.utility_functions import WaveFunction
+from torchpref.simulation.users import SimulatedUser
 
 BOUNDS = torch.tensor([[0.0], [1.0]], dtype=torch.float64)
 
@@ -88,8 +88,8 @@ def test_bad_input():
 def test_pool_with_repeated_rows_never_shows_an_item_twice():
     """``FinitePool`` offers each distinct item once (first row's index), so random rankings of a
     pool full of duplicates still compare distinct items and the loop runs."""
-    from torchpref.queries import FinitePool
-    from torchpref.strategies import RandomRankings
+    from torchpref.data.queries import FinitePool
+    from torchpref.selection.strategies import RandomRankings
 
     base = torch.tensor([[0.1], [0.3], [0.5], [0.9]], dtype=torch.float64)
     pool = base[torch.tensor([0, 1, 1, 2, 0, 3, 3, 3])]

@@ -3,14 +3,14 @@
 import pytest
 import torch
 
-from torchpref.active import run_active_learning, run_active_learning_batch
-from torchpref.batch import BatchedPreferenceGP
+from torchpref.selection.active import run_active_learning, run_active_learning_batch
+from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.experiments import wave
-from torchpref.numerics import NotPSDError, batched_cholesky
-from torchpref.queries import BoxCandidates, FinitePool
-from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, Selector
-from torchpref.utility_functions import WaveFunction
-from torchpref.users import SimulatedUser
+from torchpref.inference.numerics import NotPSDError, batched_cholesky
+from torchpref.data.queries import BoxCandidates, FinitePool
+from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomMixed, Selector
+from torchpref.simulation.utility_functions import WaveFunction
+from torchpref.simulation.users import SimulatedUser
 
 
 def _random_trials(T: int, steps: int, seed: int):
@@ -177,7 +177,7 @@ def test_batch_random_extreme_problems(hyper_seed):
     from gpytorch.kernels import RBFKernel, ScaleKernel
     from test_robustness import random_config
 
-    from torchpref.models import PreferenceGP
+    from torchpref.models.preference_gp import PreferenceGP
 
     hyper = random_config(1000 + hyper_seed)[0]
     problems = [random_config(s) for s in range(hyper_seed * 40, hyper_seed * 40 + 40)]
@@ -221,8 +221,8 @@ def test_fisher_steps_where_the_hessian_is_not_negative_definite():
     the same mode as each problem alone from the same start."""
     from gpytorch.kernels import RBFKernel, ScaleKernel
 
-    from torchpref.laplace import find_mode
-    from torchpref.models import PreferenceGP
+    from torchpref.inference.laplace import find_mode
+    from torchpref.models.preference_gp import PreferenceGP
 
     k = ScaleKernel(RBFKernel()).to(torch.float64)
     k.outputscale = 10.0

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from torchpref.cli import main, output_folder
-from torchpref.features import FeaturesError, printable, read_features_csv
+from torchpref.data.features import FeaturesError, printable, read_features_csv
 from torchpref.version import __version__
 
 REPO = Path(__file__).resolve().parents[1]

@@ -7,7 +7,7 @@ import torch
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from conftest import rand
-from torchpref.data import (
+from torchpref.data.preference_data import (
     PreferenceData,
     RatingBoundaryWarning,
     best_of_m,
@@ -15,7 +15,7 @@ from torchpref.data import (
     prepare_ratings,
     unit_to_likert,
 )
-from torchpref.models import PreferenceGP
+from torchpref.models.preference_gp import PreferenceGP
 
 F64 = torch.float64
 

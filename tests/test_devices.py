@@ -11,10 +11,10 @@ from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from conftest import random_comparisons
 from torchpref import BatchedPreferenceGP, PreferenceGP
-from torchpref.acquisition import QueryInformation, QueryUCB, latent_ucb
-from torchpref.models import LaplaceMarginalLogLikelihood
-from torchpref.strategies import UCBC, InformationPerEffort
-from torchpref.top_profile import ProfileVariancePerEffort
+from torchpref.acquisition.functions import QueryInformation, QueryUCB, latent_ucb
+from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood
+from torchpref.selection.strategies import UCBC, InformationPerEffort
+from torchpref.selection.top_profile import ProfileVariancePerEffort
 
 
 def build(device, seed=0, n=9):

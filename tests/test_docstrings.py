@@ -69,7 +69,7 @@ def _undocumented() -> list[str]:
 
 def test_public_modules_are_found():
     names = {m.__name__ for m in _public_modules()}
-    assert {"torchpref", "torchpref.models", "torchpref.session", "torchpref.widgets", "torchpref.lake"} <= names
+    assert {"torchpref", "torchpref.models.preference_gp", "torchpref.sessions.session", "torchpref.frontends.widgets", "torchpref.lake"} <= names
 
 
 def test_every_public_name_has_a_docstring():
@@ -91,7 +91,7 @@ def _unannotated(functions) -> list[str]:
     return out
 
 
-TYPED_MODULES = ("torchpref", "torchpref.widgets")
+TYPED_MODULES = ("torchpref", "torchpref.frontends.widgets")
 
 
 def test_top_level_api_annotates_its_parameters():

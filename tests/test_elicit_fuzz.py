@@ -19,8 +19,8 @@ import pytest
 
 pexpect = pytest.importorskip("pexpect")
 
-from torchpref.records import records_in_force  # noqa: E402
-from torchpref.session import read_session_file  # noqa: E402
+from torchpref.sessions.records import records_in_force  # noqa: E402
+from torchpref.sessions.session import read_session_file  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CSV = "name,cost,comfort\ncar,30,8\nbike,2,4\nbus,5,5\ntrain,12,7\n\x1b[31mwalk\x1b[0m,0,3\ntaxi,40,9\n"

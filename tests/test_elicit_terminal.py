@@ -11,7 +11,7 @@ import pytest
 pexpect = pytest.importorskip("pexpect")
 
 from torchpref.lake import LakeOperator  # noqa: E402
-from torchpref.session import read_session_file  # noqa: E402
+from torchpref.sessions.session import read_session_file  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RATING_PROMPT = r"Your rating \[1-5, u undo, \? help, q quit\]: "
@@ -148,7 +148,7 @@ def test_features_quit_and_resume(tmp_path):
 
 # ------------------------------------------------------------------------ in-process pieces
 def test_read_features_csv_labels_and_errors(tmp_path):
-    from torchpref.elicit import FeaturesError, read_features_csv
+    from torchpref.frontends.elicit import FeaturesError, read_features_csv
 
     p = tmp_path / "a.csv"
     p.write_text(CSV)
@@ -167,8 +167,8 @@ def test_read_features_csv_labels_and_errors(tmp_path):
 def test_answer_parsing_reasks_until_valid():
     import torch
 
-    from torchpref.elicit import _ask_answer
-    from torchpref.queries import RankingQuery, RatingQuery
+    from torchpref.frontends.elicit import _ask_answer
+    from torchpref.data.queries import RankingQuery, RatingQuery
 
     rq = RatingQuery(torch.zeros(2, dtype=torch.float64))
     out = io.StringIO()
@@ -186,6 +186,6 @@ def test_answer_parsing_reasks_until_valid():
 def test_elicit_does_not_import_matplotlib():
     import subprocess
 
-    code = "import sys, torchpref.elicit; print('matplotlib' in sys.modules)"
+    code = "import sys, torchpref.frontends.elicit; print('matplotlib' in sys.modules)"
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=str(REPO))
     assert res.stdout.strip() == "False", res.stderr

@@ -72,7 +72,7 @@ def test_registry_and_fixed_kernel():
     from gpytorch.kernels import RBFKernel, ScaleKernel
 
     from torchpref.experiments.runner import STRATEGIES as ALL, make_model, make_selector
-    from torchpref.kernels import fixed_rbf_kernel
+    from torchpref.models.kernels import fixed_rbf_kernel
 
     for name in ALL:
         assert callable(make_selector(name, m=3).select_batch)
@@ -94,7 +94,7 @@ def test_registry_and_fixed_kernel():
 def test_fixed_kernel_batch_of_values():
     import torch
 
-    from torchpref.kernels import FixedRBFKernel
+    from torchpref.models.kernels import FixedRBFKernel
 
     X = torch.rand(3, 6, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     ls, os_ = torch.tensor([0.1, 0.3, 1.0], dtype=torch.float64), torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)

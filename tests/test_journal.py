@@ -1,4 +1,4 @@
-"""The session file (torchpref.journal): strict validation of every record, lock before read,
+"""The session file (torchpref.sessions.journal): strict validation of every record, lock before read,
 a complete last record kept, and a session that an interrupt cannot split from its file."""
 
 import json
@@ -6,7 +6,7 @@ import json
 import pytest
 import torch
 
-from torchpref.session import PreferenceSession, SessionFileCorrupt, SessionFileError, read_session_file
+from torchpref.sessions.session import PreferenceSession, SessionFileCorrupt, SessionFileError, read_session_file
 
 SCALE = torch.tensor([100.0, 5.0], dtype=torch.float64)
 
@@ -155,7 +155,7 @@ def test_complete_last_record_without_newline_is_kept(tmp_path):
 def test_file_is_locked_before_it_is_read(tmp_path, monkeypatch):
     """A second writer that appends between our open and our lock: we must read its record, so
     that our next record follows its sequence number (reading first would duplicate it)."""
-    import torchpref.journal as journal
+    import torchpref.sessions.journal as journal
 
     X, path, lines = written(tmp_path)
     real_lock = journal._lock
@@ -210,7 +210,7 @@ class Interrupt:
 def consistent(s: PreferenceSession, path, X) -> None:
     """Model, file and history agree: the history is the file's answers in force, and the
     posterior is that of a fresh session replaying the file."""
-    from torchpref.records import records_in_force
+    from torchpref.sessions.records import records_in_force
 
     _, records, _ = read_session_file(path)
     assert [h.seq for h in s.history] == [r["seq"] for r in records_in_force(records)]
@@ -225,8 +225,8 @@ def consistent(s: PreferenceSession, path, X) -> None:
 
 @pytest.mark.parametrize("where", ["model", "write", "after_write"])
 def test_keyboard_interrupt_in_tell_keeps_model_file_and_history_together(tmp_path, monkeypatch, where):
-    import torchpref.journal as journal
-    import torchpref.models as models
+    import torchpref.sessions.journal as journal
+    import torchpref.models.preference_gp as models
 
     X, path, _ = written(tmp_path)
     s = PreferenceSession(X, session_file=path, seed=5)

@@ -11,9 +11,9 @@ from scipy import linalg, optimize, special
 
 from conftest import rand, randn, random_comparisons
 from evidence_check import assert_evidence_gradient
-from torchpref.laplace import Observations
-from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
-from torchpref.models import PreferenceGP
+from torchpref.inference.laplace import Observations
+from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.models.preference_gp import PreferenceGP
 
 SQRT2 = math.sqrt(2.0)
 
@@ -202,7 +202,7 @@ def test_evidence_gradient_is_not_the_fixed_mode_gradient():
     p = model.covar_module.base_kernel.raw_lengthscale
     (g,) = torch.autograd.grad(model.log_marginal_likelihood(), [p])
     # naive: same formula with the mode held fixed (no implicit term through W)
-    from torchpref.laplace import laplace_evidence  # noqa: F401  (documented pure function)
+    from torchpref.inference.laplace import laplace_evidence  # noqa: F401  (documented pure function)
 
     f_fixed = model.mode.f.clone()
     L = torch.linalg.cholesky(model.covar_module(model.train_X).to_dense())
@@ -253,7 +253,7 @@ def test_matches_botorch_pairwise_gp(d, seed):
 def test_written_out_evidence_gradient_equals_traced(kind, d, learn):
     """The hand-written evidence gradient against autograd through both Cholesky factorisations
     (the implicit mode dependence by a Newton step), at the same mode."""
-    from torchpref.laplace import _laplace_evidence_traced, laplace_evidence
+    from torchpref.inference.laplace import _laplace_evidence_traced, laplace_evidence
 
     model, _, _ = build(kind, d, seed=7, learn=learn)
     params = list(_raw_params(model, learn, kind).values())
@@ -304,7 +304,7 @@ def test_mode_accelerations_reach_the_plain_newton_mode(sigma_R, lengthscale, nu
     """Float32 steps far from the mode and chord steps near it (n >= 256) end at the mode that
     plain float64 Newton finds, with the same exact factorisation, also where float32 fails
     (tiny sigma_R: huge curvatures) and the solver falls back to float64."""
-    from torchpref.laplace import find_mode
+    from torchpref.inference.laplace import find_mode
 
     g = torch.Generator().manual_seed(11)
     n = 300

@@ -8,7 +8,7 @@ import torch
 from scipy import integrate, special, stats
 
 from conftest import rand, randn
-from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 
 SQRT2 = math.sqrt(2.0)
 

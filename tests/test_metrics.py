@@ -1,4 +1,4 @@
-"""Tests for torchpref.metrics against hand-written numpy / scipy values."""
+"""Tests for torchpref.simulation.metrics against hand-written numpy / scipy values."""
 
 import math
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.stats import norm
 
-from torchpref.metrics import (
+from torchpref.simulation.metrics import (
     error_on_best,
     expected_rating,
     rating_from_latent,

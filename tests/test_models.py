@@ -8,7 +8,7 @@ import torch
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from conftest import rand, random_comparisons
-from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
+from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
 
 SQRT2 = math.sqrt(2.0)
 

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from torchpref.numerics import lower_t_matmul
+from torchpref.inference.numerics import lower_t_matmul
 
 
 @pytest.mark.parametrize("n,blocks", [(5, 4), (256, 4), (301, 3), (300, 7)])
@@ -14,7 +14,7 @@ def test_lower_t_matmul_is_the_full_product(n, blocks, generator):
 
 
 def test_cholesky_jittered_names_the_failure():
-    from torchpref.numerics import NotPSDError, cholesky_jittered
+    from torchpref.inference.numerics import NotPSDError, cholesky_jittered
 
     A = torch.eye(4, dtype=torch.float64)
     A[1, 2] = A[2, 1] = float("nan")
@@ -30,7 +30,7 @@ def test_cholesky_jittered_names_the_failure():
 
 
 def test_cholesky_batch_per_matrix_schedules():
-    from torchpref.numerics import cholesky_batch
+    from torchpref.inference.numerics import cholesky_batch
 
     eye = torch.eye(3, dtype=torch.float64)
     A = torch.stack([eye, torch.ones(3, 3, dtype=torch.float64), -eye])  # fine, singular, negative definite
@@ -44,7 +44,7 @@ def test_cholesky_batch_per_matrix_schedules():
 def test_gauss_hermite_moments():
     import math
 
-    from torchpref.numerics import gauss_hermite
+    from torchpref.inference.numerics import gauss_hermite
 
     x, w = gauss_hermite(10, torch.zeros((), dtype=torch.float64))
     m, v = 0.3, 2.0

@@ -8,9 +8,9 @@ import torch
 from scipy import stats
 
 from conftest import rand
-from torchpref.acquisition import QueryInformation, rating_bin_probabilities
-from torchpref.models import PreferenceGP
-from torchpref.ordinal import OrdinalRatingLikelihood
+from torchpref.acquisition.functions import QueryInformation, rating_bin_probabilities
+from torchpref.models.preference_gp import PreferenceGP
+from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood
 
 
 def level_model(seed: int = 0) -> PreferenceGP:
@@ -50,10 +50,10 @@ def test_bins_of_an_ordinal_rating_are_its_levels():
 
 def test_active_learning_with_levels_and_information_per_effort():
     """The loop runs with an ordinal model and a rating answer in [0, 1] becomes its level."""
-    from torchpref.active import run_active_learning
-    from torchpref.queries import BoxCandidates
-    from torchpref.strategies import InformationPerEffort, RandomRatings
-    from torchpref.users import SimulatedUser
+    from torchpref.selection.active import run_active_learning
+    from torchpref.data.queries import BoxCandidates
+    from torchpref.selection.strategies import InformationPerEffort, RandomRatings
+    from torchpref.simulation.users import SimulatedUser
 
     user = SimulatedUser(lambda X: torch.sin(6 * X[:, 0]), 0.05, 0.8, 80.0,
                          generator=torch.Generator().manual_seed(3))

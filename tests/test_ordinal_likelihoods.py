@@ -10,9 +10,9 @@ import torch
 from gpytorch.distributions import MultivariateNormal
 from scipy import integrate, stats
 
-from torchpref.likelihoods import PairwiseProbitLikelihood
-from torchpref.numerics import normal_interval
-from torchpref.ordinal import OrdinalRatingLikelihood, TieLikelihood, default_cut_points
+from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
+from torchpref.inference.numerics import normal_interval
+from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, TieLikelihood, default_cut_points
 
 SQRT2 = math.sqrt(2.0)
 T = dict(dtype=torch.float64)
@@ -231,7 +231,7 @@ def test_tie_shares_the_comparison_noise():
 
 @pytest.mark.parametrize("tau,sigma_R", [(0.1, 0.1), (0.5, 1.0)])
 def test_strict_preference_is_the_tie_upper_category(tau, sigma_R):
-    from torchpref.ordinal import StrictPreferenceLikelihood
+    from torchpref.likelihoods.ordinal import StrictPreferenceLikelihood
 
     tie = TieLikelihood(tau, PairwiseProbitLikelihood(sigma_R))
     strict = StrictPreferenceLikelihood(tie)

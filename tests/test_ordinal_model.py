@@ -13,7 +13,7 @@ from scipy import optimize, special, stats
 
 from conftest import rand, random_comparisons
 from evidence_check import assert_evidence_gradient
-from torchpref.models import LaplaceMarginalLogLikelihood, PreferenceGP
+from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
 
 SQRT2 = math.sqrt(2.0)
 
@@ -221,7 +221,7 @@ def test_batched_model_with_ties_and_levels_matches_single_models():
 def test_record_answer_ties_and_levels():
     """The answer path: "equally best" rows become comparisons and ties, no preference a tie
     between every two items shown, and a rating in [0, 1] the level of its bin."""
-    from torchpref.queries import RankingQuery, RatingQuery, record_answer
+    from torchpref.data.queries import RankingQuery, RatingQuery, record_answer
 
     g = torch.Generator().manual_seed(8)
     model = PreferenceGP(rand(2, 1, generator=g), torch.tensor([[0, 1]]), ties_offered=True)
@@ -240,7 +240,7 @@ def test_record_answer_ties_and_levels():
 
 
 def test_checkpoint_keeps_ties_levels_and_settings(tmp_path):
-    from torchpref.checkpoint import load_model, save_model
+    from torchpref.models.checkpoint import load_model, save_model
 
     model = build("levels", seed=6, offered=True)
     save_model(model, tmp_path / "m.pt")

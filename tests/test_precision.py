@@ -8,8 +8,8 @@ from botorch.exceptions.warnings import InputDataWarning
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from torchpref import PreferenceGP
-from torchpref.laplace import LaplaceConvergenceWarning
-from torchpref.numerics import default_tolerance, roundoff_floor
+from torchpref.inference.laplace import LaplaceConvergenceWarning
+from torchpref.inference.numerics import default_tolerance, roundoff_floor
 
 F32, F64 = torch.float32, torch.float64
 
@@ -158,8 +158,8 @@ def test_laplace_dtype_is_validated_and_switches_the_solve():
 
 
 def test_laplace_dtype_survives_a_checkpoint_and_a_batch_trial(tmp_path):
-    from torchpref.batch import BatchedPreferenceGP
-    from torchpref.checkpoint import load_model, save_model
+    from torchpref.models.batch import BatchedPreferenceGP
+    from torchpref.models.checkpoint import load_model, save_model
 
     m32, _ = long_lengthscale_models(laplace_dtype=F32)
     save_model(m32, tmp_path / "m.pt")
@@ -179,7 +179,7 @@ def test_beta_derivatives_are_finite_where_phi_underflows(dtype, eta):
     # was infinite there, the gradient inf or NaN, and Newton raised FloatingPointError (fuzz
     # seeds 456 and 522). Reference: mpmath's derivatives of the direct log density.
     mp = pytest.importorskip("mpmath")
-    from torchpref.likelihoods import BetaRatingLikelihood
+    from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood
 
     lik = BetaRatingLikelihood(0.1724578, 933.7958).to(dtype)
     u = torch.tensor([1 - 1e-6, 0.3], dtype=dtype)

@@ -8,9 +8,8 @@ from botorch.exceptions.warnings import InputDataWarning
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from conftest import rand, random_comparisons
-from torchpref.models import PreferenceGP
-from torchpref import numerics
-
+from torchpref.models.preference_gp import PreferenceGP
+from torchpref.inference import numerics
 F32, F64 = torch.float32, torch.float64
 
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
-from torchpref.models import PreferenceGP
+from torchpref.models.preference_gp import PreferenceGP
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchpref import BoxCandidates, RankingQuery, RatingQuery, likert_to_unit
-from torchpref.session import (
+from torchpref.sessions.session import (
     FORMAT_VERSION,
     PreferenceSession,
     SessionFileCorrupt,
@@ -165,7 +165,7 @@ def test_bad_items_are_rejected():
 
 
 def test_write_failure_leaves_file_and_model_unchanged(tmp_path, monkeypatch):
-    import torchpref.journal as mod
+    import torchpref.sessions.journal as mod
 
     X = pool()
     path = tmp_path / "s.jsonl"

@@ -37,8 +37,8 @@ import warnings
 
 import torch
 
-import torchpref.journal as journal
-import torchpref.session as ts
+import torchpref.sessions.journal as journal
+import torchpref.sessions.session as ts
 
 
 def make_pool(seed):
@@ -177,7 +177,7 @@ def test_sigkill_at_random_points_loses_nothing(tmp_path):
         assert "REPAIRED" in nxt.seen and f"READY {step}" in nxt.seen
     assert (tmp_path / "session.jsonl.dropped").exists()
 
-    from torchpref.session import PreferenceSession, read_session_file
+    from torchpref.sessions.session import PreferenceSession, read_session_file
 
     header, records, _ = read_session_file(path)  # complete and valid: no repair needed
     answers = [r for r in records if r["type"] == "answer"]
@@ -211,8 +211,8 @@ import time
 
 import torch
 
-import torchpref.journal as journal
-from torchpref.session import PreferenceSession
+import torchpref.sessions.journal as journal
+from torchpref.sessions.session import PreferenceSession
 
 path, pause = sys.argv[1], float(sys.argv[2])
 write_all = journal._write_all
@@ -233,7 +233,7 @@ print("UNDONE", flush=True)
 
 
 def _answered_session(path, n):
-    from torchpref.session import PreferenceSession
+    from torchpref.sessions.session import PreferenceSession
 
     g = torch.Generator().manual_seed(3)
     s = PreferenceSession(torch.rand(12, 2, generator=g, dtype=torch.float64), session_file=path, seed=3, num_queries=10)
@@ -246,7 +246,7 @@ def _answered_session(path, n):
 def test_sigkill_in_the_middle_of_an_undo_keeps_the_answer(tmp_path):
     import warnings
 
-    from torchpref.session import PreferenceSession, SessionFileCorrupt, SessionRepairWarning
+    from torchpref.sessions.session import PreferenceSession, SessionFileCorrupt, SessionRepairWarning
 
     path = tmp_path / "s.jsonl"
     _answered_session(path, 4)
@@ -281,7 +281,7 @@ import time
 import torch
 
 import torchpref
-import torchpref.checkpoint as checkpoint
+import torchpref.models.checkpoint as checkpoint
 
 path, pause = sys.argv[1], float(sys.argv[2])
 real_save = torch.save

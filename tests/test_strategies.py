@@ -4,10 +4,10 @@ import pytest
 import torch
 
 from torchpref.experiments.wave import make_model
-from torchpref.queries import RankingQuery, RatingQuery
-from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
-from torchpref.top_profile import ProfileVariancePerEffort
-from torchpref.variance_reduction import VariancePerEffort
+from torchpref.data.queries import RankingQuery, RatingQuery
+from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
+from torchpref.selection.top_profile import ProfileVariancePerEffort
+from torchpref.selection.variance_reduction import VariancePerEffort
 
 
 @pytest.fixture
@@ -139,7 +139,7 @@ def test_ucb_selectors_take_any_botorch_model():
     """Without ``marginals`` (here BoTorch's PairwiseGP) the UCB selectors use ``posterior``."""
     from botorch.models import PairwiseGP
 
-    from torchpref.strategies import UCBC, UCBRatings
+    from torchpref.selection.strategies import UCBC, UCBRatings
 
     g = torch.Generator().manual_seed(0)
     X = torch.rand(6, 1, generator=g, dtype=torch.float64)

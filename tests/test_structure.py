@@ -1,5 +1,6 @@
-"""The package's layout stays as docs/architecture.md describes it: no module of ``torchpref``
-over 450 lines, no function over 60, no import cycle among the modules (module-level imports),
+"""The package's layout stays as docs/architecture.md describes it: subpackages by stage, each
+importing only the stages below it (any import, at module level or inside a function), no import
+cycle among the modules (module-level imports), no module over 450 lines and no function over 60,
 and the lake world (``torchpref/lake/``) imports nothing of learning (the model, the loop, the
 selectors, the metrics) from the rest of the package."""
 
@@ -14,7 +15,15 @@ MAX_FUNCTION_LINES = 60
 
 # What a module of torchpref/lake/ may import from the rest of torchpref: the data conventions
 # (Likert levels) and numerical helpers; never a model, a selector, the loop or the metrics.
-LAKE_MAY_IMPORT = {"data", "numerics"}
+LAKE_MAY_IMPORT = {"data", "inference"}
+LAKE_MAY_IMPORT_MODULES = {"torchpref.data.preference_data", "torchpref.inference.numerics"}
+
+# The stages, lowest first: a module may import its own stage and those below it, never one above.
+# The top-level modules (the package's front, the command line, the demo) may import everything;
+# ``version`` is the floor.
+LAYERS = ["version", "data", "inference", "likelihoods", "models", "acquisition", "simulation",
+          "selection", "sessions", "lake", "experiments", "frontends", "integrations"]
+TOP = {"__init__", "cli", "demo", "serve"}
 
 
 def _modules() -> list[Path]:
@@ -39,47 +48,6 @@ def test_no_function_over_the_limit():
                 if n > MAX_FUNCTION_LINES:
                     long.append(f"{_name(f)}:{node.lineno} {node.name} ({n} lines)")
     assert not long, f"functions over {MAX_FUNCTION_LINES} lines:\n" + "\n".join(long)
-
-
-def _torchpref_imports(tree: ast.AST) -> list[tuple[str, int]]:
-    """Each import of a torchpref module outside the lake package: ``(top-level module, line)``."""
-    out = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom):
-            if node.level == 1:  # from .x import ...: inside the lake package
-                continue
-            if node.level >= 2:  # from ..x import ...: torchpref.x
-                parts = (node.module or "").split(".")
-                out += [(parts[0], node.lineno)] if parts[0] else [(a.name, node.lineno) for a in node.names]
-            elif node.module and node.module.split(".")[0] == "torchpref":
-                parts = node.module.split(".")
-                out += [(parts[1], node.lineno)] if len(parts) > 1 else [(a.name, node.lineno) for a in node.names]
-        elif isinstance(node, ast.Import):
-            for a in node.names:
-                parts = a.name.split(".")
-                if parts[0] == "torchpref":
-                    out.append((parts[1] if len(parts) > 1 else "torchpref", node.lineno))
-    return out
-
-
-def test_the_lake_world_imports_nothing_of_learning():
-    folder = PACKAGE / "lake"
-    seen, bad = [], []
-    for f in sorted(folder.glob("*.py")):
-        for module, line in _torchpref_imports(ast.parse(f.read_text())):
-            seen.append(module)
-            if module not in LAKE_MAY_IMPORT | {"lake"}:
-                bad.append(f"{f.name}:{line} imports torchpref.{module}")
-    assert not bad, "\n".join(bad)
-    assert "data" in seen, "expected the lake operator's import of torchpref.data (is the walk blind?)"
-
-
-def test_the_import_walk_sees_every_form():
-    src = ("from ..models import PreferenceGP\nfrom .. import active\nimport torchpref.metrics\n"
-           "from torchpref.strategies import UCBC\nfrom torchpref import session\nfrom .field import x\n"
-           "def f():\n    from torchpref.acquisition import item_ucb\n")
-    assert sorted(m for m, _ in _torchpref_imports(ast.parse(src))) == [
-        "acquisition", "active", "metrics", "models", "session", "strategies"]
 
 
 def _module_imports(f: Path) -> set[str]:
@@ -138,7 +106,7 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
 def test_module_level_imports_form_no_cycle():
     graph = {f"torchpref.{_name(f)[:-3].replace('/', '.')}".removesuffix(".__init__"): _module_imports(f)
              for f in _modules()}
-    assert {"torchpref.models", "torchpref.lake.field"} <= graph["torchpref.session_settings"] | graph[
+    assert {"torchpref.models.preference_gp", "torchpref.lake.field"} <= graph["torchpref.sessions.settings"] | graph[
         "torchpref.lake.plan"] | graph["torchpref.lake.planners"], "is the walk blind?"
     cycle = _cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
@@ -147,3 +115,66 @@ def test_module_level_imports_form_no_cycle():
 def test_the_cycle_search_finds_one():
     assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == ["a", "b", "c", "a"]
     assert _cycle({"a": {"b"}, "b": set(), "c": {"a", "b"}}) is None
+
+
+def _all_imports(f: Path, source: str | None = None) -> list[tuple[str, int]]:
+    """Every torchpref module ``f`` (or ``source``, read as if it were ``f``) imports, anywhere in
+    the file, as ``(dotted name, line)``."""
+    package = "torchpref." + ".".join(f.relative_to(PACKAGE).with_suffix("").parts[:-1])
+    package = package.rstrip(".")
+    out = []
+    for node in ast.walk(ast.parse(f.read_text() if source is None else source)):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                module = f"{base}.{node.module}" if node.module else base
+            else:
+                module = node.module or ""
+            if module == "torchpref":
+                out += [(f"torchpref.{a.name}", node.lineno) for a in node.names]
+            elif module.startswith("torchpref."):
+                out.append((module, node.lineno))
+        elif isinstance(node, ast.Import):
+            out += [(a.name, node.lineno) for a in node.names if a.name.startswith("torchpref.")]
+    return out
+
+
+def _stage(dotted: str) -> str:
+    return dotted.split(".")[1]
+
+
+def test_every_module_is_in_a_stage():
+    stray = [_name(f) for f in _modules() if f.parent == PACKAGE and f.stem not in TOP | {"version"}]
+    stray += [_name(f) for f in _modules() if f.parent != PACKAGE and
+              f.relative_to(PACKAGE).parts[0] not in LAYERS]
+    assert not stray, f"modules outside the stages of docs/architecture.md: {stray}"
+
+
+def test_no_module_imports_a_stage_above_its_own():
+    bad = []
+    for f in _modules():
+        here = f.relative_to(PACKAGE).parts[0].removesuffix(".py")
+        if here in TOP:
+            continue
+        for dotted, line in _all_imports(f):
+            there = _stage(dotted)
+            if there in TOP or (there in LAYERS and LAYERS.index(there) > LAYERS.index(here)):
+                bad.append(f"{_name(f)}:{line} imports {dotted} ({there} is above {here})")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_lake_world_imports_only_data_and_numerics():
+    bad = [f"{f.name}:{line} imports {dotted}" for f in sorted((PACKAGE / "lake").glob("*.py"))
+           for dotted, line in _all_imports(f)
+           if not dotted.startswith("torchpref.lake") and dotted not in LAKE_MAY_IMPORT_MODULES]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_import_walk_sees_every_form():
+    src = ("from ..models.batch import BatchedPreferenceGP\nfrom .. import data\nimport torchpref.simulation.metrics\n"
+           "from torchpref import sessions\nfrom .field import x\n"
+           "def f():\n    from torchpref.acquisition.functions import item_ucb\n")
+    found = _all_imports(PACKAGE / "lake" / "probe.py", src)
+    assert sorted(found) == [("torchpref.acquisition.functions", 7), ("torchpref.data", 2),
+                             ("torchpref.lake.field", 5), ("torchpref.models.batch", 1),
+                             ("torchpref.sessions", 4), ("torchpref.simulation.metrics", 3)]

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from torchpref.data import PreferenceData, best_of_m, best_of_m_with_ties
+from torchpref.data.preference_data import PreferenceData, best_of_m, best_of_m_with_ties
 
 T = dict(dtype=torch.float64)
 

@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from torchpref import BatchedPreferenceGP, PreferenceGP
-from torchpref.acquisition import rating_bin_probabilities
-from torchpref.kernels import fixed_rbf_kernel
-from torchpref.queries import RankingQuery, RatingQuery
-from torchpref.top_profile import ProfileVariancePerEffort, profile_variance_reduction, top_profile
+from torchpref.acquisition.functions import rating_bin_probabilities
+from torchpref.models.kernels import fixed_rbf_kernel
+from torchpref.data.queries import RankingQuery, RatingQuery
+from torchpref.selection.top_profile import ProfileVariancePerEffort, profile_variance_reduction, top_profile
 
 from test_variance_reduction import _line, _model  # the same hand-checked cases
 

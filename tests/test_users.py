@@ -1,4 +1,4 @@
-"""Tests for torchpref.users: the user protocol, the simulated user and its samplers."""
+"""Tests for torchpref.simulation.users: the user protocol, the simulated user and its samplers."""
 
 import math
 
@@ -7,8 +7,8 @@ import pytest
 import torch
 from scipy import stats
 
-from torchpref.utility_functions import WaveFunction, evaluation_grid
-from torchpref.users import RATING_CLAMP, SimulatedUser, User, sample_beta, sample_log_gamma
+from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
+from torchpref.simulation.users import RATING_CLAMP, SimulatedUser, User, sample_beta, sample_log_gamma
 
 
 @pytest.fixture
@@ -187,7 +187,7 @@ def test_bad_input():
 
 def test_scalar_gamma_path_matches_tensor_path():
     """One shape (a simulated rating) takes a Python-float path: same values, same draws."""
-    from torchpref.users import _log_gamma_scalar, _log_gamma_tensor
+    from torchpref.simulation.users import _log_gamma_scalar, _log_gamma_tensor
 
     for seed in range(200):
         a = [0.01, 0.3, 0.99, 1.0, 2.5, 40.0, 79.9][seed % 7]

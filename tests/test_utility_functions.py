@@ -1,4 +1,4 @@
-"""Tests for torchpref.utility_functions: the random wave functions of eq. 13."""
+"""Tests for torchpref.simulation.utility_functions: the random wave functions of eq. 13."""
 
 import math
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 from botorch.test_functions.synthetic import SyntheticTestFunction
 
-from torchpref.utility_functions import WaveFunction, evaluation_grid
+from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
 
 PARAMS = dict(
     frequencies=[12.0, 21.5, 28.0],

@@ -10,13 +10,13 @@ from scipy.optimize import minimize
 from scipy.stats import beta
 
 from torchpref import BatchedPreferenceGP, PreferenceGP
-from torchpref.fantasy import condition_batch
-from torchpref.kernels import fixed_rbf_kernel
-from torchpref.likelihoods import PairwiseProbitLikelihood
-from torchpref.queries import RankingQuery, RatingQuery
-from torchpref.strategies import joint_samples
-from torchpref.top_profile import ProfileVariancePerEffort
-from torchpref.variance_reduction import (VariancePerEffort, choice_answer_probabilities, rating_hessian,
+from torchpref.models.fantasy import condition_batch
+from torchpref.models.kernels import fixed_rbf_kernel
+from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
+from torchpref.data.queries import RankingQuery, RatingQuery
+from torchpref.selection.strategies import joint_samples
+from torchpref.selection.top_profile import ProfileVariancePerEffort
+from torchpref.selection.variance_reduction import (VariancePerEffort, choice_answer_probabilities, rating_hessian,
                                           ranking_mode_hessians, variance_reduction)
 
 D = torch.float64
@@ -73,7 +73,7 @@ def test_ranking_mode_hessians_against_scipy_and_autograd(generator):
 
 def test_choice_answer_probabilities_pairs_match_quadrature(generator):
     F = torch.randn(50, 2, generator=generator, dtype=D)
-    from torchpref.acquisition import choice_probabilities
+    from torchpref.acquisition.functions import choice_probabilities
     noise = torch.tensor(0.3, dtype=D)
     assert torch.allclose(choice_answer_probabilities(F, noise), choice_probabilities(F, noise, 12).mean(0),
                           atol=1e-6)

@@ -1,5 +1,5 @@
 """The lake widget in a real headless browser: Voilà serves a notebook with a
-:class:`~torchpref.widgets.PreferenceWidget` over lake paths, Playwright drives Chromium.
+:class:`~torchpref.frontends.widgets.PreferenceWidget` over lake paths, Playwright drives Chromium.
 
 Checks that each option's picture is rendered by the browser and shows a path on the map (its
 pixels hold the path's colour), and that a click on "A is best" is recorded in the session file.
@@ -32,15 +32,15 @@ sync_api = pytest.importorskip("playwright.sync_api", reason="Playwright is not 
 pytest.importorskip("ipywidgets")
 mpimg = pytest.importorskip("matplotlib.image")
 
-PATH_COLOUR = (0x1F, 0x3F, 0xBF)  # the first path's colour on the lake map (torchpref.elicit.plot_paths)
+PATH_COLOUR = (0x1F, 0x3F, 0xBF)  # the first path's colour on the lake map (torchpref.frontends.elicit.plot_paths)
 STARTUP_S = 240  # Voilà runs the notebook (scenario, model, five maps) before the page is ready
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 NOTEBOOK_CODE = """\
 from torchpref.lake import make_scenario
-from torchpref.session import PreferenceSession
-from torchpref.widgets import PreferenceWidget, lake_renderer
+from torchpref.sessions.session import PreferenceSession
+from torchpref.frontends.widgets import PreferenceWidget, lake_renderer
 
 scenario = make_scenario(seed=0, paths_per_planner=10)
 session = PreferenceSession(scenario.train_X, session_file={session_file!r}, num_queries=4,

@@ -15,11 +15,11 @@ from typing import TYPE_CHECKING, Any
 from torchpref.version import __version__
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
-    from torchpref.acquisition import QueryInformation, QueryUCB, latent_ucb
-    from torchpref.active import History, QueryRecord, fit_model, run_active_learning, run_active_learning_batch
-    from torchpref.batch import BatchedPreferenceGP
-    from torchpref.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
-    from torchpref.data import (
+    from torchpref.acquisition.functions import QueryInformation, QueryUCB, latent_ucb
+    from torchpref.selection.active import History, QueryRecord, fit_model, run_active_learning, run_active_learning_batch
+    from torchpref.models.batch import BatchedPreferenceGP
+    from torchpref.models.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
+    from torchpref.data.preference_data import (
         PreferenceData,
         RatingBoundaryWarning,
         best_of_m,
@@ -28,79 +28,79 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         prepare_ratings,
         unit_to_likert,
     )
-    from torchpref.botorch_api import TrainDataMismatchError
-    from torchpref.laplace import LaplaceConvergenceWarning
-    from torchpref.likelihoods import BetaRatingLikelihood, PairwiseProbitLikelihood
-    from torchpref.metrics import error_on_best, expected_rating, rating_from_latent, true_positives, wrms, wrms_authors
-    from torchpref.models import PAPER_FIG4_SETTINGS, LaplaceMarginalLogLikelihood, PreferenceGP, default_covar_module
-    from torchpref.numerics import JitterWarning, NotPSDError
-    from torchpref.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
-    from torchpref.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
-    from torchpref.session import PreferenceSession
-    from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
-    from torchpref.top_profile import ProfileVariancePerEffort
-    from torchpref.utility_functions import WaveFunction, evaluation_grid
-    from torchpref.variance_reduction import VariancePerEffort
-    from torchpref.users import SimulatedUser, User
+    from torchpref.models.pairwise_interface import TrainDataMismatchError
+    from torchpref.inference.laplace import LaplaceConvergenceWarning
+    from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
+    from torchpref.simulation.metrics import error_on_best, expected_rating, rating_from_latent, true_positives, wrms, wrms_authors
+    from torchpref.models.preference_gp import PAPER_FIG4_SETTINGS, LaplaceMarginalLogLikelihood, PreferenceGP, default_covar_module
+    from torchpref.inference.numerics import JitterWarning, NotPSDError
+    from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
+    from torchpref.data.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
+    from torchpref.sessions.session import PreferenceSession
+    from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
+    from torchpref.selection.top_profile import ProfileVariancePerEffort
+    from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
+    from torchpref.selection.variance_reduction import VariancePerEffort
+    from torchpref.simulation.users import SimulatedUser, User
 
 # public name -> the torchpref module that defines it
 _EXPORTS = {
-    "BatchedPreferenceGP": "batch",
-    "CheckpointError": "checkpoint",
-    "load_model": "checkpoint",
-    "model_checkpoint": "checkpoint",
-    "save_model": "checkpoint",
-    "best_of_m": "data",
-    "best_of_m_with_ties": "data",
-    "BetaRatingLikelihood": "likelihoods",
-    "BoxCandidates": "queries",
-    "default_covar_module": "models",
-    "error_on_best": "metrics",
-    "evaluation_grid": "utility_functions",
-    "expected_rating": "metrics",
-    "FinitePool": "queries",
-    "fit_model": "active",
-    "History": "active",
-    "InformationPerEffort": "strategies",
-    "JitterWarning": "numerics",
-    "LaplaceConvergenceWarning": "laplace",
-    "LaplaceMarginalLogLikelihood": "models",
-    "latent_ucb": "acquisition",
-    "likert_to_unit": "data",
-    "NotPSDError": "numerics",
-    "OrdinalRatingLikelihood": "ordinal",
-    "PAPER_FIG4_SETTINGS": "models",
-    "TrainDataMismatchError": "botorch_api",
-    "PairwiseProbitLikelihood": "likelihoods",
-    "PreferenceData": "data",
-    "PreferenceGP": "models",
-    "PreferenceSession": "session",
-    "ProfileVariancePerEffort": "top_profile",
-    "prepare_ratings": "data",
-    "QueryInformation": "acquisition",
-    "QueryRecord": "active",
-    "QueryUCB": "acquisition",
-    "RandomMixed": "strategies",
-    "RandomRankings": "strategies",
-    "RandomRatings": "strategies",
-    "RankingQuery": "queries",
-    "rating_from_latent": "metrics",
-    "RatingBoundaryWarning": "data",
-    "RatingQuery": "queries",
-    "run_active_learning": "active",
-    "run_active_learning_batch": "active",
-    "SimulatedUser": "users",
-    "StrictPreferenceLikelihood": "ordinal",
-    "TieLikelihood": "ordinal",
-    "true_positives": "metrics",
-    "UCBC": "strategies",
-    "UCBRatings": "strategies",
-    "unit_to_likert": "data",
-    "User": "users",
-    "VariancePerEffort": "variance_reduction",
-    "WaveFunction": "utility_functions",
-    "wrms": "metrics",
-    "wrms_authors": "metrics",
+    "BatchedPreferenceGP": "models.batch",
+    "CheckpointError": "models.checkpoint",
+    "load_model": "models.checkpoint",
+    "model_checkpoint": "models.checkpoint",
+    "save_model": "models.checkpoint",
+    "best_of_m": "data.preference_data",
+    "best_of_m_with_ties": "data.preference_data",
+    "BetaRatingLikelihood": "likelihoods.pairwise_beta",
+    "BoxCandidates": "data.queries",
+    "default_covar_module": "models.preference_gp",
+    "error_on_best": "simulation.metrics",
+    "evaluation_grid": "simulation.utility_functions",
+    "expected_rating": "simulation.metrics",
+    "FinitePool": "data.queries",
+    "fit_model": "selection.active",
+    "History": "selection.active",
+    "InformationPerEffort": "selection.strategies",
+    "JitterWarning": "inference.numerics",
+    "LaplaceConvergenceWarning": "inference.laplace",
+    "LaplaceMarginalLogLikelihood": "models.preference_gp",
+    "latent_ucb": "acquisition.functions",
+    "likert_to_unit": "data.preference_data",
+    "NotPSDError": "inference.numerics",
+    "OrdinalRatingLikelihood": "likelihoods.ordinal",
+    "PAPER_FIG4_SETTINGS": "models.preference_gp",
+    "TrainDataMismatchError": "models.pairwise_interface",
+    "PairwiseProbitLikelihood": "likelihoods.pairwise_beta",
+    "PreferenceData": "data.preference_data",
+    "PreferenceGP": "models.preference_gp",
+    "PreferenceSession": "sessions.session",
+    "ProfileVariancePerEffort": "selection.top_profile",
+    "prepare_ratings": "data.preference_data",
+    "QueryInformation": "acquisition.functions",
+    "QueryRecord": "selection.active",
+    "QueryUCB": "acquisition.functions",
+    "RandomMixed": "selection.strategies",
+    "RandomRankings": "selection.strategies",
+    "RandomRatings": "selection.strategies",
+    "RankingQuery": "data.queries",
+    "rating_from_latent": "simulation.metrics",
+    "RatingBoundaryWarning": "data.preference_data",
+    "RatingQuery": "data.queries",
+    "run_active_learning": "selection.active",
+    "run_active_learning_batch": "selection.active",
+    "SimulatedUser": "simulation.users",
+    "StrictPreferenceLikelihood": "likelihoods.ordinal",
+    "TieLikelihood": "likelihoods.ordinal",
+    "true_positives": "simulation.metrics",
+    "UCBC": "selection.strategies",
+    "UCBRatings": "selection.strategies",
+    "unit_to_likert": "data.preference_data",
+    "User": "simulation.users",
+    "VariancePerEffort": "selection.variance_reduction",
+    "WaveFunction": "simulation.utility_functions",
+    "wrms": "simulation.metrics",
+    "wrms_authors": "simulation.metrics",
 }
 
 __all__ = sorted([*_EXPORTS, "__version__"])
@@ -109,7 +109,7 @@ __all__ = sorted([*_EXPORTS, "__version__"])
 def __getattr__(name: str) -> Any:
     module = _EXPORTS.get(name)
     if module is None:
-        try:  # a submodule, as ``torchpref.session`` after ``import torchpref``
+        try:  # a submodule, as ``torchpref.sessions.session`` after ``import torchpref``
             return importlib.import_module(f"torchpref.{name}")
         except ModuleNotFoundError as exc:
             if exc.name != f"torchpref.{name}":

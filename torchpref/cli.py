@@ -31,7 +31,7 @@ from torchpref.version import __version__
 # subcommand -> module with ``run(args) -> int``
 REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.experiments.lake",
              "suite": "torchpref.experiments.suite"}
-ELICIT = "torchpref.elicit"
+ELICIT = "torchpref.frontends.elicit"
 RESULTS = "torchpref-results"
 """The folder (in the current one) that holds a fresh folder per ``reproduce`` run by default."""
 

@@ -22,8 +22,8 @@ import torch
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from torchpref.cli import seconds_since_start
-from torchpref.models import PreferenceGP
-from torchpref.users import SimulatedUser
+from torchpref.models.preference_gp import PreferenceGP
+from torchpref.simulation.users import SimulatedUser
 
 
 def true_utility(X: torch.Tensor) -> torch.Tensor:

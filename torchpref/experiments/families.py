@@ -4,7 +4,7 @@ A :class:`Family` is a kind of person: a random utility on the unit cube (a shap
 for every trial) and an answering style (how noisy their choices are, how precise their ratings,
 whether they tick a 1-5 box). The families span ``d = 1`` to ``6`` and shapes from the paper's
 waves to narrow peaks, flat plateaus and BoTorch test functions rescaled into utilities
-(:class:`~torchpref.utility_functions.RescaledUtility`: median item 0, best item about 2).
+(:class:`~torchpref.simulation.utility_functions.RescaledUtility`: median item 0, best item about 2).
 
 Each family also says how a trial's items are offered (fresh uniform candidates per query, or a
 finite pool as the lake's planned paths), where the metrics are taken (:func:`setup`: a grid in
@@ -22,9 +22,9 @@ import torch
 from botorch.test_functions import Branin, Hartmann, Levy
 from torch import Tensor
 
-from torchpref.likelihoods import rating_link
-from torchpref.users import LikertUser, SimulatedUser
-from torchpref.utility_functions import GaussianBumps, Plateau, RescaledUtility, WaveFunction, evaluation_grid
+from torchpref.likelihoods.pairwise_beta import rating_link
+from torchpref.simulation.users import LikertUser, SimulatedUser
+from torchpref.simulation.utility_functions import GaussianBumps, Plateau, RescaledUtility, WaveFunction, evaluation_grid
 
 RATING_SCALE = 0.8  # sigma_B of every family's raters (eq. 7): utilities 0..2 span ratings 0.5..0.96
 EVAL_POINTS = 256  # metric points of a family of d >= 2 without a pool
@@ -84,7 +84,7 @@ class Family:
         draw: ``generator -> utility`` (``n x d`` in the unit cube -> ``n``), one per trial.
         comparison_noise: the user's ``sigma_R`` (eq. 3).
         rating_precision: the user's ``nu`` (eqs. 5-6); ratings have ``sigma_B`` :data:`RATING_SCALE`.
-        likert: ratings quantised to levels 1-5 (:class:`~torchpref.users.LikertUser`).
+        likert: ratings quantised to levels 1-5 (:class:`~torchpref.simulation.users.LikertUser`).
         lengthscale: the fixed condition's kernel lengthscale.
         pool: a finite pool of this many random items (also the metric points), or ``None``:
             :data:`NUM_CANDIDATES` fresh uniform candidates per query.

@@ -3,7 +3,7 @@ r"""The lake-monitoring experiment of the paper's Fig. 9 (Sec. IV.B).
 One scenario (:func:`~torchpref.lake.scenario.make_scenario`) is built per run from the run's
 ``seed``: building one costs seconds (planning 400 paths), so the trials share it and differ
 in their trial seed, which draws the first comparison and seeds the selectors' randomness.
-The candidates are the distinct training paths (:class:`~torchpref.queries.FinitePool`), the
+The candidates are the distinct training paths (:class:`~torchpref.data.queries.FinitePool`), the
 simulated user is :class:`~torchpref.lake.operator.LakeOperator` (Likert level ``k`` ->
 ``(k - 1/2) / 5``), and the metrics are taken on the 200 test paths.
 
@@ -17,7 +17,7 @@ a little slack keeps the Laplace mode well conditioned), rating scale 1 and rati
 sharper than that).
 
 Metrics per query count: ``error5`` (mean ``|expected rating - true rating|`` on the test paths
-rated 5), ``wrms`` (:func:`torchpref.metrics.wrms`) and ``chosen_rating`` (the operator's level
+rated 5), ``wrms`` (:func:`torchpref.simulation.metrics.wrms`) and ``chosen_rating`` (the operator's level
 of the test path with the largest posterior mean). For each strategy's final model in the first
 ``plan_trials`` trials, :func:`~torchpref.lake.plan.plan_with_utility` plans a path for the
 posterior mean (wrapped by :func:`model_utility` to take the lake's objectives) and the operator's level of that path is compared with the best pool path's.
@@ -48,8 +48,8 @@ from typing import Any
 
 import torch
 
-from torchpref.active import run_active_learning
-from torchpref.data import likert_to_unit
+from torchpref.selection.active import run_active_learning
+from torchpref.data.preference_data import likert_to_unit
 from botorch.utils.transforms import normalize as normalise
 from botorch.utils.transforms import unnormalize as unnormalise
 
@@ -62,8 +62,8 @@ from torchpref.experiments.runner import run_trials, single_threaded
 from torchpref.lake.operator import LakeOperator
 from torchpref.lake.plotting import plot_field, plot_objectives
 from torchpref.lake.scenario import SCENARIO_VERSION, LakeScenario, cached_scenario, scenario_cache_path
-from torchpref.metrics import wrms
-from torchpref.queries import FinitePool, first_unique_rows
+from torchpref.simulation.metrics import wrms
+from torchpref.data.queries import FinitePool, first_unique_rows
 
 #: fixed model hyperparameters (see the module docstring)
 MODEL_SETTINGS = {"lengthscale": 0.15, "outputscale": 1.0, "comparison_noise": 0.1, "rating_scale": 1.0,

@@ -6,7 +6,7 @@ Every experiment (:mod:`~torchpref.experiments.wave`, :mod:`~torchpref.experimen
 * :func:`make_selector`: a strategy by name from one registry (:data:`STRATEGIES`), with the
   experiment's ``m`` (items per ranking) and ``gamma`` (eq. 12);
 * :func:`make_model`: a :class:`~torchpref.PreferenceGP` with fixed hyperparameters from a
-  settings dict (a :class:`~torchpref.kernels.FixedRBFKernel`);
+  settings dict (a :class:`~torchpref.models.kernels.FixedRBFKernel`);
 * :func:`trial_seeds`: the per-trial seeds of a run;
 * :func:`run_trials`: maps a picklable, module-level ``trial_fn`` over argument tuples with any
   :class:`concurrent.futures.Executor`; :func:`run_by_strategy` runs batches of trials of one
@@ -37,11 +37,11 @@ from typing import Any, Callable, Sequence
 import torch
 from torch import Tensor
 
-from torchpref.kernels import fixed_rbf_kernel
-from torchpref.models import PreferenceGP
-from torchpref.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, Selector, UCBRatings
-from torchpref.top_profile import ProfileVariancePerEffort
-from torchpref.variance_reduction import VariancePerEffort
+from torchpref.models.kernels import fixed_rbf_kernel
+from torchpref.models.preference_gp import PreferenceGP
+from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, Selector, UCBRatings
+from torchpref.selection.top_profile import ProfileVariancePerEffort
+from torchpref.selection.variance_reduction import VariancePerEffort
 
 
 def single_threaded() -> None:
@@ -177,7 +177,7 @@ def make_selector(name: str, *, m: int = 5, gamma: float = 3.0, rating_cost: flo
 def make_model(X: Tensor, comparisons: Tensor, settings: dict[str, float]) -> PreferenceGP:
     """A :class:`~torchpref.PreferenceGP` with fixed hyperparameters: ``settings`` holds
     ``lengthscale``, ``outputscale``, ``comparison_noise``, ``rating_scale``, ``rating_precision``;
-    the kernel is :func:`~torchpref.kernels.fixed_rbf_kernel`'s."""
+    the kernel is :func:`~torchpref.models.kernels.fixed_rbf_kernel`'s."""
     kernel = fixed_rbf_kernel(settings["lengthscale"], settings["outputscale"], X)
     return PreferenceGP(X, comparisons=comparisons, covar_module=kernel,
                         comparison_noise=settings["comparison_noise"], rating_scale=settings["rating_scale"],

@@ -11,7 +11,7 @@ noisy choices and from precise to Likert ratings) and each condition,
 
 every strategy asks ``queries`` questions in each of ``trials`` paired trials (the same user,
 first comparison and candidate draws for every strategy of a trial). Metrics after each query
-on the family's metric points: ``wrms`` (eq. 14, :func:`~torchpref.metrics.wrms`), ``tp`` (true
+on the family's metric points: ``wrms`` (eq. 14, :func:`~torchpref.simulation.metrics.wrms`), ``tp`` (true
 top-:data:`TOP_K` points in the estimated top-:data:`TOP_K`) and ``regret`` (the best point's
 utility minus that of the point of largest posterior mean, over the best's margin above the
 median point: 0 is the best, 1 a median point). Effort: a rating costs :data:`RATING_COST`, a
@@ -34,16 +34,16 @@ from typing import Any, Sequence
 
 import torch
 
-from torchpref.active import run_active_learning_batch
-from torchpref.batch import BatchedPreferenceGP
+from torchpref.selection.active import run_active_learning_batch
+from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.experiments import runner
 from torchpref.experiments.results import write_json
 from torchpref.experiments.families import FAMILIES, NUM_CANDIDATES, Family, model_settings, setup
 from torchpref.experiments.suite_report import summarise, write_suite_files
-from torchpref.kernels import FixedRBFKernel
-from torchpref.metrics import true_positives, wrms
-from torchpref.models import PreferenceGP
-from torchpref.queries import BoxCandidates, FinitePool
+from torchpref.models.kernels import FixedRBFKernel
+from torchpref.simulation.metrics import true_positives, wrms
+from torchpref.models.preference_gp import PreferenceGP
+from torchpref.data.queries import BoxCandidates, FinitePool
 
 M = 5
 GAMMA = 3.0
@@ -86,7 +86,7 @@ def learn_kernel(model: BatchedPreferenceGP, dim: int) -> torch.Tensor:
 
     For all ``T`` trials and ``G`` grid values at once (one batched model of ``T G`` problems),
     the Laplace evidence ``log q(Y)`` plus the log prior; each trial takes its best grid value.
-    ``model``'s kernel must be a :class:`~torchpref.kernels.FixedRBFKernel` with ``T`` values.
+    ``model``'s kernel must be a :class:`~torchpref.models.kernels.FixedRBFKernel` with ``T`` values.
 
     Returns:
         ``T`` chosen grid indices.
@@ -168,7 +168,7 @@ def run_batch(trial_seeds: tuple[int, ...], family_name: str, condition: str, qu
 
 
 class _TrialPools:
-    """Each trial's own finite pool (:class:`~torchpref.queries.FinitePool`), found by its generator."""
+    """Each trial's own finite pool (:class:`~torchpref.data.queries.FinitePool`), found by its generator."""
 
     def __init__(self, pools: Sequence[torch.Tensor], generators: Sequence[torch.Generator]):
         self._by_generator = {id(g): FinitePool(p) for p, g in zip(pools, generators)}

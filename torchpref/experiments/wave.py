@@ -13,7 +13,7 @@ Every strategy of a trial sees the same wave function, the same first comparison
 same candidate draws' seed, so strategies compare trial by trial (paired tests).
 
 The trials of a strategy run in batches (:func:`run_trial_batch`: one
-:class:`~torchpref.batch.BatchedPreferenceGP` for the batch, one selector call per step for all
+:class:`~torchpref.models.batch.BatchedPreferenceGP` for the batch, one selector call per step for all
 its trials), which gives the same questions, answers and metrics as one model at a time
 (:func:`run_trial`, ``batch_size=None``) for less than half the CPU time.
 
@@ -31,8 +31,8 @@ from typing import Any
 
 import torch
 
-from torchpref.active import run_active_learning, run_active_learning_batch
-from torchpref.batch import BatchedPreferenceGP
+from torchpref.selection.active import run_active_learning, run_active_learning_batch
+from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.experiments import runner
 from torchpref.experiments.results import (
     curves,
@@ -44,11 +44,11 @@ from torchpref.experiments.results import (
     at_budgets,
     write_experiment_files,
 )
-from torchpref.metrics import rating_from_latent, true_positives, wrms
-from torchpref.models import PreferenceGP
-from torchpref.queries import BoxCandidates
-from torchpref.users import SimulatedUser
-from torchpref.utility_functions import WaveFunction, evaluation_grid
+from torchpref.simulation.metrics import rating_from_latent, true_positives, wrms
+from torchpref.models.preference_gp import PreferenceGP
+from torchpref.data.queries import BoxCandidates
+from torchpref.simulation.users import SimulatedUser
+from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
 
 #: the authors' model hyperparameters for this experiment (docs/decisions.md): their 1-D run's
 #: ``log_hyp = log([0.02, 0.6, 0.2, 0.8, 60])`` is ``[lengthscale, sigma_f, sigma_R, sigma_B, nu]``,
@@ -112,7 +112,7 @@ def _record(hist) -> dict[str, list]:
 
 
 def run_trial(trial_seed: int, queries: int, strategies: tuple[str, ...] = tuple(STRATEGIES)) -> dict[str, Any]:
-    r"""One trial, one model at a time (:func:`~torchpref.active.run_active_learning`): every
+    r"""One trial, one model at a time (:func:`~torchpref.selection.active.run_active_learning`): every
     strategy on the same wave function and first comparison.
 
     Returns:
@@ -137,7 +137,7 @@ def run_trial(trial_seed: int, queries: int, strategies: tuple[str, ...] = tuple
 
 
 def run_trial_batch(trial_seeds: tuple[int, ...], queries: int, strategy: str) -> list[dict[str, Any]]:
-    r"""Several trials of one strategy at once (:func:`~torchpref.active.run_active_learning_batch`,
+    r"""Several trials of one strategy at once (:func:`~torchpref.selection.active.run_active_learning_batch`,
     one batched model): per trial the same questions, answers and metrics as :func:`run_trial`
     (up to the Newton tolerance, which only matters where two candidates tie).
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..data import likert_to_unit
+from torchpref.data.preference_data import likert_to_unit
 
 __all__ = ["LakeOperator"]
 
@@ -91,7 +91,7 @@ class LakeOperator:
 
     def rate(self, x) -> float:
         r"""A rating query: the level of one path mapped to ``[0, 1]`` by
-        :func:`torchpref.data.likert_to_unit` (level ``k`` -> ``(k - 1/2) / 5``).
+        :func:`torchpref.data.preference_data.likert_to_unit` (level ``k`` -> ``(k - 1/2) / 5``).
 
         Args:
             x: ``2`` objective vector ``[distance, information]``.

@@ -1,0 +1,8 @@
+"""The Laplace approximation: likelihood terms, Newton's mode, padding, numerics and precision."""
+
+from __future__ import annotations
+
+from torchpref.inference.numerics import JitterWarning, NotPSDError
+from torchpref.inference.laplace import LaplaceConvergenceWarning
+
+__all__ = ['JitterWarning', 'LaplaceConvergenceWarning', 'NotPSDError']

@@ -1,0 +1,75 @@
+r"""The defaults of :class:`~torchpref.models.preference_gp.PreferenceGP`: its kernel, its likelihood settings,
+and the likelihood module (``model.likelihood``) it builds from them."""
+
+from __future__ import annotations
+
+import math
+
+from gpytorch.constraints import GreaterThan
+from gpytorch.kernels import RBFKernel, ScaleKernel
+from gpytorch.module import Module
+from gpytorch.priors import GammaPrior, LogNormalPrior
+from torch import Tensor
+
+from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.likelihoods.scalar_params import shared_constraint, weak_load_hook
+from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood, default_cut_points
+
+#: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
+#: reproduce the paper: ``PreferenceGP(X, ..., **PAPER_FIG4_SETTINGS)`` (docs/botorch.md).
+PAPER_FIG4_SETTINGS = {"comparison_noise": 0.1, "rating_scale": 1.0, "rating_precision": 80.0}
+
+#: Lower bound of the default kernel's lengthscales (inputs in the unit cube).
+MIN_LENGTHSCALE = 1e-4
+
+
+def default_covar_module(dim: int) -> ScaleKernel:
+    r"""``ScaleKernel(RBFKernel(ard_num_dims=d))`` (eq. 1) with BoTorch's dimension-scaled
+    lengthscale prior ``LogNormal(sqrt 2 + log(d) / 2, sqrt 3)`` (inputs in the unit cube) and a
+    ``Gamma(2, 1)`` prior on the outputscale ``sigma_f^2`` (utilities of order one on the
+    rating link's scale). Lengthscales stay above ``1e-4`` (as ``PairwiseGP``'s): at exactly 0,
+    where an optimiser's long step can send a softplus-constrained one, the kernel matrix is NaN.
+    ``dim = 0`` (not known yet: a prior-only model) gives one shared lengthscale with the
+    ``d = 1`` prior."""
+    base = RBFKernel(
+        ard_num_dims=dim or None,
+        lengthscale_prior=LogNormalPrior(math.sqrt(2) + 0.5 * math.log(max(dim, 1)), math.sqrt(3)),
+        lengthscale_constraint=GreaterThan(MIN_LENGTHSCALE),
+    )
+    return ScaleKernel(base, outputscale_prior=GammaPrior(2.0, 1.0))
+
+
+class PreferenceLikelihood(Module):
+    """The likelihoods of the model, held together (``model.likelihood``): ``comparison``,
+    ``rating`` (Beta, or ordinal for levels), ``tie`` (which shares ``comparison``'s ``sigma_R``) and
+    ``strict`` (a comparison where "no preference" was allowed, the tie's upper category)."""
+
+    def __init__(self, comparison: PairwiseProbitLikelihood, rating: BetaRatingLikelihood | OrdinalRatingLikelihood,
+                 tie: TieLikelihood | None = None):
+        super().__init__()
+        weak_load_hook(self)
+        self.comparison = comparison
+        self.rating = rating
+        self.tie = tie if tie is not None else TieLikelihood(comparison=comparison)
+        self.strict = StrictPreferenceLikelihood(self.tie)
+
+    @classmethod
+    def create(cls, comparison_noise: float, rating_scale: float, rating_precision: float, learn: bool,
+               tie_threshold: float, rating_levels: int | None = None, cut_points: Tensor | None = None,
+               level_noise: float | None = None) -> "PreferenceLikelihood":
+        r"""The model's likelihoods from its settings (:class:`~torchpref.models.preference_gp.PreferenceGP`'s
+        arguments of the same names): a Beta rating likelihood, or for ``rating_levels`` an ordinal
+        one whose ``level_noise`` defaults to ``sqrt(pi) sigma_B / sqrt(nu + 1)``."""
+        positive = shared_constraint("positive")  # the model's likelihoods share their default constraints
+        comparison = PairwiseProbitLikelihood(comparison_noise, learn=learn, comparison_noise_constraint=positive)
+        if rating_levels is None:
+            rating = BetaRatingLikelihood(rating_scale, rating_precision, learn=learn, rating_scale_constraint=positive,
+                                          rating_precision_constraint=shared_constraint("precision"))
+        else:
+            if cut_points is None:
+                cut_points = default_cut_points(int(rating_levels), rating_scale)
+            if level_noise is None:  # sd of Beta(nu/2, nu/2) over d mu / d f at f = 0
+                level_noise = math.sqrt(math.pi) * rating_scale / math.sqrt(rating_precision + 1)
+            rating = OrdinalRatingLikelihood(int(rating_levels), cut_points, level_noise, learn=learn)
+        return cls(comparison, rating, TieLikelihood(tie_threshold, comparison, learn=learn,
+                                                     tie_threshold_constraint=positive))

@@ -1,0 +1,158 @@
+r"""Conditioning a :class:`~torchpref.PreferenceGP` on batches of observations, and fantasies.
+
+BoTorch's look-ahead acquisition functions (``qKnowledgeGradient``,
+``qNegIntegratedPosteriorVariance``) ask a model for *fantasy models*: the model conditioned on
+sampled answers at candidate points, one problem per sample and candidate batch. Here a fantasy
+model is a :class:`~torchpref.PreferenceGP` of batch shape ``sample_shape x batch_shape``
+whose problems share the old items and observations and each add the candidates ``X`` with
+their own sampled answers (:meth:`~torchpref.inference.padding.PaddedData.append`); the batch-first
+Laplace solver finds all their modes at once, warm-started from the old mode and the old
+posterior mean at ``X``.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import TYPE_CHECKING
+
+import torch
+from botorch.posteriors.gpytorch import GPyTorchPosterior
+from botorch.sampling.base import MCSampler
+from botorch.sampling.pairwise_samplers import PairwiseMCSampler
+from torch import Tensor
+
+from torchpref.data.preference_data import prepare_levels, prepare_ratings
+
+if TYPE_CHECKING:
+    from torchpref.models.preference_gp import PreferenceGP
+
+
+def _check_indices(name: str, index: Tensor, m: int) -> Tensor:
+    index = torch.as_tensor(index)
+    if index.is_floating_point() or (index.numel() and ((index < 0) | (index >= m)).any()):
+        raise ValueError(f"{name} must hold integer indices into the {m} rows of X, got {index.flatten()[:6].tolist()}.")
+    return index.long()
+
+
+def batch_shape_of(X: Tensor, comparisons: Tensor | None, ratings: Tensor | None,
+                   model_batch: torch.Size = torch.Size()) -> torch.Size:
+    r"""The batch shape that ``batch_X x m x d`` items, ``batch_C x k x 2`` comparisons,
+    ``batch_R x r`` ratings and a model of batch shape ``model_batch`` broadcast to.
+
+    Raises:
+        ValueError: the shapes do not broadcast, naming them.
+    """
+    shapes = {"X": X.shape[:-2], "the model": model_batch}
+    if comparisons is not None:
+        shapes["comparisons"] = comparisons.shape[:-2]
+    if ratings is not None:
+        shapes["ratings"] = torch.as_tensor(ratings).shape[:-1]
+    try:
+        return torch.broadcast_shapes(*shapes.values())
+    except RuntimeError:
+        named = ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
+        raise ValueError(f"the batch shapes do not broadcast: {named}.") from None
+
+
+def condition_batch(model: "PreferenceGP", X: Tensor, comparisons: Tensor | None = None,
+                    ratings: Tensor | None = None, rating_index: Tensor | None = None) -> "PreferenceGP":
+    r"""A new model with the items ``X`` and observations among them added to every problem.
+
+    Args:
+        model: a model without padded items (one problem, batched training data of equal
+            sizes, or a fantasy model); unchanged.
+        X: ``batch_X x m x d`` new items (untransformed).
+        comparisons: ``batch_C x k x 2`` long, rows ``[preferred, other]`` into ``X``'s rows.
+        ratings: ``batch_R x r`` values in ``[0, 1]`` of the rows ``rating_index`` (``batch_R x r``).
+
+    Returns:
+        A model of batch shape ``broadcast(batch_X, batch_C, batch_R, model.batch_shape)``.
+    """
+    X = torch.as_tensor(X).to(model.train_X)
+    if X.dim() < 2 or X.shape[-1] != model.train_X.shape[-1]:
+        raise ValueError(f"X must be ... x m x {model.train_X.shape[-1]}, got shape {tuple(X.shape)}.")
+    m = X.shape[-2]
+    if comparisons is not None:
+        comparisons = _check_indices("comparisons", comparisons, m)
+        if comparisons.shape[-1] != 2 or (comparisons[..., 0] == comparisons[..., 1]).any():
+            raise ValueError(f"comparisons must be ... x k x 2 with two different items per row, got "
+                             f"shape {tuple(comparisons.shape)}.")
+    if (ratings is None) != (rating_index is None):
+        raise ValueError("ratings and rating_index must be given together.")
+    if ratings is not None:
+        rating_index = _check_indices("rating_index", rating_index, m)
+        shape = torch.as_tensor(ratings).shape
+        if getattr(model, "rating_levels", None) is not None:  # an ordinal model's ratings are levels
+            ratings = prepare_levels(ratings, model.rating_levels, dtype=X.dtype, device=X.device).reshape(shape)
+        else:
+            ratings = prepare_ratings(ratings, model.rating_eps, dtype=X.dtype, device=X.device).reshape(shape)
+    batch_shape_of(X, comparisons, ratings, model.batch_shape)
+    new_data = model._padded().append(X, comparisons, ratings, rating_index)
+    with torch.no_grad():  # warm start: the old mode, the old posterior mean at X
+        S, N = model.batch_shape, model.train_X.shape[-2]
+        f_old = model._state().mode.f.reshape(*S, N)
+        f_new = model._predict(model._prediction_inputs(X))[0]
+        shape = new_data.batch_shape
+        warm = torch.cat([f_old.expand(*shape, N), f_new.expand(*shape, m)], dim=-1)
+    cache, model._cache = model._cache, None  # not deep-copied
+    try:
+        new = copy.deepcopy(model)
+    finally:
+        model._cache = cache
+    new._data, new._cache, new._warm_f = new_data, None, warm.reshape(-1, N + m)
+    return new
+
+
+def perceived_utility(model: "PreferenceGP", X: Tensor) -> GPyTorchPosterior:
+    r"""The posterior of ``f + eps`` at ``X`` with ``eps ~ N(0, sigma_R^2)`` independent per point:
+    the utilities a person compares (eq. 3), so that ``P(f_i + eps_i > f_j + eps_j)`` is the
+    probit likelihood of the comparison."""
+    return model.posterior(X, observation_noise=True)
+
+
+def sampled_comparisons(sampler: PairwiseMCSampler, posterior: GPyTorchPosterior) -> Tensor:
+    r"""Comparisons ``sample_shape x batch x k x 2`` among the ``q`` points, rows ``[preferred,
+    other]``: the pairs the sampler picks, each oriented by the utilities it samples.
+
+    BoTorch's ``PairwiseMCSampler`` (0.18) returns each pair as ``[other, preferred]``
+    (``np.choose`` takes the second index when the first sample is larger), the reverse of
+    ``PairwiseGP``'s own convention; so the pairs are re-oriented here with the sampler's own
+    utility samples (the same base samples: the sampler caches them).
+    """
+    pairs = sampler(posterior)
+    samples = super(PairwiseMCSampler, sampler).forward(posterior).squeeze(-1)  # sample_shape x batch x q
+    first = samples.gather(-1, pairs[..., 0].to(samples.device))
+    second = samples.gather(-1, pairs[..., 1].to(samples.device))
+    return torch.where((first >= second).unsqueeze(-1), pairs, pairs.flip(-1)).to(samples.device)
+
+
+def fantasize(model: "PreferenceGP", X: Tensor, sampler: MCSampler, kind: str | None = None) -> "PreferenceGP":
+    r"""A fantasy model: ``model`` conditioned on sampled answers at ``X`` (``batch x q x d``).
+
+    Args:
+        kind: ``"comparisons"`` (the default with a ``PairwiseMCSampler``, e.g. BoTorch's
+            ``PairwiseSobolQMCNormalSampler``): the sampler draws perceived utilities ``f + eps``
+            (eq. 3) at the ``q`` points and turns them into comparisons among them, as for
+            ``PairwiseGP``. ``"ratings"`` (the default with any other ``MCSampler``): the sampler
+            draws the utility ``f`` and each point gets the rating ``mu(f)`` (eq. 7), the mean of
+            its Beta likelihood (whose spread, a standard deviation below ``1 / (2 sqrt(nu + 1))``,
+            is left out).
+
+    Returns:
+        A model of batch shape ``sampler.sample_shape x broadcast(batch, model.batch_shape)``.
+    """
+    if not isinstance(sampler, MCSampler):
+        raise TypeError(f"sampler must be a BoTorch MCSampler (e.g. PairwiseSobolQMCNormalSampler), got {sampler!r:.60}.")
+    kind = kind or ("comparisons" if isinstance(sampler, PairwiseMCSampler) else "ratings")
+    if kind == "comparisons":
+        if not isinstance(sampler, PairwiseMCSampler):
+            raise ValueError("comparison fantasies need a PairwiseMCSampler (e.g. PairwiseSobolQMCNormalSampler).")
+        return condition_batch(model, X, comparisons=sampled_comparisons(sampler, perceived_utility(model, X)))
+    if kind == "ratings":
+        if isinstance(sampler, PairwiseMCSampler):
+            raise ValueError("rating fantasies need a sampler of utilities, not a PairwiseMCSampler.")
+        f = sampler(model.posterior(X)).squeeze(-1)  # sample_shape x batch x q
+        u = model.likelihood.rating.mean_link(f)  # differentiable in X, as BoTorch's fantasies are
+        index = torch.arange(X.shape[-2], device=u.device).expand(u.shape)
+        return condition_batch(model, X, ratings=u, rating_index=index)
+    raise ValueError(f"kind must be 'comparisons' or 'ratings', got {kind!r}.")

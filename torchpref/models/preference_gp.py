@@ -1,0 +1,428 @@
+r"""``PreferenceGP``: a BoTorch model of a latent utility learned from ratings and comparisons."""
+
+from __future__ import annotations
+
+import numbers
+import warnings
+from itertools import chain
+from typing import Any
+
+import torch
+from botorch.acquisition.objective import PosteriorTransform
+from botorch.exceptions import warnings as botorch_warnings
+from botorch.exceptions.warnings import InputDataWarning
+from botorch.models.model import Model
+from botorch.models.transforms.input import InputTransform
+from botorch.posteriors.gpytorch import GPyTorchPosterior
+from botorch.sampling.base import MCSampler
+from gpytorch.distributions import MultivariateNormal
+from gpytorch.kernels import Kernel
+from gpytorch.mlls import MarginalLogLikelihood
+from gpytorch.models import GP
+from gpytorch.module import Module as GModule
+from linear_operator.operators import DenseLinearOperator, LinearOperator
+from torch import Tensor
+
+from torchpref.models.pairwise_interface import PairwiseGPInterface, TrainDataMismatchError, prior_only_data
+from torchpref.data.preference_data import DEFAULT_RATING_EPS, PreferenceData
+from torchpref.models.fantasy import fantasize
+from torchpref.inference.laplace import ModeResult, laplace_evidence
+from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.likelihoods.scalar_params import weak_load_hook
+from torchpref.models.model_data import ModelData, create_data
+from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS: re-exported)
+    MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS, PreferenceLikelihood, default_covar_module)
+from torchpref.inference.numerics import pin_coincident
+from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, TieLikelihood
+from torchpref.inference.padding import PaddedData
+from torchpref.models.posterior_state import PosteriorState, carries_gradients, fingerprint, submodules
+from torchpref.inference.precision import call_in_dtype, check_laplace_dtype, solve_dtype
+from torchpref.models.predictives import Predictives
+
+
+def _initial_data(train_X, comparisons, ratings, rating_index, rating_eps: float, ties,
+                  rating_levels: int | None) -> PreferenceData | PaddedData:
+    """The constructor's validated data; for ``train_X = None`` BoTorch's prior-only model."""
+    if train_X is not None:
+        return create_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
+    if ratings is not None or (comparisons is not None and len(comparisons)):
+        raise ValueError("a prior-only model (train_X=None) takes no comparisons or ratings.")
+    return prior_only_data()
+
+
+def _warn_dtype(dtype: torch.dtype) -> None:
+    """BoTorch's single-precision ``InputDataWarning`` (its text first, so that filters written for
+    ``PairwiseGP``'s warning catch this one), and what it means here."""
+    if dtype != torch.float64:
+        botorch_text = getattr(botorch_warnings, "_get_single_precision_warning", None)
+        head = botorch_text(str(dtype)) + " " if botorch_text is not None else ""
+        warnings.warn(
+            f"{head}train_X is {dtype}; float64 is recommended (as in BoTorch). The Laplace problem is "
+            "solved in float64 unless laplace_dtype says otherwise (docs/precision.md).",
+            InputDataWarning,
+            stacklevel=3,
+        )
+
+
+def _follows(module: torch.nn.Module, device: torch.device, dtype: torch.dtype) -> bool:
+    """Whether ``module.to(device=device, dtype=dtype)`` would change nothing: every parameter and
+    buffer on ``device``, the floating ones in ``dtype``."""
+    return all(t.device == device and (t.dtype == dtype or not (t.is_floating_point() or t.is_complex()))
+               for t in chain(module.parameters(), module.buffers()))
+
+
+class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
+    r"""A GP over the items' objective space, learned from comparisons and ratings together.
+
+    The latent utility ``f ~ GP(0, k)`` (eq. 1) is observed through comparisons (eq. 3) and
+    ratings on ``[0, 1]`` (eqs. 4-7); the posterior is the Laplace approximation (eqs. 2, 8-10).
+    The mode is re-solved, warm-started, whenever the hyperparameters or the data change.
+
+    BoTorch's ``PairwiseGP`` interface is there too (``datapoints``, ``dim``, ``utility``,
+    ``construct_inputs``, prior-only ``PreferenceGP(None, None)``, comparisons as
+    ``condition_on_observations(X, Y)``): see :class:`~torchpref.models.pairwise_interface.PairwiseGPInterface`
+    and docs/botorch.md.
+
+    Args:
+        train_X: ``n x d`` items (float64 recommended; dtype and device are followed), or
+            ``None`` for a prior-only model (then no observations; ``d`` is set by the first
+            data).
+        comparisons: ``p x 2`` long, rows ``[preferred, other]`` (BoTorch's convention).
+        ratings: ``q`` values in ``[0, 1]``; exact 0 and 1 are moved in to ``rating_eps``.
+        rating_index: ``q`` long indices into ``train_X``: the item each rating rates.
+        covar_module: the kernel; default :func:`default_covar_module`.
+        comparison_noise: ``sigma_R`` of eq. 3 (default 1.0: BoTorch's ``PairwiseGP`` probit
+            ``Phi((f_i - f_j) / sqrt 2)``, which keeps EUBO-style loops from re-asking compared
+            pairs; the paper's Fig. 4 used 0.1, see :data:`PAPER_FIG4_SETTINGS`).
+        rating_scale: ``sigma_B`` of eq. 7 (default 1.0, as Fig. 4).
+        rating_precision: ``nu`` of eqs. 5-6 (default 80, as Fig. 4).
+        learn_likelihood: make the three likelihood parameters trainable (default: fixed, as in
+            the paper; with comparisons only, ``comparison_noise`` and the outputscale are not
+            separately identifiable).
+        input_transform: a BoTorch input transform (e.g. ``Normalize``), applied to ``train_X``
+            and to every input of :meth:`posterior`.
+        rating_eps: where exact 0 / 1 ratings are moved to.
+        max_newton_iter: iteration budget of the mode finder (at least 1).
+        ties: ``t x 2`` long, rows ``[i, j]``: "no preference" between items ``i`` and ``j``
+            (:class:`~torchpref.likelihoods.ordinal.TieLikelihood`).
+        rating_levels: ``K``: the ratings are levels ``1..K``, scored by the ordinal likelihood
+            (:class:`~torchpref.likelihoods.ordinal.OrdinalRatingLikelihood`) instead of the Beta one.
+        tie_threshold: ``tau`` of the tie likelihood (default 0.1).
+        cut_points: the ordinal likelihood's ``K - 1`` cut points (default
+            :func:`~torchpref.likelihoods.ordinal.default_cut_points`, the Beta link's bin edges).
+        ties_offered: "no preference" was an allowed answer to the comparisons, which are then
+            scored ``Phi((f_i - f_j - tau) / (sqrt 2 sigma_R))`` (the tie's ordered probit) instead
+            of eq. 3 (a forced choice); needed to learn ``tau``. Default ``False``.
+        level_noise: the ordinal likelihood's ``sigma``; default ``sqrt(pi) sigma_B / sqrt(nu + 1)``,
+            the Beta likelihood's rating noise at mid-scale in latent units (0.197 at the defaults).
+        laplace_dtype: the dtype the kernel matrices and the Laplace problem are computed in
+            (:attr:`laplace_dtype`); default float64 whatever the model's dtype, so a float32 model
+            solves in mixed precision and returns float32 posteriors. ``torch.float32`` solves a
+            float32 model natively (docs/precision.md).
+
+    Warns:
+        InputDataWarning: (BoTorch's) for inputs in a dtype other than float64, and for training
+            items (after ``input_transform``) outside the unit cube, whose scale the default
+            kernel's lengthscale prior assumes (docs/decisions.md).
+
+    Example:
+        >>> model = PreferenceGP(X, comparisons=C, ratings=u, rating_index=idx)
+        >>> fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+        >>> model.posterior(X_test).mean
+    """
+
+    _num_outputs = 1
+
+    def __init__(
+        self,
+        train_X: Tensor | None,
+        comparisons: Tensor | None = None,
+        ratings: Tensor | None = None,
+        rating_index: Tensor | None = None,
+        covar_module: Kernel | None = None,
+        *,
+        comparison_noise: float = 1.0,
+        rating_scale: float = 1.0,
+        rating_precision: float = 80.0,
+        learn_likelihood: bool = False,
+        input_transform: InputTransform | None = None,
+        rating_eps: float = DEFAULT_RATING_EPS,
+        max_newton_iter: int = 100,
+        ties: Tensor | None = None,
+        rating_levels: int | None = None,
+        tie_threshold: float = 0.1,
+        cut_points: Tensor | None = None,
+        level_noise: float | None = None,
+        ties_offered: bool = False,
+        laplace_dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        weak_load_hook(self)
+        data = _initial_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
+        X = data.train_X if isinstance(data, PreferenceData) else data.X
+        _warn_dtype(X.dtype)
+        self.covar_module = covar_module if covar_module is not None else default_covar_module(X.shape[-1])
+        self.likelihood = PreferenceLikelihood.create(comparison_noise, rating_scale, rating_precision,
+                                                      learn_likelihood, tie_threshold, rating_levels, cut_points,
+                                                      level_noise)
+        self._rating_levels = None if rating_levels is None else int(rating_levels)
+        self.ties_offered = bool(ties_offered)
+        if input_transform is not None:
+            self.input_transform = input_transform
+        self.rating_eps = rating_eps
+        self.max_newton_iter = max_newton_iter
+        self._laplace_dtype = check_laplace_dtype(laplace_dtype)
+        self._scaling_warned = False
+        if not _follows(self, X.device, X.dtype):
+            self.to(device=X.device, dtype=X.dtype)
+        self._data: PreferenceData | PaddedData = data
+        self._cache: PosteriorState | None = None
+        self._warm_f: Tensor | None = None
+        self._fit_input_transform()
+        self._check_scaling()
+        self.eval()
+
+    @property
+    def max_newton_iter(self) -> int:
+        """Iteration budget of the mode finder (an integer, at least 1)."""
+        return self._max_newton_iter
+
+    @max_newton_iter.setter
+    def max_newton_iter(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+            raise ValueError(f"max_newton_iter must be an integer of at least 1, got {value!r}.")
+        self._max_newton_iter = int(value)
+
+    @property
+    def laplace_dtype(self) -> torch.dtype:
+        """The dtype of the kernel matrices and the Laplace solve: the ``laplace_dtype`` asked
+        for (default float64), or the model's dtype where that is more precise. Outputs
+        (posteriors, the evidence) come back in the model's dtype; :attr:`mode` stays in this one."""
+        return solve_dtype(self._padded().X.dtype, self._laplace_dtype)
+
+    @laplace_dtype.setter
+    def laplace_dtype(self, value: torch.dtype | None) -> None:
+        self._laplace_dtype, self._cache = check_laplace_dtype(value), None
+
+    # ------------------------------------------------------------ likelihoods
+    @property
+    def comparison_likelihood(self) -> PairwiseProbitLikelihood:
+        """The comparisons' likelihood (eq. 3), a :class:`~torchpref.PairwiseProbitLikelihood`."""
+        return self.likelihood.comparison
+
+    @property
+    def rating_likelihood(self) -> BetaRatingLikelihood | OrdinalRatingLikelihood:
+        """The ratings' likelihood: a :class:`~torchpref.BetaRatingLikelihood` (eqs. 4-7), or an
+        :class:`~torchpref.OrdinalRatingLikelihood` for a model with ``rating_levels``."""
+        return self.likelihood.rating
+
+    @property
+    def tie_likelihood(self) -> TieLikelihood:
+        """The "no preference" likelihood (:class:`~torchpref.TieLikelihood`)."""
+        return self.likelihood.tie
+
+
+    def fantasize(self, X: Tensor, sampler: MCSampler, observation_noise: Tensor | None = None,
+                  kind: str | None = None, **kwargs: Any) -> "PreferenceGP":
+        r"""A batched fantasy model (see :func:`~torchpref.models.fantasy.fantasize`): comparisons among
+        the ``q`` points of ``X`` (``batch x q x d``) with a ``PairwiseMCSampler``, ratings of them
+        with any other sampler (or as ``kind`` says). ``observation_noise`` is not used: the
+        answers' noise is the likelihoods'."""
+        return fantasize(self, X, sampler, kind)
+
+    # ------------------------------------------------------------- inference
+    def _kernel(self, X1: Tensor, X2: Tensor | None = None, diag: bool = False) -> Tensor:
+        """Dense ``k(X1, X2)`` (or its diagonal): the kernel's ``forward`` directly (the values
+        ``__call__`` would give, without building a lazy kernel tensor) unless a kernel selects
+        ``active_dims``; in :attr:`laplace_dtype`; below float64, exact at coincident points
+        (:func:`~torchpref.inference.numerics.pin_coincident`)."""
+        k = self.covar_module
+        X2 = X1 if X2 is None else X2
+        if any(getattr(m, "active_dims", None) is not None for m in submodules(k)):
+            def evaluate(A, B, diag):
+                out = k(A, B, diag=diag)
+                return out if diag else out.to_dense()
+        else:
+            evaluate = k.forward
+        dtype = solve_dtype(X1.dtype, self._laplace_dtype)
+        out = call_in_dtype(k, dtype, lambda A, B: evaluate(A, B, diag=diag), X1, X2)
+        # kernels such as LinearKernel return a LinearOperator from forward: evaluate it densely
+        out = out.to_dense() if isinstance(out, LinearOperator) else out
+        if diag or out.dtype == torch.float64:  # float64's round-off there is ~1e-16: not worth a pass
+            return out
+        return pin_coincident(out, X1, X2, evaluate(X1, X1, diag=True))
+
+    def _prior(self) -> tuple[PaddedData, Tensor]:
+        """The problems with their items transformed, and their prior covariance ``K``
+        (``batch x N x N``, padded items independent; differentiable in the hyperparameters)."""
+        padded = self._padded().with_items(self._transformed_train_X())
+        return padded, padded.prior_covariance(self._kernel(padded.X))
+
+    def _state(self, prior: tuple[PaddedData, Tensor] | None = None) -> PosteriorState:
+        """The mode and prediction cache for the current hyperparameters and data (cached);
+        ``prior``: :meth:`_prior`'s result if already computed (then the kernel is not evaluated again)."""
+        fp = fingerprint(self)
+        if self._cache is None or not self._cache.is_current(self._data, fp):
+            self._cache = PosteriorState.build(self, fp, self._cache, prior)
+        return self._cache
+
+    @property
+    def mode(self) -> ModeResult:
+        """The Laplace mode (``.f``), ``W``'s factors and solver diagnostics, for the current state
+        (with a leading dimension over the flattened batch for a batched model)."""
+        mode = self._state().mode
+        return mode.select(0) if not self.batch_shape else mode
+
+    def W(self) -> Tensor:
+        r"""``batch_shape x n x n`` negative Hessian of the log-likelihood at the mode (eq. 8): the
+        exact one, or the Fisher one if the exact ``B`` was not positive definite there
+        (``mode.fisher_fallback``)."""
+        state = self._state()
+        n = state.padded.num_items
+        return state.obs.W_dense(n, state.mode.weights, like=state.pred.L).reshape(*self.batch_shape, n, n)
+
+    def log_marginal_likelihood(self) -> Tensor:
+        r"""Laplace evidence ``log q(Y) = log p(Y|f) - f^T K^-1 f / 2 - log|I + W K| / 2`` at the
+        mode (``batch_shape``), differentiable, with a gradient that includes the mode's implicit
+        dependence on the hyperparameters. Hyperparameter priors are not included (the MLL adds them).
+
+        Raises:
+            ValueError: the model has no items (prior-only or empty): there is nothing to fit.
+        """
+        if self.train_X.shape[-2] == 0:
+            raise ValueError("the evidence needs data: this model has no items (a prior-only or empty model); "
+                             "add observations before fitting its hyperparameters.")
+        padded, K = self._prior()
+        state = self._state((padded, K))
+        N = padded.num_items
+        value = laplace_evidence(K.reshape(-1, N, N), state.obs, state.mode, L=state.pred.L, jitter=state.jitter)
+        return value.reshape(self.batch_shape).to(padded.X.dtype)
+
+    def _predict(self, X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
+        """Posterior moments at transformed ``X`` (:meth:`PosteriorState.moments`), in ``X``'s dtype;
+        with autograd on and training items or ratings that carry gradients (a fantasy model inside
+        a look-ahead acquisition), differentiable in them through the mode (:meth:`PosteriorState.traced`)."""
+        state = self._state()
+        if torch.is_grad_enabled() and carries_gradients(self._padded()):
+            state = state.traced(*self._prior(), self._observations())
+        mean, cov = state.moments(self._kernel, X, diag)
+        return mean.to(X.dtype), cov.to(X.dtype)
+
+    def forward(self, X: Tensor) -> MultivariateNormal:
+        """The Laplace posterior of the latent utility at ``X`` (``batch x q x d``, transformed)."""
+        mean, cov = self._predict(X)
+        # a lazy covariance: no Cholesky at construction (pairs of equal points are singular)
+        return MultivariateNormal(mean, DenseLinearOperator(cov))
+
+    def posterior(
+        self,
+        X: Tensor,
+        output_indices: list[int] | None = None,
+        observation_noise: bool | Tensor = False,
+        posterior_transform: PosteriorTransform | None = None,
+        **kwargs: Any,
+    ) -> GPyTorchPosterior:
+        r"""Posterior of the latent utility (eqs. 9-10) at ``X`` (``batch_shape x q x d``).
+
+        The factorisations are cached: repeated calls with unchanged hyperparameters and data
+        cost kernel evaluations and triangular solves only.
+
+        Args:
+            X: ``batch_shape x q x d`` inputs (untransformed).
+            output_indices: ``None`` or ``[0]`` (the one output).
+            observation_noise: ``False``: the latent utility ``f``. ``True``: the utility as
+                perceived in a comparison, ``f + eps`` with independent ``eps ~ N(0, sigma_R^2)``
+                per point (eq. 3; what ``qMaxValueEntropy`` asks for). A tensor
+                (``batch_shape x q x 1``): those noise variances instead. BoTorch's
+                ``PairwiseGP`` ignores this argument.
+            posterior_transform: applied to the result.
+        """
+        if output_indices is not None and [int(i) for i in output_indices] not in ([0], [-1]):
+            raise ValueError(f"PreferenceGP has one output; got output_indices={output_indices}.")
+        X = self._prediction_inputs(X)
+        if X.dim() == 1:  # a single point
+            X = X.unsqueeze(0)
+        mvn = self(X)
+        if observation_noise is not False:
+            mvn = self._add_observation_noise(mvn, observation_noise)
+        post = GPyTorchPosterior(mvn)
+        if posterior_transform is not None:
+            return posterior_transform(post)
+        return post
+
+    def _prediction_inputs(self, X: Tensor) -> Tensor:
+        """``X`` checked (``... x d``, finite; a lower floating precision is converted to the
+        model's, as BoTorch's models do), the model in eval mode, the input transform applied."""
+        if self._data.dim and X.shape[-1] != self._data.dim:  # dim 0: a prior-only model takes any d
+            raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
+        dtype = self.train_X.dtype
+        if X.dtype != dtype and X.is_floating_point():
+            if torch.finfo(X.dtype).eps < torch.finfo(dtype).eps:  # would lose precision: say so
+                raise ValueError(f"X is {X.dtype} but the model is {dtype}: convert one of them "
+                                 f"(X.to({dtype}) or model.to(...)).")
+            X = X.to(dtype)  # BoTorch's optimisers and objectives hand over float32 candidates
+        elif not X.is_floating_point():  # integer items: predictions in the model's dtype, not truncated
+            X = X.to(dtype)
+        if self.training:
+            self.eval()
+        Xt = self.transform_inputs(X)
+        # one check (one synchronisation) for both: finite, and small enough that the kernel's
+        # squared distances (x / lengthscale)^2, lengthscales >= 1e-4, do not overflow to inf - inf
+        if not bool((Xt.detach().abs() <= torch.finfo(dtype).max ** 0.5 * 1e-5).all()):
+            finite = torch.isfinite(X.detach())
+            if not bool(finite.all()):
+                bad = X.detach()[~finite][:3].tolist()
+                raise ValueError(f"X must be finite, got {int((~finite).sum())} non-finite value(s) such as {bad}.")
+            raise ValueError(f"X is too large for the kernel: values up to {float(Xt.detach().abs().max()):.3g} "
+                             "(after any input transform) overflow its squared distances; the model expects "
+                             "items in the unit cube (scale them, or pass input_transform=Normalize(d, bounds)).")
+        return Xt
+
+    def __call__(self, X: Tensor) -> MultivariateNormal:  # skip gpytorch's GP.__call__ machinery
+        return self.forward(X)
+
+    # ------------------------------------------------------- predictives (eq. 11)
+
+
+def _priors(root: torch.nn.Module):
+    """``(module, prior, closure)`` for each prior that GPyTorch's ``root.named_priors()`` lists, in
+    its order (depth first, a module's children each once per parent), without building names."""
+    stack = [root]
+    while stack:
+        module = stack.pop()
+        if isinstance(module, GModule):
+            for prior, closure, _ in module._priors.values():
+                if prior is not None:
+                    yield module, prior, closure
+        children = list(dict.fromkeys(c for c in module._modules.values() if c is not None))
+        stack.extend(reversed(children))
+
+
+class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
+    r"""Laplace evidence of a :class:`PreferenceGP` plus the log densities of its hyperparameter
+    priors; works with ``botorch.fit.fit_gpytorch_mll``."""
+
+    def __init__(self, model: PreferenceGP):
+        super().__init__(model.likelihood, model)
+        weak_load_hook(self)
+
+    def forward(self, *args: Any, **kwargs: Any) -> Tensor:
+        """The evidence of the model's own data. ``mll(output, comparisons)``, as BoTorch calls
+        ``PairwiseLaplaceMarginalLogLikelihood``, is accepted; comparisons other than the
+        model's raise :class:`~torchpref.models.pairwise_interface.TrainDataMismatchError` (``PairwiseGP``:
+        ``RuntimeError``) rather than being ignored."""
+        given = args[1] if len(args) > 1 else None
+        if isinstance(given, Tensor) and not (given.shape == self.model.comparisons.shape
+                                              and torch.equal(given.to(self.model.comparisons), self.model.comparisons)):
+            raise TrainDataMismatchError(f"the evidence is of the model's own comparisons; got other comparisons "
+                                         f"(shape {tuple(given.shape)}): use set_train_data to change them.")
+        res = self.model.log_marginal_likelihood()
+        # the model's priors, its likelihood's among them, each once (GPyTorch's exact MLL walks
+        # ``model.named_priors()`` alike; walking ``self`` would count the likelihood's twice)
+        for module, prior, closure in _priors(self.model):
+            res = res + prior.log_prob(closure(module)).sum()
+        return res
+
+    def compute_custom_loss(self, **kwargs: Any) -> Tensor:
+        """The loss BoTorch's fitting routines minimise: ``-self()``."""
+        return -self.forward()

@@ -1,0 +1,371 @@
+r"""Query selectors: given a model and candidate items, return the next query.
+
+Every selector has ``select(model, X, indices, step, num_steps, generator) -> Query`` with
+``X`` the ``N x d`` candidates (``indices`` their pool rows, or ``None``), ``step`` the
+zero-based query number out of ``num_steps``. Baselines (paper Sec. IV.A): random ratings,
+random rankings, UCB ratings, random mixed. The paper's combined strategy is :class:`UCBC`;
+:class:`InformationPerEffort` is ours.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from botorch.models.model import Model
+from torch import Tensor
+
+from torchpref.acquisition.functions import (
+    greedy_choice_set,
+    item_ucb,
+    membership_information,
+    rating_bin_probabilities,
+    sample_information,
+    top_set_membership,
+)
+from torchpref.inference.numerics import cholesky_batch
+from torchpref.models.batch import BatchedPreferenceGP
+from torchpref.data.queries import Query, ranking_query, rating_query
+
+
+def _ranking_size(m: int) -> int:
+    """``m`` checked at construction: a whole number of items per ranking, at least 2."""
+    if isinstance(m, bool) or int(m) != m or m < 2:
+        raise ValueError(f"a ranking query needs m >= 2 items (a whole number), got m={m!r}.")
+    return int(m)
+
+
+def effort_model(m: int, rating_cost: float, ranking_cost: float | None) -> tuple[int, float, float]:
+    """``m`` checked, and the efforts of a rating and a best-of-``m`` ranking (default
+    ``1 + (m - 1) / 4``: one judgement and reading ``m - 1`` more items at a quarter each)."""
+    m = _ranking_size(m)
+    ranking_cost = 1.0 + (m - 1) / 4 if ranking_cost is None else ranking_cost
+    if not (rating_cost > 0 and ranking_cost > 0):
+        raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
+    return m, float(rating_cost), float(ranking_cost)
+
+
+def _check_m(m: int, X: Tensor) -> None:
+    if m < 2:
+        raise ValueError(f"a ranking query needs m >= 2 items, got m={m}.")
+    if X.shape[0] < m:
+        raise ValueError(f"need at least m={m} candidates for a ranking query, got {X.shape[0]}.")
+
+
+class Selector:
+    r"""Base class; ``name`` labels results.
+
+    Subclasses implement :meth:`select_batch`, which picks one query for each of ``T``
+    independent trials at the same step (``X``: ``T x N x d``; ``model`` a
+    :class:`~torchpref.models.batch.BatchedPreferenceGP`, or a :class:`~torchpref.PreferenceGP` when
+    ``T = 1``); :meth:`select` is its single-trial case, so both run the same code and consume
+    each trial's generator identically. A custom selector may override :meth:`select` alone
+    (it then runs in :func:`~torchpref.selection.active.run_active_learning` only).
+    """
+
+    name = "selector"
+
+    def select(self, model: Model, X: Tensor, indices: Tensor | None, step: int, num_steps: int,
+               generator: torch.Generator) -> Query:
+        """The next query for ``model`` among the candidates ``X`` (``N x d``)."""
+        return self.select_batch(model, X.unsqueeze(0), [indices], step, num_steps, [generator])[0]
+
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        """One query per trial: ``X`` is ``T x N x d``, ``indices`` and ``generators`` one per trial."""
+        raise NotImplementedError(f"{type(self).__name__} implements no select_batch: it runs one trial at a time.")
+
+
+class PerEffortSelector(Selector):
+    r"""A selector that values each trial's best rating and best ranking per unit of effort
+    (:meth:`values`) and asks the larger (the rating where they are equal)."""
+
+    def values(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]):
+        r"""``(rating rows T, rating values T, ranking rows T x m or None, ranking values T)``,
+        values per unit of effort."""
+        raise NotImplementedError
+
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        with torch.no_grad():
+            rating_row, rating_value, ranking_rows, ranking_value = self.values(model, X, generators)
+        return [ranking_query(X[b], indices[b], ranking_rows[b])
+                if ranking_rows is not None and bool(ranking_value[b] > rating_value[b])
+                else rating_query(X[b], indices[b], int(rating_row[b])) for b in range(X.shape[0])]
+
+
+class RandomRatings(Selector):
+    """Rate a uniformly random candidate."""
+
+    name = "random ratings"
+
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        return [rating_query(X[b], indices[b], int(torch.randint(X.shape[1], (1,), generator=g)))
+                for b, g in enumerate(generators)]
+
+
+class RandomRankings(Selector):
+    """Best of ``m`` uniformly random distinct candidates."""
+
+    name = "random rankings"
+
+    def __init__(self, m: int = 5):
+        self.m = _ranking_size(m)
+
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        _check_m(self.m, X[0])
+        return [ranking_query(X[b], indices[b], torch.randperm(X.shape[1], generator=g)[: self.m])
+                for b, g in enumerate(generators)]
+
+
+class RandomMixed(Selector):
+    """A random rating or a random ranking, with probability ``p_ranking`` of a ranking."""
+
+    name = "random mixed"
+
+    def __init__(self, m: int = 5, p_ranking: float = 0.5):
+        self.m, self.p_ranking = _ranking_size(m), p_ranking
+
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        out = []
+        for b, g in enumerate(generators):
+            coin = float(torch.rand((), generator=g, dtype=torch.float64))
+            sel = RandomRankings(self.m) if coin < self.p_ranking else RandomRatings()
+            out += sel.select_batch(model, X[b : b + 1], indices[b : b + 1], step, num_steps, [g])
+        return out
+
+
+def _ucb(model, X: Tensor, gamma: float) -> Tensor:
+    """Eq. 12's UCB at ``X`` (``T x N x d``): ``T x N`` (:func:`~torchpref.acquisition.functions.item_ucb`)."""
+    with torch.no_grad():
+        return item_ucb(model, X, gamma)[0]
+
+
+def joint_posterior(model: Model | BatchedPreferenceGP, X: Tensor) -> tuple[Tensor, Tensor]:
+    """Joint posterior mean ``T x N`` and covariance ``T x N x N`` at ``X`` (``T x N x d``): a
+    :class:`~torchpref.models.batch.BatchedPreferenceGP`'s ``joint``, else (``T = 1``) ``model.posterior``."""
+    if isinstance(model, BatchedPreferenceGP):
+        return model.joint(X)
+    mvn = model.posterior(X).distribution
+    T, N = X.shape[:2]
+    return mvn.mean.reshape(T, N), mvn.covariance_matrix.reshape(T, N, N)
+
+
+def joint_samples(mean: Tensor, cov: Tensor, generators: Sequence[torch.Generator],
+                  num_samples: int) -> tuple[Tensor, Tensor]:
+    """``T x S x N`` joint samples of ``N(mean, cov)`` (``T x N``, ``T x N x N``; ``S =
+    num_samples``, one ``randn`` draw from each trial's generator) and the std (``T x N``)."""
+    T, N = mean.shape
+    std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    jitters = [1e-9 * cov.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)]  # relative, then tenfold
+    for _ in range(7):
+        jitters.append(10 * jitters[-1])
+    L, _, failed = cholesky_batch(cov, torch.stack(jitters))
+    if bool(failed.any()):  # fall back on independent samples
+        L[failed] = torch.diag_embed(std[failed])
+    z = torch.stack([torch.randn(num_samples, N, generator=g, dtype=mean.dtype, device=mean.device)
+                     for g in generators])
+    return mean.unsqueeze(-2) + z @ L.mT, std
+
+
+class UCBRatings(Selector):
+    """Rate the candidate of largest UCB (eq. 12)."""
+
+    name = "UCB ratings"
+
+    def __init__(self, gamma: float = 3.0):
+        self.gamma = gamma
+
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        best = _ucb(model, X, self.gamma).argmax(-1).tolist()
+        return [rating_query(X[b], indices[b], i) for b, i in enumerate(best)]
+
+
+class UCBC(Selector):
+    r"""The paper's combined strategy (Sec. III.C), as the authors' code ran it.
+
+    At zero-based query ``t`` of ``T`` it asks for a ranking with probability
+    ``max(0, (T - t) / T)`` (so early queries are rankings, later ones ratings), else a rating.
+    Rating: the candidate of largest UCB. Ranking: ``m`` distinct candidates drawn by a softmax
+    ``exp(UCB / T)``, with temperature ``T = temperatures[0]`` for the first and
+    ``temperatures[1]`` after (with the authors' 5 and 25 and UCBs of a few units, close to
+    uniform: the ranking branch explores). The authors' code zeroed a drawn candidate's UCB and
+    could draw it again; here the ``m`` candidates are distinct.
+
+    Args:
+        gamma: eq. 12's ``gamma`` (the paper's text: 3; the authors' code: 2).
+        m: items per ranking query.
+        temperatures: softmax temperatures (the authors': 5 then 25).
+    """
+
+    name = "UCBC"
+
+    def __init__(self, gamma: float = 3.0, m: int = 5, temperatures: tuple[float, float] = (5.0, 25.0)):
+        self.gamma, self.m, self.temperatures = gamma, _ranking_size(m), temperatures
+
+    def ranking_probability(self, step: int, num_steps: int) -> float:
+        """The probability ``max(0, (T - t) / T)`` of a ranking at zero-based query ``step`` of ``num_steps``."""
+        return max(0.0, (num_steps - step) / num_steps)
+
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        ucb = _ucb(model, X, self.gamma)
+        out = []
+        for b, g in enumerate(generators):
+            coin = float(torch.rand((), generator=g, dtype=torch.float64))
+            if coin >= self.ranking_probability(step, num_steps):
+                out.append(rating_query(X[b], indices[b], int(ucb[b].argmax())))
+                continue
+            _check_m(self.m, X[b])
+            logits = ucb[b].clone()
+            rows = []
+            for k in range(self.m):
+                temp = self.temperatures[0] if k == 0 else self.temperatures[1]
+                p = torch.softmax((logits - logits.max()) / temp, dim=0)  # drawn rows: logit -inf
+                r = int(torch.multinomial(p, 1, generator=g))
+                rows.append(r)
+                logits[r] = -math.inf
+            out.append(ranking_query(X[b], indices[b], torch.tensor(rows)))
+        return out
+
+
+class InformationPerEffort(Selector):
+    r"""Ask the query whose answer is expected to carry the most information per unit of effort.
+
+    From ``num_samples`` joint posterior samples of the utility over the ``N`` candidates it
+    values each query by the mutual information between its answer and a target:
+
+    * ``target="top"`` (default): which candidates are in the top set, the ``k =
+      round(top_fraction * N)`` largest utilities of each sample. The value is the summed
+      information about each candidate's membership,
+      ``sum_i I(y; 1[f(x_i) in top k])`` (:func:`~torchpref.acquisition.functions.membership_information`),
+      the expected reduction of the summed membership entropies, with the estimator's
+      finite-sample bias removed (without the correction, summed over ~100 items, the bias is
+      as large as the information itself and favours ratings over rankings). It buys
+      information on the whole upper region and on its boundary (which item is in, which is
+      just out), not only on the single best item;
+    * ``target="top+levels"``: the same, and each candidate's rating level: the labels
+      ``1[mu(f(x_i)) > e]`` for the rating-scale edges ``e`` of ``level_edges`` (by default the
+      bin edges of a 1-5 Likert scale), summed with the memberships in the same estimator. A
+      ranking tells only which item is better, so it informs memberships (relative) but not
+      levels (absolute); a rating informs both. The target is what the metrics score: which
+      items are best (true positives, regret) and what each would be rated (WRMS);
+    * ``target="maximizer"``: which candidate is the maximiser, the discrete entropy search of
+      Hennig & Schuler (2012) / Villemonteix et al. (2009)
+      (:func:`~torchpref.acquisition.functions.sample_information`);
+    * ``target="utility"``: the utility itself (the answer's ``I(y; f)``, as
+      :class:`~torchpref.acquisition.functions.QueryInformation`).
+
+    The ``num_plausible`` candidates whose target is most uncertain (``"top"``: membership
+    probability nearest 1/2; otherwise: likeliest maximisers; ties by eq. 12's UCB) are
+    considered: a rating of each is valued with its binned Beta answer, a best-of-``m`` ranking
+    is built greedily among them (:func:`~torchpref.acquisition.functions.greedy_choice_set`: start at the
+    most uncertain one, add the item that adds most information). The query of largest
+    information / cost is asked. All answers are valued under the model's own likelihoods
+    (its ``sigma_R``, ``nu``, ``sigma_B``).
+
+    ``top_fraction = 0.2``, ``num_plausible = 15`` and ``min_count = 8`` were chosen on the wave
+    experiment's development seeds 1-3 (``docs/wave.md``), not on its reported seed. One call
+    costs about 10 ms for 100 candidates (128 joint samples of their utilities, one Cholesky of the
+    candidates' covariance).
+
+    Args:
+        m: items per ranking query.
+        rating_cost: effort of one rating.
+        ranking_cost: effort of one best-of-``m`` choice (default ``1 + (m - 1) / 4``: 2 for
+            ``m = 5``, twice a rating; see ``docs/wave.md``).
+        gamma: eq. 12's ``gamma``, to order candidates of equal uncertainty.
+        num_samples: joint posterior samples.
+        target: ``"top"``, ``"top+levels"``, ``"maximizer"`` or ``"utility"``.
+        top_fraction: the top set's share of the candidates (``target="top"``).
+        num_plausible: candidates considered for ratings and rankings.
+        num_bins: bins of a rating's answer.
+        min_count: ``target="top"``: an item counts only if both its labels have at least this
+            many samples (membership probability in ``[min_count / S, 1 - min_count / S]``;
+            see :func:`~torchpref.acquisition.functions.membership_information`).
+        bias_correction: ``target="top"``: correct the information estimates' finite-sample
+            bias (:func:`~torchpref.acquisition.functions.membership_information`).
+        level_edges: ``target="top+levels"``: the rating-scale edges of the levels.
+    """
+
+    name = "info per effort"
+
+    def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
+                 gamma: float = 3.0, num_samples: int = 128, target: str = "top", top_fraction: float = 0.2,
+                 num_plausible: int = 15, num_bins: int = 10, min_count: int = 8, bias_correction: bool = True,
+                 level_edges: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8)):
+        m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
+        if target not in ("top", "top+levels", "maximizer", "utility"):
+            raise ValueError(f"target must be 'top', 'top+levels', 'maximizer' or 'utility', got {target!r}.")
+        if not all(0 < e < 1 for e in level_edges):
+            raise ValueError(f"level_edges must lie in (0, 1), got {level_edges}.")
+        if num_samples < 2 or num_plausible < 1:
+            raise ValueError(f"need num_samples >= 2 and num_plausible >= 1, got {num_samples} and {num_plausible}.")
+        if not 0 < top_fraction < 1:
+            raise ValueError(f"top_fraction must be in (0, 1), got {top_fraction}.")
+        self.m, self.rating_cost, self.ranking_cost = m, rating_cost, ranking_cost
+        self.gamma, self.num_samples, self.target = gamma, num_samples, target
+        self.top_fraction, self.num_plausible, self.num_bins = top_fraction, num_plausible, num_bins
+        self.min_count, self.bias_correction = min_count, bias_correction
+        self.level_edges = tuple(float(e) for e in level_edges)
+
+    def _levels(self, F: Tensor, rating_likelihood) -> Tensor:
+        """``T x S x L x N``: is each sample's rating mean ``Phi(f / (sqrt 2 sigma_B))`` above
+        each of :attr:`level_edges` (the latent thresholds ``sqrt 2 sigma_B Phi^-1(edge)``)."""
+        edges = torch.tensor(self.level_edges, dtype=F.dtype, device=F.device)
+        c = math.sqrt(2) * rating_likelihood.rating_scale.to(F) * torch.special.ndtri(edges)
+        return F.unsqueeze(-2) > c.reshape(-1, 1)
+
+    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
+                     generators: Sequence[torch.Generator]) -> list[Query]:
+        with torch.no_grad():
+            mean, cov = joint_posterior(model, X)
+            F, std = joint_samples(mean, cov, generators, self.num_samples)  # T x S x N
+            T, S, N = F.shape
+            lik = model.likelihood
+            ucb = mean + self.gamma * std
+            tie = 1e-9 * torch.sigmoid(ucb - ucb.max(-1, keepdim=True).values)
+            if self.target in ("top", "top+levels"):
+                Z = top_set_membership(F, max(1, min(N, round(self.top_fraction * N))))
+                if self.target == "top+levels":  # and each item's rating level: N x L more labels
+                    Z = torch.cat([Z, self._levels(F, lik.rating).flatten(-2)], dim=-1)
+                p = Z.to(F).mean(-2)
+                order = torch.argsort((p * (1 - p)).reshape(T, -1, N).sum(1) + tie, dim=-1, descending=True)
+
+                def info(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
+                    return membership_information(P, Z, self.min_count, self.bias_correction)
+            else:
+                argmax = F.argmax(-1)  # T x S
+                p_max = torch.zeros_like(mean).scatter_add_(1, argmax, torch.ones_like(F[..., 0])) / S
+                order = torch.argsort(p_max + tie, dim=-1, descending=True)
+                if self.target == "maximizer":
+                    # which plausible candidate is the maximiser (K + 1 labels: K for "another
+                    # one"), few enough that every label has many samples (a plug-in estimate is
+                    # biased upwards when labels have few samples each)
+                    K = min(self.num_plausible, N)
+                    rank = torch.full((T, N), K, dtype=torch.long, device=F.device)
+                    rank.scatter_(1, order[:, :K], torch.arange(K, device=F.device).expand(T, K))
+                    labels = rank.gather(1, argmax)  # T x S
+
+                    def info(P: Tensor) -> Tensor:
+                        return torch.stack([sample_information(P[b], labels[b], K + 1) for b in range(T)])
+                else:
+                    def info(P: Tensor) -> Tensor:
+                        return sample_information(P)
+            cand = order[:, : min(self.num_plausible, N)]  # T x K
+            Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, cand.shape[1]))  # T x S x K
+            rating_info = info(rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # T x K x S x G -> T x K
+            best_rating = cand.gather(1, rating_info.argmax(-1, keepdim=True)).squeeze(-1).tolist()
+            rating_value = rating_info.max(-1).values / self.rating_cost
+            if cand.shape[1] < self.m or self.m < 2:
+                return [rating_query(X[b], indices[b], best_rating[b]) for b in range(T)]
+            chosen, value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, info, start=0)
+            ranking = (value / self.ranking_cost > rating_value).tolist()
+            rows = cand.gather(1, chosen)  # T x m
+        return [ranking_query(X[b], indices[b], rows[b]) if ranking[b]
+                else rating_query(X[b], indices[b], best_rating[b]) for b in range(T)]

@@ -1,0 +1,281 @@
+r"""The records of a session file (format version 1) and their validation.
+
+Every record is checked when a file is opened and before a record is written
+(:class:`~torchpref.sessions.journal.Journal`): the header's fields with their types and ranges, each
+answer's sequence number, time, kind, items (one row for a rating, at least two for a choice or no
+preference), answer (a whole level whose value is that level's rating, a row index, or null) and
+query, and each undo's target. A failure is a :class:`SessionFileError` (a ``ValueError``) that
+names the file, the line and the field. See ``docs/sessions.md`` for the format.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+from torchpref.data.preference_data import likert_to_unit
+from torchpref.version import __version__
+
+__all__ = [
+    "ANSWER_KINDS",
+    "FORMAT_VERSION",
+    "SessionFileCorrupt",
+    "SessionFileError",
+    "SessionMismatchError",
+    "SessionRepairWarning",
+    "SessionVersionError",
+    "check_new_record",
+    "dumps_settings",
+    "records_in_force",
+    "validate_header",
+    "validate_records",
+]
+
+FORMAT_VERSION = 1
+"""The newest session-file format this version reads and the one it writes."""
+
+ANSWER_KINDS = ("rating", "choice", "no_preference")
+"""An answer is a rating (of one item), a choice (the best of ``m >= 2``) or no preference."""
+
+
+class SessionFileError(ValueError):
+    """A session file that cannot be used as it is (the message names the file and line)."""
+
+
+class SessionFileCorrupt(SessionFileError):
+    """A line of a session file is incomplete or not a JSON record.
+
+    Attributes:
+        path: the file.
+        line_number: the 1-based number of the bad line.
+        reason: what is wrong with it.
+        repairable: whether ``repair=True`` can fix it (only a bad *last* line: a crash
+            mid-write; a bad line followed by good ones is never dropped).
+        partial: the bad line's bytes.
+        offset: the byte offset where the bad line starts.
+    """
+
+    def __init__(self, path, line_number: int, reason: str, repairable: bool, partial: bytes, offset: int):
+        self.path, self.line_number, self.reason = str(path), line_number, reason
+        self.repairable, self.partial, self.offset = repairable, partial, offset
+        fix = (
+            "It looks like a crash in the middle of writing the last answer. To recover, open it with "
+            "repair=True (PreferenceSession(..., repair=True) or PreferenceSession.load(path, repair=True)): "
+            f"the partial line is moved to {self.path}.dropped, the file is truncated to its last complete "
+            "record, and that answer is asked again."
+            if repairable
+            else "The lines after it are valid, so this is not an interrupted write; the file was edited or "
+            "damaged and must be fixed by hand."
+        )
+        super().__init__(f"session file {self.path}, line {line_number}: {reason}. {fix}")
+
+
+class SessionVersionError(SessionFileError):
+    """The file was written by a newer format version than this library reads."""
+
+
+class SessionMismatchError(SessionFileError):
+    """The file was written for other items, dimensions or settings than those given.
+
+    Attributes:
+        setting: the header field that differs (``"dim"``, ``"candidates"``, ``"bounds"``, ...).
+        theirs: the file's value, described.
+        mine: the value given, described.
+    """
+
+    def __init__(self, message: str, setting: str = "", theirs: str = "", mine: str = ""):
+        super().__init__(message)
+        self.setting, self.theirs, self.mine = setting, theirs, mine
+
+
+class SessionRepairWarning(UserWarning):
+    """A partial last line was removed from a session file (``repair=True``)."""
+
+
+class _Line:
+    """Checks on one record; every failure names the file and the line."""
+
+    def __init__(self, where: str, rec: dict):
+        self.where, self.rec = where, rec
+
+    def fail(self, msg: str, error: type = SessionFileError):
+        raise error(f"{self.where}: {msg}.")
+
+    def get(self, key: str, required: bool = True):
+        if key not in self.rec:
+            if required:
+                self.fail(f"the {self.rec.get('type')} record has no {key!r}")
+            return None
+        return self.rec[key]
+
+    def integer(self, key: str, lo: int | None = None, hi: int | None = None, optional: bool = False) -> int | None:
+        v = self.get(key, required=not optional)
+        if v is None and optional:
+            return None
+        if not isinstance(v, int) or isinstance(v, bool) or (lo is not None and v < lo) or (hi is not None and v > hi):
+            rng = f" in {lo}..{hi}" if hi is not None else (f" >= {lo}" if lo is not None else "")
+            self.fail(f"{key!r} must be an integer{rng}, got {v!r:.80}")
+        return v
+
+    def matrix(self, value, name: str, cols: int, min_rows: int = 1, max_rows: int | None = None) -> list:
+        ok = isinstance(value, list) and all(
+            isinstance(r, list) and len(r) == cols and all(_is_number(x) and math.isfinite(x) for x in r)
+            for r in value)
+        if not ok:
+            self.fail(f"{name} must be a list of rows of {cols} finite numbers, got {value!r:.120}")
+        if len(value) < min_rows or (max_rows is not None and len(value) > max_rows):
+            want = f"exactly {min_rows}" if max_rows == min_rows else f"at least {min_rows}"
+            self.fail(f"{name} must have {want} row(s), got {len(value)}")
+        return value
+
+    def bounds(self, value, name: str, dim: int) -> list:
+        b = self.matrix(value, name, dim, 2, 2)
+        if not all(lo < hi for lo, hi in zip(*b)):
+            self.fail(f"{name} must have lower < upper in every dimension, got {b!r:.120}")
+        return b
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def validate_header(path, h: dict) -> None:
+    """Check a header record (line 1 of ``path``); raises :class:`SessionFileError` naming the field."""
+    c = _Line(f"session file {path}, line 1", h)
+    if h.get("type") != "header":
+        c.fail(f"the first record must be the header, got {h!r:.200}")
+    version = c.integer("version", lo=1)
+    if version > FORMAT_VERSION:
+        c.fail(f"format version {version} is newer than this torchpref {__version__} reads (up to "
+               f"{FORMAT_VERSION}); upgrade torchpref to open it", SessionVersionError)
+    dim = c.integer("dim", lo=1)
+    c.integer("seed")
+    c.integer("num_queries", lo=1)
+    if c.get("num_levels") is not None:  # required, null for ratings in [0, 1]
+        c.integer("num_levels", lo=2)
+    c.bounds(c.get("bounds"), "bounds", dim)
+    names = h.get("names")
+    names_ok = isinstance(names, list) and len(names) == dim and all(isinstance(n, str) for n in names)
+    if names is not None and not names_ok:
+        c.fail(f"names must be null or {dim} strings, got {names!r:.120}")
+    if not isinstance(h.get("metadata", {}), dict):
+        c.fail(f"metadata must be a JSON object, got {h.get('metadata')!r:.80}")
+    spec = c.get("candidates")
+    if not isinstance(spec, dict) or spec.get("kind") not in ("pool", "box"):
+        c.fail(f"candidates must be {{'kind': 'pool' or 'box', ...}}, got {spec!r:.120}")
+    if spec["kind"] == "pool":
+        c.matrix(spec.get("items"), "candidates' items", dim)
+    else:
+        c.bounds(spec.get("bounds"), "candidates' bounds", dim)
+        _Line(c.where, spec).integer("num", lo=1)
+
+
+def _check_answer(c: _Line, rec: dict, header: dict) -> None:
+    kind = rec.get("kind")
+    if kind not in ANSWER_KINDS:
+        c.fail(f"unknown answer kind {kind!r:.80} (one of {', '.join(ANSWER_KINDS)})")
+    c.get("time")
+    if not isinstance(rec["time"], str):
+        c.fail(f"'time' must be a string, got {rec['time']!r:.80}")
+    dim = header["dim"]
+    if kind == "rating":
+        items = c.matrix(c.get("items"), "a rating's items", dim, 1, 1)
+    else:
+        items = c.matrix(c.get("items"), f"a {kind.replace('_', ' ')}'s items", dim, 2)
+    answer, levels = c.get("answer"), header.get("num_levels")
+    if kind == "rating":
+        value = c.get("value")
+        if levels is not None:
+            level = c.integer("answer", lo=1, hi=levels)
+            expected = float(likert_to_unit(level, levels))
+        else:
+            if not (_is_number(answer) and 0.0 <= answer <= 1.0):
+                c.fail(f"a rating must be a number in [0, 1], got {answer!r:.80}")
+            expected = float(answer)
+        if not _is_number(value) or value != expected:
+            c.fail(f"the rating's value {value!r:.80} does not match its answer {answer!r} (expected {expected})")
+    elif kind == "choice":
+        c.integer("answer", lo=0, hi=len(items) - 1)
+    elif answer is not None:
+        c.fail(f"no preference has answer null, got {answer!r:.80}")
+    _check_query(c, rec.get("query"), kind, len(items), header)
+
+
+def _check_query(c: _Line, q, kind: str, m: int, header: dict) -> None:
+    if q is None:
+        return
+    if not isinstance(q, dict):
+        c.fail(f"'query' must be null or a JSON object, got {q!r:.80}")
+    want = "rating" if kind == "rating" else "ranking"
+    if q.get("kind") != want:
+        c.fail(f"a {kind} answers a {want} query, not {q.get('kind')!r:.80}")
+    _Line(c.where, q).integer("step", lo=0, optional=True)
+    idx = q.get("pool_indices")
+    if idx is None:
+        return
+    spec = header["candidates"]
+    n = len(spec["items"]) if spec["kind"] == "pool" else 0
+    if not (isinstance(idx, list) and len(idx) == m and all(isinstance(i, int) and not isinstance(i, bool)
+                                                           and 0 <= i < n for i in idx)):
+        c.fail(f"pool_indices must be {m} rows of the pool of {n} items, got {idx!r:.80}")
+    if any(spec["items"][i] != row for i, row in zip(idx, c.rec["items"])):
+        c.fail(f"the items are not the pool's rows {idx}")
+
+
+def validate_records(path, header: dict, records: list[dict], first_line: int = 2) -> None:
+    """Check every record after the header: format version, sequence numbers, answer schema,
+    undo targets. Raises :class:`SessionFileError` (or :class:`SessionVersionError`) naming the line."""
+    last_seq, active = 0, set()
+    for i, rec in enumerate(records, start=first_line):
+        last_seq = _check_record(_Line(f"session file {path}, line {i}", rec), header, last_seq, active)
+
+
+def _check_record(c: _Line, header: dict, last_seq: int, active: set[int]) -> int:
+    """Check one record after those with sequence numbers up to ``last_seq`` and answers
+    ``active`` in force (updated); returns its sequence number."""
+    rec = c.rec
+    v = rec.get("v", 1)
+    if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+        c.fail(f"record format version 'v' must be a positive integer, got {v!r:.80}")
+    if v > FORMAT_VERSION:
+        c.fail(f"record format version {v} is newer than {FORMAT_VERSION}; upgrade torchpref to open it",
+               SessionVersionError)
+    seq = c.integer("seq", lo=1)
+    if seq <= last_seq:
+        c.fail(f"sequence number {seq} does not follow {last_seq}")
+    if rec["type"] == "answer":
+        _check_answer(c, rec, header)
+        active.add(seq)
+    elif rec["type"] == "undo":
+        if not isinstance(rec.get("time"), str):
+            c.fail(f"'time' must be a string, got {rec.get('time')!r:.80}")
+        if rec.get("undoes") not in active or isinstance(rec.get("undoes"), bool):
+            c.fail(f"undo of {rec.get('undoes')!r:.80}, not an answer in force")
+        active.discard(rec["undoes"])
+    else:
+        c.fail(f"unknown record type {rec['type']!r:.80}")
+    return seq
+
+
+def check_new_record(where: str, header: dict, records: list[dict], record: dict) -> None:
+    """Check ``record`` as the next one after ``records`` (before it is written: the file never
+    gets a record it could not read back)."""
+    active = {r["seq"] for r in records_in_force(records)}
+    _check_record(_Line(where, record), header, records[-1]["seq"] if records else 0, active)
+
+
+def records_in_force(records: list[dict]) -> list[dict]:
+    """The answer records not undone, oldest first."""
+    active: list[dict] = []
+    for rec in records:
+        if rec["type"] == "answer":
+            active.append(rec)
+        else:
+            active = [r for r in active if r["seq"] != rec["undoes"]]
+    return active
+
+
+def dumps_settings(value: Any) -> str:
+    """A canonical JSON text of a header setting, to compare a file's settings with a session's."""
+    return json.dumps(value, sort_keys=True)

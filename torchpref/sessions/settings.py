@@ -1,0 +1,254 @@
+r"""What a :class:`~torchpref.sessions.session.PreferenceSession` is set up with, and how its file records it.
+
+:class:`SessionSettings` holds a session's validated settings (candidates, bounds, seed, levels,
+number of queries, names), writes them as the session file's header and checks a resumed file's
+header against them (:class:`~torchpref.sessions.records.SessionMismatchError` naming the setting). Also
+here: the default model and ranking size of a session, the per-step random stream
+(:func:`step_generator`) and :class:`SessionAnswer`, one answer in force.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import torch
+from torch import Tensor
+
+from torchpref.sessions.journal import now
+from torchpref.models.preference_gp import PreferenceGP, default_covar_module
+from torchpref.data.queries import BoxCandidates, Candidates, FinitePool, as_integer
+from torchpref.sessions.records import FORMAT_VERSION, SessionMismatchError, dumps_settings
+from torchpref.version import __version__
+
+__all__ = [
+    "MAX_REDRAWS",
+    "SessionAnswer",
+    "SessionSettings",
+    "as_items",
+    "default_ranking_size",
+    "default_session_model",
+    "step_generator",
+]
+
+
+@dataclass(frozen=True)
+class SessionAnswer:
+    """One answer in force (not undone).
+
+    Attributes:
+        seq: its sequence number in the file.
+        kind: ``"rating"``, ``"choice"`` or ``"no_preference"``.
+        items: ``m x d`` the items' coordinates as shown (``1 x d`` for a rating).
+        answer: the answer as given: a Likert level (or a rating in ``[0, 1]`` when the session
+            has no levels) for a rating, the index of the chosen row of ``items`` for a choice,
+            ``None`` for no preference.
+        value: the rating in ``[0, 1]`` the model uses (ratings only).
+        step: the query number it answered, or ``None`` if given out of turn.
+        pool_indices: the items' rows in the candidate pool, where known.
+        time: ISO 8601 timestamp.
+    """
+
+    seq: int
+    kind: str
+    items: Tensor
+    answer: Any
+    value: float | None
+    step: int | None
+    pool_indices: tuple[int, ...] | None
+    time: str
+
+    @classmethod
+    def from_record(cls, r: dict) -> "SessionAnswer":
+        """The answer of an ``answer`` record of the session file."""
+        q = r.get("query") or {}
+        pool = q.get("pool_indices")
+        return cls(r["seq"], r["kind"], torch.tensor(r["items"], dtype=torch.float64), r.get("answer"),
+                   r.get("value"), q.get("step"), None if pool is None else tuple(pool), r["time"])
+
+
+def step_generator(seed: int, step: int, attempt: int = 0) -> torch.Generator:
+    """The generator for query ``step`` of a session seeded ``seed``: a fresh stream per step, so a
+    restarted session proposes what the uninterrupted one would have (``attempt``: a further
+    stream for the same step, when the first one's query repeats the last answered one)."""
+    key = f"torchpref-session:{int(seed)}:{int(step)}" + (f":{int(attempt)}" if attempt else "")
+    digest = hashlib.sha256(key.encode()).digest()
+    return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
+
+
+MAX_REDRAWS = 10
+"""How many further draws :meth:`PreferenceSession.ask` makes while its query repeats the last one answered."""
+
+
+def default_ranking_size(num_items: int) -> int:
+    """Items per ranking query for a pool of ``num_items`` distinct items: 5, or fewer than the
+    pool (``num_items - 1``, at least 2), so that a small pool's rankings are not all the same set."""
+    return max(2, min(5, num_items - 1))
+
+
+def default_session_model(train_X: Tensor) -> PreferenceGP:
+    r"""The default model of a session: :class:`~torchpref.PreferenceGP` on inputs normalised to the
+    unit cube, an RBF kernel with lengthscale 0.2 and outputscale ``sigma_f^2 = 1`` (eq. 1), and the
+    model's default likelihood settings (``sigma_R = 0.1``, ``sigma_B = 1``, ``nu = 80``, tie
+    threshold ``tau = 0.1``), all fixed. A person can answer "no preference", so strict choices are
+    the tie likelihood's upper category (``ties_offered=True``, docs/likelihoods.md)."""
+    kernel = default_covar_module(train_X.shape[-1]).to(train_X)
+    kernel.base_kernel.lengthscale = 0.2
+    kernel.outputscale = 1.0
+    return PreferenceGP(train_X, covar_module=kernel, ties_offered=True)
+
+
+def as_items(X, dim: int, name: str) -> Tensor:
+    """``X`` as an ``m x dim`` float64 tensor of finite numbers (a ``dim`` vector is one row).
+
+    Raises:
+        ValueError: ``X`` (named ``name``) is not numbers, not of that shape or not finite.
+    """
+    try:
+        t = torch.as_tensor(X, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"{name} must be numbers, got {X!r}.") from None
+    if t.dim() == 1:
+        t = t.unsqueeze(0)
+    if t.dim() != 2 or t.shape[-1] != dim:
+        raise ValueError(f"{name} must be m x {dim}, got shape {tuple(t.shape)}.")
+    if not torch.isfinite(t).all():
+        raise ValueError(f"{name} must be finite, got {t.tolist()}.")
+    return t
+
+
+def _whole(name: str, value, lo: int | None) -> int:
+    """``value`` as an int (an integer, not a bool, float or text) of at least ``lo``."""
+    v = as_integer(value)
+    if v is None or (lo is not None and v < lo):
+        raise ValueError(f"{name} must be an integer{'' if lo is None else f' >= {lo}'}, got {value!r}.")
+    return v
+
+
+def _candidates_spec(candidates) -> tuple[Candidates, dict, Tensor, Tensor]:
+    """``(candidates, header spec, lower, upper)``: float64 candidates, their description for the
+    file's header, and their range."""
+    if isinstance(candidates, Tensor):
+        candidates = FinitePool(as_items(candidates, candidates.shape[-1], "candidates"))
+    if isinstance(candidates, FinitePool):
+        pool = as_items(candidates.X, candidates.X.shape[-1], "the pool's items").to(torch.float64)
+        return FinitePool(pool), {"kind": "pool", "items": pool.tolist()}, pool.min(0).values, pool.max(0).values
+    if isinstance(candidates, BoxCandidates):
+        b = candidates.bounds.to(torch.float64)
+        spec = {"kind": "box", "bounds": b.tolist(), "num": candidates.num}
+        return BoxCandidates(b, candidates.num), spec, b[0], b[1]
+    raise TypeError(f"candidates must be a tensor, FinitePool or BoxCandidates, got {type(candidates).__name__}.")
+
+
+def _describe(spec) -> str:
+    """A header's candidates in a few words (a pool by its size and digest)."""
+    if not isinstance(spec, dict):
+        return repr(spec)
+    if spec.get("kind") == "pool":
+        items = spec.get("items") or []
+        digest = hashlib.sha256(json.dumps(items).encode()).hexdigest()[:10]
+        return f"(a pool of {len(items)} items, digest {digest})"
+    return f"(a box {spec.get('bounds')} x {spec.get('num')})"
+
+
+def candidates_from_header(header: dict) -> Tensor | BoxCandidates:
+    """The candidates a session file's header describes: a pool's items or a box."""
+    spec = header["candidates"]
+    if spec["kind"] == "pool":
+        return torch.tensor(spec["items"], dtype=torch.float64)
+    return BoxCandidates(torch.tensor(spec["bounds"], dtype=torch.float64), spec["num"])
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """A session's validated settings (see :class:`~torchpref.sessions.session.PreferenceSession`'s arguments).
+
+    Attributes:
+        candidates: float64 candidates (a :class:`~torchpref.FinitePool` or
+            :class:`~torchpref.BoxCandidates`).
+        spec: the candidates as the header records them.
+        dim: the items' dimension ``d``.
+        bounds: ``2 x d`` lower and upper bounds of the model's unit cube.
+        seed, num_queries, num_levels, names: as given, validated.
+    """
+
+    candidates: Candidates
+    spec: dict
+    dim: int
+    bounds: Tensor
+    seed: int
+    num_queries: int
+    num_levels: int | None
+    names: list[str] | None
+
+    @classmethod
+    def validated(cls, candidates: Tensor | Candidates, bounds: Tensor | None, seed: int, num_queries: int,
+                  num_levels: int | None, names: Sequence[str] | None) -> "SessionSettings":
+        """Check and convert a session's arguments (bounds default to the candidates' range).
+
+        Raises:
+            ValueError: a setting out of range, naming it and its value.
+            TypeError: ``candidates`` of another type.
+        """
+        candidates, spec, lo, hi = _candidates_spec(candidates)
+        dim = int(lo.shape[0])
+        if bounds is None:
+            bounds = torch.stack([lo, torch.where(hi > lo, hi, lo + 1.0)])
+        bounds = torch.as_tensor(bounds, dtype=torch.float64)
+        if bounds.shape != (2, dim) or not torch.isfinite(bounds).all() or not (bounds[1] > bounds[0]).all():
+            raise ValueError(f"bounds must be 2 x {dim} finite with lower < upper, got {bounds.tolist()}.")
+        if names is not None and len(names) != dim:
+            raise ValueError(f"names must give {dim} names, got {list(names)}.")
+        levels = None if num_levels is None else _whole("num_levels", num_levels, 2)
+        num_queries = _whole("num_queries", num_queries, 1)
+        return cls(candidates, spec, dim, bounds, _whole("seed", seed, None), num_queries, levels,
+                   None if names is None else [str(n) for n in names])
+
+    def header(self, metadata: dict | None) -> dict:
+        """A new session file's header record.
+
+        Raises:
+            ValueError: ``metadata`` is not a dictionary that JSON writes and reads back
+                (strings, finite numbers, booleans, ``None``, lists and dictionaries of them).
+        """
+        if metadata is not None and not isinstance(metadata, dict):
+            raise ValueError(f"metadata must be a dictionary, got {type(metadata).__name__}.")
+        try:
+            json.loads(json.dumps(metadata or {}, allow_nan=False))
+        except (TypeError, ValueError, RecursionError) as err:
+            raise ValueError(f"metadata must hold only JSON values (strings, finite numbers, booleans, None, "
+                             f"lists, dictionaries): {err}") from None
+        return {
+            "type": "header",
+            "version": FORMAT_VERSION,
+            "dim": self.dim,
+            "created": now(),
+            "torchpref": __version__,
+            "seed": self.seed,
+            "num_queries": self.num_queries,
+            "num_levels": self.num_levels,
+            "bounds": self.bounds.tolist(),
+            "names": self.names,
+            "candidates": self.spec,
+            "metadata": metadata or {},
+        }
+
+    def check_header(self, h: dict, path) -> None:
+        """Raise :class:`~torchpref.sessions.records.SessionMismatchError` where the header ``h`` of the file
+        ``path`` was written with other items, candidates, bounds, seed or levels."""
+        if h["dim"] != self.dim:
+            raise SessionMismatchError(
+                f"session file {path} was written for {h['dim']}-dimensional items, but these items have "
+                f"{self.dim} dimensions.", "dim", str(h["dim"]), str(self.dim))
+        for key, mine in (("candidates", self.spec), ("bounds", self.bounds.tolist()), ("seed", self.seed),
+                          ("num_levels", self.num_levels)):
+            if dumps_settings(h[key]) != dumps_settings(mine):
+                theirs = h[key]
+                if key == "candidates":
+                    theirs, mine = _describe(theirs), _describe(mine)
+                raise SessionMismatchError(
+                    f"session file {path} was written with {key} {theirs}, but this session has {key} {mine}; "
+                    f"open it with PreferenceSession.load({str(path)!r}) to use the file's settings.",
+                    key, str(theirs), str(mine))
