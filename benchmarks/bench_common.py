@@ -32,8 +32,11 @@ MIXED_N = 2000
 def utility(X: Tensor) -> Tensor:
     r"""A sum of sines on ``[0, 1]^2`` (``... x 2 -> ...``), of amplitude about ``UTILITY_SCALE``."""
     x, y = X[..., 0], X[..., 1]
-    return UTILITY_SCALE * 0.5 * (torch.sin(2 * math.pi * x) + torch.sin(3 * math.pi * y + 0.5) + 0.5 * torch.sin(
-        2 * math.pi * (x + y)))
+    return (
+        UTILITY_SCALE
+        * 0.5
+        * (torch.sin(2 * math.pi * x) + torch.sin(3 * math.pi * y + 0.5) + 0.5 * torch.sin(2 * math.pi * (x + y)))
+    )
 
 
 def make_comparisons(n: int, p: int, dim: int = DIM, seed: int = 0) -> tuple[Tensor, Tensor]:

@@ -26,10 +26,12 @@ def main() -> None:
         elapsed = time.perf_counter() - start
         for name, X in (("train", sc.train_X), ("test", sc.test_X)):
             share = float((op.level(X) == 5).double().mean())
-            print(f"seed {seed} {name}: {elapsed:.1f} s, rated 5: {100 * share:.1f} %, "
-                  f"distance {float(X[:, 0].min()):.0f}-{float(X[:, 0].max()):.0f}, "
-                  f"information {float(X[:, 1].min()):.0f}-{float(X[:, 1].max()):.0f}, "
-                  f"levels {torch.bincount(op.level(X), minlength=6)[1:].tolist()}")
+            print(
+                f"seed {seed} {name}: {elapsed:.1f} s, rated 5: {100 * share:.1f} %, "
+                f"distance {float(X[:, 0].min()):.0f}-{float(X[:, 0].max()):.0f}, "
+                f"information {float(X[:, 1].min()):.0f}-{float(X[:, 1].max()):.0f}, "
+                f"levels {torch.bincount(op.level(X), minlength=6)[1:].tolist()}"
+            )
         if seed == args.seeds[0]:
             plot_field(sc, RESULTS / "lake_field.png")
             plot_objectives(sc, RESULTS / "lake_objectives.png")

@@ -28,8 +28,25 @@ def run_checks() -> list[tuple[str, str]]:
     with tempfile.TemporaryDirectory() as tmp:
         xml = Path(tmp) / "report.xml"
         files = sorted(str(p) for p in (ROOT / "tests").glob("test_botorch_port_*.py"))
-        subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:randomly", "-W", "ignore", "-rxX",
-                        f"--junitxml={xml}", "-o", "junit_family=xunit2", *files], cwd=ROOT, check=False)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pytest",
+                "-q",
+                "-p",
+                "no:randomly",
+                "-W",
+                "ignore",
+                "-rxX",
+                f"--junitxml={xml}",
+                "-o",
+                "junit_family=xunit2",
+                *files,
+            ],
+            cwd=ROOT,
+            check=False,
+        )
         out = []
         for case in ET.parse(xml).getroot().iter("testcase"):
             skipped = case.find("skipped")
@@ -50,10 +67,14 @@ def main() -> None:
     args = parser.parse_args()
     results = run_checks()
     counts = {impl: Counter(o for name, o in results if f"[{impl}" in name) for impl in IMPLS}
-    summary = {impl: {"passed": c["passed"], "failed": c["failed"], "total": c["passed"] + c["failed"]}
-               for impl, c in counts.items()}
-    failed = {impl: sorted(name.split("::")[-1] for name, o in results if f"[{impl}" in name and o == "failed")
-              for impl in IMPLS}
+    summary = {
+        impl: {"passed": c["passed"], "failed": c["failed"], "total": c["passed"] + c["failed"]}
+        for impl, c in counts.items()
+    }
+    failed = {
+        impl: sorted(name.split("::")[-1] for name, o in results if f"[{impl}" in name and o == "failed")
+        for impl in IMPLS
+    }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "botorch_api_counts.json").write_text(json.dumps({"summary": summary, "failed": failed}, indent=1) + "\n")

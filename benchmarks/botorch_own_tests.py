@@ -66,9 +66,28 @@ def run(folder: Path, shim: bool) -> dict[str, str]:
     """``{test id: "passed" | "failed: first line of the message"}`` for one run."""
     xml = folder / f"report{int(shim)}.xml"
     env = dict(os.environ, TP_SHIM="1" if shim else "0", OMP_NUM_THREADS="1")
-    subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:randomly", "-p", "no:cacheprovider",
-                    "-W", "ignore", f"--junitxml={xml}", "-o", "junit_family=xunit2", *FILES],
-                   cwd=folder, env=env, check=False, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:randomly",
+            "-p",
+            "no:cacheprovider",
+            "-W",
+            "ignore",
+            f"--junitxml={xml}",
+            "-o",
+            "junit_family=xunit2",
+            *FILES,
+        ],
+        cwd=folder,
+        env=env,
+        check=False,
+        capture_output=True,
+    )
     out = {}
     for case in ET.parse(xml).getroot().iter("testcase"):
         bad = case.find("failure") if case.find("failure") is not None else case.find("error")
@@ -97,21 +116,25 @@ def main(argv: list[str] | None = None) -> None:
         (folder / "conftest.py").write_text(SHIM)
         baseline, ours = run(folder, shim=False), run(folder, shim=True)
     tests = sorted(set(baseline) | set(ours))
-    commit = subprocess.run(["git", "-C", str(args.botorch_src), "rev-parse", "HEAD"], capture_output=True,
-                            text=True, check=False).stdout.strip()
+    commit = subprocess.run(
+        ["git", "-C", str(args.botorch_src), "rev-parse", "HEAD"], capture_output=True, text=True, check=False
+    ).stdout.strip()
     result = {
         "botorch_installed": botorch.__version__,
         "botorch_tests_commit": commit or None,
         "tests": {t: {"PairwiseGP": baseline.get(t, "absent"), "PreferenceGP": ours.get(t, "absent")} for t in tests},
-        "summary": {m: sum(r.get(t) == "passed" for t in tests) for m, r in (("PairwiseGP", baseline),
-                                                                             ("PreferenceGP", ours))},
+        "summary": {
+            m: sum(r.get(t) == "passed" for t in tests) for m, r in (("PairwiseGP", baseline), ("PreferenceGP", ours))
+        },
         "total": len(tests),
     }
     for t in tests:
         b, o = baseline.get(t, "absent"), ours.get(t, "absent")
         print(f"{t:70s} PairwiseGP {b[:40]:40s} PreferenceGP {o[:90]}")
-    print(f"passed: PairwiseGP {result['summary']['PairwiseGP']} of {len(tests)}, "
-          f"PreferenceGP {result['summary']['PreferenceGP']} of {len(tests)}")
+    print(
+        f"passed: PairwiseGP {result['summary']['PairwiseGP']} of {len(tests)}, "
+        f"PreferenceGP {result['summary']['PreferenceGP']} of {len(tests)}"
+    )
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "botorch_own_tests.json").write_text(json.dumps(result, indent=1) + "\n")

@@ -42,8 +42,17 @@ from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from botorch_tutorials_common import (  # noqa: E402
-    MODELS, RESULTS, Record, fit_preference_model, paired_summary, phase, phase_summary, plot_curves, seed_all,
-    timed)
+    MODELS,
+    RESULTS,
+    Record,
+    fit_preference_model,
+    paired_summary,
+    phase,
+    phase_summary,
+    plot_curves,
+    seed_all,
+    timed,
+)
 
 X_DIM, Y_DIM = 5, 4
 NUM_RESTARTS, NUM_OUTCOME_SAMPLES, RAW_SAMPLES, BATCH_LIMIT = 8, 32, 64, 4
@@ -80,19 +89,28 @@ def candidates(outcome, objective, acqf_name: str, X_baseline: torch.Tensor) -> 
     """One design from ``qLogNEI`` or ``qSimpleRegret`` through ``objective``."""
     sampler = SobolQMCNormalSampler(sample_shape=torch.Size([NUM_OUTCOME_SAMPLES]))
     if acqf_name == "qNEI":
-        acqf = qLogNoisyExpectedImprovement(outcome, objective=objective, X_baseline=X_baseline, sampler=sampler,
-                                            prune_baseline=True)
+        acqf = qLogNoisyExpectedImprovement(
+            outcome, objective=objective, X_baseline=X_baseline, sampler=sampler, prune_baseline=True
+        )
     else:
         acqf = qSimpleRegret(outcome, sampler=sampler, objective=objective)
     with phase("learned_objective_acqf"):
-        cand, _ = optimize_acqf(acqf, q=1, bounds=PROBLEM.bounds, num_restarts=NUM_RESTARTS, raw_samples=RAW_SAMPLES,
-                                options={"batch_limit": BATCH_LIMIT}, sequential=True)
+        cand, _ = optimize_acqf(
+            acqf,
+            q=1,
+            bounds=PROBLEM.bounds,
+            num_restarts=NUM_RESTARTS,
+            raw_samples=RAW_SAMPLES,
+            options={"batch_limit": BATCH_LIMIT},
+            sequential=True,
+        )
     return cand
 
 
 def explore(model_name, outcome, Y, comps, strategy: str, X_baseline) -> tuple[torch.Tensor, torch.Tensor, list]:
     """Preference exploration: ``N_CHECKS`` rounds of ``EVERY_N_COMPS`` comparisons, recording
     after each round the true utility of the design maximising the learned objective's mean."""
+
     def check():
         pref = fit_preference_model(model_name, Y, comps)
         cand = candidates(outcome, LearnedObjective(pref_model=pref), "posterior_mean", X_baseline)
@@ -106,8 +124,14 @@ def explore(model_name, outcome, Y, comps, strategy: str, X_baseline) -> tuple[t
                 one_sample = FixedSingleSampleModel(model=outcome)
                 acqf = AnalyticExpectedUtilityOfBestOption(pref_model=pref, outcome_model=one_sample)
                 with phase("eubo_optimize"):
-                    cand_X, _ = optimize_acqf(acqf, q=2, bounds=PROBLEM.bounds, num_restarts=NUM_RESTARTS,
-                                              raw_samples=RAW_SAMPLES, options={"batch_limit": BATCH_LIMIT})
+                    cand_X, _ = optimize_acqf(
+                        acqf,
+                        q=2,
+                        bounds=PROBLEM.bounds,
+                        num_restarts=NUM_RESTARTS,
+                        raw_samples=RAW_SAMPLES,
+                        options={"batch_limit": BATCH_LIMIT},
+                    )
                 cand_Y = one_sample(cand_X)
             else:
                 cand_Y = outcome.posterior(sobol_designs(2)).sample().squeeze(0)
@@ -152,20 +176,50 @@ def main() -> None:
         record.add({"seed": seed, "model": name, **timed(lambda: run(name, seed, args.strategies))})
     rows = record.rows
     summary = {f"{s}_util": paired_summary(rows, f"{s}_util", higher_is_better=True) for s in args.strategies}
-    summary.update({f"{s}_last_check": paired_summary([{**r, "last": r[f"{s}_checks"][-1]} for r in rows], "last",
-                                                      higher_is_better=True) for s in args.strategies})
+    summary.update(
+        {
+            f"{s}_last_check": paired_summary(
+                [{**r, "last": r[f"{s}_checks"][-1]} for r in rows], "last", higher_is_better=True
+            )
+            for s in args.strategies
+        }
+    )
     summary["phases"] = phase_summary(rows)
     summary["config"] = record.config
     stem.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
     with stem.with_suffix(".csv").open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["seed", "model", *[f"{s}_util" for s in args.strategies],
-                    *[f"{s}_last_check" for s in args.strategies], "wall_s", "cpu_s"])
+        w.writerow(
+            [
+                "seed",
+                "model",
+                *[f"{s}_util" for s in args.strategies],
+                *[f"{s}_last_check" for s in args.strategies],
+                "wall_s",
+                "cpu_s",
+            ]
+        )
         for r in sorted(rows, key=lambda r: (r["seed"], r["model"])):
-            w.writerow([r["seed"], r["model"], *[r[f"{s}_util"] for s in args.strategies],
-                        *[r[f"{s}_checks"][-1] for s in args.strategies], r["wall_s"], r.get("cpu_s")])
-    plot_curves(rows, args.strategies, "{}_checks", lambda n: EVERY_N_COMPS * np.arange(n) + 1, stem.with_suffix(".png"),
-                xlabel="comparisons", ylabel="true utility of the max-posterior-mean design", title="bope tutorial")
+            w.writerow(
+                [
+                    r["seed"],
+                    r["model"],
+                    *[r[f"{s}_util"] for s in args.strategies],
+                    *[r[f"{s}_checks"][-1] for s in args.strategies],
+                    r["wall_s"],
+                    r.get("cpu_s"),
+                ]
+            )
+    plot_curves(
+        rows,
+        args.strategies,
+        "{}_checks",
+        lambda n: EVERY_N_COMPS * np.arange(n) + 1,
+        stem.with_suffix(".png"),
+        xlabel="comparisons",
+        ylabel="true utility of the max-posterior-mean design",
+        title="bope tutorial",
+    )
     print(json.dumps(summary, indent=1))
 
 

@@ -45,6 +45,7 @@ class Timer:
                 return fn(*args, **kwargs)
             finally:
                 self.seconds[name] = self.seconds.get(name, 0.0) + time.process_time() - t0
+
         return timed
 
 
@@ -58,8 +59,14 @@ def eubo_share(pref, outcome, repeats: int) -> dict:
         one.forward = timer.wrap("outcome_sample", one.forward)
         acqf = AnalyticExpectedUtilityOfBestOption(pref_model=pref, outcome_model=one)
         t0 = time.process_time()
-        optimize_acqf(acqf, q=2, bounds=bp.PROBLEM.bounds, num_restarts=bp.NUM_RESTARTS, raw_samples=bp.RAW_SAMPLES,
-                      options={"batch_limit": bp.BATCH_LIMIT})
+        optimize_acqf(
+            acqf,
+            q=2,
+            bounds=bp.PROBLEM.bounds,
+            num_restarts=bp.NUM_RESTARTS,
+            raw_samples=bp.RAW_SAMPLES,
+            options={"batch_limit": bp.BATCH_LIMIT},
+        )
         total += time.process_time() - t0
     del pref.posterior  # the instance attribute: back to the class's method
     return {"cpu_s": total / repeats, **{k: v / repeats for k, v in timer.seconds.items()}}
@@ -93,8 +100,10 @@ def main() -> None:
     out = {}
     for name in MODELS:
         pref = fit_preference_model(name, Y, comps)
-        out[name] = {"eubo_zeta": eubo_share(pref, outcome, args.repeats),
-                     "learned_objective": learned_objective_share(pref, outcome, X, args.repeats)}
+        out[name] = {
+            "eubo_zeta": eubo_share(pref, outcome, args.repeats),
+            "learned_objective": learned_objective_share(pref, outcome, X, args.repeats),
+        }
         for part in out[name].values():
             part["preference_share"] = part["preference_posterior"] / part["cpu_s"]
         print(name, json.dumps(out[name]))

@@ -90,8 +90,13 @@ def timed(fn: Callable[[], dict]) -> dict:
     PHASES_CPU.clear()
     t0, c0 = time.perf_counter(), time.process_time()
     out = fn()
-    return {**out, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "phase_s": dict(PHASES),
-            "phase_cpu_s": dict(PHASES_CPU)}
+    return {
+        **out,
+        "wall_s": time.perf_counter() - t0,
+        "cpu_s": time.process_time() - c0,
+        "phase_s": dict(PHASES),
+        "phase_cpu_s": dict(PHASES_CPU),
+    }
 
 
 def paired_summary(rows: list[dict], key: str, higher_is_better: bool) -> dict:
@@ -107,11 +112,18 @@ def paired_summary(rows: list[dict], key: str, higher_is_better: bool) -> dict:
     tw = np.array([by["PairwiseGP"][s]["wall_s"] for s in seeds])
     ow = np.array([by["PreferenceGP"][s]["wall_s"] for s in seeds])
     diff = (a - b) if higher_is_better else (b - a)  # > 0: PreferenceGP better
-    out = {"seeds": seeds, "n": len(seeds), "metric": key,
-           "PreferenceGP_mean": _mean(a), "PairwiseGP_mean": _mean(b),
-           "PreferenceGP_sem": _sem(a), "PairwiseGP_sem": _sem(b),
-           "wall_s_PairwiseGP": float(tw.sum()), "wall_s_PreferenceGP": float(ow.sum()),
-           "wall_time_ratio": float(tw.sum() / ow.sum()) if len(seeds) else math.nan}
+    out = {
+        "seeds": seeds,
+        "n": len(seeds),
+        "metric": key,
+        "PreferenceGP_mean": _mean(a),
+        "PairwiseGP_mean": _mean(b),
+        "PreferenceGP_sem": _sem(a),
+        "PairwiseGP_sem": _sem(b),
+        "wall_s_PairwiseGP": float(tw.sum()),
+        "wall_s_PreferenceGP": float(ow.sum()),
+        "wall_time_ratio": float(tw.sum() / ow.sum()) if len(seeds) else math.nan,
+    }
     if all("cpu_s" in by[m][s] for m in MODELS for s in seeds) and seeds:
         tc = sum(by["PairwiseGP"][s]["cpu_s"] for s in seeds)
         oc = sum(by["PreferenceGP"][s]["cpu_s"] for s in seeds)
@@ -132,8 +144,12 @@ def phase_summary(rows: list[dict]) -> dict:
         rs = [r for r in rows if r["model"] == m and "phase_cpu_s" in r]
         total = sum(r["cpu_s"] for r in rs)
         phases = {k: sum(r["phase_cpu_s"].get(k, 0.0) for r in rs) for r in rs for k in r["phase_cpu_s"]}
-        out[m] = {"seeds": len(rs), "cpu_s": total, "phase_cpu_s": phases,
-                  "share": {k: v / total for k, v in phases.items()} if total else {}}
+        out[m] = {
+            "seeds": len(rs),
+            "cpu_s": total,
+            "phase_cpu_s": phases,
+            "share": {k: v / total for k, v in phases.items()} if total else {},
+        }
     return out
 
 
@@ -143,8 +159,18 @@ def errorbar_curve(ax, x, ys: np.ndarray, **kwargs) -> None:
     ax.errorbar(x, ys.mean(0), yerr=1.96 * sem, capsize=2, **kwargs)
 
 
-def plot_curves(rows: list[dict], arms, key: str, x_of: Callable[[int], np.ndarray], path, *, xlabel: str,
-                ylabel: str, title: str, optimum: float | None = None) -> None:
+def plot_curves(
+    rows: list[dict],
+    arms,
+    key: str,
+    x_of: Callable[[int], np.ndarray],
+    path,
+    *,
+    xlabel: str,
+    ylabel: str,
+    title: str,
+    optimum: float | None = None,
+) -> None:
     """One curve per model (line style) and arm: the rows' ``key.format(arm)`` lists against
     ``x_of(length)``, mean with a 95% band over the seeds; the number of seeds ends ``title``."""
     import matplotlib.pyplot as plt

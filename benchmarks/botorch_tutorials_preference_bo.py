@@ -31,8 +31,17 @@ from botorch.optim import optimize_acqf  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from botorch_tutorials_common import (  # noqa: E402
-    MODELS, RESULTS, Record, fit_preference_model, paired_summary, phase, phase_summary, plot_curves, seed_all,
-    timed)
+    MODELS,
+    RESULTS,
+    Record,
+    fit_preference_model,
+    paired_summary,
+    phase,
+    phase_summary,
+    plot_curves,
+    seed_all,
+    timed,
+)
 
 DIM, NOISE, Q, Q_COMP = 4, 0.1, 2, 1
 NUM_RESTARTS, RAW_SAMPLES = 3, 512
@@ -80,8 +89,9 @@ def run(model_name: str, seed: int, batches: int, model_kwargs: dict) -> dict:
             if arm == "EUBO":
                 acqf = AnalyticExpectedUtilityOfBestOption(pref_model=model)
                 with phase("eubo_optimize"):
-                    next_X, _ = optimize_acqf(acqf, bounds=bounds, q=Q, num_restarts=NUM_RESTARTS,
-                                              raw_samples=RAW_SAMPLES)
+                    next_X, _ = optimize_acqf(
+                        acqf, bounds=bounds, q=Q, num_restarts=NUM_RESTARTS, raw_samples=RAW_SAMPLES
+                    )
                 next_X = next_X.to(X)
                 repeats += repeats_a_pair(next_X, X, comps)
             else:
@@ -92,18 +102,26 @@ def run(model_name: str, seed: int, batches: int, model_kwargs: dict) -> dict:
             best.append(utility(X).max().item())
         out[arm] = {"best": best, "repeats": repeats}
     optimum = utility(torch.ones(1, DIM, dtype=torch.float64)).item()
-    return {"EUBO_best": out["EUBO"]["best"], "rand_best": out["rand"]["best"],
-            "EUBO_regret": optimum - out["EUBO"]["best"][-1], "rand_regret": optimum - out["rand"]["best"][-1],
-            "EUBO_auc_regret": float(np.mean([optimum - b for b in out["EUBO"]["best"]])),
-            "EUBO_repeats": out["EUBO"]["repeats"]}
+    return {
+        "EUBO_best": out["EUBO"]["best"],
+        "rand_best": out["rand"]["best"],
+        "EUBO_regret": optimum - out["EUBO"]["best"][-1],
+        "rand_regret": optimum - out["rand"]["best"][-1],
+        "EUBO_auc_regret": float(np.mean([optimum - b for b in out["EUBO"]["best"]])),
+        "EUBO_repeats": out["EUBO"]["repeats"],
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--batches", type=int, default=30)
-    parser.add_argument("--comparison-noise", type=float, default=None,
-                        help="PreferenceGP's comparison_noise (default: the library default)")
+    parser.add_argument(
+        "--comparison-noise",
+        type=float,
+        default=None,
+        help="PreferenceGP's comparison_noise (default: the library default)",
+    )
     parser.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
     parser.add_argument("--tag", default="", help="suffix of the result files")
     args = parser.parse_args()
@@ -115,21 +133,44 @@ def main() -> None:
     for seed, name in tqdm(todo, desc="preference_bo"):
         record.add({"seed": seed, "model": name, **timed(lambda: run(name, seed, args.batches, model_kwargs))})
     rows = record.rows
-    summary = {"regret": paired_summary(rows, "EUBO_regret", higher_is_better=False),
-               "auc_regret": paired_summary(rows, "EUBO_auc_regret", higher_is_better=False),
-               "repeats": {m: int(sum(r["EUBO_repeats"] for r in rows if r["model"] == m)) for m in MODELS},
-               "proposals": {m: args.batches * sum(r["model"] == m for r in rows) for m in MODELS},
-               "phases": phase_summary(rows), "config": record.config}
+    summary = {
+        "regret": paired_summary(rows, "EUBO_regret", higher_is_better=False),
+        "auc_regret": paired_summary(rows, "EUBO_auc_regret", higher_is_better=False),
+        "repeats": {m: int(sum(r["EUBO_repeats"] for r in rows if r["model"] == m)) for m in MODELS},
+        "proposals": {m: args.batches * sum(r["model"] == m for r in rows) for m in MODELS},
+        "phases": phase_summary(rows),
+        "config": record.config,
+    }
     stem.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
     with stem.with_suffix(".csv").open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["seed", "model", "EUBO_regret", "rand_regret", "EUBO_auc_regret", "EUBO_repeats", "wall_s", "cpu_s"])
+        w.writerow(
+            ["seed", "model", "EUBO_regret", "rand_regret", "EUBO_auc_regret", "EUBO_repeats", "wall_s", "cpu_s"]
+        )
         for r in sorted(rows, key=lambda r: (r["seed"], r["model"])):
-            w.writerow([r["seed"], r["model"], r["EUBO_regret"], r["rand_regret"], r["EUBO_auc_regret"],
-                        r["EUBO_repeats"], r["wall_s"], r.get("cpu_s")])
-    plot_curves(rows, ("EUBO", "rand"), "{}_best", np.arange, stem.with_suffix(".png"),
-                xlabel="query (q = 2, one comparison each)", ylabel="best utility seen", title="preference_bo tutorial",
-                optimum=utility(torch.ones(1, DIM, dtype=torch.float64)).item())
+            w.writerow(
+                [
+                    r["seed"],
+                    r["model"],
+                    r["EUBO_regret"],
+                    r["rand_regret"],
+                    r["EUBO_auc_regret"],
+                    r["EUBO_repeats"],
+                    r["wall_s"],
+                    r.get("cpu_s"),
+                ]
+            )
+    plot_curves(
+        rows,
+        ("EUBO", "rand"),
+        "{}_best",
+        np.arange,
+        stem.with_suffix(".png"),
+        xlabel="query (q = 2, one comparison each)",
+        ylabel="best utility seen",
+        title="preference_bo tutorial",
+        optimum=utility(torch.ones(1, DIM, dtype=torch.float64)).item(),
+    )
     print(json.dumps(summary, indent=1))
 
 

@@ -47,40 +47,69 @@ def _agreement(rows: list[dict], run: str, tag: str) -> dict:
     both = [r for r in rows if r[f"{run}_gap_mean_nograd"] is not None]
     gaps = [_gap(r, run, tag) for r in both]
     worst = sorted(both, key=lambda r: -_gap(r, run, tag))[:5]
-    return {"problems": len(gaps), "within_target": sum(g <= TARGET for g in gaps),
-            "share_within_target": sum(g <= TARGET for g in gaps) / max(len(gaps), 1),
-            "median": sorted(gaps)[len(gaps) // 2] if gaps else None, "max": max(gaps) if gaps else None,
-            "worst": [{k: r[k] for k in ("seed", "kind", "n", "lengthscale", "outputscale", f"{run}_jitter")}
-                      | {"gap": _gap(r, run, tag)} for r in worst]}
+    return {
+        "problems": len(gaps),
+        "within_target": sum(g <= TARGET for g in gaps),
+        "share_within_target": sum(g <= TARGET for g in gaps) / max(len(gaps), 1),
+        "median": sorted(gaps)[len(gaps) // 2] if gaps else None,
+        "max": max(gaps) if gaps else None,
+        "worst": [
+            {k: r[k] for k in ("seed", "kind", "n", "lengthscale", "outputscale", f"{run}_jitter")}
+            | {"gap": _gap(r, run, tag)}
+            for r in worst
+        ],
+    }
 
 
 def _seconds(rows: list[dict]) -> dict:
     """Total seconds per run over the problems all runs solved, overall and by ``n``."""
     ok = [r for r in rows if all(r[f"{run}_error"] is None for run in fp.RUNS)]
     out = {}
-    for label, lo, hi in (("all", 0, math.inf), ("n < 100", 0, 100), ("100 <= n < 500", 100, 500), ("n >= 500", 500, math.inf)):
+    for label, lo, hi in (
+        ("all", 0, math.inf),
+        ("n < 100", 0, 100),
+        ("100 <= n < 500", 100, 500),
+        ("n >= 500", 500, math.inf),
+    ):
         sel = [r for r in ok if lo <= r["n"] < hi]
         tot = {run: round(sum(r[f"{run}_seconds"] for r in sel), 2) for run in fp.RUNS}
-        out[label] = {"problems": len(sel)} | tot | {
-            "f32_over_f32n": round(tot["f32"] / tot["f32n"], 3) if tot["f32n"] else None,
-            "f32_over_f64": round(tot["f32"] / tot["f64"], 3) if tot["f64"] else None}
+        out[label] = (
+            {"problems": len(sel)}
+            | tot
+            | {
+                "f32_over_f32n": round(tot["f32"] / tot["f32n"], 3) if tot["f32n"] else None,
+                "f32_over_f64": round(tot["f32"] / tot["f64"], 3) if tot["f64"] else None,
+            }
+        )
     return out
 
 
 def summarise(rows: list[dict]) -> dict:
     """Counts and shares over the problems (see the module docstring)."""
-    out: dict = {"problems": len(rows), "by_kind": {k: sum(r["kind"] == k for r in rows) for k in fp.KINDS},
-                 "n_max": max(r["n"] for r in rows), "target": TARGET, "runs": RUN_LABEL}
+    out: dict = {
+        "problems": len(rows),
+        "by_kind": {k: sum(r["kind"] == k for r in rows) for k in fp.KINDS},
+        "n_max": max(r["n"] for r in rows),
+        "target": TARGET,
+        "runs": RUN_LABEL,
+    }
     for run in fp.RUNS:
         ran = [r for r in rows if r[f"{run}_error"] is None]
-        out[run] = {"exceptions": len(rows) - len(ran), "nan": sum(bool(r[f"{run}_nan"]) for r in rows),
-                    "unconverged": sum(r[f"{run}_converged"] is False for r in ran),
-                    "errors": sorted({r[f"{run}_error"].split(":")[0] for r in rows if r[f"{run}_error"]})}
+        out[run] = {
+            "exceptions": len(rows) - len(ran),
+            "nan": sum(bool(r[f"{run}_nan"]) for r in rows),
+            "unconverged": sum(r[f"{run}_converged"] is False for r in ran),
+            "errors": sorted({r[f"{run}_error"].split(":")[0] for r in rows if r[f"{run}_error"]}),
+        }
     comp = [r for r in rows if r["kind"] == "comparisons"]
-    out["comparisons_only"] = {"problems": len(comp)} | {
-        f"{run}_exceptions": sum(r[f"{run}_error"] is not None for r in comp) for run in fp.RUNS} | {
-        "pairwisegp_f32_exceptions": sum(r["pairwisegp_error"] is not None for r in comp),
-        "pairwisegp_nan": sum(bool(r["pairwisegp_nan"]) for r in comp)}
+    out["comparisons_only"] = (
+        {"problems": len(comp)}
+        | {f"{run}_exceptions": sum(r[f"{run}_error"] is not None for r in comp) for run in fp.RUNS}
+        | {
+            "pairwisegp_f32_exceptions": sum(r["pairwisegp_error"] is not None for r in comp),
+            "pairwisegp_nan": sum(bool(r["pairwisegp_nan"]) for r in comp),
+        }
+    )
     for run in fp.FLOAT32_RUNS:
         for tag in ("nograd", "grad"):
             out[f"agreement_{run}_{tag}"] = _agreement(rows, run, tag)
@@ -103,22 +132,46 @@ def plot(rows: list[dict], path: Path) -> None:
         for kind in fp.KINDS:
             sel = [r for r in both if r["kind"] == kind]
             for tag, marker in (("nograd", "o"), ("grad", "x")):
-                ax.scatter([r["n"] for r in sel], [max(_gap(r, run, tag), 1e-12) for r in sel], s=8, alpha=0.5,
-                           c=colour[kind], marker=marker, label=f"{kind}, autograd {'on' if tag == 'grad' else 'off'}")
+                ax.scatter(
+                    [r["n"] for r in sel],
+                    [max(_gap(r, run, tag), 1e-12) for r in sel],
+                    s=8,
+                    alpha=0.5,
+                    c=colour[kind],
+                    marker=marker,
+                    label=f"{kind}, autograd {'on' if tag == 'grad' else 'off'}",
+                )
         ax.axhline(TARGET, color="k", lw=1, ls="--", label="1e-3")
         ax.set(xscale="log", yscale="log", xlabel="n items", ylabel="gap to float64 (relative)", title=RUN_LABEL[run])
         ax.legend(fontsize=7)
     both = [r for r in rows if r["f32n_gap_mean_nograd"] is not None]
-    axes[2].scatter([max(r["f32n_jitter"] or 0, 1e-12) for r in both], [max(_gap(r, "f32n", "nograd"), 1e-12) for r in both],
-                    s=8, alpha=0.6, c=[colour[r["kind"]] for r in both])
+    axes[2].scatter(
+        [max(r["f32n_jitter"] or 0, 1e-12) for r in both],
+        [max(_gap(r, "f32n", "nograd"), 1e-12) for r in both],
+        s=8,
+        alpha=0.6,
+        c=[colour[r["kind"]] for r in both],
+    )
     axes[2].axhline(TARGET, color="k", lw=1, ls="--")
-    axes[2].set(xscale="log", yscale="log", xlabel="native float32 jitter / outputscale (1e-12: none)",
-                ylabel="gap (autograd off)", title="native float32: the gap follows its jitter")
+    axes[2].set(
+        xscale="log",
+        yscale="log",
+        xlabel="native float32 jitter / outputscale (1e-12: none)",
+        ylabel="gap (autograd off)",
+        title="native float32: the gap follows its jitter",
+    )
     ok = [r for r in rows if all(r[f"{run}_error"] is None for run in fp.RUNS)]
     for run, c in (("f64", "k"), ("f32", "tab:red"), ("f32n", "tab:purple")):
-        axes[3].scatter([r["n"] for r in ok], [r[f"{run}_seconds"] for r in ok], s=6, alpha=0.4, c=c, label=RUN_LABEL[run])
-    axes[3].set(xscale="log", yscale="log", xlabel="n items", ylabel="seconds (build, mode, 2 posteriors)",
-                title="time per problem")
+        axes[3].scatter(
+            [r["n"] for r in ok], [r[f"{run}_seconds"] for r in ok], s=6, alpha=0.4, c=c, label=RUN_LABEL[run]
+        )
+    axes[3].set(
+        xscale="log",
+        yscale="log",
+        xlabel="n items",
+        ylabel="seconds (build, mode, 2 posteriors)",
+        title="time per problem",
+    )
     axes[3].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -131,8 +184,12 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> dict:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    summary = summarise(rows) | {"seeds": [args.start, args.start + len(rows) - 1], "max_n": args.max_n,
-                                 "seconds": round(seconds, 1), "torch": torch.__version__}
+    summary = summarise(rows) | {
+        "seeds": [args.start, args.start + len(rows) - 1],
+        "max_n": args.max_n,
+        "seconds": round(seconds, 1),
+        "torch": torch.__version__,
+    }
     (args.out / "fuzz.json").write_text(json.dumps(summary, indent=1, default=lambda x: None if math.isnan(x) else x))
     return summary
 

@@ -68,7 +68,7 @@ def make_problem(seed: int, max_n: int = 1500, pairwise_likelihood: bool = True)
     kind = KINDS[int(torch.randint(0, 3, (), generator=g))] if n > 1 else "ratings"
     X = torch.rand(n, d, generator=g, dtype=F64)
     if n > 1 and torch.rand((), generator=g) < 0.3:  # duplicated items (same coordinates, two indices)
-        X[n // 2:] = X[: n - n // 2].clone()
+        X[n // 2 :] = X[: n - n // 2].clone()
     p = int(torch.randint(1, 3 * n, (), generator=g)) if kind != "ratings" else 0
     i = torch.randint(0, n, (p,), generator=g)
     j = (i + torch.randint(1, max(n, 2), (p,), generator=g)) % n
@@ -79,8 +79,9 @@ def make_problem(seed: int, max_n: int = 1500, pairwise_likelihood: bool = True)
     ri = torch.randint(0, n, (q,), generator=g)
     style = int(torch.randint(0, 3, (), generator=g))
     if style == 0:  # 1e-6 from the ends
-        u = torch.where(torch.rand(q, generator=g) < 0.5, torch.full((q,), 1e-6, dtype=F64),
-                        torch.full((q,), 1 - 1e-6, dtype=F64))
+        u = torch.where(
+            torch.rand(q, generator=g) < 0.5, torch.full((q,), 1e-6, dtype=F64), torch.full((q,), 1 - 1e-6, dtype=F64)
+        )
     elif style == 1:
         u = torch.rand(q, generator=g, dtype=F64).clamp(1e-4, 1 - 1e-4)
     else:  # one item rated all over the scale
@@ -88,8 +89,11 @@ def make_problem(seed: int, max_n: int = 1500, pairwise_likelihood: bool = True)
     lengthscale, outputscale = _log_uniform(1e-3, 1e3, g), _log_uniform(1e-2, 1e2, g)
     lik = {"comparison_noise": 1.0}
     if kind != "comparisons" or not pairwise_likelihood:
-        lik = {"comparison_noise": _log_uniform(1e-3, 10.0, g), "rating_scale": _log_uniform(0.1, 3.0, g),
-               "rating_precision": _log_uniform(1.0, 1e3, g)}
+        lik = {
+            "comparison_noise": _log_uniform(1e-3, 10.0, g),
+            "rating_scale": _log_uniform(0.1, 3.0, g),
+            "rating_precision": _log_uniform(1.0, 1e3, g),
+        }
     # float32-representable data: the float64 twin sees exactly the float32 model's inputs
     X, u = X.float().double(), u.float().double()
     lengthscale, outputscale = float(torch.tensor(lengthscale, dtype=F32)), float(torch.tensor(outputscale, dtype=F32))
@@ -113,8 +117,15 @@ def query_points(problem: Problem, num: int = 8) -> Tensor:
 def build(problem: Problem, dtype: torch.dtype, laplace_dtype: torch.dtype | None = None) -> PreferenceGP:
     C = problem.comparisons if problem.comparisons.numel() else None
     r, ri = (problem.ratings, problem.rating_index) if problem.ratings.numel() else (None, None)
-    return PreferenceGP(problem.X.to(dtype), C, r.to(dtype) if r is not None else None, ri,
-                        covar_module=kernel(problem, dtype), laplace_dtype=laplace_dtype, **problem.likelihood)
+    return PreferenceGP(
+        problem.X.to(dtype),
+        C,
+        r.to(dtype) if r is not None else None,
+        ri,
+        covar_module=kernel(problem, dtype),
+        laplace_dtype=laplace_dtype,
+        **problem.likelihood,
+    )
 
 
 def posterior_moments(model, X: Tensor, grad: bool) -> tuple[Tensor, Tensor]:
@@ -144,7 +155,8 @@ def _run(problem: Problem, run: str, Xq: Tensor) -> dict:
         out["jitter"] = float(model._state().jitter) / problem.outputscale  # the diagonal jitter of L
         out["moments"] = {grad: posterior_moments(model, Xq.to(dtype), grad) for grad in (False, True)}
         out["nan"] = not bool(torch.isfinite(mode.f).all()) or any(
-            not (torch.isfinite(m).all() and torch.isfinite(S).all()) for m, S in out["moments"].values())
+            not (torch.isfinite(m).all() and torch.isfinite(S).all()) for m, S in out["moments"].values()
+        )
     except Exception as e:  # noqa: BLE001 - the outcome is what is measured
         out["error"] = f"{type(e).__name__}: {str(e)[:160]}"
     out["seconds"] = time.perf_counter() - t
@@ -183,12 +195,19 @@ def check(problem: Problem, pairwisegp: bool = True, runs: tuple[str, ...] = tup
     runs = ("f64",) + tuple(r for r in runs if r != "f64")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # jitter, boundary and float32 warnings are expected here
-        order = runs[problem.seed % len(runs):] + runs[:problem.seed % len(runs)]  # none always first (timing)
+        order = runs[problem.seed % len(runs) :] + runs[: problem.seed % len(runs)]  # none always first (timing)
         res = {run: _run(problem, run, Xq) for run in order}
         pg = _pairwisegp(problem, Xq) if pairwisegp and problem.kind == "comparisons" else None
-    rec = {"seed": problem.seed, "kind": problem.kind, "n": problem.n, "d": problem.X.shape[-1],
-           "p": problem.comparisons.shape[0], "q": problem.ratings.shape[0], "lengthscale": problem.lengthscale,
-           "outputscale": problem.outputscale}
+    rec = {
+        "seed": problem.seed,
+        "kind": problem.kind,
+        "n": problem.n,
+        "d": problem.X.shape[-1],
+        "p": problem.comparisons.shape[0],
+        "q": problem.ratings.shape[0],
+        "lengthscale": problem.lengthscale,
+        "outputscale": problem.outputscale,
+    }
     for name, r in res.items():
         rec.update({f"{name}_{k}": r[k] for k in ("error", "nan", "converged", "iterations", "jitter", "seconds")})
     for name in runs[1:]:

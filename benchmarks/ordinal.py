@@ -51,7 +51,13 @@ from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
 RESULTS = Path(__file__).resolve().parent / "results"
 K = 5
 #: model settings: the wave experiment's for wave, bump and partial; the lake experiment's for the lake
-WAVE = {"lengthscale": 0.02, "outputscale": 0.36, "comparison_noise": 0.2, "rating_scale": 0.8, "rating_precision": 60.0}
+WAVE = {
+    "lengthscale": 0.02,
+    "outputscale": 0.36,
+    "comparison_noise": 0.2,
+    "rating_scale": 0.8,
+    "rating_precision": 60.0,
+}
 BUMP = dict(WAVE, lengthscale=0.15, outputscale=1.0)
 LAKE = {"lengthscale": 0.15, "outputscale": 1.0, "comparison_noise": 0.1, "rating_scale": 1.0, "rating_precision": 20.0}
 LIKERT_ARMS = ["beta", "ordinal", "ordinal-learned"]
@@ -97,7 +103,15 @@ def world(kind: str, g: torch.Generator, lake=None):
     quantise = lambda u: unit_to_likert(u, K).clamp(lo, hi)  # noqa: E731
     level = expected_user_level(f_true, 0.8, 80.0, quantise)
     d = X_test.shape[-1]
-    return utility, X_test, f_true, level, settings, quantise, lambda n: torch.rand(n, d, generator=g, dtype=torch.float64)
+    return (
+        utility,
+        X_test,
+        f_true,
+        level,
+        settings,
+        quantise,
+        lambda n: torch.rand(n, d, generator=g, dtype=torch.float64),
+    )
 
 
 def expected_user_level(f: torch.Tensor, sigma_B: float, nu: float, quantise) -> torch.Tensor:
@@ -119,10 +133,16 @@ def scores(est_rating: torch.Tensor, est_utility: torch.Tensor, u_true: torch.Te
     best = int(est_utility.argmax())
     # true levels tie (the lake): count the estimated top 15 that have the best true value
     top = est_utility.topk(15).indices
-    tp = true_positives(est_utility, f_true, k=15) if f_true.unique().numel() > K else (f_true[top] == f_true.max()).sum()
-    return {"wrms": float(wrms(est_rating, u_true)),
-            "tp": float(tp),
-            "regret": float((f_true.max() - f_true[best]) / (f_true.max() - f_true.min()))}
+    tp = (
+        true_positives(est_utility, f_true, k=15)
+        if f_true.unique().numel() > K
+        else (f_true[top] == f_true.max()).sum()
+    )
+    return {
+        "wrms": float(wrms(est_rating, u_true)),
+        "tp": float(tp),
+        "regret": float((f_true.max() - f_true[best]) / (f_true.max() - f_true.min())),
+    }
 
 
 def fit_likelihood(model, *names: str) -> int:
@@ -188,9 +208,16 @@ def level_model(X, C, settings: dict, learn: bool):
     base = fixed_model(X, C, settings)
     from torchpref.models.preference_gp import PreferenceGP
 
-    model = PreferenceGP(X, C, covar_module=base.covar_module, comparison_noise=settings["comparison_noise"],
-                         rating_scale=settings["rating_scale"], rating_precision=settings["rating_precision"],
-                         rating_levels=K, learn_likelihood=learn)
+    model = PreferenceGP(
+        X,
+        C,
+        covar_module=base.covar_module,
+        comparison_noise=settings["comparison_noise"],
+        rating_scale=settings["rating_scale"],
+        rating_precision=settings["rating_precision"],
+        rating_levels=K,
+        learn_likelihood=learn,
+    )
     return model
 
 
@@ -215,10 +242,18 @@ def tie_trial(kind: str, margin_share: float, seed: int, queries: int) -> dict:
         else:
             from torchpref.models.preference_gp import PreferenceGP
 
-            model = PreferenceGP(X, C, covar_module=base.covar_module, ties=T, learn_likelihood=arm == "learned",
-                                 tie_threshold=margin if arm == "used" else 0.1, ties_offered=True,
-                                 comparison_noise=settings["comparison_noise"], rating_scale=settings["rating_scale"],
-                                 rating_precision=settings["rating_precision"])
+            model = PreferenceGP(
+                X,
+                C,
+                covar_module=base.covar_module,
+                ties=T,
+                learn_likelihood=arm == "learned",
+                tie_threshold=margin if arm == "used" else 0.1,
+                ties_offered=True,
+                comparison_noise=settings["comparison_noise"],
+                rating_scale=settings["rating_scale"],
+                rating_precision=settings["rating_precision"],
+            )
             if arm == "learned":  # tau fitted (fitting sigma_R too diverges: both grow without bound)
                 out["fit_warnings"] = fit_likelihood(model, "raw_tie_threshold")
                 out["tau_learned"] = float(model.likelihood.tie.tie_threshold.detach())
@@ -241,7 +276,9 @@ def summarise(results: dict, arms: list[str], pairs: list[tuple[str, str]]) -> d
                 entry[f"{arm}/{metric}"] = [float(vals.mean()), float(vals.std() / math.sqrt(len(vals)))]
         for a, b in pairs:
             for metric in ("wrms", "tp", "regret"):
-                entry[f"{a} - {b}/{metric}"] = paired_tests([t[a][metric] for t in trials], [t[b][metric] for t in trials])
+                entry[f"{a} - {b}/{metric}"] = paired_tests(
+                    [t[a][metric] for t in trials], [t[b][metric] for t in trials]
+                )
         out[name] = entry
     return out
 
@@ -284,8 +321,10 @@ def run_likert(seeds: list[int], lake_trials: int, seed: int) -> dict:
     from torchpref.lake.operator import LakeOperator
     from torchpref.lake.scenario import make_scenario
 
-    likert = {kind: [likert_trial(kind, s, 20) for s in tqdm(seeds, desc=f"likert {kind}")]
-              for kind in ("wave", "bump", "partial")}
+    likert = {
+        kind: [likert_trial(kind, s, 20) for s in tqdm(seeds, desc=f"likert {kind}")]
+        for kind in ("wave", "bump", "partial")
+    }
     scenario = make_scenario(seed)
     lo, hi = scenario.train_X.min(0).values, scenario.train_X.max(0).values
     lake = ((scenario.train_X - lo) / (hi - lo), LakeOperator().level(scenario.train_X))
@@ -294,8 +333,11 @@ def run_likert(seeds: list[int], lake_trials: int, seed: int) -> dict:
 
 
 def run_ties(seeds: list[int]) -> dict:
-    return {f"{kind} {int(100 * share)}%": [tie_trial(kind, share, s, 30) for s in tqdm(seeds, desc=f"ties {kind} {share}")]
-            for kind in ("wave", "bump") for share in (0.1, 0.25)}
+    return {
+        f"{kind} {int(100 * share)}%": [tie_trial(kind, share, s, 30) for s in tqdm(seeds, desc=f"ties {kind} {share}")]
+        for kind in ("wave", "bump")
+        for share in (0.1, 0.25)
+    }
 
 
 def main(argv=None) -> int:
@@ -304,8 +346,11 @@ def main(argv=None) -> int:
     parser.add_argument("--lake-trials", type=int, default=40)
     parser.add_argument("--seed", type=int, default=14)
     parser.add_argument("--out", type=Path, default=RESULTS)
-    parser.add_argument("--studies", default="likert,ties",
-                        help="studies to run; the others' trials are read back from OUT/ordinal.json")
+    parser.add_argument(
+        "--studies",
+        default="likert,ties",
+        help="studies to run; the others' trials are read back from OUT/ordinal.json",
+    )
     args = parser.parse_args(argv)
     studies = set(args.studies.split(","))
     single_threaded()
@@ -316,16 +361,24 @@ def main(argv=None) -> int:
     likert = run_likert(seeds, args.lake_trials, args.seed) if "likert" in studies else previous["likert"]
     ties = run_ties(seeds) if "ties" in studies else previous["ties"]
     arms = {"likert": LIKERT_ARMS, "ties": TIE_ARMS}
-    summary = {"likert": summarise(likert, LIKERT_ARMS, [("ordinal", "beta"), ("ordinal-learned", "beta"),
-                                                         ("ordinal-learned", "ordinal")]),
-               "ties": summarise(ties, TIE_ARMS, [("used", "ignored"), ("default", "ignored"), ("learned", "ignored"),
-                                                  ("learned", "used")])}
+    summary = {
+        "likert": summarise(
+            likert, LIKERT_ARMS, [("ordinal", "beta"), ("ordinal-learned", "beta"), ("ordinal-learned", "ordinal")]
+        ),
+        "ties": summarise(
+            ties, TIE_ARMS, [("used", "ignored"), ("default", "ignored"), ("learned", "ignored"), ("learned", "used")]
+        ),
+    }
     for name, trials in ties.items():
         summary["ties"][name]["tie_share"] = sum(t["tie_share"] for t in trials) / len(trials)
         summary["ties"][name]["tau_learned_mean"] = sum(t["tau_learned"] for t in trials) / len(trials)
         summary["ties"][name]["margin_mean"] = sum(t["margin"] for t in trials) / len(trials)
-    meta = {"trials": args.trials, "lake_trials": args.lake_trials, "seed": args.seed,
-            "wall_time_s": time.perf_counter() - t0}
+    meta = {
+        "trials": args.trials,
+        "lake_trials": args.lake_trials,
+        "seed": args.seed,
+        "wall_time_s": time.perf_counter() - t0,
+    }
     write_json(args.out / "ordinal.json", {"meta": meta, "summary": summary, "likert": likert, "ties": ties})
     write_csv(args.out / "ordinal.csv", summary, arms)
     plot(args.out / "ordinal.png", summary, arms)

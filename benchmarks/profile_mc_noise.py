@@ -78,19 +78,44 @@ def main() -> None:
                 V = top_profile(F.unsqueeze(0), round(0.2 * X.shape[0]), lik.rating, clipped)
                 for S in args.samples:
                     sel = ProfileVariancePerEffort(num_samples=S, clipped=clipped)
-                    picks = [sel.select(model, X, None, 8, 20, torch.Generator().manual_seed(k)) for k in range(args.seeds)]
+                    picks = [
+                        sel.select(model, X, None, 8, 20, torch.Generator().manual_seed(k)) for k in range(args.seeds)
+                    ]
                     vals = torch.tensor([reference_value(q, X, F, V, lik, sel) for q in picks])
                     kinds = [q.kind for q in picks]
-                    rows.append({"family": name, "trial": trial, "clipped": clipped, "samples": S,
-                                 "mean_ratio": float((vals / vals.max()).mean()), "min_ratio": float(vals.min() / vals.max()),
-                                 "share_same_kind": max(kinds.count("rating"), kinds.count("ranking")) / len(kinds)})
+                    rows.append(
+                        {
+                            "family": name,
+                            "trial": trial,
+                            "clipped": clipped,
+                            "samples": S,
+                            "mean_ratio": float((vals / vals.max()).mean()),
+                            "min_ratio": float(vals.min() / vals.max()),
+                            "share_same_kind": max(kinds.count("rating"), kinds.count("ranking")) / len(kinds),
+                        }
+                    )
                     print(rows[-1], flush=True)
-    summary = {f"{'clipped' if c else 'profile'} S={S}": sum(r["mean_ratio"] for r in rows if r["clipped"] == c and r["samples"] == S)
-               / sum(1 for r in rows if r["clipped"] == c and r["samples"] == S) for c in (False, True) for S in args.samples}
+    summary = {
+        f"{'clipped' if c else 'profile'} S={S}": sum(
+            r["mean_ratio"] for r in rows if r["clipped"] == c and r["samples"] == S
+        )
+        / sum(1 for r in rows if r["clipped"] == c and r["samples"] == S)
+        for c in (False, True)
+        for S in args.samples
+    }
     print(summary)
     out = Path(__file__).parent / "results" / "profile_mc_noise.json"
-    out.write_text(json.dumps({"summary_mean_ratio": summary, "states": rows, "seeds": args.seeds,
-                               "reference_samples": REFERENCE_SAMPLES}, indent=1))
+    out.write_text(
+        json.dumps(
+            {
+                "summary_mean_ratio": summary,
+                "states": rows,
+                "seeds": args.seeds,
+                "reference_samples": REFERENCE_SAMPLES,
+            },
+            indent=1,
+        )
+    )
 
 
 if __name__ == "__main__":

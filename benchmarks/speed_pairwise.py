@@ -101,8 +101,10 @@ def measure_pair(task: str, n: int, p: int, repeats: int, fitted: dict | None = 
     for r in range(repeats):
         for lib, (fn, setup) in fns.items():
             times[lib].append(_timed(fn, setup))
-        log(f"  {task} n={n} p={p} repeat {r + 1}/{repeats}: "
-            + ", ".join(f"{lib} {t[-1]:.4f}s" for lib, t in times.items()))
+        log(
+            f"  {task} n={n} p={p} repeat {r + 1}/{repeats}: "
+            + ", ".join(f"{lib} {t[-1]:.4f}s" for lib, t in times.items())
+        )
     return {lib: statistics.median(t) for lib, t in times.items()}
 
 
@@ -110,8 +112,9 @@ def measure_mixed(repeats: int) -> float:
     X, C, u, ri = bc.make_mixed()
 
     def run():
-        m = bc.PreferenceGP(X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel(),
-                           comparison_noise=0.1)
+        m = bc.PreferenceGP(
+            X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel(), comparison_noise=0.1
+        )
         return m.mode
 
     run()
@@ -147,8 +150,9 @@ def _child(task: str, lib: str, n: int, p: int) -> None:
     if task == "mixed_mode":
         X, C, u, ri = bc.make_mixed(n, p)
         before = _reset_peak()
-        bc.PreferenceGP(X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel(),
-                           comparison_noise=0.1).mode
+        bc.PreferenceGP(
+            X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel(), comparison_noise=0.1
+        ).mode
     else:
         X, C = bc.make_comparisons(n, p)
         fitted = None
@@ -166,8 +170,17 @@ def _child(task: str, lib: str, n: int, p: int) -> None:
 def peak_mib(task: str, lib: str, n: int, p: int) -> tuple[float, float] | None:
     """``(peak, baseline)`` max RSS in MiB of a fresh process running the task once; the baseline
     is its max RSS just before the task (torch, BoTorch and the data already loaded)."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--threads", str(torch.get_num_threads()),
-           "--child", task, lib, str(n), str(p)]
+    cmd = [
+        sys.executable,
+        str(Path(__file__).resolve()),
+        "--threads",
+        str(torch.get_num_threads()),
+        "--child",
+        task,
+        lib,
+        str(n),
+        str(p),
+    ]
     out = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
     if out.returncode != 0:
         log(f"  memory child failed for {task}/{lib}: {out.stderr.strip().splitlines()[-1:]}")
@@ -181,12 +194,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-memory", action="store_true")
-    ap.add_argument("--threads", type=int, default=1,
-                    help="torch.set_num_threads (default 1: on a shared machine, OpenMP threads that spin while "
-                    "other processes hold the cores make 2-thread timings erratic, up to 10x slower; 0: torch's default)")
-    ap.add_argument("--clock", choices=sorted(CLOCK), default="wall",
-                    help="wall time, or this process's CPU time (robust to load from other processes; with one "
-                    "thread the two agree on a quiet machine)")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch.set_num_threads (default 1: on a shared machine, OpenMP threads that spin while "
+        "other processes hold the cores make 2-thread timings erratic, up to 10x slower; 0: torch's default)",
+    )
+    ap.add_argument(
+        "--clock",
+        choices=sorted(CLOCK),
+        default="wall",
+        help="wall time, or this process's CPU time (robust to load from other processes; with one "
+        "thread the two agree on a quiet machine)",
+    )
     ap.add_argument("--child", nargs=4, metavar=("TASK", "LIB", "N", "P"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     global clock
@@ -205,7 +226,9 @@ def main() -> None:
     rows, quality = [], []
     for n, p in bc.SIZES:
         med = measure_pair("mode", n, p, max(args.repeats, 5))
-        rows.append({"task": "mode", "n": n, "p": p, "torchpref_s": med["torchpref"], "pairwisegp_s": med["pairwisegp"]})
+        rows.append(
+            {"task": "mode", "n": n, "p": p, "torchpref_s": med["torchpref"], "pairwisegp_s": med["pairwisegp"]}
+        )
         med = measure_pair("fit", n, p, args.repeats)
         rows.append({"task": "fit", "n": n, "p": p, "torchpref_s": med["torchpref"], "pairwisegp_s": med["pairwisegp"]})
         # fitted models for the posterior timing and the fit-quality comparison
@@ -214,18 +237,36 @@ def main() -> None:
         bc.fit_torchpref(fitted["torchpref"])
         bc.fit_pairwisegp(fitted["pairwisegp"])
         f_tp, f_pg = fitted["torchpref"].mode.f, fitted["pairwisegp"].utility.detach()
-        quality.append({
-            "n": n, "p": p,
-            "torchpref": {**bc.hyperparameters(fitted["torchpref"]), "evidence": bc.evidence_torchpref(fitted["torchpref"])},
-            "pairwisegp": {**bc.hyperparameters(fitted["pairwisegp"]), "evidence": bc.evidence_pairwisegp(fitted["pairwisegp"])},
-            "max_abs_mode_difference": float((f_tp - f_pg).abs().max()),
-        })
+        quality.append(
+            {
+                "n": n,
+                "p": p,
+                "torchpref": {
+                    **bc.hyperparameters(fitted["torchpref"]),
+                    "evidence": bc.evidence_torchpref(fitted["torchpref"]),
+                },
+                "pairwisegp": {
+                    **bc.hyperparameters(fitted["pairwisegp"]),
+                    "evidence": bc.evidence_pairwisegp(fitted["pairwisegp"]),
+                },
+                "max_abs_mode_difference": float((f_tp - f_pg).abs().max()),
+            }
+        )
         log(f"  fit quality n={n}: {quality[-1]}")
         med = measure_pair("posterior", n, p, args.repeats, fitted)
-        rows.append({"task": "posterior", "n": n, "p": p, "torchpref_s": med["torchpref"], "pairwisegp_s": med["pairwisegp"]})
+        rows.append(
+            {"task": "posterior", "n": n, "p": p, "torchpref_s": med["torchpref"], "pairwisegp_s": med["pairwisegp"]}
+        )
     mixed_p = bc.MIXED_N
-    rows.append({"task": "mixed_mode", "n": bc.MIXED_N, "p": mixed_p, "torchpref_s": measure_mixed(args.repeats),
-                 "pairwisegp_s": None})
+    rows.append(
+        {
+            "task": "mixed_mode",
+            "n": bc.MIXED_N,
+            "p": mixed_p,
+            "torchpref_s": measure_mixed(args.repeats),
+            "pairwisegp_s": None,
+        }
+    )
 
     for row in rows:
         tp, pg = row["torchpref_s"], row["pairwisegp_s"]
@@ -246,9 +287,15 @@ def main() -> None:
                 res = peak_mib(row["task"], lib, row["n"], row["p"]) if lib in libs else None
                 row[f"{lib}_peak_rss_mib"] = res[0] if res else None
                 row[f"{lib}_baseline_rss_mib"] = res[1] if res else None
-            log(f"  {row['task']} n={row['n']}: " + ", ".join(
-                f"{lib} peak {row[f'{lib}_peak_rss_mib']:.0f} (before task {row[f'{lib}_baseline_rss_mib']:.0f})"
-                for lib in libs if row[f"{lib}_peak_rss_mib"] is not None) + " MiB")
+            log(
+                f"  {row['task']} n={row['n']}: "
+                + ", ".join(
+                    f"{lib} peak {row[f'{lib}_peak_rss_mib']:.0f} (before task {row[f'{lib}_baseline_rss_mib']:.0f})"
+                    for lib in libs
+                    if row[f"{lib}_peak_rss_mib"] is not None
+                )
+                + " MiB"
+            )
 
     fields = ["task", "n", "p", "torchpref_s", "pairwisegp_s", "ratio", "target", "met"]
     if not args.no_memory:
@@ -259,13 +306,24 @@ def main() -> None:
         for row in rows:
             w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
     meta = {
-        "torch": torch.__version__, "threads": torch.get_num_threads(), "python": platform.python_version(),
-        "machine": platform.machine(), "cpus": os.cpu_count(), "load_average_at_start": load_start,
-        "load_average_at_end": os.getloadavg(), "clock": args.clock,
-        "repeats": args.repeats, "statistic": "median", "dtype": "float64", "dim": bc.DIM,
-        "memory": None if args.no_memory else (
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "load_average_at_start": load_start,
+        "load_average_at_end": os.getloadavg(),
+        "clock": args.clock,
+        "repeats": args.repeats,
+        "statistic": "median",
+        "dtype": "float64",
+        "dim": bc.DIM,
+        "memory": None
+        if args.no_memory
+        else (
             "VmHWM (MiB) of a fresh subprocess running the task once after resetting its peak via "
-            "/proc/self/clear_refs (peak), and its RSS just before the task (baseline: imports + data)"),
+            "/proc/self/clear_refs (peak), and its RSS just before the task (baseline: imports + data)"
+        ),
     }
     with open(RESULTS / "speed_pairwise.json", "w") as fh:
         json.dump({"meta": meta, "rows": rows, "fit_quality": quality}, fh, indent=2)
@@ -297,8 +355,13 @@ def plot(rows, path: Path) -> None:
     ax.bar([i + w / 2 for i in x], pg, w, label="BoTorch PairwiseGP")
     for i, r in enumerate(rows):
         if r["ratio"] is not None:
-            ax.text(i, max(tp[i], pg[i]) * 1.3, f"{r['ratio']:.0f}x" if r["ratio"] >= 10 else f"{r['ratio']:.1f}x",
-                    ha="center", fontsize=8)
+            ax.text(
+                i,
+                max(tp[i], pg[i]) * 1.3,
+                f"{r['ratio']:.0f}x" if r["ratio"] >= 10 else f"{r['ratio']:.1f}x",
+                ha="center",
+                fontsize=8,
+            )
     ax.set_yscale("log")
     ax.set_ylabel("seconds (median, log scale)")
     ax.set_xticks(list(x), labels, fontsize=8)

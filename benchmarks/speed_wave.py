@@ -44,8 +44,19 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def run_ours(trials: int, queries: int) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as out:
-        cmd = [sys.executable, "-m", "torchpref.cli", "reproduce", "wave", "--trials", str(trials),
-               "--queries", str(queries), "--out", out]
+        cmd = [
+            sys.executable,
+            "-m",
+            "torchpref.cli",
+            "reproduce",
+            "wave",
+            "--trials",
+            str(trials),
+            "--queries",
+            str(queries),
+            "--out",
+            out,
+        ]
         t0 = time.perf_counter()
         subprocess.run(cmd, check=True, cwd=ROOT, capture_output=True, text=True)
         command = time.perf_counter() - t0
@@ -56,8 +67,9 @@ def run_ours(trials: int, queries: int) -> dict[str, float]:
 def run_authors(directory: Path, script: str, trials: int, python: str) -> dict[str, float]:
     env = {**os.environ, "KVAR": "0.36"}
     t0 = time.perf_counter()
-    proc = subprocess.run([python, script, str(trials)], check=True, cwd=directory, capture_output=True, text=True,
-                          env=env)
+    proc = subprocess.run(
+        [python, script, str(trials)], check=True, cwd=directory, capture_output=True, text=True, env=env
+    )
     command = time.perf_counter() - t0
     found = re.search(r"learners: ([0-9.]+) s wall", proc.stdout)
     if found is None:
@@ -83,16 +95,25 @@ def main(argv: list[str] | None = None) -> int:
     try:
         from tqdm.auto import tqdm
     except ImportError:  # pragma: no cover
+
         def tqdm(x, **_):
             return x
+
     for _ in tqdm(range(args.repeats), desc="repeats"):
         runs["torchpref"].append(run_ours(args.trials, args.queries))
         if args.authors is not None:
             runs["authors"].append(run_authors(args.authors, args.script, args.trials, args.python))
-    med = {name: {k: statistics.median(r[k] for r in rs) for k in ("compute_s", "command_s")}
-           for name, rs in runs.items()}
-    result = {"trials": args.trials, "queries": args.queries, "repeats": args.repeats, "median": med, "runs": runs,
-              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()}}
+    med = {
+        name: {k: statistics.median(r[k] for r in rs) for k in ("compute_s", "command_s")} for name, rs in runs.items()
+    }
+    result = {
+        "trials": args.trials,
+        "queries": args.queries,
+        "repeats": args.repeats,
+        "median": med,
+        "runs": runs,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+    }
     if "authors" in med:
         result["speedup"] = {k: med["authors"][k] / med["torchpref"][k] for k in ("compute_s", "command_s")}
     args.out.mkdir(parents=True, exist_ok=True)

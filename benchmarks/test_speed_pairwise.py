@@ -68,8 +68,9 @@ def test_mixed_mode(benchmark):
     benchmark.group = f"mixed mode n={bc.MIXED_N}"
 
     def run():
-        return bc.PreferenceGP(X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel(),
-                           comparison_noise=0.1).mode
+        return bc.PreferenceGP(
+            X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel(), comparison_noise=0.1
+        ).mode
 
     mode = benchmark.pedantic(run, rounds=3, iterations=1, warmup_rounds=1)
     benchmark.extra_info["newton_iterations"] = mode.iterations

@@ -31,8 +31,10 @@ GAPS: dict[tuple[str, str], str] = {
     ("test_observation_noise_adds_variance", "PairwiseGP"): "PairwiseGP ignores observation_noise",
     ("test_eubo_on_prior_model", "PairwiseGP"): "a prior-only PairwiseGP has datapoints None, which EUBO reads",
     ("test_ranking_with_three_items", "PairwiseGP"): "PairwiseGP reads only two-item rankings",
-    ("test_hyperparameter_change_in_eval_mode", "PairwiseGP"):
-        "PairwiseGP keeps its stale mode in eval mode: NotPSDError after a new outputscale",
+    (
+        "test_hyperparameter_change_in_eval_mode",
+        "PairwiseGP",
+    ): "PairwiseGP keeps its stale mode in eval mode: NotPSDError after a new outputscale",
 }
 
 

@@ -48,5 +48,12 @@ def random_comparisons(n: int, p: int, generator: torch.Generator) -> torch.Tens
 @pytest.fixture
 def helpers():
     """The helper functions above, for test files that prefer fixtures to imports."""
-    return type("Helpers", (), {"rand": staticmethod(rand), "randn": staticmethod(randn),
-                                "random_comparisons": staticmethod(random_comparisons)})
+    return type(
+        "Helpers",
+        (),
+        {
+            "rand": staticmethod(rand),
+            "randn": staticmethod(randn),
+            "random_comparisons": staticmethod(random_comparisons),
+        },
+    )

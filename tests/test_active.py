@@ -25,9 +25,16 @@ def _setup(seed: int):
 
 def _run(seed=0, q=6, **kw):
     model, user = _setup(seed)
-    hist = run_active_learning(model, user, BoxCandidates(BOUNDS, 20), RandomMixed(m=3), q,
-                               generator=torch.Generator().manual_seed(seed + 2),
-                               metrics=lambda m: {"mean0": float(m.posterior(BOUNDS[:1]).mean.detach())}, **kw)
+    hist = run_active_learning(
+        model,
+        user,
+        BoxCandidates(BOUNDS, 20),
+        RandomMixed(m=3),
+        q,
+        generator=torch.Generator().manual_seed(seed + 2),
+        metrics=lambda m: {"mean0": float(m.posterior(BOUNDS[:1]).mean.detach())},
+        **kw,
+    )
     return model, hist
 
 
@@ -46,13 +53,14 @@ def test_records_and_observations():
             n_cmp += r.query.m - 1
     assert model.train_X.shape[0] == n_items
     assert model.comparisons.shape[0] == n_cmp
-    torch.testing.assert_close(model.ratings, torch.tensor(ratings, dtype=torch.float64).clamp(1e-6, 1 - 1e-6),
-                               atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        model.ratings, torch.tensor(ratings, dtype=torch.float64).clamp(1e-6, 1 - 1e-6), atol=1e-5, rtol=0
+    )
     # each query's items are in the model, in order, and the ranking's winner is preferred
     row = 2
     for r in hist.records:
         items = r.query.items
-        torch.testing.assert_close(model.train_X[row:row + items.shape[0]], items)
+        torch.testing.assert_close(model.train_X[row : row + items.shape[0]], items)
         row += items.shape[0]
     assert hist.cumulative_cost()[-1] == pytest.approx(8.0)
 
@@ -81,8 +89,9 @@ def test_bad_input():
     with pytest.raises(ValueError, match="-1"):
         run_active_learning(model, user, BoxCandidates(BOUNDS), RandomMixed(), -1, generator=torch.Generator())
     with pytest.raises(ValueError, match="0"):
-        run_active_learning(model, user, BoxCandidates(BOUNDS), RandomMixed(), 2, generator=torch.Generator(),
-                            refit_every=0)
+        run_active_learning(
+            model, user, BoxCandidates(BOUNDS), RandomMixed(), 2, generator=torch.Generator(), refit_every=0
+        )
 
 
 def test_pool_with_repeated_rows_never_shows_an_item_twice():
@@ -97,7 +106,8 @@ def test_pool_with_repeated_rows_never_shows_an_item_twice():
     assert idx.tolist() == [0, 1, 3, 5]
     torch.testing.assert_close(X, pool[idx])
     model, user = _setup(4)
-    hist = run_active_learning(model, user, FinitePool(pool), RandomRankings(m=4), 5,
-                               generator=torch.Generator().manual_seed(0))
+    hist = run_active_learning(
+        model, user, FinitePool(pool), RandomRankings(m=4), 5, generator=torch.Generator().manual_seed(0)
+    )
     for r in hist.records:
         assert len({float(x) for x in r.query.items.reshape(-1)}) == 4

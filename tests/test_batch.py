@@ -17,8 +17,9 @@ def _random_trials(T: int, steps: int, seed: int):
     """``T`` single models and a batch of the same data, grown by mixed random answers of
     different kinds per trial (so the trials' sizes differ)."""
     g = torch.Generator().manual_seed(seed)
-    models = [wave.make_model(torch.rand(2, 1, generator=g, dtype=torch.float64), torch.tensor([[0, 1]]))
-              for _ in range(T)]
+    models = [
+        wave.make_model(torch.rand(2, 1, generator=g, dtype=torch.float64), torch.tensor([[0, 1]])) for _ in range(T)
+    ]
     batch = BatchedPreferenceGP.from_models(models)
     for step in range(steps):
         for b in range(T):
@@ -125,36 +126,55 @@ def test_batch_loop_matches_single_loop_random_mixed(pool):
     """Selectors the wave run does not use (random mixed, target 'maximizer' / 'utility'), through
     the generic loops, from a box or from a finite pool (queries then carry pool indices)."""
     g = torch.Generator().manual_seed(5)
-    cands = (FinitePool(torch.rand(25, 1, generator=g, dtype=torch.float64)) if pool
-             else BoxCandidates(torch.tensor([[0.0], [1.0]], dtype=torch.float64), 20))
-    for selector in (RandomMixed(m=3), InformationPerEffort(m=3, target="maximizer", num_samples=32),
-                     InformationPerEffort(m=3, target="utility", num_samples=32), UCBC(m=3)):
+    cands = (
+        FinitePool(torch.rand(25, 1, generator=g, dtype=torch.float64))
+        if pool
+        else BoxCandidates(torch.tensor([[0.0], [1.0]], dtype=torch.float64), 20)
+    )
+    for selector in (
+        RandomMixed(m=3),
+        InformationPerEffort(m=3, target="maximizer", num_samples=32),
+        InformationPerEffort(m=3, target="utility", num_samples=32),
+        UCBC(m=3),
+    ):
         truths = [WaveFunction.random(generator=torch.Generator().manual_seed(s)) for s in (1, 2)]
 
         def users():
-            return [SimulatedUser.paper_wave(lambda X, t=t: t(X, noise=False),
-                                             generator=torch.Generator().manual_seed(i)) for i, t in enumerate(truths)]
+            return [
+                SimulatedUser.paper_wave(lambda X, t=t: t(X, noise=False), generator=torch.Generator().manual_seed(i))
+                for i, t in enumerate(truths)
+            ]
 
         def starts():
-            return [wave.make_model(torch.tensor([[0.2], [0.7]], dtype=torch.float64), torch.tensor([[1, 0]]))
-                    for _ in truths]
+            return [
+                wave.make_model(torch.tensor([[0.2], [0.7]], dtype=torch.float64), torch.tensor([[1, 0]]))
+                for _ in truths
+            ]
 
-        hb = run_active_learning_batch(BatchedPreferenceGP.from_models(starts()), users(), cands, selector, 4,
-                                       generators=[torch.Generator().manual_seed(10 + i) for i in range(2)])
+        hb = run_active_learning_batch(
+            BatchedPreferenceGP.from_models(starts()),
+            users(),
+            cands,
+            selector,
+            4,
+            generators=[torch.Generator().manual_seed(10 + i) for i in range(2)],
+        )
         for i, (model, user) in enumerate(zip(starts(), users())):
             h = run_active_learning(model, user, cands, selector, 4, generator=torch.Generator().manual_seed(10 + i))
             assert [r.answer for r in h.records] == [r.answer for r in hb[i].records]
             for r1, r2 in zip(h.records, hb[i].records):
                 assert torch.equal(r1.query.items, r2.query.items)
-                assert getattr(r1.query, "indices", getattr(r1.query, "index", None)) == \
-                    getattr(r2.query, "indices", getattr(r2.query, "index", None))
+                assert getattr(r1.query, "indices", getattr(r1.query, "index", None)) == getattr(
+                    r2.query, "indices", getattr(r2.query, "index", None)
+                )
                 if pool:
                     assert getattr(r2.query, "indices", getattr(r2.query, "index", None)) is not None
 
 
 def test_batch_loop_input_checks():
     model = BatchedPreferenceGP.from_models(
-        [wave.make_model(torch.rand(2, 1, dtype=torch.float64), torch.tensor([[0, 1]])) for _ in range(2)])
+        [wave.make_model(torch.rand(2, 1, dtype=torch.float64), torch.tensor([[0, 1]])) for _ in range(2)]
+    )
     cands = BoxCandidates(torch.tensor([[0.0], [1.0]], dtype=torch.float64), 10)
     with pytest.raises(ValueError, match="one user and one generator per trial"):
         run_active_learning_batch(model, [None], cands, UCBC(), 2, generators=[torch.Generator()] * 2)
@@ -188,10 +208,19 @@ def test_batch_random_extreme_problems(hyper_seed):
     k.outputscale = hyper["outputscale"]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # jitter / boundary warnings are expected here
-        models = [PreferenceGP(X, C if len(C) else None, u if len(u) else None, ri if len(u) else None,
-                               covar_module=k, comparison_noise=hyper["comparison_noise"],
-                               rating_scale=hyper["rating_scale"], rating_precision=hyper["rating_precision"])
-                  for _, X, C, u, ri in problems]
+        models = [
+            PreferenceGP(
+                X,
+                C if len(C) else None,
+                u if len(u) else None,
+                ri if len(u) else None,
+                covar_module=k,
+                comparison_noise=hyper["comparison_noise"],
+                rating_scale=hyper["rating_scale"],
+                rating_precision=hyper["rating_precision"],
+            )
+            for _, X, C, u, ri in problems
+        ]
         batch = BatchedPreferenceGP.from_models(models)
         modes = batch.mode()
         assert batch.converged.all()
@@ -227,8 +256,12 @@ def test_fisher_steps_where_the_hessian_is_not_negative_definite():
     k = ScaleKernel(RBFKernel()).to(torch.float64)
     k.outputscale = 10.0
     X = torch.tensor([[0.3], [0.9]], dtype=torch.float64)
-    models = [PreferenceGP(X, ratings=[0.02, 0.6], rating_index=[0, 1], covar_module=k, rating_scale=1.0,
-                           rating_precision=2.0) for _ in range(2)]
+    models = [
+        PreferenceGP(
+            X, ratings=[0.02, 0.6], rating_index=[0, 1], covar_module=k, rating_scale=1.0, rating_precision=2.0
+        )
+        for _ in range(2)
+    ]
     batch = BatchedPreferenceGP.from_models(models)
     padded = batch.model.data
     obs = batch.model._observations()

@@ -19,7 +19,7 @@ def loop_data(seed: int, n: int = 54, d: int = 4, repeats: int = 11):
     ``repeats`` times, each pair compared once (noisy ``sum sqrt(i) x_i``)."""
     g = torch.Generator().manual_seed(seed)
     X = torch.rand(n, d, generator=g, dtype=torch.float64)
-    X[n - 2 * repeats::2] = 1.0
+    X[n - 2 * repeats :: 2] = 1.0
     u = (X * torch.arange(1, d + 1, dtype=torch.float64).sqrt()).sum(-1)
     C = torch.arange(n).view(-1, 2)
     noisy = u[C] + 0.1 * torch.randn(C.shape, generator=g, dtype=torch.float64)
@@ -30,8 +30,11 @@ def loop_data(seed: int, n: int = 54, d: int = 4, repeats: int = 11):
 
 def usable(model: PreferenceGP, X: torch.Tensor) -> bool:
     post = model.posterior(X)
-    return bool(torch.isfinite(post.mean).all() and (post.variance > 0).all()
-                and torch.isfinite(model.log_marginal_likelihood()))
+    return bool(
+        torch.isfinite(post.mean).all()
+        and (post.variance > 0).all()
+        and torch.isfinite(model.log_marginal_likelihood())
+    )
 
 
 def test_not_psd_error_is_linear_operators():
@@ -63,7 +66,9 @@ def test_lengthscale_floor():
     model = PreferenceGP(X, C, input_transform=Normalize(d=X.shape[-1]))
     with torch.no_grad():
         model.covar_module.base_kernel.raw_lengthscale.fill_(-1e4)
-    assert torch.allclose(model.covar_module.base_kernel.lengthscale, torch.tensor(MIN_LENGTHSCALE, dtype=torch.float64))
+    assert torch.allclose(
+        model.covar_module.base_kernel.lengthscale, torch.tensor(MIN_LENGTHSCALE, dtype=torch.float64)
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         assert usable(model, X)
@@ -75,8 +80,9 @@ GRID = [(seed, start, noise) for seed in (0, 1) for start in (2e-4, 1e-2, None, 
 QUICK = [(0, 2e-4, 0.1), (0, 1e3, 1.0)]
 
 
-@pytest.mark.parametrize("seed,start,comparison_noise",
-                         QUICK + [pytest.param(*c, marks=pytest.mark.slow) for c in GRID if c not in QUICK])
+@pytest.mark.parametrize(
+    "seed,start,comparison_noise", QUICK + [pytest.param(*c, marks=pytest.mark.slow) for c in GRID if c not in QUICK]
+)
 def test_fit_from_extreme_starts_with_repeated_items(seed, start, comparison_noise):
     X, C = loop_data(seed)
     model = PreferenceGP(X, C, input_transform=Normalize(d=X.shape[-1]), comparison_noise=comparison_noise)

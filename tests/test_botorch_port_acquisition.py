@@ -45,8 +45,12 @@ def setting(impl):
     X, Y = torch.rand(2, X_DIM, **F64), torch.rand(2, Y_DIM, **F64)
     comps = torch.tensor([[1, 0]])
     outcome = SingleTaskGP(X, Y)
-    return {"on_X": make_model(impl, X, comps), "on_Y": make_model(impl, Y, comps),
-            "outcome": FixedSingleSampleModel(model=outcome), "outcome_gp": outcome}
+    return {
+        "on_X": make_model(impl, X, comps),
+        "on_Y": make_model(impl, Y, comps),
+        "outcome": FixedSingleSampleModel(model=outcome),
+        "outcome_gp": outcome,
+    }
 
 
 def _pref_model(setting, outcome_model):
@@ -55,8 +59,9 @@ def _pref_model(setting, outcome_model):
 
 # --------------------------------------------------------------------------- test_preference.py
 @pytest.mark.parametrize("with_outcome", [False, True])
-@pytest.mark.parametrize("acqf_class", [AnalyticExpectedUtilityOfBestOption,
-                                        PairwiseBayesianActiveLearningByDisagreement])
+@pytest.mark.parametrize(
+    "acqf_class", [AnalyticExpectedUtilityOfBestOption, PairwiseBayesianActiveLearningByDisagreement]
+)
 def test_pairs_only(impl, setting, with_outcome, acqf_class):
     outcome = setting["outcome"] if with_outcome else None
     acqf = acqf_class(pref_model=_pref_model(setting, outcome), outcome_model=outcome)
@@ -70,8 +75,9 @@ def test_pairs_only(impl, setting, with_outcome, acqf_class):
 def test_eubo_previous_winner(impl, setting, with_outcome):
     outcome = setting["outcome"] if with_outcome else None
     winner = torch.rand(1, Y_DIM if with_outcome else X_DIM, **F64)
-    acqf = AnalyticExpectedUtilityOfBestOption(pref_model=_pref_model(setting, outcome), outcome_model=outcome,
-                                               previous_winner=winner)
+    acqf = AnalyticExpectedUtilityOfBestOption(
+        pref_model=_pref_model(setting, outcome), outcome_model=outcome, previous_winner=winner
+    )
     assert acqf(torch.rand(1, X_DIM, **F64)).shape == (1,)
     for q in (2, 3):
         with pytest.raises((UnsupportedError, AssertionError)):
@@ -107,8 +113,9 @@ def test_optimize_eubo(impl):
     X, C = small_problem()
     model = make_model(impl, X, C)
     bounds = torch.stack([torch.zeros(X_DIM), torch.ones(X_DIM)]).to(**F64)
-    cand, _ = optimize_acqf(AnalyticExpectedUtilityOfBestOption(pref_model=model), bounds=bounds, q=2,
-                            num_restarts=2, raw_samples=32)
+    cand, _ = optimize_acqf(
+        AnalyticExpectedUtilityOfBestOption(pref_model=model), bounds=bounds, q=2, num_restarts=2, raw_samples=32
+    )
     assert cand.shape == (2, X_DIM) and (cand >= 0).all() and (cand <= 1).all()
 
 
@@ -149,8 +156,10 @@ def test_learned_objective_posterior_mean(impl):
         LearnedObjective(pref_model=mean_model, sample_shape=torch.Size([4]))
 
 
-@pytest.mark.parametrize("model_dtype,x_dtype", [(torch.float64, torch.float64), (torch.float32, torch.float32),
-                                                 (torch.float64, torch.float32)])
+@pytest.mark.parametrize(
+    "model_dtype,x_dtype",
+    [(torch.float64, torch.float64), (torch.float32, torch.float32), (torch.float64, torch.float32)],
+)
 def test_learned_objective_dtypes(impl, model_dtype, x_dtype):
     obj = LearnedObjective(pref_model=_pref_model_2d(impl, model_dtype, Normalize(d=2)))
     X = torch.rand(3, 2, 8, 2, dtype=x_dtype)
@@ -180,8 +189,9 @@ def test_pairwise_mc_posterior_variance(impl):
 def test_integrated_posterior_variance(impl):
     X, C = small_problem()
     model = make_model(impl, X, C)
-    acqf = qNegIntegratedPosteriorVariance(model=model, mc_points=torch.rand(16, X_DIM, **F64),
-                                           sampler=PairwiseSobolQMCNormalSampler(torch.Size([1])))
+    acqf = qNegIntegratedPosteriorVariance(
+        model=model, mc_points=torch.rand(16, X_DIM, **F64), sampler=PairwiseSobolQMCNormalSampler(torch.Size([1]))
+    )
     assert acqf(torch.rand(4, 2, X_DIM, **F64)).shape == (4,)
 
 
@@ -213,8 +223,11 @@ def test_eubo_input_constructor_previous_winner(impl, setting):
 def test_standard_acquisitions(impl, name):
     X, C = small_problem()
     model = make_model(impl, X, C)
-    acqf = {"UCB": lambda: UpperConfidenceBound(model, beta=4.0), "qUCB": lambda: qUpperConfidenceBound(model, beta=4.0),
-            "PosteriorMean": lambda: PosteriorMean(model)}[name]()
+    acqf = {
+        "UCB": lambda: UpperConfidenceBound(model, beta=4.0),
+        "qUCB": lambda: qUpperConfidenceBound(model, beta=4.0),
+        "PosteriorMean": lambda: PosteriorMean(model),
+    }[name]()
     values = acqf(torch.rand(5, 1, X_DIM, **F64))
     assert values.shape == (5,) and torch.isfinite(values).all()
 

@@ -32,8 +32,9 @@ def _quiet_fit(mll, maxiter=2):
 # --------------------------------------------------------------------------- construct_inputs
 def _ranking_dataset(values, indices, ranks):
     X = SliceContainer(values=values, indices=indices, event_shape=torch.Size([indices.shape[-1] * values.shape[-1]]))
-    return RankingDataset(X=X, Y=ranks, feature_names=[f"x{i}" for i in range(values.shape[-1])],
-                          outcome_names=["rank"])
+    return RankingDataset(
+        X=X, Y=ranks, feature_names=[f"x{i}" for i in range(values.shape[-1])], outcome_names=["rank"]
+    )
 
 
 def test_construct_inputs_from_ranking_dataset(impl):

@@ -30,21 +30,24 @@ def test_version(capsys):
     assert code == 0 and out.strip() == f"torchpref {__version__}"
 
 
-@pytest.mark.parametrize("argv, match", [
-    (["reproduce", "wave", "--trials", "0"], "--trials: must be at least 1, got 0"),
-    (["reproduce", "wave", "--queries", "0"], "--queries: must be at least 1, got 0"),
-    (["reproduce", "lake", "--workers", "0"], "--workers: must be at least 1, got 0"),
-    (["reproduce", "wave", "--trials", "abc"], "'abc' is not a whole number"),
-    (["reproduce", "wave", "--trials", "-3"], "must be at least 1, got -3"),
-    (["elicit", "--queries", "0", "--features", "x.csv"], "--queries: must be at least 1"),
-    (["elicit"], "give either a world"),
-    (["elicit", "lake", "--features", "x.csv"], "give either a world"),
-    (["elicit", "--features", "x.csv", "--session", "s", "--no-session"], "not both"),
-    (["elicit", "lake", "--id", "name"], "--id names a column"),
-    (["elicit", "--features", "/no/such/file.csv"], "No such file or directory"),
-    (["elicit", "lake", "--out", "/proc/no/such/folder"], "--out /proc/no/such/folder: cannot write there"),
-    (["elicit", "lake", "--out", __file__], "is a file, not a folder"),  # before the lake is built
-])
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["reproduce", "wave", "--trials", "0"], "--trials: must be at least 1, got 0"),
+        (["reproduce", "wave", "--queries", "0"], "--queries: must be at least 1, got 0"),
+        (["reproduce", "lake", "--workers", "0"], "--workers: must be at least 1, got 0"),
+        (["reproduce", "wave", "--trials", "abc"], "'abc' is not a whole number"),
+        (["reproduce", "wave", "--trials", "-3"], "must be at least 1, got -3"),
+        (["elicit", "--queries", "0", "--features", "x.csv"], "--queries: must be at least 1"),
+        (["elicit"], "give either a world"),
+        (["elicit", "lake", "--features", "x.csv"], "give either a world"),
+        (["elicit", "--features", "x.csv", "--session", "s", "--no-session"], "not both"),
+        (["elicit", "lake", "--id", "name"], "--id names a column"),
+        (["elicit", "--features", "/no/such/file.csv"], "No such file or directory"),
+        (["elicit", "lake", "--out", "/proc/no/such/folder"], "--out /proc/no/such/folder: cannot write there"),
+        (["elicit", "lake", "--out", __file__], "is a file, not a folder"),  # before the lake is built
+    ],
+)
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch's own, when this file runs first and imports it
 def test_bad_arguments_are_one_line_errors(capsys, argv, match):
     code, out, err = run_main(capsys, *argv)
@@ -92,21 +95,46 @@ def test_reproduce_in_a_fresh_clone_leaves_git_status_clean(tmp_path):
         pytest.skip("needs git and a git checkout")
     clone = tmp_path / "clone"
     subprocess.run([git, "clone", "-q", str(REPO), str(clone)], check=True)
-    res = subprocess.run([sys.executable, "-m", "torchpref.cli", "reproduce", "wave", "--trials", "2", "--queries", "2",
-                          "--workers", "1"], cwd=clone, capture_output=True, text=True, timeout=900)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torchpref.cli",
+            "reproduce",
+            "wave",
+            "--trials",
+            "2",
+            "--queries",
+            "2",
+            "--workers",
+            "1",
+        ],
+        cwd=clone,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert res.returncode == 0, res.stderr
     assert "Traceback" not in res.stderr and "files in torchpref-results/wave-" in res.stdout
     status = subprocess.run([git, "status", "--porcelain"], cwd=clone, capture_output=True, text=True, check=True)
     assert status.stdout == ""
-    assert not (clone / "benchmarks" / "results" / "wave.json").exists() or subprocess.run(
-        [git, "diff", "--quiet"], cwd=clone).returncode == 0
+    assert (
+        not (clone / "benchmarks" / "results" / "wave.json").exists()
+        or subprocess.run([git, "diff", "--quiet"], cwd=clone).returncode == 0
+    )
 
 
 def test_features_separators_label_column_and_errors(tmp_path):
     p = tmp_path / "a.csv"
     for sep in (",", ";", "\t", "|"):
-        p.write_text(sep.join(["name", "cost", "comfort"]) + "\n" + sep.join(["car", "30", "8.5"]) + "\n"
-                     + sep.join(["bike", "2", "4"]) + "\n")
+        p.write_text(
+            sep.join(["name", "cost", "comfort"])
+            + "\n"
+            + sep.join(["car", "30", "8.5"])
+            + "\n"
+            + sep.join(["bike", "2", "4"])
+            + "\n"
+        )
         X, names, labels = read_features_csv(p)
         assert names == ["cost", "comfort"] and labels == ["car", "bike"] and X.tolist() == [[30, 8.5], [2, 4]]
     p.write_text("id,cost,comfort\n1,30,8\n2,2,4\n3,5,5\n")  # a numeric id column is not an objective
@@ -117,10 +145,12 @@ def test_features_separators_label_column_and_errors(tmp_path):
     assert names == ["cost", "comfort"] and labels == ["11", "12"]
     with pytest.raises(FeaturesError, match="no column 'code' for --id"):
         read_features_csv(p, id_column="code")
-    for text, match in (("a;b\n1,5;2\n3;4\n", "decimal comma"),
-                        ("a b c\n1 2 3\n4 5 6\n", r"row 2, column 'a b c': '1 2 3' is not a finite number"),
-                        ("x,y\n1,2\n3,1e999\n", "'1e999' is not a finite number"),
-                        ("name,x\na,1\nb,2\n", None)):
+    for text, match in (
+        ("a;b\n1,5;2\n3;4\n", "decimal comma"),
+        ("a b c\n1 2 3\n4 5 6\n", r"row 2, column 'a b c': '1 2 3' is not a finite number"),
+        ("x,y\n1,2\n3,1e999\n", "'1e999' is not a finite number"),
+        ("name,x\na,1\nb,2\n", None),
+    ):
         p.write_text(text)
         if match is None:
             read_features_csv(p)

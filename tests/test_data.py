@@ -79,14 +79,23 @@ ADD_BAD = [
     ("negative index", dict(comparisons=torch.tensor([[0, -2]])), "out of range"),
     ("self comparison", dict(comparisons=torch.tensor([[3, 3]])), "itself"),
     ("not p x 2", dict(comparisons=torch.tensor([[0, 1, 2], [1, 2, 3]])), "p x 2"),
-    ("length mismatch", dict(ratings=torch.tensor([0.3, 0.4], dtype=F64), rating_index=torch.tensor([0])),
-     "same length"),
+    (
+        "length mismatch",
+        dict(ratings=torch.tensor([0.3, 0.4], dtype=F64), rating_index=torch.tensor([0])),
+        "same length",
+    ),
     ("wrong X dimension", dict(X=torch.zeros(2, 3, dtype=F64), comparisons=torch.tensor([[0, 1]])), "m x 2"),
     ("NaN in X", dict(X=torch.tensor([[0.1, float("nan")]], dtype=F64)), "finite"),
-    ("index beyond new X", dict(X=torch.tensor([[0.1, 0.2], [0.3, 0.4]], dtype=F64),
-                                comparisons=torch.tensor([[0, 2]])), "out of range"),
-    ("duplicate rows compared", dict(X=torch.tensor([[0.1, 0.2], [0.1, 0.2]], dtype=F64),
-                                     comparisons=torch.tensor([[0, 1]])), "itself"),
+    (
+        "index beyond new X",
+        dict(X=torch.tensor([[0.1, 0.2], [0.3, 0.4]], dtype=F64), comparisons=torch.tensor([[0, 2]])),
+        "out of range",
+    ),
+    (
+        "duplicate rows compared",
+        dict(X=torch.tensor([[0.1, 0.2], [0.1, 0.2]], dtype=F64), comparisons=torch.tensor([[0, 1]])),
+        "itself",
+    ),
 ]
 
 
@@ -110,8 +119,14 @@ def test_failed_add_observations_leaves_model_unchanged(data, generator, name, k
 def test_ratings_at_boundaries_move_to_eps(data):
     X, C, _, _ = data
     with pytest.warns(RatingBoundaryWarning, match="moved in"):
-        model = PreferenceGP(X, C, torch.tensor([0.0, 1.0, 0.5], dtype=F64), torch.tensor([0, 1, 2]),
-                             covar_module=kernel(), rating_eps=1e-2)
+        model = PreferenceGP(
+            X,
+            C,
+            torch.tensor([0.0, 1.0, 0.5], dtype=F64),
+            torch.tensor([0, 1, 2]),
+            covar_module=kernel(),
+            rating_eps=1e-2,
+        )
     torch.testing.assert_close(model.ratings, torch.tensor([1e-2, 1 - 1e-2, 0.5], dtype=F64), rtol=0, atol=0)
     assert model.mode.converged and torch.isfinite(model.log_marginal_likelihood())
     with pytest.warns(RatingBoundaryWarning):
@@ -139,36 +154,44 @@ def test_best_of_m():
         best_of_m(1, [1])
 
 
-@pytest.mark.parametrize("chosen, shown, match", [
-    (1.5, [0, 1, 2], r"chosen must hold integer indices, got \[1.5\]"),  # was truncated to 1
-    (True, [0, 1, 2], "chosen must hold integer indices, got a bool"),
-    ("1", [0, 1, 2], "chosen must hold integer indices, got str"),
-    (None, [0, 1], "chosen must hold integer indices"),
-    ([0, 1], [0, 1, 2], "chosen must be one item index"),
-    (1, [0.0, 1.5, 2.0], r"shown must hold integer indices, got \[0.0, 1.5, 2.0\]"),  # was [0, 1, 2]
-    (1, "012", "shown must hold integer indices, got str"),
-])
+@pytest.mark.parametrize(
+    "chosen, shown, match",
+    [
+        (1.5, [0, 1, 2], r"chosen must hold integer indices, got \[1.5\]"),  # was truncated to 1
+        (True, [0, 1, 2], "chosen must hold integer indices, got a bool"),
+        ("1", [0, 1, 2], "chosen must hold integer indices, got str"),
+        (None, [0, 1], "chosen must hold integer indices"),
+        ([0, 1], [0, 1, 2], "chosen must be one item index"),
+        (1, [0.0, 1.5, 2.0], r"shown must hold integer indices, got \[0.0, 1.5, 2.0\]"),  # was [0, 1, 2]
+        (1, "012", "shown must hold integer indices, got str"),
+    ],
+)
 def test_best_of_m_refuses_what_is_not_an_item_index(chosen, shown, match):
     with pytest.raises(ValueError, match=match):
         best_of_m(chosen, shown)
     assert best_of_m(1.0, torch.tensor([0.0, 1.0])).tolist() == [[1, 0]]  # whole floats are indices
 
 
-@pytest.mark.parametrize("call, match", [
-    (lambda: likert_to_unit([1, 2], num_levels=2.5), "num_levels must be an integer"),
-    (lambda: likert_to_unit([1, 2], num_levels="5"), "num_levels must be an integer"),
-    (lambda: likert_to_unit([True]), "levels must hold numbers, got a bool"),
-    (lambda: likert_to_unit(["3"]), "levels must hold numbers, got list"),
-    (lambda: unit_to_likert([float("nan")]), "values must be finite"),  # was -9223372036854775807
-    (lambda: unit_to_likert([1.5]), r"values must lie in \[0, 1\], got \[1.5\]"),
-    (lambda: prepare_ratings([True, False]), "ratings must hold numbers, got a bool"),
-    (lambda: PreferenceData.create(None), "train_X must hold numbers, got NoneType"),
-    (lambda: PreferenceData.create("abc"), "train_X must hold numbers, got str"),
-    (lambda: PreferenceData.create(torch.ones(3, 2, dtype=torch.bool)), "train_X must hold numbers, got a bool"),
-    (lambda: PreferenceData.create(torch.rand(3, 2, dtype=torch.complex128)), "train_X must hold real numbers"),
-    (lambda: PreferenceData.create(torch.rand(3, 2, dtype=F64), torch.tensor([[0.0, 1e30]], dtype=F64)),
-     r"comparisons must hold integer indices, got \[1e\+30\]"),  # named the wrapped long before
-])
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: likert_to_unit([1, 2], num_levels=2.5), "num_levels must be an integer"),
+        (lambda: likert_to_unit([1, 2], num_levels="5"), "num_levels must be an integer"),
+        (lambda: likert_to_unit([True]), "levels must hold numbers, got a bool"),
+        (lambda: likert_to_unit(["3"]), "levels must hold numbers, got list"),
+        (lambda: unit_to_likert([float("nan")]), "values must be finite"),  # was -9223372036854775807
+        (lambda: unit_to_likert([1.5]), r"values must lie in \[0, 1\], got \[1.5\]"),
+        (lambda: prepare_ratings([True, False]), "ratings must hold numbers, got a bool"),
+        (lambda: PreferenceData.create(None), "train_X must hold numbers, got NoneType"),
+        (lambda: PreferenceData.create("abc"), "train_X must hold numbers, got str"),
+        (lambda: PreferenceData.create(torch.ones(3, 2, dtype=torch.bool)), "train_X must hold numbers, got a bool"),
+        (lambda: PreferenceData.create(torch.rand(3, 2, dtype=torch.complex128)), "train_X must hold real numbers"),
+        (
+            lambda: PreferenceData.create(torch.rand(3, 2, dtype=F64), torch.tensor([[0.0, 1e30]], dtype=F64)),
+            r"comparisons must hold integer indices, got \[1e\+30\]",
+        ),  # named the wrapped long before
+    ],
+)
 def test_helpers_name_what_is_not_a_number_or_index(call, match):
     with pytest.raises(ValueError, match=match):
         call()
@@ -179,8 +202,9 @@ def test_likert_to_unit_both_modes():
     centre = likert_to_unit(levels)
     torch.testing.assert_close(centre, torch.tensor([0.1, 0.3, 0.5, 0.7, 0.9], dtype=F64))
     assert centre.dtype == F64
-    torch.testing.assert_close(likert_to_unit(levels, mode="linear"),
-                               torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0], dtype=F64))
+    torch.testing.assert_close(
+        likert_to_unit(levels, mode="linear"), torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0], dtype=F64)
+    )
     torch.testing.assert_close(likert_to_unit([1, 7], num_levels=7), torch.tensor([0.5 / 7, 6.5 / 7], dtype=F64))
     assert unit_to_likert(centre).tolist() == [1, 2, 3, 4, 5]
     for bad in ([0], [6], [2.5], [float("nan")]):

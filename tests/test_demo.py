@@ -37,7 +37,9 @@ def test_predictive_density_on_the_demo_grid_is_elementwise():
         grid = lik.predictive_log_density(u.unsqueeze(-1), mean, var)
         assert grid.shape == (100, 201) and torch.isfinite(grid).all()
         g = torch.Generator().manual_seed(0)
-        for i, j in zip(torch.randint(100, (25,), generator=g).tolist() + [0, 99],
-                        torch.randint(201, (25,), generator=g).tolist() + [0, 200]):
+        for i, j in zip(
+            torch.randint(100, (25,), generator=g).tolist() + [0, 99],
+            torch.randint(201, (25,), generator=g).tolist() + [0, 200],
+        ):
             alone = lik.predictive_log_density(u[i], mean[j], var[j])
             torch.testing.assert_close(grid[i, j], alone, rtol=0, atol=1e-12)

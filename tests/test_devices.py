@@ -22,8 +22,13 @@ def build(device, seed=0, n=9):
     X = torch.rand(n, 2, generator=g, dtype=torch.float64)
     C = random_comparisons(n, 8, g)
     k = ScaleKernel(RBFKernel(ard_num_dims=2))
-    model = PreferenceGP(X.to(device), C.to(device), ratings=torch.tensor([0.2, 0.7, 0.9]).to(device),
-                         rating_index=torch.tensor([0, 3, 5]).to(device), covar_module=k)
+    model = PreferenceGP(
+        X.to(device),
+        C.to(device),
+        ratings=torch.tensor([0.2, 0.7, 0.9]).to(device),
+        rating_index=torch.tensor([0, 3, 5]).to(device),
+        covar_module=k,
+    )
     return model
 
 
@@ -47,9 +52,12 @@ def test_model_fit_and_posterior_on_device(device):
 def test_acquisition_on_device(device):
     model, ref = build(device), build("cpu")
     X = torch.rand(5, 2, 2, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
-    for make in (lambda m: latent_ucb(m), lambda m: QueryUCB(m),
-                 lambda m: qUpperConfidenceBound(m, beta=4.0, sampler=SobolQMCNormalSampler(torch.Size([64]), seed=0)),
-                 lambda m: qLogExpectedImprovement(m, best_f=0.3, sampler=SobolQMCNormalSampler(torch.Size([64]), seed=0))):
+    for make in (
+        lambda m: latent_ucb(m),
+        lambda m: QueryUCB(m),
+        lambda m: qUpperConfidenceBound(m, beta=4.0, sampler=SobolQMCNormalSampler(torch.Size([64]), seed=0)),
+        lambda m: qLogExpectedImprovement(m, best_f=0.3, sampler=SobolQMCNormalSampler(torch.Size([64]), seed=0)),
+    ):
         Xi = X[:, :1] if make(ref).__class__.__name__ == "UpperConfidenceBound" else X
         value = make(model)(Xi.to(device))
         assert value.device.type == device.type
@@ -59,8 +67,9 @@ def test_acquisition_on_device(device):
     close(info, info_ref, atol=1e-6)
 
 
-@pytest.mark.parametrize("selector", [UCBC(m=3), InformationPerEffort(m=3, num_samples=32),
-                                      ProfileVariancePerEffort(m=3, num_samples=32)])
+@pytest.mark.parametrize(
+    "selector", [UCBC(m=3), InformationPerEffort(m=3, num_samples=32), ProfileVariancePerEffort(m=3, num_samples=32)]
+)
 def test_batch_and_selector_on_device(device, selector):
     models = [build(device, seed) for seed in range(3)]
     refs = [build("cpu", seed) for seed in range(3)]

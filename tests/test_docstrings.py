@@ -22,8 +22,11 @@ SKIP_MODULES = {"torchpref.version"}  # only __version__
 
 
 def _public_modules() -> list:
-    names = ["torchpref"] + [m.name for m in pkgutil.walk_packages(torchpref.__path__, "torchpref.")
-                             if not any(part.startswith("_") for part in m.name.split("."))]
+    names = ["torchpref"] + [
+        m.name
+        for m in pkgutil.walk_packages(torchpref.__path__, "torchpref.")
+        if not any(part.startswith("_") for part in m.name.split("."))
+    ]
     return [importlib.import_module(n) for n in sorted(names) if n not in SKIP_MODULES]
 
 
@@ -31,8 +34,13 @@ def _public_objects(module) -> list[tuple[str, object]]:
     if hasattr(module, "__all__"):
         names = [n for n in module.__all__ if not n.startswith("_")]
     else:
-        names = [n for n, v in vars(module).items() if not n.startswith("_")
-                 and (inspect.isfunction(v) or inspect.isclass(v)) and v.__module__ == module.__name__]
+        names = [
+            n
+            for n, v in vars(module).items()
+            if not n.startswith("_")
+            and (inspect.isfunction(v) or inspect.isclass(v))
+            and v.__module__ == module.__name__
+        ]
     return [(f"{module.__name__}.{n}", getattr(module, n)) for n in names]
 
 
@@ -69,7 +77,13 @@ def _undocumented() -> list[str]:
 
 def test_public_modules_are_found():
     names = {m.__name__ for m in _public_modules()}
-    assert {"torchpref", "torchpref.models.preference_gp", "torchpref.sessions.session", "torchpref.frontends.widgets", "torchpref.lake"} <= names
+    assert {
+        "torchpref",
+        "torchpref.models.preference_gp",
+        "torchpref.sessions.session",
+        "torchpref.frontends.widgets",
+        "torchpref.lake",
+    } <= names
 
 
 def test_every_public_name_has_a_docstring():
@@ -83,9 +97,13 @@ def _unannotated(functions) -> list[str]:
         f = getattr(f, "fget", None) or getattr(f, "__func__", f)
         if not inspect.isfunction(f):
             continue
-        missing = [p.name for p in inspect.signature(f).parameters.values()
-                   if p.name not in ("self", "cls") and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
-                   and p.annotation is inspect.Parameter.empty]
+        missing = [
+            p.name
+            for p in inspect.signature(f).parameters.values()
+            if p.name not in ("self", "cls")
+            and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+            and p.annotation is inspect.Parameter.empty
+        ]
         if missing:
             out.append(f"{qualname}: {', '.join(missing)}")
     return out
@@ -101,8 +119,9 @@ def test_top_level_api_annotates_its_parameters():
             if inspect.isfunction(obj):
                 functions.append((qualname, obj))
             elif inspect.isclass(obj):
-                functions += [(f"{qualname}.{n}", v) for n, v in vars(obj).items()
-                              if n == "__init__" or not n.startswith("_")]
+                functions += [
+                    (f"{qualname}.{n}", v) for n, v in vars(obj).items() if n == "__init__" or not n.startswith("_")
+                ]
     missing = _unannotated(functions)
     assert not missing, "parameters without a type annotation:\n" + "\n".join(missing)
 

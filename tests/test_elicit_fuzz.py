@@ -25,14 +25,46 @@ from torchpref.sessions.session import read_session_file  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 CSV = "name,cost,comfort\ncar,30,8\nbike,2,4\nbus,5,5\ntrain,12,7\n\x1b[31mwalk\x1b[0m,0,3\ntaxi,40,9\n"
 PROMPT = r"(Your rating \[1-5|Which is best\? \[A-([A-Z]))[^\]]*\]: "
-HOSTILE = ["", " ", "0", "6", "4.5", "-1", "²", "①", "٣", "五", "Z", "AB", "a b", "\x1b[A", "\x1b[2J", "\t", "=" * 3,
-           "x" * 3000, "💥", "None", "true", "1e1", "3.0", "?", "h"]
+HOSTILE = [
+    "",
+    " ",
+    "0",
+    "6",
+    "4.5",
+    "-1",
+    "²",
+    "①",
+    "٣",
+    "五",
+    "Z",
+    "AB",
+    "a b",
+    "\x1b[A",
+    "\x1b[2J",
+    "\t",
+    "=" * 3,
+    "x" * 3000,
+    "💥",
+    "None",
+    "true",
+    "1e1",
+    "3.0",
+    "?",
+    "h",
+]
 
 
 def spawn(*args, timeout=120):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    child = pexpect.spawn(sys.executable, ["-m", "torchpref.cli", "elicit", *map(str, args)], cwd=str(REPO),
-                          encoding="utf-8", timeout=timeout, dimensions=(50, 200), env=env)
+    child = pexpect.spawn(
+        sys.executable,
+        ["-m", "torchpref.cli", "elicit", *map(str, args)],
+        cwd=str(REPO),
+        encoding="utf-8",
+        timeout=timeout,
+        dimensions=(50, 200),
+        env=env,
+    )
     child.logfile_read = io.StringIO()  # everything it printed
     return child
 
@@ -189,8 +221,10 @@ def test_damaged_session_files_are_one_line_errors(tmp_path, monkeypatch, capsys
             if "Repair the file now" in out:
                 assert code == (0 if reply.startswith("y") else 2), (name, out, err)
             else:
-                assert code == 2 and len(err.strip().splitlines()) == 1 and err.startswith("torchpref elicit: "), \
-                    (name, err)
+                assert code == 2 and len(err.strip().splitlines()) == 1 and err.startswith("torchpref elicit: "), (
+                    name,
+                    err,
+                )
     code = main(["elicit", "--features", str(items), "--session", str(tmp_path)])
     assert code == 2 and "is a directory" in capsys.readouterr().err
 

@@ -21,8 +21,14 @@ ROW = re.compile(r"^\s+([A-Z])?\s+(path \d+|\S+)\s+(-?[\d.e+]+)\s+(-?[\d.e+]+)\s
 
 
 def spawn(*args, timeout=240):  # generous: the machine may be shared with benchmarks
-    return pexpect.spawn(sys.executable, ["-m", "torchpref.cli", "elicit", *map(str, args)], cwd=str(REPO),
-                         encoding="utf-8", timeout=timeout, dimensions=(50, 160))
+    return pexpect.spawn(
+        sys.executable,
+        ["-m", "torchpref.cli", "elicit", *map(str, args)],
+        cwd=str(REPO),
+        encoding="utf-8",
+        timeout=timeout,
+        dimensions=(50, 160),
+    )
 
 
 def rows_of(text: str) -> list[tuple[float, float]]:
@@ -59,7 +65,7 @@ def test_lake_elicitation_14_queries_with_bad_answers_undo_and_help(tmp_path):
             child.expect([RATING_PROMPT, RANKING_PROMPT])
             helped = True
         if bad_seen[kind] < 2:  # two bad answers of each kind, each re-asked
-            for bad in (["0", "4.5"] if kind == "rating" else ["Z", "3"])[bad_seen[kind]:]:
+            for bad in (["0", "4.5"] if kind == "rating" else ["Z", "3"])[bad_seen[kind] :]:
                 child.sendline(bad)
                 child.expect("is not a rating" if kind == "rating" else "is not one of the items")
                 child.expect(RATING_PROMPT if kind == "rating" else RANKING_PROMPT)
@@ -157,8 +163,11 @@ def test_read_features_csv_labels_and_errors(tmp_path):
     p.write_text("x,y\n1,2\n3,4\n")
     X, names, labels = read_features_csv(p)
     assert labels is None and X.tolist() == [[1, 2], [3, 4]]
-    for text, match in (("x,y\n1,2\n", "at least two"), ("x,y\n1,2\n3\n", "row 3: 1 values"),
-                        ("x,y\n1,2\n3,nan\n", r"row 3, column 'y': 'nan'")):
+    for text, match in (
+        ("x,y\n1,2\n", "at least two"),
+        ("x,y\n1,2\n3\n", "row 3: 1 values"),
+        ("x,y\n1,2\n3,nan\n", r"row 3, column 'y': 'nan'"),
+    ):
         p.write_text(text)
         with pytest.raises(FeaturesError, match=match):
             read_features_csv(p)

@@ -34,8 +34,25 @@ def test_statistics():
 
 
 def test_tiny_wave_run(tmp_path):
-    assert main(["reproduce", "wave", "--trials", "2", "--queries", "3", "--seed", "1", "--out", str(tmp_path),
-                 "--workers", "1"]) == 0
+    assert (
+        main(
+            [
+                "reproduce",
+                "wave",
+                "--trials",
+                "2",
+                "--queries",
+                "3",
+                "--seed",
+                "1",
+                "--out",
+                str(tmp_path),
+                "--workers",
+                "1",
+            ]
+        )
+        == 0
+    )
     data = json.loads((tmp_path / "wave.json").read_text())
     assert data["trials"] == 2 and data["queries"] == 3
     assert set(data["strategies"]) == set(STRATEGIES)
@@ -85,8 +102,13 @@ def test_registry_and_fixed_kernel():
     k = fixed_rbf_kernel(0.3, 0.5, X)
     assert torch.equal(k(X, X[:3]).to_dense(), ref(X, X[:3]).to_dense())  # the same to the bit
     assert torch.equal(k.forward(X, X, diag=True), ref.forward(X, X, diag=True))
-    settings = {"lengthscale": 0.3, "outputscale": 0.5, "comparison_noise": 0.2, "rating_scale": 0.8,
-                "rating_precision": 60.0}
+    settings = {
+        "lengthscale": 0.3,
+        "outputscale": 0.5,
+        "comparison_noise": 0.2,
+        "rating_scale": 0.8,
+        "rating_precision": 60.0,
+    }
     model = make_model(X[:2], torch.tensor([[0, 1]]), settings)
     assert float(model.likelihood.rating.rating_precision) == pytest.approx(60.0)
 

@@ -22,8 +22,14 @@ def kernel(device):
 def make_model(device, generator, n=8, p=6):
     X = torch.rand(n, 2, generator=generator, dtype=torch.float64).to(device)
     C = random_comparisons(n, p, generator).to(device)
-    return PreferenceGP(X, C, ratings=torch.tensor([0.3, 0.8], device=device), rating_index=[0, n - 1],
-                        covar_module=kernel(device), comparison_noise=0.5)
+    return PreferenceGP(
+        X,
+        C,
+        ratings=torch.tensor([0.3, 0.8], device=device),
+        rating_index=[0, n - 1],
+        covar_module=kernel(device),
+        comparison_noise=0.5,
+    )
 
 
 def single(model, X, **kw):
@@ -61,8 +67,11 @@ def test_batched_training_data_equals_separate_models(device, generator):
 
 def test_batched_training_data_of_different_lengths(generator):
     X = torch.rand(2, 5, 1, generator=generator, dtype=torch.float64)
-    model = PreferenceGP(X, [torch.tensor([[0, 1]]), torch.tensor([[1, 2], [3, 4], [0, 4]])],
-                         covar_module=ScaleKernel(RBFKernel()).to(torch.float64))
+    model = PreferenceGP(
+        X,
+        [torch.tensor([[0, 1]]), torch.tensor([[1, 2], [3, 4], [0, 4]])],
+        covar_module=ScaleKernel(RBFKernel()).to(torch.float64),
+    )
     one = PreferenceGP(X[1], torch.tensor([[1, 2], [3, 4], [0, 4]]), covar_module=model.covar_module)
     torch.testing.assert_close(model.mode.f[1], one.mode.f, rtol=0, atol=1e-9)
     with pytest.raises(ValueError, match="expected 2 per-problem entries, got 1"):
@@ -86,7 +95,7 @@ def test_fantasy_model_equals_conditioned_single_models(kind, device, generator)
     n = model.train_X.shape[0]
     for s, j in [(0, 0), (3, 4), (2, 1)]:
         if kind == "comparisons":
-            C = fantasy.comparisons[s, j, model.comparisons.shape[0]:] - n
+            C = fantasy.comparisons[s, j, model.comparisons.shape[0] :] - n
             assert C.shape == (3, 2)  # all pairs of the three points
             ref = single(model, Xc[j], comparisons=C)
         else:
@@ -157,8 +166,9 @@ def test_integrated_posterior_variance_on_rating_fantasies(device, generator):
     prior = -model.posterior(mc).variance.mean()
     assert (value > prior).all()  # two more ratings reduce the integrated variance
     fantasy = model.fantasize(X, acqf.sampler)
-    torch.testing.assert_close(value, -fantasy.posterior(mc).variance.mean(dim=(-2, -1)).reshape(5), rtol=1e-10,
-                               atol=1e-12)
+    torch.testing.assert_close(
+        value, -fantasy.posterior(mc).variance.mean(dim=(-2, -1)).reshape(5), rtol=1e-10, atol=1e-12
+    )
 
 
 def test_batched_kernel_hyperparameters_per_problem(generator):
@@ -208,7 +218,8 @@ def test_fantasy_posterior_gradient_in_the_fantasy_points(kind, generator):
 
     def value(X):
         sampler = (PairwiseSobolQMCNormalSampler if kind == "comparisons" else SobolQMCNormalSampler)(
-            torch.Size([4]), seed=5)
+            torch.Size([4]), seed=5
+        )
         post = model.fantasize(X, sampler).posterior(Xt)
         return post.mean.sum() + post.distribution.covariance_matrix.sum()
 
@@ -244,8 +255,14 @@ def test_posterior_gradient_in_the_training_items(generator):
     Xt = torch.rand(4, 2, generator=g, dtype=torch.float64)
 
     def value(X):
-        post = PreferenceGP(X, C, ratings=torch.tensor([0.3, 0.8]), rating_index=[0, 7], covar_module=kernel("cpu"),
-                            comparison_noise=0.5).posterior(Xt)
+        post = PreferenceGP(
+            X,
+            C,
+            ratings=torch.tensor([0.3, 0.8]),
+            rating_index=[0, 7],
+            covar_module=kernel("cpu"),
+            comparison_noise=0.5,
+        ).posterior(Xt)
         return post.mean.sum() + post.variance.sum()
 
     X = X0.clone().requires_grad_(True)

@@ -26,8 +26,11 @@ def records():
 
 
 def gaps(records, run, tag):
-    return [max(r[f"{run}_gap_mean_{tag}"], r[f"{run}_gap_cov_{tag}"]) for r in records
-            if r.get(f"{run}_gap_mean_nograd") is not None]
+    return [
+        max(r[f"{run}_gap_mean_{tag}"], r[f"{run}_gap_cov_{tag}"])
+        for r in records
+        if r.get(f"{run}_gap_mean_nograd") is not None
+    ]
 
 
 def test_sample_spans_the_problem_space(records):

@@ -37,8 +37,11 @@ def opening_fails(X, path, match: str) -> str:
     """Opening ``path`` (load, the constructor and read_session_file) fails by name with ``match``
     and the file and line in the message; returns the message."""
     before = path.read_bytes()
-    for open_it in (lambda: PreferenceSession.load(path), lambda: PreferenceSession(X, session_file=path, seed=5),
-                    lambda: read_session_file(path)):
+    for open_it in (
+        lambda: PreferenceSession.load(path),
+        lambda: PreferenceSession(X, session_file=path, seed=5),
+        lambda: read_session_file(path),
+    ):
         with pytest.raises(SessionFileError, match=match) as err:
             open_it()
         assert f"session file {path}" in str(err.value)
@@ -61,12 +64,15 @@ def test_rating_record_with_two_items(tmp_path):
     opening_fails(X, path, r"line 2: a rating's items must have exactly 1 row\(s\), got 2")
 
 
-@pytest.mark.parametrize("level, value, match", [
-    (9, 0.5, r"'answer' must be an integer in 1..5, got 9"),
-    (4, 0.5, r"value 0.5 does not match its answer 4 \(expected 0.7"),
-    (4.0, 0.7, r"'answer' must be an integer in 1..5, got 4.0"),
-    (4, None, r"value None does not match"),
-])
+@pytest.mark.parametrize(
+    "level, value, match",
+    [
+        (9, 0.5, r"'answer' must be an integer in 1..5, got 9"),
+        (4, 0.5, r"value 0.5 does not match its answer 4 \(expected 0.7"),
+        (4.0, 0.7, r"'answer' must be an integer in 1..5, got 4.0"),
+        (4, None, r"value None does not match"),
+    ],
+)
 def test_rating_level_and_value_must_agree(tmp_path, level, value, match):
     X, path, lines = written(tmp_path)
     lines[1]["answer"], lines[1]["value"] = level, value
@@ -98,12 +104,15 @@ def test_header_seed_as_text_is_named(tmp_path):
     assert "seed 0, but this session has seed 0" not in msg
 
 
-@pytest.mark.parametrize("change, match", [
-    (lambda h: h["candidates"].update(items=[[1.0, 2.0], [3.0]]), "candidates' items"),
-    (lambda h: h.update(bounds=[[1.0, 2.0], [0.0, 3.0]]), "lower < upper"),
-    (lambda h: h.update(names=["a"]), "names must be null or 2 strings"),
-    (lambda h: h.update(num_levels=1), "'num_levels' must be an integer >= 2"),
-])
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (lambda h: h["candidates"].update(items=[[1.0, 2.0], [3.0]]), "candidates' items"),
+        (lambda h: h.update(bounds=[[1.0, 2.0], [0.0, 3.0]]), "lower < upper"),
+        (lambda h: h.update(names=["a"]), "names must be null or 2 strings"),
+        (lambda h: h.update(num_levels=1), "'num_levels' must be an integer >= 2"),
+    ],
+)
 def test_header_values_are_checked(tmp_path, change, match):
     X, path, lines = written(tmp_path)
     change(lines[0])
@@ -232,14 +241,18 @@ def test_keyboard_interrupt_in_tell_keeps_model_file_and_history_together(tmp_pa
     s = PreferenceSession(X, session_file=path, seed=5)
     q = s.ask()
     if where == "model":  # inside the model's update, after it took the new data (the worst case)
+
         def half_update(self, data, warm_f):
             self._data, self._cache = data, None
             raise KeyboardInterrupt
+
         monkeypatch.setattr(models.PreferenceGP, "_set_data", half_update)
     elif where == "write":  # half the record written
+
         def half(fd, data):
             journal.os.write(fd, data[: len(data) // 2])
             raise KeyboardInterrupt
+
         monkeypatch.setattr(journal, "_write_all", half)
     else:  # the record is on disk, the fsync is interrupted
         monkeypatch.setattr(journal.os, "fsync", Interrupt(journal.os.fsync, 1))

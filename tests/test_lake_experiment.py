@@ -26,21 +26,45 @@ def scenario():
     X = path_objectives(paths, field)
     tr, te = paths[0::2], paths[1::2]
     z = torch.zeros(len(tr), dtype=torch.long)
-    return LakeScenario(lake, field, tr, path_objectives(tr, field), z, z.double(),
-                        te, path_objectives(te, field), torch.zeros(len(te), dtype=torch.long),
-                        torch.zeros(len(te), dtype=torch.float64))
+    return LakeScenario(
+        lake,
+        field,
+        tr,
+        path_objectives(tr, field),
+        z,
+        z.double(),
+        te,
+        path_objectives(te, field),
+        torch.zeros(len(te), dtype=torch.long),
+        torch.zeros(len(te), dtype=torch.float64),
+    )
 
 
 def test_tiny_run_writes_files(scenario, tmp_path):
-    res = run_lake_experiment(trials=2, queries=3, out=tmp_path, workers=1, strategies=STRATEGIES[:2],
-                              scenario=scenario, progress=False, plan_trials=1, plan=[STRATEGIES[0]],
-                              plan_settings={"num_fresh": 0, "steps": 5})
+    res = run_lake_experiment(
+        trials=2,
+        queries=3,
+        out=tmp_path,
+        workers=1,
+        strategies=STRATEGIES[:2],
+        scenario=scenario,
+        progress=False,
+        plan_trials=1,
+        plan=[STRATEGIES[0]],
+        plan_settings={"num_fresh": 0, "steps": 5},
+    )
     data = json.loads((tmp_path / "lake.json").read_text())
     assert data["trials"] == 2 and data["queries"] == 3
     assert set(data["strategies"]) == set(STRATEGIES[:2])
     for entry in data["strategies"].values():
-        assert set(entry) == {"error5_mean", "error5_sem", "wrms_mean", "wrms_sem", "chosen_rating_mean",
-                              "chosen_rating_sem"}
+        assert set(entry) == {
+            "error5_mean",
+            "error5_sem",
+            "wrms_mean",
+            "wrms_sem",
+            "chosen_rating_mean",
+            "chosen_rating_sem",
+        }
         assert all(len(v) == 4 for v in entry.values())
         assert all(1 <= c <= 5 for c in entry["chosen_rating_mean"])
     summary = json.loads((tmp_path / "lake_summary.json").read_text())
@@ -63,10 +87,11 @@ def test_plan_with_utility_on_water_and_not_worse(scenario):
     Z = normalise(scenario.train_X, bounds)
     # a model that has seen the operator's ratings of a few pool paths
     idx = torch.arange(0, Z.shape[0], 3)
-    model = make_model(Z[idx[:2]], torch.tensor([[0, 1]]) if op.choose(scenario.train_X[idx[:2]]) == 0
-                       else torch.tensor([[1, 0]]))
+    model = make_model(
+        Z[idx[:2]], torch.tensor([[0, 1]]) if op.choose(scenario.train_X[idx[:2]]) == 0 else torch.tensor([[1, 0]])
+    )
     for i in idx:
-        model.add_observations(Z[i:i + 1], ratings=[op.rate(scenario.train_X[i])], rating_index=[0])
+        model.add_observations(Z[i : i + 1], ratings=[op.rate(scenario.train_X[i])], rating_index=[0])
 
     utility = model_utility(model, bounds)
     res = plan_with_utility(scenario, utility, num_starts=2, steps=30)

@@ -49,16 +49,26 @@ def test_bilinear_reproduces_nodes_and_linear_functions(gen):
     pts = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)
     grid = 2 * pts[..., 0] - 3 * pts[..., 1] + 1  # linear: reproduced exactly everywhere
     assert torch.allclose(bilinear_sample(grid, extent, pts), grid, atol=1e-12)
-    q = torch.stack([extent[0] + 8 * torch.rand(50, generator=gen, dtype=torch.float64),
-                     extent[2] + 3 * torch.rand(50, generator=gen, dtype=torch.float64)], -1)
+    q = torch.stack(
+        [
+            extent[0] + 8 * torch.rand(50, generator=gen, dtype=torch.float64),
+            extent[2] + 3 * torch.rand(50, generator=gen, dtype=torch.float64),
+        ],
+        -1,
+    )
     assert torch.allclose(bilinear_sample(grid, extent, q), 2 * q[:, 0] - 3 * q[:, 1] + 1, atol=1e-12)
 
 
 def test_bilinear_gradient_matches_finite_differences(gen):
     field = InformationField.random(generator=gen)
     xmin, xmax, ymin, ymax = field.extent
-    p = torch.stack([xmin + 10 + (xmax - xmin - 20) * torch.rand(200, generator=gen, dtype=torch.float64),
-                     ymin + 10 + (ymax - ymin - 20) * torch.rand(200, generator=gen, dtype=torch.float64)], -1)
+    p = torch.stack(
+        [
+            xmin + 10 + (xmax - xmin - 20) * torch.rand(200, generator=gen, dtype=torch.float64),
+            ymin + 10 + (ymax - ymin - 20) * torch.rand(200, generator=gen, dtype=torch.float64),
+        ],
+        -1,
+    )
     p.requires_grad_(True)
     (grad,) = torch.autograd.grad(field(p).sum(), p)
     h = 1e-5

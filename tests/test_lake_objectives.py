@@ -22,7 +22,9 @@ def brute_force_integral(path, field, n=200_000):
 
 def test_integral_matches_brute_force(field):
     gen = torch.Generator().manual_seed(1)
-    paths = torch.rand(3, 6, 2, generator=gen, dtype=torch.float64) * torch.tensor([400.0, 300.0]) - torch.tensor([200.0, 150.0])
+    paths = torch.rand(3, 6, 2, generator=gen, dtype=torch.float64) * torch.tensor([400.0, 300.0]) - torch.tensor(
+        [200.0, 150.0]
+    )
     info = path_information(paths, field, step=0.5)
     for k in range(3):
         ref = brute_force_integral(paths[k], field)

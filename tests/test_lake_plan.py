@@ -50,8 +50,9 @@ def test_planned_paths_stay_on_the_water(world):
 
 def test_fallback_kept_when_nothing_is_strictly_better(world):
     fb = world.train_paths[0]
-    res = plan_with_utility(world, lambda X: torch.zeros(X.shape[:-1], dtype=X.dtype), starts=fb.unsqueeze(0),
-                            fallback=fb, steps=3)
+    res = plan_with_utility(
+        world, lambda X: torch.zeros(X.shape[:-1], dtype=X.dtype), starts=fb.unsqueeze(0), fallback=fb, steps=3
+    )
     assert res.source == "fallback" and res.path is fb and res.utility == res.fallback_utility == 0.0
 
 
@@ -68,7 +69,7 @@ def _model(world):
     Z = normalise(world.train_X, bounds)
     model = make_model(Z[:2].clone(), torch.tensor([[op.choose(world.train_X[:2]), 1 - op.choose(world.train_X[:2])]]))
     for i in range(2, Z.shape[0], 4):
-        model.add_observations(Z[i:i + 1], ratings=[op.rate(world.train_X[i])], rating_index=[0])
+        model.add_observations(Z[i : i + 1], ratings=[op.rate(world.train_X[i])], rating_index=[0])
     return model, bounds
 
 

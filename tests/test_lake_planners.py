@@ -46,8 +46,9 @@ def test_paths_stay_on_water_and_trade_distance_for_information(world, planner):
 
 def test_stomp_keeps_water_on_a_nonconvex_lake():
     # a lake with a peninsula pushing into the middle; the straight line grazes it
-    v = torch.tensor([[-200, -100], [200, -100], [200, 100], [20, 100], [0, 20], [-20, 100], [-200, 100]],
-                     dtype=torch.float64)
+    v = torch.tensor(
+        [[-200, -100], [200, -100], [200, 100], [20, 100], [0, 20], [-20, 100], [-200, 100]], dtype=torch.float64
+    )
     lake = Lake(v, torch.tensor([-150.0, 0.0]), torch.tensor([150.0, 0.0]))
     field = InformationField.random(generator=torch.Generator().manual_seed(2), extent=(-205, 205, -105, 105))
     w = torch.tensor([0.0, 1.0, 50.0], dtype=torch.float64)
@@ -74,7 +75,10 @@ def test_planners_validate(world):
 
 def test_small_scenario():
     sc = make_scenario(4, paths_per_planner=12, stomp_options={"iterations": 20}, rrt_options={"num_samples": 300})
-    for paths, X, planner in ((sc.train_paths, sc.train_X, sc.train_planner), (sc.test_paths, sc.test_X, sc.test_planner)):
+    for paths, X, planner in (
+        (sc.train_paths, sc.train_X, sc.train_planner),
+        (sc.test_paths, sc.test_X, sc.test_planner),
+    ):
         assert paths.shape[0] == 24 and X.shape == (24, 2) and planner.tolist() == [0] * 12 + [1] * 12
         check_paths(sc.lake, paths)
         assert torch.allclose(X, path_objectives(paths, sc.field), rtol=1e-9)

@@ -140,13 +140,27 @@ def build(kind, d, seed, learn=False):
     X, C, u, ri, Xs = make_problem(kind, d, seed)
     ls = HYPERS["lengthscale"][:d]
     model = PreferenceGP(
-        X, C, u if len(u) else None, ri if len(u) else None,
+        X,
+        C,
+        u if len(u) else None,
+        ri if len(u) else None,
         covar_module=kernel(torch.tensor(ls, dtype=torch.float64), HYPERS["outputscale"], d),
-        comparison_noise=HYPERS["sigma_R"], rating_scale=HYPERS["sigma_B"], rating_precision=HYPERS["nu"],
+        comparison_noise=HYPERS["sigma_R"],
+        rating_scale=HYPERS["sigma_B"],
+        rating_precision=HYPERS["nu"],
         learn_likelihood=learn,
     )
-    ref = ScipyLaplace(X.numpy(), C.numpy(), u.numpy(), ri.numpy(), ls, HYPERS["outputscale"],
-                       HYPERS["sigma_R"], HYPERS["sigma_B"], HYPERS["nu"])
+    ref = ScipyLaplace(
+        X.numpy(),
+        C.numpy(),
+        u.numpy(),
+        ri.numpy(),
+        ls,
+        HYPERS["outputscale"],
+        HYPERS["sigma_R"],
+        HYPERS["sigma_B"],
+        HYPERS["nu"],
+    )
     return model, ref, Xs
 
 
@@ -169,8 +183,9 @@ def test_laplace_matches_scipy(kind, d, seed):
     np.testing.assert_allclose(post.variance.detach().squeeze(-1).numpy(), np.diag(cov), rtol=0, atol=1e-6)
     np.testing.assert_allclose(post.distribution.covariance_matrix.detach().numpy(), cov, rtol=0, atol=1e-6)
     # at the training items the posterior mean is the mode
-    np.testing.assert_allclose(model.posterior(model.train_X).mean.detach().squeeze(-1).numpy(), ref.f,
-                               rtol=0, atol=2e-6)
+    np.testing.assert_allclose(
+        model.posterior(model.train_X).mean.detach().squeeze(-1).numpy(), ref.f, rtol=0, atol=2e-6
+    )
     assert abs(float(model.log_marginal_likelihood().detach()) - ref.evidence) < 1e-6
 
 
@@ -188,8 +203,10 @@ def _raw_params(model, learn, kind):
     return params
 
 
-@pytest.mark.parametrize("kind,d,learn", [("mixed", 2, True), ("comparisons", 1, True), ("ratings", 3, True),
-                                          ("mixed", 1, False), ("mixed", 3, True)])
+@pytest.mark.parametrize(
+    "kind,d,learn",
+    [("mixed", 2, True), ("comparisons", 1, True), ("ratings", 3, True), ("mixed", 1, False), ("mixed", 3, True)],
+)
 def test_evidence_gradient_vs_finite_differences(kind, d, learn):
     model, _, _ = build(kind, d, seed=3, learn=learn)
     params = _raw_params(model, learn, kind)
@@ -226,10 +243,12 @@ def test_matches_botorch_pairwise_gp(d, seed):
     C = random_comparisons(n, 5, g)
     Xs = rand(5, d, generator=g)
     ls, os_ = [0.6, 0.8, 0.7][:d], 0.5  # modest: BoTorch clamps z to +-3
-    ours = PreferenceGP(X, C, covar_module=kernel(torch.tensor(ls, dtype=torch.float64), os_, d),
-                        comparison_noise=1.0)  # Phi((f_i - f_j) / sqrt 2)
-    theirs = PairwiseGP(X, C, covar_module=kernel(torch.tensor(ls, dtype=torch.float64), os_, d), xtol=1e-13,
-                        maxfev=10_000)
+    ours = PreferenceGP(
+        X, C, covar_module=kernel(torch.tensor(ls, dtype=torch.float64), os_, d), comparison_noise=1.0
+    )  # Phi((f_i - f_j) / sqrt 2)
+    theirs = PairwiseGP(
+        X, C, covar_module=kernel(torch.tensor(ls, dtype=torch.float64), os_, d), xtol=1e-13, maxfev=10_000
+    )
     theirs.eval()
     z = (ours.mode.f[C[:, 0]] - ours.mode.f[C[:, 1]]) / SQRT2
     assert z.abs().max() < 3, "the comparison must stay clear of PairwiseGP's z clamp"
@@ -277,8 +296,13 @@ def test_whitened_hessian_sparse_and_row_forms_agree(generator):
     L = torch.linalg.cholesky(A @ A.T / n + torch.eye(n, dtype=torch.float64))
     C = random_comparisons(n, 20, generator)
     ri = torch.randint(0, n, (9,), generator=generator)
-    obs = Observations.from_data(C, rand(9, generator=generator, low=0.05, high=0.95), ri,
-                                 PairwiseProbitLikelihood(0.3), BetaRatingLikelihood(0.8, 60.0))
+    obs = Observations.from_data(
+        C,
+        rand(9, generator=generator, low=0.05, high=0.95),
+        ri,
+        PairwiseProbitLikelihood(0.3),
+        BetaRatingLikelihood(0.8, 60.0),
+    )
     weights = [rand(1, 20, generator=generator), randn(1, 9, generator=generator)]  # w may be negative
     sparse = obs.whitened_hessian(L[None], weights)[0]  # 2 (p + q) > n: the sparse path
     Lg = L.clone().requires_grad_(True)  # a tracked L takes the row form
@@ -298,8 +322,9 @@ def test_whitened_hessian_sparse_and_row_forms_agree(generator):
     torch.testing.assert_close(rows, dense, rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("sigma_R,lengthscale,nu", [(1.0, 0.3, 60.0), (1e-3, 0.05, 60.0), (10.0, 3.0, 60.0),
-                                                    (0.2, 0.01, 1e3)])
+@pytest.mark.parametrize(
+    "sigma_R,lengthscale,nu", [(1.0, 0.3, 60.0), (1e-3, 0.05, 60.0), (10.0, 3.0, 60.0), (0.2, 0.01, 1e3)]
+)
 def test_mode_accelerations_reach_the_plain_newton_mode(sigma_R, lengthscale, nu):
     """Float32 steps far from the mode and chord steps near it (n >= 256) end at the mode that
     plain float64 Newton finds, with the same exact factorisation, also where float32 fails
@@ -312,8 +337,13 @@ def test_mode_accelerations_reach_the_plain_newton_mode(sigma_R, lengthscale, nu
     K = kernel(torch.tensor([lengthscale, lengthscale], dtype=torch.float64), 1.0, 2)(X).to_dense()
     L = torch.linalg.cholesky(K + 1e-6 * torch.eye(n, dtype=torch.float64))
     ri = torch.randperm(n, generator=g)[:100]
-    obs = Observations.from_data(random_comparisons(n, 500, g), rand(100, generator=g, low=0.05, high=0.95), ri,
-                                 PairwiseProbitLikelihood(sigma_R), BetaRatingLikelihood(0.8, nu))
+    obs = Observations.from_data(
+        random_comparisons(n, 500, g),
+        rand(100, generator=g, low=0.05, high=0.95),
+        ri,
+        PairwiseProbitLikelihood(sigma_R),
+        BetaRatingLikelihood(0.8, nu),
+    )
     fast = find_mode(L, obs)
     plain = find_mode(L, obs, max_chord=0, single_precision_min_size=10**9)
     assert fast.converged and plain.converged

@@ -28,8 +28,12 @@ def test_probit_derivatives_match_autograd(sigma_R):
     lik = PairwiseProbitLikelihood(sigma_R)
     s = SQRT2 * sigma_R
     # z = eta / s from deep left tail through the centre to the right tail (+-8 "sigma" and more)
-    z = torch.cat([torch.linspace(-8.0, 8.0, 81, dtype=torch.float64),
-                   torch.tensor([-30.0, -15.0, -10.0, 10.0, 15.0], dtype=torch.float64)])
+    z = torch.cat(
+        [
+            torch.linspace(-8.0, 8.0, 81, dtype=torch.float64),
+            torch.tensor([-30.0, -15.0, -10.0, 10.0, 15.0], dtype=torch.float64),
+        ]
+    )
     eta = z * s
     lp, d1, d2 = lik.derivatives(eta)
     # log p against SciPy, derivatives against autograd of the documented closed form
@@ -73,8 +77,15 @@ def test_preference_probability_vs_quadrature(sigma_R, m, v):
         return stats.norm.cdf(x / s) * stats.norm.pdf(x, m, math.sqrt(v))
 
     sd = math.sqrt(v)
-    ref, _ = integrate.quad(integrand, m - 12 * sd, m + 12 * sd, epsabs=1e-13, epsrel=1e-12, points=[0.0]
-                            if abs(m) < 12 * sd else None, limit=200)
+    ref, _ = integrate.quad(
+        integrand,
+        m - 12 * sd,
+        m + 12 * sd,
+        epsabs=1e-13,
+        epsrel=1e-12,
+        points=[0.0] if abs(m) < 12 * sd else None,
+        limit=200,
+    )
     got = lik.preference_probability(torch.tensor(m, dtype=torch.float64), torch.tensor(v, dtype=torch.float64))
     assert abs(float(got) - ref) < 1e-9
 
@@ -145,8 +156,7 @@ def test_beta_derivatives_match_autograd(sigma_B, nu, u):
         a = nu * torch.exp(torch.special.log_ndtr(tt))
         b = nu * torch.exp(torch.special.log_ndtr(-tt))
         nu_t = torch.tensor(nu, dtype=torch.float64)
-        return ((a - 1) * math.log(u) + (b - 1) * math.log1p(-u)
-                + torch.lgamma(nu_t) - torch.lgamma(a) - torch.lgamma(b))
+        return (a - 1) * math.log(u) + (b - 1) * math.log1p(-u) + torch.lgamma(nu_t) - torch.lgamma(a) - torch.lgamma(b)
 
     r0, r1, r2 = autograd_derivatives(ref, eta)
     ok = torch.isfinite(r2)  # autograd itself loses it once a or b underflows
@@ -205,8 +215,14 @@ def test_beta_fisher_monte_carlo(generator):
 def test_expected_rating_vs_quadrature(sigma_B, m, v):
     lik = BetaRatingLikelihood(sigma_B, 50.0)
     sd = math.sqrt(v)
-    ref, _ = integrate.quad(lambda f: stats.norm.cdf(f / (SQRT2 * sigma_B)) * stats.norm.pdf(f, m, sd),
-                            m - 12 * sd, m + 12 * sd, epsabs=1e-13, epsrel=1e-12, limit=200)
+    ref, _ = integrate.quad(
+        lambda f: stats.norm.cdf(f / (SQRT2 * sigma_B)) * stats.norm.pdf(f, m, sd),
+        m - 12 * sd,
+        m + 12 * sd,
+        epsabs=1e-13,
+        epsrel=1e-12,
+        limit=200,
+    )
     got = lik.expected_rating(torch.tensor(m, dtype=torch.float64), torch.tensor(v, dtype=torch.float64))
     assert abs(float(got) - ref) < 1e-9
     # the moment-matched marginal has exactly this mean
@@ -222,14 +238,30 @@ def log_predictive_density_reference(u, m, v, sigma_B, nu, half_width=40.0, num=
     f = np.linspace(m - half_width * sd, m + half_width * sd, num)
     t = f / (SQRT2 * sigma_B)
     a, b = nu * np.exp(special.log_ndtr(t)), nu * np.exp(special.log_ndtr(-t))
-    lg = ((a - 1) * math.log(u) + (b - 1) * math.log1p(-u) + special.gammaln(nu) - special.gammaln(a)
-          - special.gammaln(b) + stats.norm.logpdf(f, m, sd))
+    lg = (
+        (a - 1) * math.log(u)
+        + (b - 1) * math.log1p(-u)
+        + special.gammaln(nu)
+        - special.gammaln(a)
+        - special.gammaln(b)
+        + stats.norm.logpdf(f, m, sd)
+    )
     return float(special.logsumexp(lg) + math.log(f[1] - f[0]))
 
 
 @pytest.mark.parametrize("sigma_B,nu", [(1.0, 80.0), (0.8, 60.0), (0.4, 200.0), (0.3, 5.0)])
-@pytest.mark.parametrize("u,m,v", [(0.5, 0.0, 0.3), (0.8, 1.0, 0.05), (0.2, 0.3, 0.5), (0.65, 0.5, 0.01),
-                                   (0.5, 0.0, 1.0), (0.9, 1.0, 4.0), (0.02, 1.0, 0.01)])
+@pytest.mark.parametrize(
+    "u,m,v",
+    [
+        (0.5, 0.0, 0.3),
+        (0.8, 1.0, 0.05),
+        (0.2, 0.3, 0.5),
+        (0.65, 0.5, 0.01),
+        (0.5, 0.0, 1.0),
+        (0.9, 1.0, 4.0),
+        (0.02, 1.0, 0.01),
+    ],
+)
 def test_predictive_log_density_vs_quadrature(sigma_B, nu, u, m, v):
     """Against scipy.integrate.quad of Beta pdf x normal pdf, and a dense log-space grid.
 
@@ -247,8 +279,9 @@ def test_predictive_log_density_vs_quadrature(sigma_B, nu, u, m, v):
 
         f_star = SQRT2 * sigma_B * stats.norm.ppf(u)  # the Beta factor peaks near here
         pts = [x for x in (f_star,) if m - 12 * sd < x < m + 12 * sd]
-        q, _ = integrate.quad(integrand, m - 12 * sd, m + 12 * sd, points=pts or None, epsabs=0, epsrel=1e-11,
-                              limit=1000)
+        q, _ = integrate.quad(
+            integrand, m - 12 * sd, m + 12 * sd, points=pts or None, epsabs=0, epsrel=1e-11, limit=1000
+        )
         assert abs(math.log(q) - ref) < 1e-6
     args = (torch.tensor(x, dtype=torch.float64) for x in (u, m, v))
     got = lik.predictive_log_density(*args)  # default number of nodes
@@ -296,7 +329,9 @@ def test_probit_parameter_gradient_vs_finite_differences():
     h = 1e-6
 
     def at(r):
-        l2 = PairwiseProbitLikelihood(float(lik.raw_comparison_noise_constraint.transform(torch.tensor(r, dtype=torch.float64))))
+        l2 = PairwiseProbitLikelihood(
+            float(lik.raw_comparison_noise_constraint.transform(torch.tensor(r, dtype=torch.float64)))
+        )
         return float(l2.log_prob(eta).sum())
 
     fd = (at(raw + h) - at(raw - h)) / (2 * h)
@@ -380,8 +415,10 @@ def _models(n=6):
 
     X = torch.rand(n, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     C = torch.tensor([[0, 1], [2, 3], [4, 5]])
-    return X, (PreferenceGP(X, comparisons=C, ratings=torch.tensor([0.3, 0.8]), rating_index=torch.tensor([0, 4]))
-               for _ in iter(int, 1))
+    return X, (
+        PreferenceGP(X, comparisons=C, ratings=torch.tensor([0.3, 0.8]), rating_index=torch.tensor([0, 4]))
+        for _ in iter(int, 1)
+    )
 
 
 def test_default_constraints_are_shared_but_never_changed_through_a_model():

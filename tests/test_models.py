@@ -31,8 +31,9 @@ def problem(generator, n=9, d=2, p=6, q=4):
 @pytest.fixture
 def model(generator):
     X, C, u, ri = problem(generator)
-    return PreferenceGP(X, C, u, ri, covar_module=kernel(2), comparison_noise=0.2, rating_scale=0.8,
-                        rating_precision=40.0)
+    return PreferenceGP(
+        X, C, u, ri, covar_module=kernel(2), comparison_noise=0.2, rating_scale=0.8, rating_precision=40.0
+    )
 
 
 @pytest.mark.parametrize("batch", [(), (3,), (2, 3)])
@@ -81,8 +82,16 @@ def test_fit_gpytorch_mll_increases_evidence(generator):
     from botorch.fit import fit_gpytorch_mll
 
     X, C, u, ri = problem(generator, n=10, p=8, q=5)
-    model = PreferenceGP(X, C, u, ri, covar_module=kernel(2, lengthscale=0.05, outputscale=0.3),
-                         comparison_noise=0.2, rating_scale=0.8, rating_precision=40.0)
+    model = PreferenceGP(
+        X,
+        C,
+        u,
+        ri,
+        covar_module=kernel(2, lengthscale=0.05, outputscale=0.3),
+        comparison_noise=0.2,
+        rating_scale=0.8,
+        rating_precision=40.0,
+    )
     mll = LaplaceMarginalLogLikelihood(model)
     before = float(mll().detach())
     ls_before = model.covar_module.base_kernel.lengthscale.detach().clone()
@@ -101,9 +110,16 @@ def test_changing_hyperparameters_resolves_with_warm_start(model, generator):
     m1 = model.posterior(Xs).mean.detach()
     assert not torch.allclose(m0, m1, atol=1e-6)
     assert model.mode.iterations < cold_iters  # warm-started from the previous mode
-    fresh = PreferenceGP(model.train_X, model.comparisons, model.ratings, model.rating_index,
-                         covar_module=copy.deepcopy(model.covar_module), comparison_noise=0.2,
-                         rating_scale=0.8, rating_precision=40.0)
+    fresh = PreferenceGP(
+        model.train_X,
+        model.comparisons,
+        model.ratings,
+        model.rating_index,
+        covar_module=copy.deepcopy(model.covar_module),
+        comparison_noise=0.2,
+        rating_scale=0.8,
+        rating_precision=40.0,
+    )
     torch.testing.assert_close(m1, fresh.posterior(Xs).mean.detach(), rtol=0, atol=1e-6)
 
 
@@ -115,8 +131,9 @@ def test_add_observations_equals_from_scratch(generator):
     # new items (rows of X_new; indices refer to X_new), one of them a duplicate of an old item
     X_new = torch.cat([X[6:], X[:1]])  # items 6, 7, 8 and a copy of item 0
     C_new = torch.tensor([[0, 3], [2, 1]])  # 6 > 0, 8 > 7
-    model.add_observations(X_new, comparisons=C_new, ratings=torch.tensor([0.7], dtype=torch.float64),
-                           rating_index=torch.tensor([1]))
+    model.add_observations(
+        X_new, comparisons=C_new, ratings=torch.tensor([0.7], dtype=torch.float64), rating_index=torch.tensor([1])
+    )
     assert model.train_X.shape[0] == 9  # the copy of item 0 reused its index
     C_all = torch.cat([C[(C < 6).all(-1)], torch.tensor([[6, 0], [8, 7]])])
     u_all = torch.cat([u[ri < 6], torch.tensor([0.7], dtype=torch.float64)])
@@ -127,8 +144,7 @@ def test_add_observations_equals_from_scratch(generator):
     p1, p2 = model.posterior(Xs), scratch.posterior(Xs)
     torch.testing.assert_close(p1.mean, p2.mean, rtol=0, atol=1e-6)
     torch.testing.assert_close(p1.variance, p2.variance, rtol=0, atol=1e-6)
-    torch.testing.assert_close(model.log_marginal_likelihood(), scratch.log_marginal_likelihood(),
-                               rtol=0, atol=1e-8)
+    torch.testing.assert_close(model.log_marginal_likelihood(), scratch.log_marginal_likelihood(), rtol=0, atol=1e-8)
     # indices into train_X when X is not given
     model.add_observations(comparisons=torch.tensor([[1, 2]]))
     assert model.comparisons.shape[0] == scratch.comparisons.shape[0] + 1
@@ -139,8 +155,9 @@ def test_condition_on_observations_leaves_original_unchanged(model, generator):
     before = model.posterior(Xs).mean.detach().clone()
     n, p, q = model.train_X.shape[0], model.comparisons.shape[0], model.ratings.shape[0]
     Xn = rand(2, 2, generator=generator)
-    new = model.condition_on_observations(Xn, ratings=torch.tensor([0.9, 0.2], dtype=torch.float64),
-                                          comparisons=torch.tensor([[0, 1]]))
+    new = model.condition_on_observations(
+        Xn, ratings=torch.tensor([0.9, 0.2], dtype=torch.float64), comparisons=torch.tensor([[0, 1]])
+    )
     assert new is not model
     assert (model.train_X.shape[0], model.comparisons.shape[0], model.ratings.shape[0]) == (n, p, q)
     assert (new.train_X.shape[0], new.comparisons.shape[0], new.ratings.shape[0]) == (n + 2, p + 1, q + 2)
@@ -197,8 +214,16 @@ def test_state_dict_restores_posterior(model, generator):
     Xs = rand(5, 2, generator=generator)
     ref = model.posterior(Xs)
     sd = copy.deepcopy(model.state_dict())
-    other = PreferenceGP(model.train_X, model.comparisons, model.ratings, model.rating_index,
-                         covar_module=kernel(2), comparison_noise=0.2, rating_scale=0.8, rating_precision=40.0)
+    other = PreferenceGP(
+        model.train_X,
+        model.comparisons,
+        model.ratings,
+        model.rating_index,
+        covar_module=kernel(2),
+        comparison_noise=0.2,
+        rating_scale=0.8,
+        rating_precision=40.0,
+    )
     assert not torch.allclose(other.posterior(Xs).mean, ref.mean, atol=1e-4)
     other.load_state_dict(sd)
     p = other.posterior(Xs)
@@ -238,8 +263,11 @@ def test_likelihood_parameters_learnable(generator):
     names_fixed = {n for n, p in fixed.named_parameters() if p.requires_grad}
     names_learn = {n for n, p in learn.named_parameters() if p.requires_grad}
     assert not any("comparison_noise" in n or "rating_" in n for n in names_fixed)
-    assert {"likelihood.comparison.raw_comparison_noise", "likelihood.rating.raw_rating_scale",
-            "likelihood.rating.raw_rating_precision"} <= names_learn
+    assert {
+        "likelihood.comparison.raw_comparison_noise",
+        "likelihood.rating.raw_rating_scale",
+        "likelihood.rating.raw_rating_precision",
+    } <= names_learn
 
 
 def test_posterior_rejects_wrong_dimension(model):
@@ -269,10 +297,21 @@ def test_marginals_equal_the_posteriors_diagonal(model, generator):
     d = model.data
     models = [
         model,
-        PreferenceGP(3 * d.train_X + 1, d.comparisons, d.ratings, d.rating_index, covar_module=kernel(2),
-                     input_transform=Normalize(2)),
-        PreferenceGP(d.train_X, d.comparisons, d.ratings, d.rating_index,
-                     covar_module=ScaleKernel(RBFKernel(active_dims=[1])).to(torch.float64)),
+        PreferenceGP(
+            3 * d.train_X + 1,
+            d.comparisons,
+            d.ratings,
+            d.rating_index,
+            covar_module=kernel(2),
+            input_transform=Normalize(2),
+        ),
+        PreferenceGP(
+            d.train_X,
+            d.comparisons,
+            d.ratings,
+            d.rating_index,
+            covar_module=ScaleKernel(RBFKernel(active_dims=[1])).to(torch.float64),
+        ),
         PreferenceGP(torch.zeros(0, 2, dtype=torch.float64), covar_module=kernel(2)),
     ]
     for m in models:

@@ -16,8 +16,9 @@ from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood
 def level_model(seed: int = 0) -> PreferenceGP:
     g = torch.Generator().manual_seed(seed)
     X = rand(8, 1, generator=g)
-    return PreferenceGP(X, torch.tensor([[0, 1], [2, 3]]), torch.tensor([1.0, 5.0, 3.0]), torch.tensor([4, 5, 6]),
-                        rating_levels=5)
+    return PreferenceGP(
+        X, torch.tensor([[0, 1], [2, 3]]), torch.tensor([1.0, 5.0, 3.0]), torch.tensor([4, 5, 6]), rating_levels=5
+    )
 
 
 def test_rating_information_of_a_level_vs_quadrature():
@@ -55,8 +56,7 @@ def test_active_learning_with_levels_and_information_per_effort():
     from torchpref.selection.strategies import InformationPerEffort, RandomRatings
     from torchpref.simulation.users import SimulatedUser
 
-    user = SimulatedUser(lambda X: torch.sin(6 * X[:, 0]), 0.05, 0.8, 80.0,
-                         generator=torch.Generator().manual_seed(3))
+    user = SimulatedUser(lambda X: torch.sin(6 * X[:, 0]), 0.05, 0.8, 80.0, generator=torch.Generator().manual_seed(3))
     box = BoxCandidates(torch.tensor([[0.0], [1.0]], dtype=torch.float64), 30)
     for selector in (RandomRatings(), InformationPerEffort(m=3, num_samples=64)):
         model = level_model(2)

@@ -64,16 +64,19 @@ def test_tie_derivatives_match_autograd(tau, sigma_R):
     torch.testing.assert_close(lik.derivatives(-eta)[1], -d1)
 
 
-@pytest.mark.parametrize("upper,lower,s", [
-    (-4.0, -5.0, 0.5),        # deep lower tail of a short interval
-    (12.0, 11.0, 1.0),        # deep upper tail
-    (1e-7, -1e-7, 1.0),       # a tiny interval across zero (0.5 - 0.5 would cancel)
-    (math.inf, 6.0, 0.7),     # one-sided, far
-    (-3.0, -math.inf, 0.2),   # one-sided, far on the other side
-    (0.4, -math.inf, 1.0),
-    (2.0, 1.9, 0.01),         # 190 scales into the upper tail
-    (-30.0, -30.0001, 1.0),   # short and deep: close to a Gaussian density
-])
+@pytest.mark.parametrize(
+    "upper,lower,s",
+    [
+        (-4.0, -5.0, 0.5),  # deep lower tail of a short interval
+        (12.0, 11.0, 1.0),  # deep upper tail
+        (1e-7, -1e-7, 1.0),  # a tiny interval across zero (0.5 - 0.5 would cancel)
+        (math.inf, 6.0, 0.7),  # one-sided, far
+        (-3.0, -math.inf, 0.2),  # one-sided, far on the other side
+        (0.4, -math.inf, 1.0),
+        (2.0, 1.9, 0.01),  # 190 scales into the upper tail
+        (-30.0, -30.0001, 1.0),  # short and deep: close to a Gaussian density
+    ],
+)
 def test_normal_interval_against_high_precision(upper, lower, s):
     got = normal_interval(torch.tensor(upper, **T), torch.tensor(lower, **T), s, third=True)
     ref = mp_derivatives(upper, lower, s)
@@ -144,10 +147,21 @@ def test_ordinal_predictives_vs_quadrature(m, v):
     probs = lik.level_probabilities(torch.tensor(m, **T), torch.tensor(v, **T))
     ref = []
     for k in range(1, 6):
+
         def integrand(x, k=k):
-            return (stats.norm.cdf((c[k] - x) / 0.25) - stats.norm.cdf((c[k - 1] - x) / 0.25)) * stats.norm.pdf(x, m, sd)
-        val, _ = integrate.quad(integrand, m - 12 * sd, m + 12 * sd, epsabs=1e-13, epsrel=1e-12, limit=400,
-                                points=[x for x in c[1:-1] if abs(x - m) < 12 * sd] or None)
+            return (stats.norm.cdf((c[k] - x) / 0.25) - stats.norm.cdf((c[k - 1] - x) / 0.25)) * stats.norm.pdf(
+                x, m, sd
+            )
+
+        val, _ = integrate.quad(
+            integrand,
+            m - 12 * sd,
+            m + 12 * sd,
+            epsabs=1e-13,
+            epsrel=1e-12,
+            limit=400,
+            points=[x for x in c[1:-1] if abs(x - m) < 12 * sd] or None,
+        )
         ref.append(val)
     np.testing.assert_allclose(probs.numpy(), ref, atol=1e-9)
     expected = float(lik.expected_level(torch.tensor(m, **T), torch.tensor(v, **T)))
@@ -164,9 +178,14 @@ def test_tie_probability_vs_quadrature(m, v):
         ref = stats.norm.cdf((0.2 - m) / s) - stats.norm.cdf((-0.2 - m) / s)
     else:
         sd = math.sqrt(v)
-        ref, _ = integrate.quad(lambda x: (stats.norm.cdf((0.2 - x) / s) - stats.norm.cdf((-0.2 - x) / s))
-                                * stats.norm.pdf(x, m, sd), m - 12 * sd, m + 12 * sd, epsabs=1e-13, limit=400,
-                                points=[-0.2, 0.2] if abs(m) < 12 * sd else None)
+        ref, _ = integrate.quad(
+            lambda x: (stats.norm.cdf((0.2 - x) / s) - stats.norm.cdf((-0.2 - x) / s)) * stats.norm.pdf(x, m, sd),
+            m - 12 * sd,
+            m + 12 * sd,
+            epsabs=1e-13,
+            limit=400,
+            points=[-0.2, 0.2] if abs(m) < 12 * sd else None,
+        )
     assert abs(got - ref) < 1e-9
 
 
@@ -192,7 +211,7 @@ def test_cut_points_stay_ordered_and_round_trip():
     lik.cut_points = torch.tensor([-2.0, -0.1, 0.0, 3.0], **T)
     torch.testing.assert_close(lik.cut_points, torch.tensor([-2.0, -0.1, 0.0, 3.0], **T))
     # the default prior is on the cut points and has a gradient
-    (name, _, prior, closure, _), = [p for p in lik.named_priors()]
+    ((name, _, prior, closure, _),) = [p for p in lik.named_priors()]
     assert name == "cut_points_prior"
     (g,) = torch.autograd.grad(prior.log_prob(closure(lik)).sum(), lik.raw_cut_points)
     assert torch.isfinite(g).all() and g.abs().sum() > 0
@@ -226,7 +245,8 @@ def test_tie_shares_the_comparison_noise():
     comp.comparison_noise = 0.5
     assert float(tie.log_prob(torch.tensor(0.05, **T))) != float(before)
     assert float(tie.tie_probability(torch.tensor(0.0, **T), torch.tensor(0.0, **T))) == pytest.approx(
-        stats.norm.cdf(0.1 / (SQRT2 * 0.5)) - stats.norm.cdf(-0.1 / (SQRT2 * 0.5)), rel=1e-12)
+        stats.norm.cdf(0.1 / (SQRT2 * 0.5)) - stats.norm.cdf(-0.1 / (SQRT2 * 0.5)), rel=1e-12
+    )
 
 
 @pytest.mark.parametrize("tau,sigma_R", [(0.1, 0.1), (0.5, 1.0)])

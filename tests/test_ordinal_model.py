@@ -34,12 +34,33 @@ def build(kind: str, seed: int = 0, learn: bool = False, n: int = 10, d: int = 2
     ri = torch.randperm(n, generator=g)[:6]
     if kind == "levels":
         r = torch.tensor([1, 2, 3, 5, 4, 2], dtype=torch.float64)
-        model = PreferenceGP(X, C, r, ri, kernel(0.4, 1.3, d), ties=ties, rating_levels=5, tie_threshold=0.15,
-                             learn_likelihood=learn, comparison_noise=0.3, ties_offered=offered)
+        model = PreferenceGP(
+            X,
+            C,
+            r,
+            ri,
+            kernel(0.4, 1.3, d),
+            ties=ties,
+            rating_levels=5,
+            tie_threshold=0.15,
+            learn_likelihood=learn,
+            comparison_noise=0.3,
+            ties_offered=offered,
+        )
     else:
         r = rand(6, generator=g, low=0.1, high=0.9)
-        model = PreferenceGP(X, C, r, ri, kernel(0.4, 1.3, d), ties=ties, tie_threshold=0.15,
-                             learn_likelihood=learn, comparison_noise=0.3, ties_offered=offered)
+        model = PreferenceGP(
+            X,
+            C,
+            r,
+            ri,
+            kernel(0.4, 1.3, d),
+            ties=ties,
+            tie_threshold=0.15,
+            learn_likelihood=learn,
+            comparison_noise=0.3,
+            ties_offered=offered,
+        )
     return model
 
 
@@ -61,9 +82,11 @@ def scipy_log_posterior(model):
 
     def value(f):
         d = f[T[:, 0]] - f[T[:, 1]]
-        return (special.log_ndtr((f[C[:, 0]] - f[C[:, 1]] - shift) / s).sum()
-                + np.log(interval((tau - d) / s, (-tau - d) / s)).sum()
-                + np.log(interval((c[k] - f[ri]) / sig, (c[k - 1] - f[ri]) / sig)).sum())
+        return (
+            special.log_ndtr((f[C[:, 0]] - f[C[:, 1]] - shift) / s).sum()
+            + np.log(interval((tau - d) / s, (-tau - d) / s)).sum()
+            + np.log(interval((c[k] - f[ri]) / sig, (c[k - 1] - f[ri]) / sig)).sum()
+        )
 
     def grad(f):
         g = np.zeros_like(f)
@@ -91,9 +114,13 @@ def test_mode_matches_scipy(offered):
     value, grad = scipy_log_posterior(model)
     # maximise log p(Y | L a) - a^T a / 2 over whitened a (L from NumPy): a well-conditioned problem
     Lnp = np.linalg.cholesky(model.covar_module(model.train_X).to_dense().detach().numpy())
-    res = optimize.minimize(lambda a: -value(Lnp @ a) + 0.5 * a @ a, np.zeros(Lnp.shape[0]),
-                            jac=lambda a: -Lnp.T @ grad(Lnp @ a) + a, method="BFGS",
-                            options={"gtol": 1e-8, "maxiter": 10000})
+    res = optimize.minimize(
+        lambda a: -value(Lnp @ a) + 0.5 * a @ a,
+        np.zeros(Lnp.shape[0]),
+        jac=lambda a: -Lnp.T @ grad(Lnp @ a) + a,
+        method="BFGS",
+        options={"gtol": 1e-8, "maxiter": 10000},
+    )
     root = optimize.root(lambda a: Lnp.T @ grad(Lnp @ a) - a, res.x, tol=1e-14)  # polish: zero gradient
     assert np.abs(root.fun).max() < 1e-10 and -value(Lnp @ root.x) + 0.5 * root.x @ root.x <= res.fun + 1e-9
     f_scipy = Lnp @ root.x
@@ -116,7 +143,9 @@ def _raw_params(model, learn: bool) -> dict:
     return params
 
 
-@pytest.mark.parametrize("kind,learn,offered", [("levels", True, True), ("beta", True, False), ("levels", False, False)])
+@pytest.mark.parametrize(
+    "kind,learn,offered", [("levels", True, True), ("beta", True, False), ("levels", False, False)]
+)
 def test_evidence_gradient_vs_finite_differences(kind, learn, offered):
     model = build(kind, seed=3, learn=learn, offered=offered)
     params = _raw_params(model, learn)
@@ -136,8 +165,18 @@ def test_fit_learns_tie_threshold_and_cut_points():
     C = torch.where((d > 0).unsqueeze(-1), pairs, pairs.flip(-1))[~tie]
     cuts = torch.tensor([-1.19, -0.36, 0.36, 1.19], dtype=torch.float64)
     levels = 1 + (f[:20].unsqueeze(-1) + 0.2 * torch.randn(20, 1, generator=g, dtype=torch.float64) > cuts).sum(-1)
-    model = PreferenceGP(X, C, levels.double(), torch.arange(20), kernel(0.3, 1.0, 1), ties=pairs[tie],
-                         rating_levels=5, learn_likelihood=True, ties_offered=True, comparison_noise=0.1)
+    model = PreferenceGP(
+        X,
+        C,
+        levels.double(),
+        torch.arange(20),
+        kernel(0.3, 1.0, 1),
+        ties=pairs[tie],
+        rating_levels=5,
+        learn_likelihood=True,
+        ties_offered=True,
+        comparison_noise=0.1,
+    )
     model.likelihood.comparison.raw_comparison_noise.requires_grad_(False)
     mll = LaplaceMarginalLogLikelihood(model)
     before = float(mll().detach())
@@ -207,15 +246,18 @@ def test_batched_model_with_ties_and_levels_matches_single_models():
     ties = [torch.tensor([[3, 4], [0, 5]]), torch.zeros(0, 2, dtype=torch.long)]
     batch = PreferenceGP(X, C, levels, index, kernel(0.3, 1.0, 1), ties=ties, rating_levels=5, ties_offered=True)
     for b in range(2):
-        single = PreferenceGP(X[b], C[b], levels[b], index[b], kernel(0.3, 1.0, 1), ties=ties[b], rating_levels=5,
-                              ties_offered=True)
+        single = PreferenceGP(
+            X[b], C[b], levels[b], index[b], kernel(0.3, 1.0, 1), ties=ties[b], rating_levels=5, ties_offered=True
+        )
         torch.testing.assert_close(batch.mode.f[b], single.mode.f, rtol=0, atol=1e-10)
-    cond = batch.condition_on_observations(rand(2, 1, generator=g), ratings=torch.tensor([2.0]),
-                                           rating_index=torch.tensor([0]))
+    cond = batch.condition_on_observations(
+        rand(2, 1, generator=g), ratings=torch.tensor([2.0]), rating_index=torch.tensor([0])
+    )
     assert cond.ratings[:, -1].tolist() == [2.0, 2.0] and cond.ties.shape == (2, 2, 2)
     with pytest.raises(ValueError, match=r"1\.\.5"):
-        batch.condition_on_observations(rand(2, 1, generator=g), ratings=torch.tensor([0.5]),
-                                        rating_index=torch.tensor([0]))
+        batch.condition_on_observations(
+            rand(2, 1, generator=g), ratings=torch.tensor([0.5]), rating_index=torch.tensor([0])
+        )
 
 
 def test_record_answer_ties_and_levels():
@@ -257,8 +299,7 @@ def test_mll_counts_each_prior_once(kind):
     from gpytorch.priors import GammaPrior
 
     model = build(kind, seed=5, learn=True)
-    model.likelihood.comparison.register_prior(
-        "extra_noise_prior", GammaPrior(2.0, 4.0), lambda m: m.comparison_noise)
+    model.likelihood.comparison.register_prior("extra_noise_prior", GammaPrior(2.0, 4.0), lambda m: m.comparison_noise)
     mll = LaplaceMarginalLogLikelihood(model)
     priors = [(name, p.log_prob(c(mod)).sum()) for name, mod, p, c, _ in model.named_priors()]
     assert any(n.startswith("likelihood.") for n, _ in priors), priors

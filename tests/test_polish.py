@@ -45,8 +45,15 @@ def test_best_item_rejects_bad_candidates(generator):
         model.best_item(torch.empty(0, 2, dtype=torch.float64))
 
 
-@pytest.mark.parametrize("make", [lambda m: UCBC(m=m), lambda m: RandomRankings(m=m), lambda m: RandomMixed(m=m),
-                                  lambda m: InformationPerEffort(m=m)])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: UCBC(m=m),
+        lambda m: RandomRankings(m=m),
+        lambda m: RandomMixed(m=m),
+        lambda m: InformationPerEffort(m=m),
+    ],
+)
 @pytest.mark.parametrize("m", [1, 0, 2.5, True])
 def test_ranking_size_checked_at_construction(make, m):
     with pytest.raises(ValueError, match=f"m={m!r}"):

@@ -21,9 +21,14 @@ def extreme_ratings_model(dtype: torch.dtype) -> PreferenceGP:
     k.base_kernel.lengthscale, k.outputscale = 0.0017, 1.49
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputDataWarning)  # float32 inputs
-        return PreferenceGP(torch.tensor([[0.63, 0.92, 0.80]], dtype=dtype), ratings=torch.full((3,), 1e-6, dtype=dtype),
-                            rating_index=torch.zeros(3, dtype=torch.long), covar_module=k,
-                            rating_scale=0.2044, rating_precision=495.78)
+        return PreferenceGP(
+            torch.tensor([[0.63, 0.92, 0.80]], dtype=dtype),
+            ratings=torch.full((3,), 1e-6, dtype=dtype),
+            rating_index=torch.zeros(3, dtype=torch.long),
+            covar_module=k,
+            rating_scale=0.2044,
+            rating_precision=495.78,
+        )
 
 
 def test_float32_newton_stops_at_its_roundoff_floor():
@@ -76,8 +81,16 @@ def long_lengthscale_models(laplace_dtype=None, kernel=None):
             k.base_kernel.lengthscale, k.outputscale = 40.0, 2.0
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", InputDataWarning)
-            models.append(PreferenceGP(X.to(dtype), ratings=u.to(dtype), rating_index=idx, covar_module=k,
-                                       rating_precision=300.0, laplace_dtype=laplace_dtype if dtype == F32 else None))
+            models.append(
+                PreferenceGP(
+                    X.to(dtype),
+                    ratings=u.to(dtype),
+                    rating_index=idx,
+                    covar_module=k,
+                    rating_precision=300.0,
+                    laplace_dtype=laplace_dtype if dtype == F32 else None,
+                )
+            )
     return models
 
 
@@ -93,8 +106,10 @@ def moments(model, X, grad=False):
 
 def relative_gap(a, b):
     """Largest mean and covariance differences, relative to the reference's scale."""
-    return max(float((a[0].double() - b[0]).abs().max()) / float(b[0].abs().max()),
-               float((a[1].double() - b[1]).abs().max()) / float(b[1].diagonal().max()))
+    return max(
+        float((a[0].double() - b[0]).abs().max()) / float(b[0].abs().max()),
+        float((a[1].double() - b[1]).abs().max()) / float(b[1].diagonal().max()),
+    )
 
 
 @pytest.mark.parametrize("grad", [False, True])
@@ -191,8 +206,13 @@ def test_beta_derivatives_are_finite_where_phi_underflows(dtype, eta):
 
     def logp(x, ui):
         mu, mu_c = mp.ncdf(x / (mp.sqrt(2) * sB)), mp.ncdf(-x / (mp.sqrt(2) * sB))  # mu, 1 - mu
-        return ((nu * mu - 1) * mp.log(ui) + (nu * mu_c - 1) * mp.log(1 - ui)
-                + mp.loggamma(nu) - mp.loggamma(nu * mu) - mp.loggamma(nu * mu_c))
+        return (
+            (nu * mu - 1) * mp.log(ui)
+            + (nu * mu_c - 1) * mp.log(1 - ui)
+            + mp.loggamma(nu)
+            - mp.loggamma(nu * mu)
+            - mp.loggamma(nu * mu_c)
+        )
 
     for i, ui in enumerate(u.double().tolist()):
         ref = [float(mp.diff(lambda x: logp(x, mp.mpf(ui)), mp.mpf(eta), k)) for k in range(3)]

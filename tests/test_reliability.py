@@ -10,6 +10,7 @@ from gpytorch.kernels import RBFKernel, ScaleKernel
 from conftest import rand, random_comparisons
 from torchpref.models.preference_gp import PreferenceGP
 from torchpref.inference import numerics
+
 F32, F64 = torch.float32, torch.float64
 
 
@@ -92,8 +93,9 @@ def test_float32_inputs_warn_as_in_botorch(generator):
         # the filter BoTorch's own tests (and code written for PairwiseGP) use for this warning
         from botorch.exceptions.warnings import _get_single_precision_warning
 
-        warnings.filterwarnings("ignore", category=InputDataWarning,
-                                message=_get_single_precision_warning(str(torch.float32)))
+        warnings.filterwarnings(
+            "ignore", category=InputDataWarning, message=_get_single_precision_warning(str(torch.float32))
+        )
         PreferenceGP(X.to(F32))
 
 
@@ -163,8 +165,18 @@ def test_saved_model_gives_the_same_posterior_in_a_fresh_process(generator, tmp_
     C = random_comparisons(9, 6, generator)
     u, ri = rand(3, generator=generator, low=0.1, high=0.9), torch.tensor([0, 4, 4])
     bounds = torch.tensor([[-3.0, -3.0], [5.0, 5.0]], dtype=F64)
-    model = PreferenceGP(X, C, u, ri, covar_module=kernel(2, [0.3, 0.6], 1.7), input_transform=Normalize(2, bounds=bounds),
-                         comparison_noise=0.3, rating_scale=0.7, learn_likelihood=True, max_newton_iter=40)
+    model = PreferenceGP(
+        X,
+        C,
+        u,
+        ri,
+        covar_module=kernel(2, [0.3, 0.6], 1.7),
+        input_transform=Normalize(2, bounds=bounds),
+        comparison_noise=0.3,
+        rating_scale=0.7,
+        learn_likelihood=True,
+        max_newton_iter=40,
+    )
     Xs = rand(5, 2, generator=generator, low=-3.0, high=5.0)
     ref = model.posterior(Xs)
     path = tmp_path / "model.pt"
@@ -232,7 +244,9 @@ def raw_units_use(seed, input_transform):
     C = torch.cat([torchpref.best_of_m(int(s[u[s].argmax()]), s) for s in shown])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        model = PreferenceGP(X, C, input_transform=input_transform, comparison_noise=0.1)  # the value it was written for
+        model = PreferenceGP(
+            X, C, input_transform=input_transform, comparison_noise=0.1
+        )  # the value it was written for
         fit_gpytorch_mll(torchpref.LaplaceMarginalLogLikelihood(model))
     best = int(model.posterior(X).mean.detach().reshape(-1).argmax())
     return int((u > u[best]).sum()) + 1, [w for w in caught if issubclass(w.category, InputDataWarning)]

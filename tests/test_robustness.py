@@ -23,8 +23,15 @@ def random_config(seed):
     """The hostile problem of ``seed`` from the fuzz (``benchmarks/fuzz_problems.py``), at most 15
     items, with hostile likelihood parameters for every kind."""
     p = fp.make_problem(seed, max_n=15, pairwise_likelihood=False)
-    cfg = dict(seed=seed, n=p.n, d=p.X.shape[-1], kind=p.kind, lengthscale=p.lengthscale,
-               outputscale=p.outputscale, **p.likelihood)
+    cfg = dict(
+        seed=seed,
+        n=p.n,
+        d=p.X.shape[-1],
+        kind=p.kind,
+        lengthscale=p.lengthscale,
+        outputscale=p.outputscale,
+        **p.likelihood,
+    )
     return cfg, p.X, p.comparisons, p.ratings, p.rating_index
 
 
@@ -35,10 +42,17 @@ def check(seed):
     k.outputscale = cfg["outputscale"]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # jitter / boundary warnings are expected here
-        model = PreferenceGP(X, C if len(C) else None, u if len(u) else None, ri if len(u) else None,
-                             covar_module=k, comparison_noise=cfg["comparison_noise"],
-                             rating_scale=cfg["rating_scale"], rating_precision=cfg["rating_precision"],
-                             learn_likelihood=True)
+        model = PreferenceGP(
+            X,
+            C if len(C) else None,
+            u if len(u) else None,
+            ri if len(u) else None,
+            covar_module=k,
+            comparison_noise=cfg["comparison_noise"],
+            rating_scale=cfg["rating_scale"],
+            rating_precision=cfg["rating_precision"],
+            learn_likelihood=True,
+        )
         mode = model.mode
         problems = []
         if not mode.converged:
@@ -83,8 +97,12 @@ def _saved(tmp_path):
     import torchpref
 
     g = torch.Generator().manual_seed(0)
-    model = PreferenceGP(torch.rand(5, 2, generator=g, dtype=F64), torch.tensor([[0, 1], [2, 3]]),
-                         torch.tensor([0.3, 0.8], dtype=F64), torch.tensor([1, 4]))
+    model = PreferenceGP(
+        torch.rand(5, 2, generator=g, dtype=F64),
+        torch.tensor([[0, 1], [2, 3]]),
+        torch.tensor([0.3, 0.8], dtype=F64),
+        torch.tensor([1, 4]),
+    )
     path = tmp_path / "model.pt"
     torchpref.save_model(model, path)
     return model, path
@@ -100,9 +118,15 @@ def _foreign_files(raw: bytes) -> dict:
 
     code = io.BytesIO()
     torch.save({"format": "torchpref.PreferenceGP", "x": _Code()}, code)
-    return {"truncated to half": raw[: len(raw) // 2], "truncated to 10 bytes": raw[:10], "empty": b"",
-            "json": b'{"a": 1}', "a session file": b'{"type":"header","version":1}\n',
-            "random bytes": bytes(range(256)) * 8, "a pickle holding code": code.getvalue()}
+    return {
+        "truncated to half": raw[: len(raw) // 2],
+        "truncated to 10 bytes": raw[:10],
+        "empty": b"",
+        "json": b'{"a": 1}',
+        "a session file": b'{"type":"header","version":1}\n',
+        "random bytes": bytes(range(256)) * 8,
+        "a pickle holding code": code.getvalue(),
+    }
 
 
 def test_damaged_or_foreign_checkpoint_files_are_named(tmp_path, capfd):
@@ -125,20 +149,31 @@ def _edited(ck, change):
     return ck
 
 
-@pytest.mark.parametrize("change, match", [
-    (lambda c: c.pop("data"), "'data' is missing"),
-    (lambda c: c.__setitem__("settings", [1]), "'settings' is missing or not a dictionary"),
-    (lambda c: c["settings"].__setitem__("evil", 1), r"unknown settings entries \['evil'\]"),
-    (lambda c: c["data"].__setitem__("evil", 1), r"unknown data entries \['evil'\]"),
-    (lambda c: c["data"].__setitem__("train_X", "abc"), "no train_X tensor"),
-    (lambda c: c["data"].__setitem__("ratings", [0.5]), "data 'ratings' must be a tensor"),
-    (lambda c: c["state_dict"].__setitem__("covar_module.raw_outputscale", torch.tensor(float("nan"), dtype=F64)),
-     "'covar_module.raw_outputscale' is not finite"),
-    (lambda c: c["state_dict"].__setitem__("covar_module.raw_outputscale", "x"), "must be a tensor, got str"),
-    (lambda c: c["state_dict"].__setitem__("covar_module.base_kernel.raw_lengthscale", torch.zeros(1, 5, dtype=F64)),
-     "do not fit .*size mismatch"),
-    (lambda c: c["data"].__setitem__("comparisons", torch.tensor([[0, 9]])), "comparisons out of range"),
-])
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (lambda c: c.pop("data"), "'data' is missing"),
+        (lambda c: c.__setitem__("settings", [1]), "'settings' is missing or not a dictionary"),
+        (lambda c: c["settings"].__setitem__("evil", 1), r"unknown settings entries \['evil'\]"),
+        (lambda c: c["data"].__setitem__("evil", 1), r"unknown data entries \['evil'\]"),
+        (lambda c: c["data"].__setitem__("train_X", "abc"), "no train_X tensor"),
+        (lambda c: c["data"].__setitem__("ratings", [0.5]), "data 'ratings' must be a tensor"),
+        (
+            lambda c: c["state_dict"].__setitem__(
+                "covar_module.raw_outputscale", torch.tensor(float("nan"), dtype=F64)
+            ),
+            "'covar_module.raw_outputscale' is not finite",
+        ),
+        (lambda c: c["state_dict"].__setitem__("covar_module.raw_outputscale", "x"), "must be a tensor, got str"),
+        (
+            lambda c: c["state_dict"].__setitem__(
+                "covar_module.base_kernel.raw_lengthscale", torch.zeros(1, 5, dtype=F64)
+            ),
+            "do not fit .*size mismatch",
+        ),
+        (lambda c: c["data"].__setitem__("comparisons", torch.tensor([[0, 9]])), "comparisons out of range"),
+    ],
+)
 def test_checkpoint_contents_are_checked_by_name(tmp_path, change, match):
     import torchpref
 
@@ -164,15 +199,22 @@ def test_save_model_names_a_folder_or_a_missing_folder(tmp_path):
 # ------------------------------------------------------------------ hostile inputs to the model
 def _model():
     g = torch.Generator().manual_seed(1)
-    return PreferenceGP(torch.rand(5, 2, generator=g, dtype=F64), torch.tensor([[0, 1], [2, 3]]),
-                        torch.tensor([0.3, 0.8], dtype=F64), torch.tensor([1, 4]))
+    return PreferenceGP(
+        torch.rand(5, 2, generator=g, dtype=F64),
+        torch.tensor([[0, 1], [2, 3]]),
+        torch.tensor([0.3, 0.8], dtype=F64),
+        torch.tensor([1, 4]),
+    )
 
 
-@pytest.mark.parametrize("noise, match", [
-    (torch.ones(3, dtype=F64), r"shape \(5, 1\)"),
-    (-torch.ones(5, 1, dtype=F64), "finite variances >= 0, got \\[-1.0"),
-    (torch.full((5, 1), float("nan"), dtype=F64), "finite variances >= 0, got \\[nan"),
-])
+@pytest.mark.parametrize(
+    "noise, match",
+    [
+        (torch.ones(3, dtype=F64), r"shape \(5, 1\)"),
+        (-torch.ones(5, 1, dtype=F64), "finite variances >= 0, got \\[-1.0"),
+        (torch.full((5, 1), float("nan"), dtype=F64), "finite variances >= 0, got \\[nan"),
+    ],
+)
 def test_observation_noise_of_the_wrong_shape_or_sign_is_named(noise, match):
     model = _model()
     with pytest.raises(ValueError, match=match):
@@ -219,8 +261,10 @@ def test_condition_on_observations_takes_lists_as_the_rest_of_the_api_does():
     model = _model()
     X = model.train_X[:2] + 0.01
     by_tensor = model.condition_on_observations(X, torch.tensor([[0, 1]]))
-    for cond in (model.condition_on_observations(X.tolist(), torch.tensor([[0, 1]])),
-                 model.condition_on_observations(X, comparisons=[[0, 1]])):  # an AttributeError before
+    for cond in (
+        model.condition_on_observations(X.tolist(), torch.tensor([[0, 1]])),
+        model.condition_on_observations(X, comparisons=[[0, 1]]),
+    ):  # an AttributeError before
         torch.testing.assert_close(cond.posterior(X).mean, by_tensor.posterior(X).mean)
     prior = PreferenceGP(None, None).condition_on_observations(X, comparisons=[[0, 1]])
     assert prior.comparisons.tolist() == [[0, 1]]

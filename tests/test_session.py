@@ -292,7 +292,7 @@ def test_repair_reports_keeps_the_partial_line_and_reasks(tmp_path):
     with pytest.warns(SessionRepairWarning, match="line 4"):
         s = PreferenceSession.load(path, repair=True)
     assert s.step == 2 and path.read_bytes() == data[:last_start]
-    assert data[last_start: last_start + 25] in (tmp_path / "s.jsonl.dropped").read_bytes()
+    assert data[last_start : last_start + 25] in (tmp_path / "s.jsonl.dropped").read_bytes()
     ref = PreferenceSession(X, seed=5)
     run(ref, 3)
     run(s, 1)  # answer 3 is asked again and re-answered
@@ -433,11 +433,14 @@ def test_a_query_told_twice_or_from_another_session_is_refused(tmp_path):
     assert a.step == 1 and a.history[-1].answer == 1
 
 
-@pytest.mark.parametrize("kwargs, error, match", [
-    (dict(selector="ucb"), TypeError, "selector must be a Selector"),  # an AttributeError at the first ask
-    (dict(model_factory=3), TypeError, "model_factory must be callable"),
-    (dict(model_factory=lambda X: 3), TypeError, "model_factory must return a PreferenceGP, got int"),
-])
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        (dict(selector="ucb"), TypeError, "selector must be a Selector"),  # an AttributeError at the first ask
+        (dict(model_factory=3), TypeError, "model_factory must be callable"),
+        (dict(model_factory=lambda X: 3), TypeError, "model_factory must return a PreferenceGP, got int"),
+    ],
+)
 def test_selector_and_model_factory_are_checked_when_the_session_opens(tmp_path, kwargs, error, match):
     with pytest.raises(error, match=match):
         PreferenceSession(pool(6), session_file=tmp_path / "s.jsonl", **kwargs)

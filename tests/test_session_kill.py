@@ -113,7 +113,10 @@ class Child:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         self.proc = subprocess.Popen(
             [sys.executable, str(script), str(path), str(SEED), str(TOTAL), str(pause)],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
         )
         self.lines: "queue.Queue[str | None]" = queue.Queue()
         self.seen: list[str] = []
@@ -236,7 +239,9 @@ def _answered_session(path, n):
     from torchpref.sessions.session import PreferenceSession
 
     g = torch.Generator().manual_seed(3)
-    s = PreferenceSession(torch.rand(12, 2, generator=g, dtype=torch.float64), session_file=path, seed=3, num_queries=10)
+    s = PreferenceSession(
+        torch.rand(12, 2, generator=g, dtype=torch.float64), session_file=path, seed=3, num_queries=10
+    )
     for _ in range(n):
         q = s.ask()
         s.tell(q, 4 if q.kind == "rating" else 0)

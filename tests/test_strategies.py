@@ -5,7 +5,14 @@ import torch
 
 from torchpref.experiments.wave import make_model
 from torchpref.data.queries import RankingQuery, RatingQuery
-from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
+from torchpref.selection.strategies import (
+    UCBC,
+    InformationPerEffort,
+    RandomMixed,
+    RandomRankings,
+    RandomRatings,
+    UCBRatings,
+)
 from torchpref.selection.top_profile import ProfileVariancePerEffort
 from torchpref.selection.variance_reduction import VariancePerEffort
 
@@ -19,10 +26,18 @@ def model():
     return m
 
 
-SELECTORS = [RandomRatings(), RandomRankings(m=4), RandomMixed(m=3), UCBRatings(), UCBC(m=5),
-             InformationPerEffort(m=4), InformationPerEffort(m=4, target="maximizer"),
-             InformationPerEffort(m=3, target="utility", ranking_cost=5.0), VariancePerEffort(m=4),
-             ProfileVariancePerEffort(m=4)]
+SELECTORS = [
+    RandomRatings(),
+    RandomRankings(m=4),
+    RandomMixed(m=3),
+    UCBRatings(),
+    UCBC(m=5),
+    InformationPerEffort(m=4),
+    InformationPerEffort(m=4, target="maximizer"),
+    InformationPerEffort(m=3, target="utility", ranking_cost=5.0),
+    VariancePerEffort(m=4),
+    ProfileVariancePerEffort(m=4),
+]
 
 
 @pytest.mark.parametrize("selector", SELECTORS, ids=lambda s: type(s).__name__)
@@ -89,8 +104,9 @@ def test_ucb_ratings_is_argmax(model, generator):
         f = model.mode.f
         mean = ks @ torch.linalg.solve(K + 1e-10 * torch.eye(K.shape[0], dtype=K.dtype), f)
         prior_var = model.covar_module.outputscale  # k(x, x) of the experiment's RBF kernel
-        var = prior_var - (ks * torch.linalg.solve(K + torch.linalg.inv(W + 1e-12 * torch.eye(K.shape[0], dtype=K.dtype)),
-                                                   ks.mT).mT).sum(-1)
+        var = prior_var - (
+            ks * torch.linalg.solve(K + torch.linalg.inv(W + 1e-12 * torch.eye(K.shape[0], dtype=K.dtype)), ks.mT).mT
+        ).sum(-1)
     torch.testing.assert_close(post.mean.reshape(-1), mean, atol=1e-5, rtol=1e-5)
     q = UCBRatings(gamma=3.0).select(model, X, None, 0, 1, generator)
     assert torch.equal(q.item, X[int((mean + 3.0 * var.clamp_min(0).sqrt()).argmax())])

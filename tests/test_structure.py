@@ -1,6 +1,6 @@
 """The package's layout stays as docs/architecture.md describes it: subpackages by stage, each
 importing only the stages below it (any import, at module level or inside a function), no import
-cycle among the modules (module-level imports), no module over 450 lines and no function over 60,
+cycle among the modules (module-level imports), no module over 600 lines and no function over 100 (ruff-formatted),
 and the lake world (``torchpref/lake/``) imports nothing of learning (the model, the loop, the
 selectors, the metrics) from the rest of the package."""
 
@@ -10,8 +10,8 @@ from pathlib import Path
 import torchpref
 
 PACKAGE = Path(torchpref.__file__).parent
-MAX_MODULE_LINES = 450
-MAX_FUNCTION_LINES = 60
+MAX_MODULE_LINES = 600  # a guard against files that should be split, not a goal (formatted by ruff)
+MAX_FUNCTION_LINES = 100
 
 # What a module of torchpref/lake/ may import from the rest of torchpref: the data conventions
 # (Likert levels) and numerical helpers; never a model, a selector, the loop or the metrics.
@@ -21,8 +21,21 @@ LAKE_MAY_IMPORT_MODULES = {"torchpref.data.preference_data", "torchpref.inferenc
 # The stages, lowest first: a module may import its own stage and those below it, never one above.
 # The top-level modules (the package's front, the command line, the demo) may import everything;
 # ``version`` is the floor.
-LAYERS = ["version", "data", "inference", "likelihoods", "models", "acquisition", "simulation",
-          "selection", "sessions", "lake", "experiments", "frontends", "integrations"]
+LAYERS = [
+    "version",
+    "data",
+    "inference",
+    "likelihoods",
+    "models",
+    "acquisition",
+    "simulation",
+    "selection",
+    "sessions",
+    "lake",
+    "experiments",
+    "frontends",
+    "integrations",
+]
 TOP = {"__init__", "cli", "demo", "serve"}
 
 
@@ -86,7 +99,7 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
     def visit(m: str) -> list[str] | None:
         if m in path:
-            return path[path.index(m):] + [m]
+            return path[path.index(m) :] + [m]
         if m in done:
             return None
         path.append(m)
@@ -104,10 +117,12 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 
 def test_module_level_imports_form_no_cycle():
-    graph = {f"torchpref.{_name(f)[:-3].replace('/', '.')}".removesuffix(".__init__"): _module_imports(f)
-             for f in _modules()}
+    graph = {
+        f"torchpref.{_name(f)[:-3].replace('/', '.')}".removesuffix(".__init__"): _module_imports(f) for f in _modules()
+    }
     assert {"torchpref.models.preference_gp", "torchpref.lake.field"} <= graph["torchpref.sessions.settings"] | graph[
-        "torchpref.lake.plan"] | graph["torchpref.lake.planners"], "is the walk blind?"
+        "torchpref.lake.plan"
+    ] | graph["torchpref.lake.planners"], "is the walk blind?"
     cycle = _cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
@@ -145,8 +160,7 @@ def _stage(dotted: str) -> str:
 
 def test_every_module_is_in_a_stage():
     stray = [_name(f) for f in _modules() if f.parent == PACKAGE and f.stem not in TOP | {"version"}]
-    stray += [_name(f) for f in _modules() if f.parent != PACKAGE and
-              f.relative_to(PACKAGE).parts[0] not in LAYERS]
+    stray += [_name(f) for f in _modules() if f.parent != PACKAGE and f.relative_to(PACKAGE).parts[0] not in LAYERS]
     assert not stray, f"modules outside the stages of docs/architecture.md: {stray}"
 
 
@@ -164,17 +178,27 @@ def test_no_module_imports_a_stage_above_its_own():
 
 
 def test_the_lake_world_imports_only_data_and_numerics():
-    bad = [f"{f.name}:{line} imports {dotted}" for f in sorted((PACKAGE / "lake").glob("*.py"))
-           for dotted, line in _all_imports(f)
-           if not dotted.startswith("torchpref.lake") and dotted not in LAKE_MAY_IMPORT_MODULES]
+    bad = [
+        f"{f.name}:{line} imports {dotted}"
+        for f in sorted((PACKAGE / "lake").glob("*.py"))
+        for dotted, line in _all_imports(f)
+        if not dotted.startswith("torchpref.lake") and dotted not in LAKE_MAY_IMPORT_MODULES
+    ]
     assert not bad, "\n".join(bad)
 
 
 def test_the_import_walk_sees_every_form():
-    src = ("from ..models.batch import BatchedPreferenceGP\nfrom .. import data\nimport torchpref.simulation.metrics\n"
-           "from torchpref import sessions\nfrom .field import x\n"
-           "def f():\n    from torchpref.acquisition.functions import item_ucb\n")
+    src = (
+        "from ..models.batch import BatchedPreferenceGP\nfrom .. import data\nimport torchpref.simulation.metrics\n"
+        "from torchpref import sessions\nfrom .field import x\n"
+        "def f():\n    from torchpref.acquisition.functions import item_ucb\n"
+    )
     found = _all_imports(PACKAGE / "lake" / "probe.py", src)
-    assert sorted(found) == [("torchpref.acquisition.functions", 7), ("torchpref.data", 2),
-                             ("torchpref.lake.field", 5), ("torchpref.models.batch", 1),
-                             ("torchpref.sessions", 4), ("torchpref.simulation.metrics", 3)]
+    assert sorted(found) == [
+        ("torchpref.acquisition.functions", 7),
+        ("torchpref.data", 2),
+        ("torchpref.lake.field", 5),
+        ("torchpref.models.batch", 1),
+        ("torchpref.sessions", 4),
+        ("torchpref.simulation.metrics", 3),
+    ]

@@ -34,16 +34,26 @@ def test_learned_kernel_is_the_grid_map():
     g = torch.Generator().manual_seed(0)
     for b in range(2):
         X = torch.rand(6, 2, generator=g, dtype=torch.float64)
-        model.add_observations(b, X, comparisons=torch.tensor([[0, 1], [2, 3], [4, 5]]), ratings=torch.tensor([0.8, 0.3]),
-                               rating_index=torch.tensor([0, 3]))
+        model.add_observations(
+            b,
+            X,
+            comparisons=torch.tensor([[0, 1], [2, 3], [4, 5]]),
+            ratings=torch.tensor([0.8, 0.3]),
+            rating_index=torch.tensor([0, 3]),
+        )
     best = suite.learn_kernel(model, fam.dim)
     ls, os_, prior = suite._grid(fam.dim)
     for b in range(2):
         d = model.data(b)
         scores = []
         for i in range(ls.numel()):
-            settings = {"lengthscale": float(ls[i]), "outputscale": float(os_[i]), "comparison_noise": 0.1,
-                        "rating_scale": 0.8, "rating_precision": 20.0}
+            settings = {
+                "lengthscale": float(ls[i]),
+                "outputscale": float(os_[i]),
+                "comparison_noise": 0.1,
+                "rating_scale": 0.8,
+                "rating_precision": 20.0,
+            }
             m = make_model(d.train_X, d.comparisons, settings)
             m.add_observations(ratings=d.ratings, rating_index=d.rating_index)
             m.covar_module.lengthscale, m.covar_module.outputscale = ls[i], os_[i]  # exactly the grid's values
@@ -54,8 +64,23 @@ def test_learned_kernel_is_the_grid_map():
 
 
 def test_small_suite_run(tmp_path):
-    argv = ["reproduce", "suite", "--families", "waves", "hartmann3", "--trials", "3", "--queries", "4",
-            "--seed", "1", "--out", str(tmp_path), "--workers", "1"]
+    argv = [
+        "reproduce",
+        "suite",
+        "--families",
+        "waves",
+        "hartmann3",
+        "--trials",
+        "3",
+        "--queries",
+        "4",
+        "--seed",
+        "1",
+        "--out",
+        str(tmp_path),
+        "--workers",
+        "1",
+    ]
     assert main(argv) == 0
     curves = json.loads((tmp_path / "suite.json").read_text())
     assert set(curves) == {"waves/fixed", "waves/learned", "hartmann3/fixed", "hartmann3/learned"}
@@ -78,10 +103,20 @@ def test_small_suite_run(tmp_path):
 def test_suite_on_a_dask_cluster():
     """The suite on a ``dask.distributed`` local cluster gives what the local run gives."""
     distributed = pytest.importorskip("distributed")
-    kw = dict(families=["waves", "hartmann3"], trials=2, queries=3, seed=5, out=None, progress=False,
-              conditions=("fixed",), strategies=["UCBC", "info per effort"])
+    kw = dict(
+        families=["waves", "hartmann3"],
+        trials=2,
+        queries=3,
+        seed=5,
+        out=None,
+        progress=False,
+        conditions=("fixed",),
+        strategies=["UCBC", "info per effort"],
+    )
     local = suite.run_suite(**kw, workers=1)
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
         with distributed.Client(cluster) as client:
             remote = suite.run_suite(**kw, executor=client.get_executor())
     for key, cv in local["summary"]["curves"].items():
@@ -94,8 +129,25 @@ def test_suite_strategies_option(tmp_path):
     """``--strategies`` runs exactly the strategies named, any of the registry's (one outside the
     default set among them); an unknown name is refused before anything runs."""
     assert "top & level info" not in suite.STRATEGIES
-    argv = ["reproduce", "suite", "--families", "waves", "--strategies", "top & level info", "UCBC",
-            "--trials", "2", "--queries", "2", "--seed", "3", "--out", str(tmp_path), "--workers", "1"]
+    argv = [
+        "reproduce",
+        "suite",
+        "--families",
+        "waves",
+        "--strategies",
+        "top & level info",
+        "UCBC",
+        "--trials",
+        "2",
+        "--queries",
+        "2",
+        "--seed",
+        "3",
+        "--out",
+        str(tmp_path),
+        "--workers",
+        "1",
+    ]
     assert main(argv) == 0
     curves = json.loads((tmp_path / "suite.json").read_text())
     assert set(curves["waves/fixed"]["queries"]) == {"top & level info", "UCBC"}

@@ -32,8 +32,12 @@ def test_ties_are_validated_and_mapped_through_new_items():
     new = data.add(torch.tensor([[0.25], [1.0]], **T), ties=[[0, 1]])
     assert new.ties.tolist() == [[1, 2], [3, 2]] and new.n == 4
     assert data.ties.tolist() == [[1, 2]]  # immutable
-    for bad, msg in [([[1, 1]], "tied with itself"), ([[0, 3]], "out of range"), ([0, 1, 2], "p x 2"),
-                     ([[0.5, 1]], "integer")]:
+    for bad, msg in [
+        ([[1, 1]], "tied with itself"),
+        ([[0, 3]], "out of range"),
+        ([0, 1, 2], "p x 2"),
+        ([[0.5, 1]], "integer"),
+    ]:
         with pytest.raises(ValueError, match=msg):
             PreferenceData.create(X, ties=bad)
     with pytest.raises(ValueError, match="same item"):

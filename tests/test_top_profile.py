@@ -100,8 +100,9 @@ def test_a_rating_of_a_sure_top_item_reduces_its_level_term():
     lik = _lik(rating_precision=200.0)
     g = torch.Generator().manual_seed(3)
     S = 4000
-    F = torch.stack([1.0 + 0.5 * torch.randn(S, generator=g, dtype=D),
-                     -2.0 + 0.3 * torch.randn(S, generator=g, dtype=D)], -1).unsqueeze(0)
+    F = torch.stack(
+        [1.0 + 0.5 * torch.randn(S, generator=g, dtype=D), -2.0 + 0.3 * torch.randn(S, generator=g, dtype=D)], -1
+    ).unsqueeze(0)
     V = top_profile(F, 1, lik.rating)
     assert bool((V[..., 0] > 0).all()) and bool((V[..., 1] == 0).all())
     level_var = float(V[0, :, 0].var())
@@ -115,8 +116,9 @@ def test_costs_decide():
     """Items whose level is known from ratings, their order not (the case checked by hand in
     test_variance_reduction.py gets a ranking): with rankings very expensive, a rating."""
     X = _line()
-    model = _model(X, ratings=torch.full((24,), 0.7, dtype=D), rating_index=torch.arange(8).repeat(3),
-                   comparison_noise=0.05)
+    model = _model(
+        X, ratings=torch.full((24,), 0.7, dtype=D), rating_index=torch.arange(8).repeat(3), comparison_noise=0.05
+    )
     sel = ProfileVariancePerEffort(m=4, ranking_cost=1e3)
     assert isinstance(sel.select(model, X, None, 0, 10, torch.Generator().manual_seed(0)), RatingQuery)
 
@@ -124,12 +126,20 @@ def test_costs_decide():
 def test_batch_matches_single_trials():
     g = torch.Generator().manual_seed(5)
     X = torch.rand(12, 2, generator=g, dtype=D)
-    models = [_model(X, torch.tensor([[0, 1], [2, 3]])),
-              _model(X, torch.tensor([[4, 1]]), torch.tensor([0.8, 0.3]), torch.tensor([4, 7]))]
+    models = [
+        _model(X, torch.tensor([[0, 1], [2, 3]])),
+        _model(X, torch.tensor([[4, 1]]), torch.tensor([0.8, 0.3]), torch.tensor([4, 7])),
+    ]
     Xc = torch.rand(2, 30, 2, generator=g, dtype=D)
     sel = ProfileVariancePerEffort(m=4)
-    many = sel.select_batch(BatchedPreferenceGP.from_models(models), Xc, [None, None], 0, 10,
-                            [torch.Generator().manual_seed(b) for b in range(2)])
+    many = sel.select_batch(
+        BatchedPreferenceGP.from_models(models),
+        Xc,
+        [None, None],
+        0,
+        10,
+        [torch.Generator().manual_seed(b) for b in range(2)],
+    )
     ones = [sel.select(models[b], Xc[b], None, 0, 10, torch.Generator().manual_seed(b)) for b in range(2)]
     assert [_shown(q) for q in ones] == [_shown(q) for q in many]
 
@@ -162,7 +172,13 @@ def test_bad_arguments_and_an_ordinal_model(generator):
     with pytest.raises(ValueError, match="V must be"):
         profile_variance_reduction(torch.ones(1, 2, 5, 3, dtype=D), torch.ones(1, 4, 6, dtype=D))
     X = _line()
-    ordinal = PreferenceGP(X, torch.tensor([[1, 0], [5, 2]]), torch.tensor([4.0, 2.0]), torch.tensor([3, 6]),
-                           covar_module=fixed_rbf_kernel(0.1, 1.0, X), rating_levels=5)
+    ordinal = PreferenceGP(
+        X,
+        torch.tensor([[1, 0], [5, 2]]),
+        torch.tensor([4.0, 2.0]),
+        torch.tensor([3, 6]),
+        covar_module=fixed_rbf_kernel(0.1, 1.0, X),
+        rating_levels=5,
+    )
     q = ProfileVariancePerEffort(m=3).select(ordinal, X, None, 0, 5, generator)
     assert isinstance(q, (RatingQuery, RankingQuery))

@@ -42,8 +42,9 @@ def test_protocol():
 
 @pytest.mark.parametrize("sigma_r", [0.05, 0.2])
 def test_pairwise_choice_frequency_matches_eq3(sigma_r, generator):
-    user = SimulatedUser(linear_utility, comparison_noise=sigma_r, rating_scale=0.8, rating_precision=80.0,
-                         generator=generator)
+    user = SimulatedUser(
+        linear_utility, comparison_noise=sigma_r, rating_scale=0.8, rating_precision=80.0, generator=generator
+    )
     # latent gap f_a - f_b = 2 * (x_a - x_b)
     for xa, xb in [(0.52, 0.5), (0.5, 0.53), (0.6, 0.55)]:
         X = torch.tensor([[xa], [xb]], dtype=torch.float64)

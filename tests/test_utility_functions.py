@@ -39,8 +39,7 @@ def test_matches_eq13_by_hand():
     # a single point by hand: at x = o_2 the second term is exactly a_2
     x0 = 0.55
     expected = sum(
-        a * math.cos(math.pi * f * (x0 - o)) * math.exp(-d * (x0 - o) ** 2)
-        for f, a, o, d in zip(*PARAMS.values())
+        a * math.cos(math.pi * f * (x0 - o)) * math.exp(-d * (x0 - o) ** 2) for f, a, o, d in zip(*PARAMS.values())
     )
     assert problem(torch.tensor([[x0]], dtype=torch.float64), noise=False).item() == pytest.approx(expected, abs=1e-14)
 

@@ -16,8 +16,13 @@ from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
 from torchpref.data.queries import RankingQuery, RatingQuery
 from torchpref.selection.strategies import joint_samples
 from torchpref.selection.top_profile import ProfileVariancePerEffort
-from torchpref.selection.variance_reduction import (VariancePerEffort, choice_answer_probabilities, rating_hessian,
-                                          ranking_mode_hessians, variance_reduction)
+from torchpref.selection.variance_reduction import (
+    VariancePerEffort,
+    choice_answer_probabilities,
+    rating_hessian,
+    ranking_mode_hessians,
+    variance_reduction,
+)
 
 D = torch.float64
 
@@ -58,6 +63,7 @@ def test_ranking_mode_hessians_against_scipy_and_autograd(generator):
         return lik.log_prob(eta).sum()
 
     for j in range(q):
+
         def obj(x):
             f = torch.tensor(x, dtype=D, requires_grad=True)
             val = -(loglik(f, j) - 0.5 * (f - m) @ Ci @ (f - m))
@@ -74,9 +80,9 @@ def test_ranking_mode_hessians_against_scipy_and_autograd(generator):
 def test_choice_answer_probabilities_pairs_match_quadrature(generator):
     F = torch.randn(50, 2, generator=generator, dtype=D)
     from torchpref.acquisition.functions import choice_probabilities
+
     noise = torch.tensor(0.3, dtype=D)
-    assert torch.allclose(choice_answer_probabilities(F, noise), choice_probabilities(F, noise, 12).mean(0),
-                          atol=1e-6)
+    assert torch.allclose(choice_answer_probabilities(F, noise), choice_probabilities(F, noise, 12).mean(0), atol=1e-6)
 
 
 def _model(X, comparisons=None, ratings=None, rating_index=None, **kw):
@@ -120,7 +126,7 @@ def test_values_match_laplace_refits_on_fantasies():
         mu = model.likelihood.rating.mean_link(F[0, :, i])
         u = torch.from_numpy(beta.rvs(10 * mu.numpy(), 10 * (1 - mu.numpy()), random_state=np.random.default_rng(0)))
         u = u.clamp(1e-3, 1 - 1e-3)  # as the model stores ratings at 0 or 1
-        refit = condition_batch(model, Xc[i:i + 1], ratings=u.reshape(-1, 1), rating_index=torch.zeros(512, 1).long())
+        refit = condition_batch(model, Xc[i : i + 1], ratings=u.reshape(-1, 1), rating_index=torch.zeros(512, 1).long())
         assert float(red[i]) == pytest.approx(L0 - float(loss(refit).mean()), rel=0.1)
 
         _, _, rows, value = sel.values(model, Xc.unsqueeze(0), [torch.Generator().manual_seed(2)])
@@ -203,7 +209,13 @@ def test_rating_slopes_and_an_ordinal_model(generator):
     _, g = sel.weights(torch.randn(1, 16, 9, generator=generator, dtype=D), mean, var, lik)
     s = (2 * 0.8**2 + var).sqrt()
     assert torch.allclose(g, torch.exp(-0.5 * (mean / s) ** 2) / (s * math.sqrt(2 * math.pi)), rtol=1e-6)
-    ordinal = PreferenceGP(X, torch.tensor([[1, 0], [5, 2]]), torch.tensor([4.0, 2.0]), torch.tensor([3, 6]),
-                           covar_module=fixed_rbf_kernel(0.1, 1.0, X), rating_levels=5)
+    ordinal = PreferenceGP(
+        X,
+        torch.tensor([[1, 0], [5, 2]]),
+        torch.tensor([4.0, 2.0]),
+        torch.tensor([3, 6]),
+        covar_module=fixed_rbf_kernel(0.1, 1.0, X),
+        rating_levels=5,
+    )
     q = sel.select(ordinal, X, None, 0, 5, generator)
     assert isinstance(q, (RatingQuery, RankingQuery))

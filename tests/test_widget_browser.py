@@ -25,8 +25,10 @@ import pytest
 
 CHROMIUM = os.environ.get("TORCHPREF_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 if not os.path.exists(CHROMIUM):
-    pytest.skip(f"no Chromium at {CHROMIUM} (Debian: apt-get install chromium; or set TORCHPREF_CHROMIUM)",
-                allow_module_level=True)
+    pytest.skip(
+        f"no Chromium at {CHROMIUM} (Debian: apt-get install chromium; or set TORCHPREF_CHROMIUM)",
+        allow_module_level=True,
+    )
 pytest.importorskip("voila", reason="Voilà is not installed (the test extra)")
 sync_api = pytest.importorskip("playwright.sync_api", reason="Playwright is not installed (the test extra)")
 pytest.importorskip("ipywidgets")
@@ -34,8 +36,16 @@ mpimg = pytest.importorskip("matplotlib.image")
 
 PATH_COLOUR = (0x1F, 0x3F, 0xBF)  # the first path's colour on the lake map (torchpref.frontends.elicit.plot_paths)
 STARTUP_S = 240  # Voilà runs the notebook (scenario, model, five maps) before the page is ready
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 
 NOTEBOOK_CODE = """\
 from torchpref.lake import make_scenario
@@ -50,10 +60,21 @@ PreferenceWidget(session, lake_renderer(scenario), noun="path")
 
 
 def _notebook(path: Path, session_file: Path) -> None:
-    nb = {"cells": [{"cell_type": "code", "execution_count": None, "id": "lake-widget", "metadata": {},
-                     "outputs": [], "source": NOTEBOOK_CODE.format(session_file=str(session_file))}],
-          "metadata": {"kernelspec": {"name": "python3", "display_name": "Python 3", "language": "python"}},
-          "nbformat": 4, "nbformat_minor": 5}
+    nb = {
+        "cells": [
+            {
+                "cell_type": "code",
+                "execution_count": None,
+                "id": "lake-widget",
+                "metadata": {},
+                "outputs": [],
+                "source": NOTEBOOK_CODE.format(session_file=str(session_file)),
+            }
+        ],
+        "metadata": {"kernelspec": {"name": "python3", "display_name": "Python 3", "language": "python"}},
+        "nbformat": 4,
+        "nbformat_minor": 5,
+    }
     path.write_text(json.dumps(nb))
 
 
@@ -61,12 +82,23 @@ def _env(root: Path) -> dict:
     """Jupyter folders under ``root``, with a ``python3`` kernel that runs this interpreter."""
     spec = root / "data" / "kernels" / "python3"
     spec.mkdir(parents=True)
-    (spec / "kernel.json").write_text(json.dumps(
-        {"argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
-         "display_name": "Python 3 (test)", "language": "python"}))
-    env = dict(os.environ, JUPYTER_PATH=str(root / "data"), JUPYTER_DATA_DIR=str(root / "data"),
-               JUPYTER_CONFIG_DIR=str(root / "config"), JUPYTER_RUNTIME_DIR=str(root / "runtime"),
-               MPLBACKEND="Agg")
+    (spec / "kernel.json").write_text(
+        json.dumps(
+            {
+                "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
+                "display_name": "Python 3 (test)",
+                "language": "python",
+            }
+        )
+    )
+    env = dict(
+        os.environ,
+        JUPYTER_PATH=str(root / "data"),
+        JUPYTER_DATA_DIR=str(root / "data"),
+        JUPYTER_CONFIG_DIR=str(root / "config"),
+        JUPYTER_RUNTIME_DIR=str(root / "runtime"),
+        MPLBACKEND="Agg",
+    )
     return env
 
 
@@ -84,9 +116,21 @@ def voila_page(tmp_path):
     port = _free_port()
     log = open(tmp_path / "voila.log", "w+")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "voila", "lake_widget.ipynb", "--no-browser", f"--port={port}",
-         "--Voila.ip=127.0.0.1", "--show_tracebacks=True"],
-        cwd=tmp_path, env=_env(tmp_path / "jupyter"), stdout=log, stderr=subprocess.STDOUT)
+        [
+            sys.executable,
+            "-m",
+            "voila",
+            "lake_widget.ipynb",
+            "--no-browser",
+            f"--port={port}",
+            "--Voila.ip=127.0.0.1",
+            "--show_tracebacks=True",
+        ],
+        cwd=tmp_path,
+        env=_env(tmp_path / "jupyter"),
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
     url = f"http://127.0.0.1:{port}/"
     try:
         deadline = time.monotonic() + 60
@@ -114,7 +158,7 @@ def _path_pixels(png: Path) -> tuple[int, int]:
     img = mpimg.imread(png)[..., :3]
     rgb = (img * 255).round().astype(int)
     target = sum(abs(rgb[..., c] - PATH_COLOUR[c]) for c in range(3)) < 40
-    distinct = len({tuple(p) for p in rgb.reshape(-1, 3)[:: 7].tolist()})
+    distinct = len({tuple(p) for p in rgb.reshape(-1, 3)[::7].tolist()})
     return int(target.sum()), distinct
 
 
@@ -141,7 +185,8 @@ def test_lake_widget_in_browser(voila_page, tmp_path):
             assert pictures.count() == 5  # UCBC's first query: a ranking of five paths
             # every picture decoded by the browser, at a real size
             sizes = page.eval_on_selector_all(
-                "img.torchpref-picture", "imgs => imgs.map(i => [i.complete, i.naturalWidth, i.naturalHeight])")
+                "img.torchpref-picture", "imgs => imgs.map(i => [i.complete, i.naturalWidth, i.naturalHeight])"
+            )
             assert all(ok and wd > 200 and ht > 150 for ok, wd, ht in sizes), sizes
             # and each shows a path on the map: pixels of the path's colour among many colours
             for k in range(5):

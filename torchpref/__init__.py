@@ -16,7 +16,13 @@ from torchpref.version import __version__
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.acquisition.functions import QueryInformation, QueryUCB, latent_ucb
-    from torchpref.selection.active import History, QueryRecord, fit_model, run_active_learning, run_active_learning_batch
+    from torchpref.selection.active import (
+        History,
+        QueryRecord,
+        fit_model,
+        run_active_learning,
+        run_active_learning_batch,
+    )
     from torchpref.models.batch import BatchedPreferenceGP
     from torchpref.models.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
     from torchpref.data.preference_data import (
@@ -31,13 +37,32 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.models.pairwise_interface import TrainDataMismatchError
     from torchpref.inference.laplace import LaplaceConvergenceWarning
     from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
-    from torchpref.simulation.metrics import error_on_best, expected_rating, rating_from_latent, true_positives, wrms, wrms_authors
-    from torchpref.models.preference_gp import PAPER_FIG4_SETTINGS, LaplaceMarginalLogLikelihood, PreferenceGP, default_covar_module
+    from torchpref.simulation.metrics import (
+        error_on_best,
+        expected_rating,
+        rating_from_latent,
+        true_positives,
+        wrms,
+        wrms_authors,
+    )
+    from torchpref.models.preference_gp import (
+        PAPER_FIG4_SETTINGS,
+        LaplaceMarginalLogLikelihood,
+        PreferenceGP,
+        default_covar_module,
+    )
     from torchpref.inference.numerics import JitterWarning, NotPSDError
     from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
     from torchpref.data.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
     from torchpref.sessions.session import PreferenceSession
-    from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBRatings
+    from torchpref.selection.strategies import (
+        UCBC,
+        InformationPerEffort,
+        RandomMixed,
+        RandomRankings,
+        RandomRatings,
+        UCBRatings,
+    )
     from torchpref.selection.top_profile import ProfileVariancePerEffort
     from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
     from torchpref.selection.variance_reduction import VariancePerEffort

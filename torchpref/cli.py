@@ -29,21 +29,24 @@ from pathlib import Path
 from torchpref.version import __version__
 
 # subcommand -> module with ``run(args) -> int``
-REPRODUCE = {"wave": "torchpref.experiments.wave", "lake": "torchpref.experiments.lake",
-             "suite": "torchpref.experiments.suite"}
+REPRODUCE = {
+    "wave": "torchpref.experiments.wave",
+    "lake": "torchpref.experiments.lake",
+    "suite": "torchpref.experiments.suite",
+}
 ELICIT = "torchpref.frontends.elicit"
 RESULTS = "torchpref-results"
 """The folder (in the current one) that holds a fresh folder per ``reproduce`` run by default."""
 
 LEGEND = {
     "wave": "mean ± standard error over the trials; WRMS (eq. 14): lower is better; "
-            "TP: true positives, how many of the 15 truly best items are among the model's 15 best "
-            "(higher is better)",
+    "TP: true positives, how many of the 15 truly best items are among the model's 15 best "
+    "(higher is better)",
     "lake": "mean ± standard error over the trials; error5: mean |expected - true rating| on the test paths "
-            "rated 5 (lower is better); WRMS: lower is better; chosen: the operator's level (1-5) of the path "
-            "the model ranks best; share 5: fraction of trials whose chosen path is rated 5",
+    "rated 5 (lower is better); WRMS: lower is better; chosen: the operator's level (1-5) of the path "
+    "the model ranks best; share 5: fraction of trials whose chosen path is rated 5",
     "suite": "mean ± standard error over the trials; WRMS and regret: lower is better; TP: true positives "
-             "among the 15 best items (higher is better); see docs/suite.md",
+    "among the 15 best items (higher is better); see docs/suite.md",
 }
 
 
@@ -66,16 +69,19 @@ def _experiment_args(p: argparse.ArgumentParser, trials: int, queries: int) -> N
     p.add_argument("--trials", type=positive_int, default=trials, help=f"number of trials (default {trials})")
     p.add_argument("--queries", type=positive_int, default=queries, help=f"queries per trial (default {queries})")
     p.add_argument("--seed", type=int, default=10, help="seed of the whole run (default 10)")
-    p.add_argument("--out", default=None,
-                   help=f"output folder (default: a new folder in ./{RESULTS}/; the committed results are in "
-                        "benchmarks/results)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help=f"output folder (default: a new folder in ./{RESULTS}/; the committed results are in benchmarks/results)",
+    )
     p.add_argument("--workers", type=positive_int, default=None, help="worker processes (default: CPU count)")
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``torchpref``'s arguments (its help texts are plain text, no markup)."""
     parser = argparse.ArgumentParser(
-        prog="torchpref", description="Reproduce the paper's experiments, or learn your preferences in the terminal.")
+        prog="torchpref", description="Reproduce the paper's experiments, or learn your preferences in the terminal."
+    )
     parser.add_argument("--version", action="version", version=f"torchpref {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     rep = sub.add_parser("reproduce", help="reproduce one of the paper's experiments")
@@ -83,26 +89,41 @@ def build_parser() -> argparse.ArgumentParser:
     _experiment_args(rep_sub.add_parser("wave", help="the 1-D wave-function experiment (Fig. 6)"), 100, 20)
     lake = rep_sub.add_parser("lake", help="the lake-monitoring experiment (Fig. 9)")
     _experiment_args(lake, 20, 14)
-    lake.add_argument("--lakes", type=positive_int, default=1, help="number of lakes, seeds SEED, SEED+1, ... (default 1)")
+    lake.add_argument(
+        "--lakes", type=positive_int, default=1, help="number of lakes, seeds SEED, SEED+1, ... (default 1)"
+    )
     lake.add_argument("--cache", default=None, help="folder of cached lake scenarios (default ~/.cache/torchpref/lake)")
     suite = rep_sub.add_parser("suite", help="every strategy on the user-family benchmark suite (docs/suite.md)")
     _experiment_args(suite, 50, 20)
     suite.add_argument("--families", nargs="+", default=None, help="families to run (default: all)")
-    suite.add_argument("--strategies", nargs="+", default=None, metavar="STRATEGY",
-                       help="strategies to compare, e.g. 'UCBC' 'profile per effort' (default: the suite's eight; "
-                            "any of torchpref.experiments.runner.STRATEGIES)")
+    suite.add_argument(
+        "--strategies",
+        nargs="+",
+        default=None,
+        metavar="STRATEGY",
+        help="strategies to compare, e.g. 'UCBC' 'profile per effort' (default: the suite's eight; "
+        "any of torchpref.experiments.runner.STRATEGIES)",
+    )
     el = sub.add_parser("elicit", help="learn your preferences in the terminal")
     el.add_argument("world", nargs="?", choices=["lake"], help="a built-in world to elicit over")
     el.add_argument("--features", help="CSV of items' objective values (a header row, one row per item)")
-    el.add_argument("--id", dest="id_column", metavar="COLUMN",
-                    help="the CSV column that names the items (default: a first column named id, name, label or "
-                         "item, or holding any text)")
-    el.add_argument("--session", help="session file (JSON Lines) to append to / resume from (default: "
-                                      "NAME.session.jsonl in the current folder, NAME the CSV's or 'lake')")
+    el.add_argument(
+        "--id",
+        dest="id_column",
+        metavar="COLUMN",
+        help="the CSV column that names the items (default: a first column named id, name, label or "
+        "item, or holding any text)",
+    )
+    el.add_argument(
+        "--session",
+        help="session file (JSON Lines) to append to / resume from (default: "
+        "NAME.session.jsonl in the current folder, NAME the CSV's or 'lake')",
+    )
     el.add_argument("--no-session", action="store_true", help="keep nothing: answers are lost when it ends")
     el.add_argument("--queries", type=positive_int, default=14, help="number of queries (default 14)")
-    el.add_argument("--seed", type=int, default=None, help="seed of a new session (default 0; a resumed session "
-                                                           "keeps its own)")
+    el.add_argument(
+        "--seed", type=int, default=None, help="seed of a new session (default 0; a resumed session keeps its own)"
+    )
     el.add_argument("--out", default=".", help="where to write figures (default: current folder)")
     return parser
 
@@ -248,8 +269,11 @@ def _main(argv: list[str] | None) -> int:
     except Exception as exc:  # a bug: still one line, with a way to see more
         if os.environ.get("TORCHPREF_DEBUG"):
             raise
-        print(f"{command}: internal error ({type(exc).__name__}: {one_line(exc)}); run with TORCHPREF_DEBUG=1 "
-              "to see where, and please report it", file=sys.stderr)
+        print(
+            f"{command}: internal error ({type(exc).__name__}: {one_line(exc)}); run with TORCHPREF_DEBUG=1 "
+            "to see where, and please report it",
+            file=sys.stderr,
+        )
         return 1
 
 

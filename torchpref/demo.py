@@ -49,8 +49,14 @@ def fit_demo(seed: int = 0, num_ratings: int = 5, num_comparisons: int = 5) -> t
     kernel.base_kernel.lengthscale = 0.1
     kernel.outputscale = 1.0
     model = PreferenceGP(
-        X, comparisons=torch.tensor(comps), ratings=ratings, rating_index=torch.arange(num_ratings),
-        covar_module=kernel, comparison_noise=0.1, rating_scale=1.0, rating_precision=80.0,
+        X,
+        comparisons=torch.tensor(comps),
+        ratings=ratings,
+        rating_index=torch.arange(num_ratings),
+        covar_module=kernel,
+        comparison_noise=0.1,
+        rating_scale=1.0,
+        rating_precision=80.0,
     )
     return model, {"X": X.squeeze(-1).tolist(), "ratings": ratings.tolist(), "comparisons": comps}
 
@@ -113,8 +119,11 @@ def main(argv: list[str] | None = None) -> int:
     with torch.no_grad():
         evidence = float(model.log_marginal_likelihood())
     print(f"  fitted in {elapsed:.2f} s ({mode.iterations} Newton steps), log evidence {evidence:.3f}", flush=True)
-    print("Drawing Fig. 5: the posterior, the predictive density of a rating (eq. 11) on a 201 x 100 grid, "
-          "and P(x0 preferred to x1) ...", flush=True)
+    print(
+        "Drawing Fig. 5: the posterior, the predictive density of a rating (eq. 11) on a 201 x 100 grid, "
+        "and P(x0 preferred to x1) ...",
+        flush=True,
+    )
     t1 = time.perf_counter()
     plot_demo(model, out / "demo_fig5.png")
     plotted = time.perf_counter() - t1

@@ -2,8 +2,31 @@
 
 from __future__ import annotations
 
-from torchpref.acquisition.functions import QueryInformation, QueryUCB, choice_probabilities, greedy_choice_set, item_ucb, latent_ucb, membership_information, rating_bin_probabilities, sample_information, top_set_membership
+from torchpref.acquisition.functions import (
+    QueryInformation,
+    QueryUCB,
+    choice_probabilities,
+    greedy_choice_set,
+    item_ucb,
+    latent_ucb,
+    membership_information,
+    rating_bin_probabilities,
+    sample_information,
+    top_set_membership,
+)
 from torchpref.acquisition.information import entropy, membership_information, sample_information, top_set_membership
 from torchpref.acquisition.choice_sets import greedy_choice_set
 
-__all__ = ['QueryInformation', 'QueryUCB', 'choice_probabilities', 'entropy', 'greedy_choice_set', 'item_ucb', 'latent_ucb', 'membership_information', 'rating_bin_probabilities', 'sample_information', 'top_set_membership']
+__all__ = [
+    'QueryInformation',
+    'QueryUCB',
+    'choice_probabilities',
+    'entropy',
+    'greedy_choice_set',
+    'item_ucb',
+    'latent_ucb',
+    'membership_information',
+    'rating_bin_probabilities',
+    'sample_information',
+    'top_set_membership',
+]

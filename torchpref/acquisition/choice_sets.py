@@ -69,8 +69,9 @@ def greedy_choice_set(
     if F.dim() == 2:
         if isinstance(start, Tensor):
             start = int(start)
-        chosen, best = _greedy_choice_set(F.unsqueeze(0), comparison_noise, m,
-                                          lambda P: value(P[0]).unsqueeze(0), start, num_quadrature)
+        chosen, best = _greedy_choice_set(
+            F.unsqueeze(0), comparison_noise, m, lambda P: value(P[0]).unsqueeze(0), start, num_quadrature
+        )
         return chosen[0].tolist(), float(best[0])
     if F.dim() != 3:
         raise ValueError(f"F must be S x K or T x S x K, got shape {tuple(F.shape)}.")
@@ -89,7 +90,9 @@ class _ChoiceTerms:
         self.per_trial = isinstance(noise, Tensor) and noise.dim() > 0
         if self.per_trial:
             if noise.shape != (T,):
-                raise ValueError(f"comparison_noise must be a scalar or a T={T} tensor, got shape {tuple(noise.shape)}.")
+                raise ValueError(
+                    f"comparison_noise must be a scalar or a T={T} tensor, got shape {tuple(noise.shape)}."
+                )
             noise = noise.to(F)
         self.noise, self.device = noise, F.device
         step = max(1, _GREEDY_CHUNK // (K * K * S * num_quadrature)) if F.device.type == "cpu" else T
@@ -151,8 +154,9 @@ def _first_items(start: int | Tensor, T: int, K: int, device: torch.device) -> T
     return first.reshape(T, 1)
 
 
-def _add_best_item(terms: _ChoiceTerms, As: list[Tensor], chosen: Tensor,
-                   value: Callable[[Tensor], Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+def _add_best_item(
+    terms: _ChoiceTerms, As: list[Tensor], chosen: Tensor, value: Callable[[Tensor], Tensor]
+) -> tuple[Tensor, Tensor, Tensor]:
     """Each trial's ``chosen`` (``T x c``) items with the one of the rest that maximises ``value``
     added: ``T x (c + 1)`` items, ``T`` values and the ``T`` items added. ``As``: per chunk, the
     product over the chosen items ``k`` of ``Phi(j, k)`` for each item ``j``, ``t x K x S x H``."""
@@ -173,8 +177,14 @@ def _add_best_item(terms: _ChoiceTerms, As: list[Tensor], chosen: Tensor,
     return torch.cat([chosen, new.unsqueeze(-1)], -1), vals[tt, b], new
 
 
-def _greedy_choice_set(F: Tensor, comparison_noise: float | Tensor, m: int, value: Callable[[Tensor], Tensor],
-                       start: int | Tensor | None, num_quadrature: int) -> tuple[Tensor, Tensor]:
+def _greedy_choice_set(
+    F: Tensor,
+    comparison_noise: float | Tensor,
+    m: int,
+    value: Callable[[Tensor], Tensor],
+    start: int | Tensor | None,
+    num_quadrature: int,
+) -> tuple[Tensor, Tensor]:
     """:func:`greedy_choice_set` for ``T x S x K`` ``F``: ``T x m`` chosen columns, ``T`` values."""
     T, S, K = F.shape
     if not 2 <= m <= K:

@@ -111,8 +111,14 @@ class QueryInformation(AcquisitionFunction):
         generator: seeds those samples.
     """
 
-    def __init__(self, model: Model, num_samples: int = 128, generator: torch.Generator | None = None,
-                 num_quadrature: int = 24, num_grid: int = 400):
+    def __init__(
+        self,
+        model: Model,
+        num_samples: int = 128,
+        generator: torch.Generator | None = None,
+        num_quadrature: int = 24,
+        num_grid: int = 400,
+    ):
         super().__init__(model)
         self.num_samples = num_samples
         self.num_quadrature = num_quadrature

@@ -79,9 +79,13 @@ def _membership_terms(sums: Tensor, totals: Tensor, n1: Tensor, S: Tensor, Y: in
     m_out = ((totals.unsqueeze(-1) - sums) / n0y.clamp_min(1)).clamp_min(0)
     m_all = totals / S
     w = n1 / S
-    info = (entropy(m_all[..., :Y]).unsqueeze(-1) - w * entropy(m_in[..., :Y, :], dim=-2)
-            - (1 - w) * entropy(m_out[..., :Y, :], dim=-2))
+    info = (
+        entropy(m_all[..., :Y]).unsqueeze(-1)
+        - w * entropy(m_in[..., :Y, :], dim=-2)
+        - (1 - w) * entropy(m_out[..., :Y, :], dim=-2)
+    )
     if delta:
+
         def spread(P: Tensor, Q: Tensor, n: Tensor, dim: int) -> Tensor:
             # sum_y Var_y / P_y (ddof 1), each term in [0, 1]; + 1e-12: a mean at rounding level
             # (the out-label means are differences) adds nothing
@@ -89,8 +93,11 @@ def _membership_terms(sums: Tensor, totals: Tensor, n1: Tensor, S: Tensor, Y: in
             return ratio.sum(dim) * (n / (n - 1).clamp_min(1))
 
         s_all = spread(m_all[..., :Y], m_all[..., Y:], S.squeeze(-1), -1).unsqueeze(-1)
-        info = info - (spread(m_in[..., :Y, :], m_in[..., Y:, :], n1, -2)
-                       + spread(m_out[..., :Y, :], m_out[..., Y:, :], S - n1, -2) - s_all) / (2 * S)
+        info = info - (
+            spread(m_in[..., :Y, :], m_in[..., Y:, :], n1, -2)
+            + spread(m_out[..., :Y, :], m_out[..., Y:, :], S - n1, -2)
+            - s_all
+        ) / (2 * S)
     return info
 
 
@@ -143,8 +150,9 @@ def membership_information(P: Tensor, Z: Tensor, min_count: int = 4, bias_correc
     if Z.dim() != 3:
         raise ValueError(f"Z must be S x N or T x S x N, got shape {tuple(Z.shape)}.")
     if P.dim() < 3 or P.shape[0] != Z.shape[0]:
-        raise ValueError(f"with a T x S x N Z (T={Z.shape[0]}), P must be T x batch x S x Y, got shape "
-                         f"{tuple(P.shape)}.")
+        raise ValueError(
+            f"with a T x S x N Z (T={Z.shape[0]}), P must be T x batch x S x Y, got shape {tuple(P.shape)}."
+        )
     return _membership_information(P, Z, min_count, bias_correction)
 
 
@@ -165,8 +173,12 @@ def _membership_information(P: Tensor, Z: Tensor, min_count: int, bias_correctio
     P = P.reshape(T, math.prod(batch), S, Y)  # T x B x S x Y
     per_trial = 3 * P.shape[1] * int(n.max()) * 2 * Y  # elements of the largest temporary
     step = max(1, _MEMBERSHIP_CHUNK // per_trial) if P.device.type == "cpu" else T
-    out = [_membership_chunk(P[i:i + step], Z[i:i + step], keep[i:i + step], int(n[i:i + step].max()), bias_correction)
-           for i in range(0, T, step)]
+    out = [
+        _membership_chunk(
+            P[i : i + step], Z[i : i + step], keep[i : i + step], int(n[i : i + step].max()), bias_correction
+        )
+        for i in range(0, T, step)
+    ]
     return (out[0] if len(out) == 1 else torch.cat(out)).reshape(T, *batch)
 
 
@@ -183,18 +195,30 @@ def _membership_chunk(P: Tensor, Z: Tensor, keep: Tensor, n: int, bias_correctio
     keep = keep.gather(1, cols).unsqueeze(1)  # T x 1 x n
     # (einsum folds B into the product's columns; a matmul would copy Z for each of B)
     if not bias_correction:
-        info = _membership_terms(torch.einsum("tsn,tbsy->tbyn", Z, P), P.sum(-2), Z.sum(1, keepdim=True),
-                                 P.new_tensor(float(S)).reshape(1, 1, 1), Y, False)
+        info = _membership_terms(
+            torch.einsum("tsn,tbsy->tbyn", Z, P),
+            P.sum(-2),
+            Z.sum(1, keepdim=True),
+            P.new_tensor(float(S)).reshape(1, 1, 1),
+            Y,
+            False,
+        )
         return torch.where(keep, info.clamp_min(0), 0.0).sum(-1)
     PQ = torch.cat([P, P * P], dim=-1)  # T x B x S x 2Y
     if S < 8:
-        info = _membership_terms(torch.einsum("tsn,tbsy->tbyn", Z, PQ), PQ.sum(-2), Z.sum(1, keepdim=True),
-                                 P.new_tensor(float(S)).reshape(1, 1, 1), Y, True)
+        info = _membership_terms(
+            torch.einsum("tsn,tbsy->tbyn", Z, PQ),
+            PQ.sum(-2),
+            Z.sum(1, keepdim=True),
+            P.new_tensor(float(S)).reshape(1, 1, 1),
+            Y,
+            True,
+        )
         return torch.where(keep, info, 0.0).sum(-1).clamp_min(0)
     # the full sample and its two halves at once (the full sums are the halves' sums)
     h = S // 2
-    Zh = Z[:, :2 * h].reshape(T, 2, h, n)  # T x 2 x h x n
-    PQh = PQ[..., :2 * h, :].reshape(T, B, 2, h, 2 * Y)  # T x B x 2 x h x 2Y
+    Zh = Z[:, : 2 * h].reshape(T, 2, h, n)  # T x 2 x h x n
+    PQh = PQ[..., : 2 * h, :].reshape(T, B, 2, h, 2 * Y)  # T x B x 2 x h x 2Y
     sums = torch.einsum("tksn,tbksy->tkbyn", Zh, PQh)  # T x 2 x B x 2Y x n
     totals, counts = PQh.sum(-2).transpose(1, 2), Zh.sum(-2).unsqueeze(-2)  # T x 2 x B x 2Y, T x 2 x 1 x n
     if S > 2 * h:  # odd S: the last sample counts in the full estimate only
@@ -204,9 +228,14 @@ def _membership_chunk(P: Tensor, Z: Tensor, keep: Tensor, n: int, bias_correctio
     else:
         sums_full, totals_full, counts_full = sums.sum(1), totals.sum(1), counts.sum(1)
     ns = P.new_tensor([float(S), float(h), float(h)]).reshape(1, 3, 1, 1)
-    terms = _membership_terms(torch.cat([sums_full.unsqueeze(1), sums], 1),
-                              torch.cat([totals_full.unsqueeze(1), totals], 1),
-                              torch.cat([counts_full.unsqueeze(1), counts], 1), ns, Y, True)  # T x 3 x B x n
+    terms = _membership_terms(
+        torch.cat([sums_full.unsqueeze(1), sums], 1),
+        torch.cat([totals_full.unsqueeze(1), totals], 1),
+        torch.cat([counts_full.unsqueeze(1), counts], 1),
+        ns,
+        Y,
+        True,
+    )  # T x 3 x B x n
     info, a, b = terms.unbind(1)
     both = ((counts >= 2) & (counts <= h - 2)).all(1)  # T x 1 x n
     info = torch.where(both, 2 * info - 0.5 * (a + b), info)

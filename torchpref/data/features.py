@@ -61,24 +61,30 @@ def _rows(path: Path) -> tuple[list[list[str]], str]:
     if len(rows) < 3:
         raise FeaturesError(f"{path}: need a header row and at least two items, got {max(0, len(rows) - 1)} item(s).")
     if len(rows[0]) == 1 and any(other in rows[0][0] for other in SEPARATORS):
-        raise FeaturesError(f"{path}: could not tell the columns apart (one column {printable(rows[0][0])!r}); "
-                            "separate the values with commas, semicolons, tabs or |, the same on every row.")
+        raise FeaturesError(
+            f"{path}: could not tell the columns apart (one column {printable(rows[0][0])!r}); "
+            "separate the values with commas, semicolons, tabs or |, the same on every row."
+        )
     named = {",": "comma", ";": "semicolon", "\t": "tab", "|": "|"}[sep]
     if sep != "," and any(re.fullmatch(r"[-+]?\d+,\d+", c.strip()) for r in rows[1:] for c in r):
-        raise FeaturesError(f"{path}: numbers with a decimal comma (separator: {named}); write them with a point "
-                            "(1.5, not 1,5).")
+        raise FeaturesError(
+            f"{path}: numbers with a decimal comma (separator: {named}); write them with a point (1.5, not 1,5)."
+        )
     for i, r in enumerate(rows[1:], start=2):
         if len(r) != len(rows[0]):
-            raise FeaturesError(f"{path}, row {i}: {len(r)} values, but the header has {len(rows[0])} columns "
-                                f"(separator: {named}).")
+            raise FeaturesError(
+                f"{path}, row {i}: {len(r)} values, but the header has {len(rows[0])} columns (separator: {named})."
+            )
     return rows, sep
 
 
 def _label_column(path: Path, header: list[str], body: list[list[str]], id_column: str | None) -> int | None:
     if id_column is not None:
         if id_column not in header:
-            raise FeaturesError(f"{path}: no column {printable(id_column)!r} for --id; the columns are "
-                                f"{', '.join(repr(printable(h)) for h in header)}.")
+            raise FeaturesError(
+                f"{path}: no column {printable(id_column)!r} for --id; the columns are "
+                f"{', '.join(repr(printable(h)) for h in header)}."
+            )
         return header.index(id_column)
     if len(header) > 1 and (header[0].lower() in ID_NAMES or any(_number(r[0]) is None for r in body)):
         return 0
@@ -115,9 +121,10 @@ def read_features_csv(path, id_column: str | None = None) -> tuple[Tensor, list[
         for j in cols:
             v = _number(r[j])
             if v is None or not math.isfinite(v):
-                raise FeaturesError(f"{path}, row {i}, column {printable(header[j])!r}: {printable(r[j])!r} is not a "
-                                    "finite number" + (" (a column that names the items: --id COLUMN)" if lab is None
-                                                       else "") + ".")
+                raise FeaturesError(
+                    f"{path}, row {i}, column {printable(header[j])!r}: {printable(r[j])!r} is not a "
+                    "finite number" + (" (a column that names the items: --id COLUMN)" if lab is None else "") + "."
+                )
             row.append(v)
         values.append(row)
     return torch.tensor(values, dtype=torch.float64), [printable(header[j]) for j in cols], labels

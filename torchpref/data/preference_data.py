@@ -41,8 +41,9 @@ def _as_tensor(value, dtype=None, device=None, name: str = "the input", what: st
     except (TypeError, ValueError, RuntimeError) as err:
         raise ValueError(f"{name} must hold {what}, got {type(value).__name__} {value!r:.60} ({err}).") from None
     if t.dtype == torch.bool:
-        raise ValueError(f"{name} must hold {what}, got a bool tensor {t.flatten()[:5].tolist()} "
-                         "(for a mask, use mask.nonzero()).")
+        raise ValueError(
+            f"{name} must hold {what}, got a bool tensor {t.flatten()[:5].tolist()} (for a mask, use mask.nonzero())."
+        )
     if t.is_complex():
         raise ValueError(f"{name} must hold real {what}, got {t.dtype} values {t.flatten()[:3].tolist()}.")
     if isinstance(value, Tensor):
@@ -154,8 +155,9 @@ def best_of_m_with_ties(best: Sequence[int] | Tensor, shown: Sequence[int] | Ten
     return comparisons, ties
 
 
-def prepare_levels(levels: TensorLike, num_levels: int, dtype: torch.dtype = torch.float64,
-                   device: torch.device | str | None = None) -> Tensor:
+def prepare_levels(
+    levels: TensorLike, num_levels: int, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
+) -> Tensor:
     """Validate rating levels: integers in ``1..num_levels`` (kept as values of ``dtype``)."""
     lv = _as_tensor(levels, dtype=dtype, device=device, name="rating levels").flatten()
     _check_finite("rating levels", lv)
@@ -165,8 +167,12 @@ def prepare_levels(levels: TensorLike, num_levels: int, dtype: torch.dtype = tor
     return lv
 
 
-def prepare_ratings(ratings: TensorLike, eps: float = DEFAULT_RATING_EPS, dtype: torch.dtype = torch.float64,
-                    device: torch.device | str | None = None) -> Tensor:
+def prepare_ratings(
+    ratings: TensorLike,
+    eps: float = DEFAULT_RATING_EPS,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> Tensor:
     """Validate ratings and move exact 0 and 1 in to ``eps`` and ``1 - eps`` (with a warning)."""
     r = _as_tensor(ratings, dtype=dtype, device=device, name="ratings").flatten()
     _check_finite("ratings", r)
@@ -248,8 +254,14 @@ class PreferenceData:
         r, ri = _check_ratings(ratings, rating_index, n, rating_eps, rating_levels, X.dtype, dev)
         # copies: a caller who edits their tensors in place afterwards must not edit the data
         # under a model's cached factorisation (its posterior would be neither model's)
-        return cls(X.clone(), C.clone(), r.clone(), ri.clone(), t.clone(),
-                   None if rating_levels is None else int(rating_levels))
+        return cls(
+            X.clone(),
+            C.clone(),
+            r.clone(),
+            ri.clone(),
+            t.clone(),
+            None if rating_levels is None else int(rating_levels),
+        )
 
     @property
     def n(self) -> int:
@@ -294,8 +306,14 @@ class PreferenceData:
                 new_rows.append(row.unsqueeze(0))
         data = self
         if new_rows:
-            data = PreferenceData(torch.cat([allX] + new_rows, dim=0), self.comparisons, self.ratings, self.rating_index,
-                                  self.ties, self.rating_levels)
+            data = PreferenceData(
+                torch.cat([allX] + new_rows, dim=0),
+                self.comparisons,
+                self.ratings,
+                self.rating_index,
+                self.ties,
+                self.rating_levels,
+            )
         return data, torch.tensor(idx, dtype=torch.long, device=allX.device)
 
     def add(
@@ -339,8 +357,14 @@ class PreferenceData:
     def to(self, *args, **kwargs) -> "PreferenceData":
         """A copy with the items and ratings converted as by ``Tensor.to`` (the indices follow the device)."""
         X = self.train_X.to(*args, **kwargs)
-        return PreferenceData(X, self.comparisons.to(X.device), self.ratings.to(X), self.rating_index.to(X.device),
-                              self.ties.to(X.device), self.rating_levels)
+        return PreferenceData(
+            X,
+            self.comparisons.to(X.device),
+            self.ratings.to(X),
+            self.rating_index.to(X.device),
+            self.ties.to(X.device),
+            self.rating_levels,
+        )
 
 
 def _indices(name: str, index, device=None) -> Tensor:
@@ -351,7 +375,9 @@ def _indices(name: str, index, device=None) -> Tensor:
         if not torch.isfinite(t).all() or (t != t.round()).any():
             raise ValueError(f"{name} must hold integer indices, got {t.flatten()[:5].tolist()}.")
         if t.numel() and t.abs().max() > 2**62:
-            raise ValueError(f"{name} must hold integer indices, got {t.flatten()[t.flatten().abs() > 2**62][:5].tolist()}.")
+            raise ValueError(
+                f"{name} must hold integer indices, got {t.flatten()[t.flatten().abs() > 2**62][:5].tolist()}."
+            )
     return t.long().flatten()
 
 
@@ -363,7 +389,9 @@ def _check_index(name: str, index, n: int, device) -> Tensor:
     return t
 
 
-def _check_ratings(ratings, rating_index, n: int, eps: float, levels: int | None, dtype, device) -> tuple[Tensor, Tensor]:
+def _check_ratings(
+    ratings, rating_index, n: int, eps: float, levels: int | None, dtype, device
+) -> tuple[Tensor, Tensor]:
     """Validated ``(ratings, rating_index)``: values in ``[0, 1]`` (or levels ``1..levels``)."""
     if (ratings is None) != (rating_index is None):
         raise ValueError("ratings and rating_index must be given together.")
@@ -392,6 +420,10 @@ def _check_comparisons(comparisons, n: int, device, name: str = "comparisons") -
     C = _check_index(name, C, n, device).view(-1, 2)
     same = C[:, 0] == C[:, 1]
     if same.any():
-        what = "an item is compared with itself in comparison" if name == "comparisons" else "an item is tied with itself in tie"
+        what = (
+            "an item is compared with itself in comparison"
+            if name == "comparisons"
+            else "an item is tied with itself in tie"
+        )
         raise ValueError(f"{what} row(s) {same.nonzero().flatten()[:5].tolist()}.")
     return C

@@ -135,8 +135,9 @@ def record_answer(model, query: Query, answer, *, num_levels: int | None = None)
     if isinstance(query, RatingQuery):
         u = query.validate_answer(answer, num_levels)
         levels = getattr(model, "rating_levels", None)  # an ordinal model records the level of u's bin
-        model.add_observations(query.items, ratings=[u] if levels is None else unit_to_likert(u, levels),
-                               rating_index=[0])
+        model.add_observations(
+            query.items, ratings=[u] if levels is None else unit_to_likert(u, levels), rating_index=[0]
+        )
         return u
     if isinstance(query, RankingQuery):
         if isinstance(answer, (list, tuple)) and len(answer) > 1:  # several equally best items

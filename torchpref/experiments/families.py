@@ -24,7 +24,13 @@ from torch import Tensor
 
 from torchpref.likelihoods.pairwise_beta import rating_link
 from torchpref.simulation.users import LikertUser, SimulatedUser
-from torchpref.simulation.utility_functions import GaussianBumps, Plateau, RescaledUtility, WaveFunction, evaluation_grid
+from torchpref.simulation.utility_functions import (
+    GaussianBumps,
+    Plateau,
+    RescaledUtility,
+    WaveFunction,
+    evaluation_grid,
+)
 
 RATING_SCALE = 0.8  # sigma_B of every family's raters (eq. 7): utilities 0..2 span ratings 0.5..0.96
 EVAL_POINTS = 256  # metric points of a family of d >= 2 without a pool
@@ -106,30 +112,91 @@ class Family:
 
 
 #: the paper's model for the waves (docs/wave.md), with the authors' user
-_WAVE_MODEL = {"lengthscale": 0.02, "outputscale": 0.36, "comparison_noise": 0.2, "rating_scale": 0.8,
-               "rating_precision": 60.0}
+_WAVE_MODEL = {
+    "lengthscale": 0.02,
+    "outputscale": 0.36,
+    "comparison_noise": 0.2,
+    "rating_scale": 0.8,
+    "rating_precision": 60.0,
+}
 
-FAMILIES: dict[str, Family] = {f.name: f for f in [
-    Family("waves", 1, lambda g: (lambda w: lambda X: w(X, noise=False))(WaveFunction.random(generator=g)),
-           0.05, 80.0, 0.02, model=_WAVE_MODEL,
-           description="the paper's three-wave functions (eq. 13), its user and model"),
-    Family("damped-wave", 1, _damped_wave, 0.3, 20.0, 0.03,
-           description="one damped wave; noisy choices, imprecise ratings"),
-    Family("narrow-peak", 2, _narrow_peak, 0.1, 40.0, 0.05, likert=True,
-           description="a narrow dominant bump and two broad low ones; Likert ratings"),
-    Family("plateau", 2, _plateau, 0.1, 10.0, 0.1,
-           description="a broad flat-topped bump, slightly tilted; very imprecise ratings"),
-    Family("branin", 2, lambda g: _botorch(Branin(), g), 0.02, 100.0, 0.25,
-           description="BoTorch's Branin; near-exact choices and precise ratings"),
-    Family("hartmann3", 3, lambda g: _botorch(Hartmann(dim=3), g), 0.1, 40.0, 0.2, likert=True, pool=300,
-           description="BoTorch's Hartmann-3 over a pool of 300 items; Likert ratings"),
-    Family("two-bumps", 4, _two_bumps, 0.1, 40.0, 0.25,
-           description="two Gaussian bumps in 4-D"),
-    Family("levy5", 5, lambda g: _botorch(Levy(dim=5), g), 0.2, 40.0, 0.15, likert=True,
-           description="BoTorch's Levy (rugged) in 5-D; noisy choices, Likert ratings"),
-    Family("hartmann6", 6, lambda g: _botorch(Hartmann(dim=6), g), 0.05, 60.0, 0.3,
-           description="BoTorch's Hartmann-6"),
-]}
+FAMILIES: dict[str, Family] = {
+    f.name: f
+    for f in [
+        Family(
+            "waves",
+            1,
+            lambda g: (lambda w: lambda X: w(X, noise=False))(WaveFunction.random(generator=g)),
+            0.05,
+            80.0,
+            0.02,
+            model=_WAVE_MODEL,
+            description="the paper's three-wave functions (eq. 13), its user and model",
+        ),
+        Family(
+            "damped-wave",
+            1,
+            _damped_wave,
+            0.3,
+            20.0,
+            0.03,
+            description="one damped wave; noisy choices, imprecise ratings",
+        ),
+        Family(
+            "narrow-peak",
+            2,
+            _narrow_peak,
+            0.1,
+            40.0,
+            0.05,
+            likert=True,
+            description="a narrow dominant bump and two broad low ones; Likert ratings",
+        ),
+        Family(
+            "plateau",
+            2,
+            _plateau,
+            0.1,
+            10.0,
+            0.1,
+            description="a broad flat-topped bump, slightly tilted; very imprecise ratings",
+        ),
+        Family(
+            "branin",
+            2,
+            lambda g: _botorch(Branin(), g),
+            0.02,
+            100.0,
+            0.25,
+            description="BoTorch's Branin; near-exact choices and precise ratings",
+        ),
+        Family(
+            "hartmann3",
+            3,
+            lambda g: _botorch(Hartmann(dim=3), g),
+            0.1,
+            40.0,
+            0.2,
+            likert=True,
+            pool=300,
+            description="BoTorch's Hartmann-3 over a pool of 300 items; Likert ratings",
+        ),
+        Family("two-bumps", 4, _two_bumps, 0.1, 40.0, 0.25, description="two Gaussian bumps in 4-D"),
+        Family(
+            "levy5",
+            5,
+            lambda g: _botorch(Levy(dim=5), g),
+            0.2,
+            40.0,
+            0.15,
+            likert=True,
+            description="BoTorch's Levy (rugged) in 5-D; noisy choices, Likert ratings",
+        ),
+        Family(
+            "hartmann6", 6, lambda g: _botorch(Hartmann(dim=6), g), 0.05, 60.0, 0.3, description="BoTorch's Hartmann-6"
+        ),
+    ]
+}
 
 
 def model_settings(family: Family) -> dict[str, float]:
@@ -137,8 +204,13 @@ def model_settings(family: Family) -> dict[str, float]:
     the user's own noise (``nu`` 20 for Likert raters: a level is a bin 0.2 wide)."""
     if family.model is not None:
         return dict(family.model)
-    return {"lengthscale": family.lengthscale, "outputscale": 1.0, "comparison_noise": family.comparison_noise,
-            "rating_scale": RATING_SCALE, "rating_precision": 20.0 if family.likert else family.rating_precision}
+    return {
+        "lengthscale": family.lengthscale,
+        "outputscale": 1.0,
+        "comparison_noise": family.comparison_noise,
+        "rating_scale": RATING_SCALE,
+        "rating_precision": 20.0 if family.likert else family.rating_precision,
+    }
 
 
 @dataclass
@@ -160,8 +232,13 @@ def setup(family: Family, trial_seed: int) -> TrialSetup:
     utility = family.draw(g)
     user_seed, selector_seed = torch.randint(0, 2**62, (2,), generator=g).tolist()
     rating_scale = family.model["rating_scale"] if family.model is not None else RATING_SCALE
-    user = SimulatedUser(utility, family.comparison_noise, rating_scale, family.rating_precision,
-                         torch.Generator().manual_seed(user_seed))
+    user = SimulatedUser(
+        utility,
+        family.comparison_noise,
+        rating_scale,
+        family.rating_precision,
+        torch.Generator().manual_seed(user_seed),
+    )
     if family.likert:
         user = LikertUser(user)
     pool = None

@@ -54,10 +54,22 @@ from botorch.utils.transforms import normalize as normalise
 from botorch.utils.transforms import unnormalize as unnormalise
 
 from torchpref.experiments import runner
-from torchpref.experiments.lake_plan import (PLAN_SETTINGS, fresh_paths, plan_for_model, plot_plan_levels,
-                                             plot_plan_maps, summarise_plans)
-from torchpref.experiments.results import (fraction_ratings, mean_sem, paired_tests, plot_mean_sem, write_json,
-                                           write_summary_csv)
+from torchpref.experiments.lake_plan import (
+    PLAN_SETTINGS,
+    fresh_paths,
+    plan_for_model,
+    plot_plan_levels,
+    plot_plan_maps,
+    summarise_plans,
+)
+from torchpref.experiments.results import (
+    fraction_ratings,
+    mean_sem,
+    paired_tests,
+    plot_mean_sem,
+    write_json,
+    write_summary_csv,
+)
 from torchpref.experiments.runner import run_trials, single_threaded
 from torchpref.lake.operator import LakeOperator
 from torchpref.lake.plotting import plot_field, plot_objectives
@@ -66,8 +78,13 @@ from torchpref.simulation.metrics import wrms
 from torchpref.data.queries import FinitePool, first_unique_rows
 
 #: fixed model hyperparameters (see the module docstring)
-MODEL_SETTINGS = {"lengthscale": 0.15, "outputscale": 1.0, "comparison_noise": 0.1, "rating_scale": 1.0,
-                  "rating_precision": 20.0}
+MODEL_SETTINGS = {
+    "lengthscale": 0.15,
+    "outputscale": 1.0,
+    "comparison_noise": 0.1,
+    "rating_scale": 1.0,
+    "rating_precision": 20.0,
+}
 M = 5
 GAMMA = 3.0
 STRATEGIES = ["UCBC", "random ratings", "UCB ratings", "info per effort"]
@@ -103,9 +120,15 @@ def trial_seeds(seed: int, trials: int) -> list[int]:
     return runner.trial_seeds(int(seed) + 1, trials)
 
 
-def run_trial(scenario: LakeScenario, trial_seed: int, queries: int, strategies: tuple[str, ...],
-              plan: tuple[str, ...] = (), plan_settings: dict[str, Any] | None = None,
-              fresh: torch.Tensor | None = None) -> dict[str, Any]:
+def run_trial(
+    scenario: LakeScenario,
+    trial_seed: int,
+    queries: int,
+    strategies: tuple[str, ...],
+    plan: tuple[str, ...] = (),
+    plan_settings: dict[str, Any] | None = None,
+    fresh: torch.Tensor | None = None,
+) -> dict[str, Any]:
     r"""One trial: every strategy from the same first comparison on the shared scenario.
 
     Args:
@@ -144,8 +167,15 @@ def run_trial(scenario: LakeScenario, trial_seed: int, queries: int, strategies:
     for name in strategies:
         first = user.choose(x0)
         model = make_model(x0.clone(), torch.tensor([[first, 1 - first]]))
-        hist = run_active_learning(model, user, FinitePool(pool), make_selector(name), queries,
-                                   generator=torch.Generator().manual_seed(sel_seed), metrics=metrics)
+        hist = run_active_learning(
+            model,
+            user,
+            FinitePool(pool),
+            make_selector(name),
+            queries,
+            generator=torch.Generator().manual_seed(sel_seed),
+            metrics=metrics,
+        )
         entry = {k: hist.metric(k) for k in ("error5", "wrms", "chosen_rating")}
         entry["kinds"] = [r.query.kind for r in hist.records]
         entry["plan"] = None
@@ -171,19 +201,30 @@ def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str,
     if len(results) >= 2 and "UCBC" in strategies:
         for b in strategies:
             if b != "UCBC":
-                tests[f"UCBC vs {b}"] = {k: paired_tests(final["UCBC"][k], final[b][k])
-                                         for k in ("error5", "wrms", "chosen_rating")
-                                         if not any(math.isnan(v) for v in final["UCBC"][k] + final[b][k])}
+                tests[f"UCBC vs {b}"] = {
+                    k: paired_tests(final["UCBC"][k], final[b][k])
+                    for k in ("error5", "wrms", "chosen_rating")
+                    if not any(math.isnan(v) for v in final["UCBC"][k] + final[b][k])
+                }
     planning = {}
     for s in strategies:
         plans = [r[s]["plan"] for r in results if r[s]["plan"] is not None]
         if plans:
             planning[s] = summarise_plans(plans)
-    return {"per_query": per_query,
-            "final": {s: {k: [per_query[s][f"{k}_mean"][-1], per_query[s][f"{k}_sem"][-1]]
-                          for k in ("error5", "wrms", "chosen_rating")} for s in strategies},
-            "share_rated_5": share5, "paired_tests": tests, "planning": planning,
-            "fraction_ratings": fraction_ratings(results, strategies)}
+    return {
+        "per_query": per_query,
+        "final": {
+            s: {
+                k: [per_query[s][f"{k}_mean"][-1], per_query[s][f"{k}_sem"][-1]]
+                for k in ("error5", "wrms", "chosen_rating")
+            }
+            for s in strategies
+        },
+        "share_rated_5": share5,
+        "paired_tests": tests,
+        "planning": planning,
+        "fraction_ratings": fraction_ratings(results, strategies),
+    }
 
 
 def prepare_lake(seed: int, cache_dir: str | Path | None, num_fresh: int) -> tuple[LakeScenario, torch.Tensor | None]:
@@ -206,19 +247,32 @@ def prepare_lake(seed: int, cache_dir: str | Path | None, num_fresh: int) -> tup
         return scenario, fresh
 
 
-def _write_files(out: Path, result: dict[str, Any], summary: dict[str, Any], strategies: list[str],
-                 scenarios: list[LakeScenario], results: list[dict[str, Any]], lake_of: list[int]) -> None:
+def _write_files(
+    out: Path,
+    result: dict[str, Any],
+    summary: dict[str, Any],
+    strategies: list[str],
+    scenarios: list[LakeScenario],
+    results: list[dict[str, Any]],
+    lake_of: list[int],
+) -> None:
     write_json(out / "lake.json", result)
     write_summary_csv(out / "lake.csv", summary["per_query"], x_name="queries")
     write_json(out / "lake_summary.json", summary)
     x = list(range(result["queries"] + 1))
     pq = summary["per_query"]
-    plot_mean_sem(out / "lake.png", [
-        ("error on paths rated 5", {s: (x, pq[s]["error5_mean"], pq[s]["error5_sem"]) for s in strategies}),
-        ("WRMS", {s: (x, pq[s]["wrms_mean"], pq[s]["wrms_sem"]) for s in strategies}),
-        ("rating of chosen path", {s: (x, pq[s]["chosen_rating_mean"], pq[s]["chosen_rating_sem"])
-                                   for s in strategies}),
-    ], title=f"Lake monitoring, {len(scenarios)} lake(s) x {result['trials']} trials (mean ± s.e.)")
+    plot_mean_sem(
+        out / "lake.png",
+        [
+            ("error on paths rated 5", {s: (x, pq[s]["error5_mean"], pq[s]["error5_sem"]) for s in strategies}),
+            ("WRMS", {s: (x, pq[s]["wrms_mean"], pq[s]["wrms_sem"]) for s in strategies}),
+            (
+                "rating of chosen path",
+                {s: (x, pq[s]["chosen_rating_mean"], pq[s]["chosen_rating_sem"]) for s in strategies},
+            ),
+        ],
+        title=f"Lake monitoring, {len(scenarios)} lake(s) x {result['trials']} trials (mean ± s.e.)",
+    )
     plot_field(scenarios[0], out / "lake_field.png")
     plot_objectives(scenarios[0], out / "lake_objectives.png")
     planned = [s for s in strategies if results[0][s]["plan"] is not None]
@@ -226,16 +280,31 @@ def _write_files(out: Path, result: dict[str, Any], summary: dict[str, Any], str
         plot_plan_maps(scenarios[0], {s: results[0][s]["plan"] for s in planned}, out / "lake_plan_maps.png")
         s = planned[0]
         rows = [i for i, r in enumerate(results) if r[s]["plan"] is not None]
-        plot_plan_levels([results[i][s]["plan"] for i in rows], [lake_of[i] for i in rows], out / "lake_plan_levels.png",
-                         title=f"{s}: operator's level of the planned path, the pool pick and the best shown path")
+        plot_plan_levels(
+            [results[i][s]["plan"] for i in rows],
+            [lake_of[i] for i in rows],
+            out / "lake_plan_levels.png",
+            title=f"{s}: operator's level of the planned path, the pool pick and the best shown path",
+        )
 
 
-def run_lake_experiment(trials: int = 20, queries: int = 14, seed: int = 10,
-                        out: str | Path | None = "benchmarks/results", executor: Executor | None = None, *,
-                        workers: int | None = None, strategies: list[str] | None = None,
-                        scenario: LakeScenario | None = None, lakes: int = 1, plan: list[str] | None = None,
-                        plan_trials: int | None = None, plan_settings: dict[str, Any] | None = None,
-                        cache_dir: str | Path | None = None, progress: bool = True) -> dict[str, Any]:
+def run_lake_experiment(
+    trials: int = 20,
+    queries: int = 14,
+    seed: int = 10,
+    out: str | Path | None = "benchmarks/results",
+    executor: Executor | None = None,
+    *,
+    workers: int | None = None,
+    strategies: list[str] | None = None,
+    scenario: LakeScenario | None = None,
+    lakes: int = 1,
+    plan: list[str] | None = None,
+    plan_trials: int | None = None,
+    plan_settings: dict[str, Any] | None = None,
+    cache_dir: str | Path | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
     r"""Run the lake experiment and (if ``out`` is given) write its files (see the module docstring).
 
     Lake ``k`` (``k = 0 .. lakes - 1``) is the scenario of seed ``seed + k``, built once and
@@ -280,10 +349,25 @@ def run_lake_experiment(trials: int = 20, queries: int = 14, seed: int = 10,
     results = run_trials(run_trial, args, description="lake trials", **run_kw)
     wall = time.perf_counter() - t0
     summary = _summarise_run(results, strategies, seeds, lake_of)
-    summary.update(trials=trials, queries=queries, seed=seed, lakes=lakes, lake_seeds=seeds, wall_time_s=wall,
-                   scenario_time_s=t_scenario, workers=workers,
-                   settings={"model": MODEL_SETTINGS, "m": M, "gamma": GAMMA, "plan": settings, "plan_strategies": plan,
-                             "plan_trials": plan_trials, "test_paths_rated_5": [_rated_5(sc) for sc, _ in prepared]})
+    summary.update(
+        trials=trials,
+        queries=queries,
+        seed=seed,
+        lakes=lakes,
+        lake_seeds=seeds,
+        wall_time_s=wall,
+        scenario_time_s=t_scenario,
+        workers=workers,
+        settings={
+            "model": MODEL_SETTINGS,
+            "m": M,
+            "gamma": GAMMA,
+            "plan": settings,
+            "plan_strategies": plan,
+            "plan_trials": plan_trials,
+            "test_paths_rated_5": [_rated_5(sc) for sc, _ in prepared],
+        },
+    )
     result = {"trials": trials, "queries": queries, "lakes": lakes, "strategies": summary["per_query"]}
     if out is not None:
         _write_files(Path(out), result, summary, strategies, [sc for sc, _ in prepared], results, lake_of)
@@ -291,15 +375,26 @@ def run_lake_experiment(trials: int = 20, queries: int = 14, seed: int = 10,
     return result
 
 
-def _prepare_lakes(seeds: list[int], scenario: LakeScenario | None, cache_dir: str | Path | None, num_fresh: int,
-                   run_kw: dict[str, Any]) -> list[tuple[LakeScenario, torch.Tensor | None]]:
+def _prepare_lakes(
+    seeds: list[int],
+    scenario: LakeScenario | None,
+    cache_dir: str | Path | None,
+    num_fresh: int,
+    run_kw: dict[str, Any],
+) -> list[tuple[LakeScenario, torch.Tensor | None]]:
     """Each lake's scenario and fresh paths (:func:`prepare_lake`, one executor call a lake), or
     the given ``scenario`` (of seed ``seeds[0]``) and its fresh paths."""
     if scenario is None:
-        return run_trials(prepare_lake, [(s, cache_dir, num_fresh) for s in seeds], description="lake scenarios",
-                          unit="lake", **run_kw)
-    return [(scenario, fresh_paths(scenario, num_fresh, torch.Generator().manual_seed(seeds[0])) if num_fresh
-             else None)]
+        return run_trials(
+            prepare_lake,
+            [(s, cache_dir, num_fresh) for s in seeds],
+            description="lake scenarios",
+            unit="lake",
+            **run_kw,
+        )
+    return [
+        (scenario, fresh_paths(scenario, num_fresh, torch.Generator().manual_seed(seeds[0])) if num_fresh else None)
+    ]
 
 
 def _rated_5(scenario: LakeScenario) -> int:
@@ -307,8 +402,16 @@ def _rated_5(scenario: LakeScenario) -> int:
     return int((LakeOperator().level(scenario.test_X) == 5).sum())
 
 
-def _trial_args(seeds: list[int], prepared: list[tuple], trials: int, queries: int, strategies: list[str],
-                plan: list[str], plan_trials: int, settings: dict[str, Any]) -> tuple[list[tuple], list[int]]:
+def _trial_args(
+    seeds: list[int],
+    prepared: list[tuple],
+    trials: int,
+    queries: int,
+    strategies: list[str],
+    plan: list[str],
+    plan_trials: int,
+    settings: dict[str, Any],
+) -> tuple[list[tuple], list[int]]:
     """:func:`run_trial`'s arguments for every trial of every lake (``prepared``: each lake's scenario
     and fresh paths), planning in the first ``plan_trials`` of each, and each trial's lake."""
     args, lake_of = [], []
@@ -319,46 +422,69 @@ def _trial_args(seeds: list[int], prepared: list[tuple], trials: int, queries: i
     return args, lake_of
 
 
-def _summarise_run(results: list[dict[str, Any]], strategies: list[str], seeds: list[int],
-                   lake_of: list[int]) -> dict[str, Any]:
+def _summarise_run(
+    results: list[dict[str, Any]], strategies: list[str], seeds: list[int], lake_of: list[int]
+) -> dict[str, Any]:
     """:func:`summarise` over all trials, per lake where there are several (trial ``i`` is of lake
     ``lake_of[i]``, seed ``seeds[lake_of[i]]``), and every plan without its path (the paths are
     drawn, not stored)."""
     summary = summarise(results, strategies)
     if len(seeds) > 1:
-        summary["per_lake"] = {str(s): _lake_summary(summarise([r for r, k2 in zip(results, lake_of) if k2 == k],
-                                                              strategies))
-                               for k, s in enumerate(seeds)}
-    summary["plans"] = [{"lake": seeds[k], "strategy": s, **{key: v for key, v in r[s]["plan"].items() if key != "path"}}
-                        for r, k in zip(results, lake_of) for s in strategies if r[s]["plan"] is not None]
+        summary["per_lake"] = {
+            str(s): _lake_summary(summarise([r for r, k2 in zip(results, lake_of) if k2 == k], strategies))
+            for k, s in enumerate(seeds)
+        }
+    summary["plans"] = [
+        {"lake": seeds[k], "strategy": s, **{key: v for key, v in r[s]["plan"].items() if key != "path"}}
+        for r, k in zip(results, lake_of)
+        for s in strategies
+        if r[s]["plan"] is not None
+    ]
     return summary
 
 
 def _lake_summary(summary: dict[str, Any]) -> dict[str, Any]:
     """The per-lake part of a summary: final values, share rated 5 and planning (no trials)."""
-    return {"final": summary["final"], "share_rated_5": summary["share_rated_5"],
-            "planning": {s: {k: v for k, v in p.items() if k != "paired"} for s, p in summary["planning"].items()}}
+    return {
+        "final": summary["final"],
+        "share_rated_5": summary["share_rated_5"],
+        "planning": {s: {k: v for k, v in p.items() if k != "paired"} for s, p in summary["planning"].items()},
+    }
 
 
 def run(args) -> int:
     """``torchpref reproduce lake``: run and report."""
     lakes = getattr(args, "lakes", 1) or 1
-    res = run_lake_experiment(trials=args.trials, queries=args.queries, seed=args.seed, out=args.out,
-                              workers=getattr(args, "workers", None), lakes=lakes,
-                              cache_dir=getattr(args, "cache", None))
+    res = run_lake_experiment(
+        trials=args.trials,
+        queries=args.queries,
+        seed=args.seed,
+        out=args.out,
+        workers=getattr(args, "workers", None),
+        lakes=lakes,
+        cache_dir=getattr(args, "cache", None),
+    )
     s = res["summary"]
-    print(f"{lakes} lake(s) x {args.trials} trials x {args.queries} queries in {s['wall_time_s']:.1f} s "
-          f"(scenarios {s['scenario_time_s']:.1f} s); files in {args.out}")
-    print("  error5: mean |expected - true rating| on test paths rated 5 (lower is better); WRMS: weighted RMS "
-          "error (lower is better);\n  chosen: level of the test path the model ranks first; share 5: share of "
-          "trials where it is rated 5; mean ± standard error over trials")
+    print(
+        f"{lakes} lake(s) x {args.trials} trials x {args.queries} queries in {s['wall_time_s']:.1f} s "
+        f"(scenarios {s['scenario_time_s']:.1f} s); files in {args.out}"
+    )
+    print(
+        "  error5: mean |expected - true rating| on test paths rated 5 (lower is better); WRMS: weighted RMS "
+        "error (lower is better);\n  chosen: level of the test path the model ranks first; share 5: share of "
+        "trials where it is rated 5; mean ± standard error over trials"
+    )
     pm = (lambda e: f" ± {e:.3f}") if lakes * args.trials > 1 else (lambda e: "")  # no s.e. from one trial
     for name, v in s["final"].items():
-        print(f"  {name:16s} error5 {v['error5'][0]:.3f}{pm(v['error5'][1])}   WRMS {v['wrms'][0]:.3f}"
-              f"{pm(v['wrms'][1])}   chosen {v['chosen_rating'][0]:.2f}   share 5 {s['share_rated_5'][name]:.2f}")
+        print(
+            f"  {name:16s} error5 {v['error5'][0]:.3f}{pm(v['error5'][1])}   WRMS {v['wrms'][0]:.3f}"
+            f"{pm(v['wrms'][1])}   chosen {v['chosen_rating'][0]:.2f}   share 5 {s['share_rated_5'][name]:.2f}"
+        )
     for name, p in s["planning"].items():
-        print(f"  planning with {name}'s model ({p['n']} plans): planned path rated at least as high as the pool pick "
-              f"in {100 * p['at_least_as_good']:.0f} %, strictly better (finer measure) in {100 * p['strictly_better']:.0f} %; "
-              f"mean level planned {p['planned_level_mean']:.2f}, pick {p['pick_level_mean']:.2f}, "
-              f"best shown {p['shown_level_mean']:.2f}")
+        print(
+            f"  planning with {name}'s model ({p['n']} plans): planned path rated at least as high as the pool pick "
+            f"in {100 * p['at_least_as_good']:.0f} %, strictly better (finer measure) in {100 * p['strictly_better']:.0f} %; "
+            f"mean level planned {p['planned_level_mean']:.2f}, pick {p['pick_level_mean']:.2f}, "
+            f"best shown {p['shown_level_mean']:.2f}"
+        )
     return 0

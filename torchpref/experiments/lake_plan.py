@@ -44,9 +44,19 @@ from torchpref.lake.planners import pad_paths, rrt_star, stomp
 #: ``"pick"``: the model's pool pick), the trust region (``None``: none), the number of best pool
 #: paths and of best fresh paths to start from, the weights of the fresh paths per lake (one STOMP
 #: and one RRT* path each), and the optimiser's settings
-PLAN_SETTINGS: dict[str, Any] = {"beta": 1.0, "reference": "shown", "trust_radius": None, "trust_weight": 100.0,
-                                 "num_pool_starts": 3, "num_fresh": 2, "fresh_weights": 8, "steps": 60, "lr": 1.0, "num_points": 30,
-                                 "step": 4.0}
+PLAN_SETTINGS: dict[str, Any] = {
+    "beta": 1.0,
+    "reference": "shown",
+    "trust_radius": None,
+    "trust_weight": 100.0,
+    "num_pool_starts": 3,
+    "num_fresh": 2,
+    "fresh_weights": 8,
+    "steps": 60,
+    "lr": 1.0,
+    "num_points": 30,
+    "step": 4.0,
+}
 
 
 def model_utility(model, bounds: Tensor):
@@ -60,8 +70,16 @@ def model_utility(model, bounds: Tensor):
     return utility
 
 
-def improvement_bound(model, bounds: Tensor, reference: Tensor, beta: float, *, answered: Tensor | None = None,
-                      trust_radius: float | None = None, trust_weight: float = 100.0):
+def improvement_bound(
+    model,
+    bounds: Tensor,
+    reference: Tensor,
+    beta: float,
+    *,
+    answered: Tensor | None = None,
+    trust_radius: float | None = None,
+    trust_weight: float = 100.0,
+):
     r"""The criterion ``c`` of the module docstring as a function of the lake's objectives.
 
     Args:
@@ -109,15 +127,25 @@ def fresh_paths(scenario, num: int, generator: torch.Generator) -> Tensor:
 def compare(operator: LakeOperator, X: Tensor, X_other: Tensor) -> dict[str, Any]:
     """The finer measure of a path with objectives ``X`` against one with ``X_other`` (both ``2``)."""
     level, other = int(operator.level(X)), int(operator.level(X_other))
-    return {"level": level, "other_level": other,
-            "distance_diff": float(X[0] - X_other[0]),
-            "info_margin": float(X[1] - operator.info_good), "other_info_margin": float(X_other[1] - operator.info_good),
-            "at_least_as_good": level >= other,
-            "strictly_better": bool(operator.utility(X) > operator.utility(X_other))}
+    return {
+        "level": level,
+        "other_level": other,
+        "distance_diff": float(X[0] - X_other[0]),
+        "info_margin": float(X[1] - operator.info_good),
+        "other_info_margin": float(X_other[1] - operator.info_good),
+        "at_least_as_good": level >= other,
+        "strictly_better": bool(operator.utility(X) > operator.utility(X_other)),
+    }
 
 
-def plan_for_model(scenario, model, bounds: Tensor, pool_rows: Tensor, fresh: Tensor | None = None,
-                   settings: dict[str, Any] | None = None) -> dict[str, Any]:
+def plan_for_model(
+    scenario,
+    model,
+    bounds: Tensor,
+    pool_rows: Tensor,
+    fresh: Tensor | None = None,
+    settings: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     r"""Plan with a learned model and judge the plan against the model's pool pick.
 
     Args:
@@ -153,17 +181,39 @@ def plan_for_model(scenario, model, bounds: Tensor, pool_rows: Tensor, fresh: Te
         starts.append(fresh[best_fresh])
     starts = pad_paths(starts)
     ref = shown_row if s["reference"] == "shown" else pick
-    criterion = improvement_bound(model, bounds, X[ref], s["beta"], answered=answered,
-                                  trust_radius=s["trust_radius"], trust_weight=s["trust_weight"])
-    res = plan_with_utility(scenario, criterion, starts=starts, fallback=paths[ref], steps=s["steps"],
-                            lr=s["lr"], num_points=s["num_points"], step=s["step"])
-    return {"source": res.source, "criterion": res.utility,
-            "planned": compare(operator, res.objectives, X[pick]),
-            "vs_shown": compare(operator, res.objectives, X[shown_row]),
-            "pick_level": int(operator.level(X[pick])), "shown_level": int(operator.level(X[shown_row])),
-            "planned_objectives": res.objectives.tolist(), "pick_objectives": X[pick].tolist(),
-            "shown_objectives": X[shown_row].tolist(), "pick_row": int(pool_rows[pick]),
-            "shown_row": int(pool_rows[shown_row]), "path": res.path.tolist()}
+    criterion = improvement_bound(
+        model,
+        bounds,
+        X[ref],
+        s["beta"],
+        answered=answered,
+        trust_radius=s["trust_radius"],
+        trust_weight=s["trust_weight"],
+    )
+    res = plan_with_utility(
+        scenario,
+        criterion,
+        starts=starts,
+        fallback=paths[ref],
+        steps=s["steps"],
+        lr=s["lr"],
+        num_points=s["num_points"],
+        step=s["step"],
+    )
+    return {
+        "source": res.source,
+        "criterion": res.utility,
+        "planned": compare(operator, res.objectives, X[pick]),
+        "vs_shown": compare(operator, res.objectives, X[shown_row]),
+        "pick_level": int(operator.level(X[pick])),
+        "shown_level": int(operator.level(X[shown_row])),
+        "planned_objectives": res.objectives.tolist(),
+        "pick_objectives": X[pick].tolist(),
+        "shown_objectives": X[shown_row].tolist(),
+        "pick_row": int(pool_rows[pick]),
+        "shown_row": int(pool_rows[shown_row]),
+        "path": res.path.tolist(),
+    }
 
 
 def summarise_plans(plans: list[dict[str, Any]]) -> dict[str, Any]:
@@ -182,16 +232,21 @@ def summarise_plans(plans: list[dict[str, Any]]) -> dict[str, Any]:
     cmp = [p["planned"] for p in plans]
     gains = [-c["distance_diff"] for c in cmp if c["strictly_better"] and c["level"] == c["other_level"]]
     sources = {k: sum(p["source"] == k for p in plans) for k in SOURCES}
-    out = {"n": n,
-           "planned_level_mean": sum(c["level"] for c in cmp) / n,
-           "pick_level_mean": sum(p["pick_level"] for p in plans) / n,
-           "shown_level_mean": sum(p["shown_level"] for p in plans) / n,
-           "at_least_as_good": sum(c["at_least_as_good"] for c in cmp) / n,
-           "strictly_better": sum(c["strictly_better"] for c in cmp) / n,
-           "worse": sum(not c["at_least_as_good"] for c in cmp),
-           "sources": sources,
-           "distance_gain": {"n": len(gains), "mean": sum(gains) / len(gains) if gains else 0.0,
-                             "max": max(gains, default=0.0)}}
+    out = {
+        "n": n,
+        "planned_level_mean": sum(c["level"] for c in cmp) / n,
+        "pick_level_mean": sum(p["pick_level"] for p in plans) / n,
+        "shown_level_mean": sum(p["shown_level"] for p in plans) / n,
+        "at_least_as_good": sum(c["at_least_as_good"] for c in cmp) / n,
+        "strictly_better": sum(c["strictly_better"] for c in cmp) / n,
+        "worse": sum(not c["at_least_as_good"] for c in cmp),
+        "sources": sources,
+        "distance_gain": {
+            "n": len(gains),
+            "mean": sum(gains) / len(gains) if gains else 0.0,
+            "max": max(gains, default=0.0),
+        },
+    }
     if n >= 2:
         out["paired"] = paired_tests([c["level"] for c in cmp], [c["other_level"] for c in cmp])
     return out
@@ -212,9 +267,12 @@ def plot_plan_maps(scenario, plans: dict[str, dict[str, Any]], path) -> Any:
         paths = [scenario.train_paths[r] for r in rows] + [torch.tensor(p["path"])]
         objs = [p["shown_objectives"], p["pick_objectives"], p["planned_objectives"]]
         levels = [p["shown_level"], p["pick_level"], p["planned"]["level"]]
-        labels = [f"{k}: d={o[0]:.0f}, I={o[1]:.0f}, level {lv}"
-                  for k, o, lv in zip(("shown (best answered)", "pick (best pool path)", f"planned ({p['source']})"),
-                                      objs, levels)]
+        labels = [
+            f"{k}: d={o[0]:.0f}, I={o[1]:.0f}, level {lv}"
+            for k, o, lv in zip(
+                ("shown (best answered)", "pick (best pool path)", f"planned ({p['source']})"), objs, levels
+            )
+        ]
         draw_paths(ax, paths, labels, colours=("#111111", "#2ca02c", "#1f3fbf"))
         ax.set_title(name)
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.06), ncol=1, fontsize=8, frameon=False)

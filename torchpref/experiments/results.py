@@ -19,6 +19,7 @@ from typing import Any, Iterable, Sequence
 
 import torch
 
+
 def mean_sem(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float]]:
     r"""Mean and standard error (``std / sqrt(n)``, ``ddof = 1``) over trials.
 
@@ -49,8 +50,10 @@ def mean_sem(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float
 
 def fraction_ratings(results: Sequence[dict[str, Any]], strategies: Sequence[str]) -> dict[str, float]:
     """Per strategy, the share of its queries (``result[strategy]["kinds"]``) that were ratings."""
-    return {s: sum(k == "rating" for r in results for k in r[s]["kinds"])
-            / max(1, sum(len(r[s]["kinds"]) for r in results)) for s in strategies}
+    return {
+        s: sum(k == "rating" for r in results for k in r[s]["kinds"]) / max(1, sum(len(r[s]["kinds"]) for r in results))
+        for s in strategies
+    }
 
 
 def paired_tests(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
@@ -67,8 +70,10 @@ def paired_tests(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
     x = torch.as_tensor(a, dtype=torch.float64)
     y = torch.as_tensor(b, dtype=torch.float64)
     if x.shape != y.shape or x.dim() != 1 or x.numel() < 2:
-        raise ValueError(f"a and b must be paired 1-D samples of equal length >= 2, got shapes "
-                         f"{tuple(x.shape)} and {tuple(y.shape)}.")
+        raise ValueError(
+            f"a and b must be paired 1-D samples of equal length >= 2, got shapes "
+            f"{tuple(x.shape)} and {tuple(y.shape)}."
+        )
     d = (x - y).numpy()
     out = {
         "n": int(d.size),
@@ -108,8 +113,12 @@ def effort_budgets(results: Sequence[dict[str, Any]], strategies: Sequence[str])
     return [float(b) for b in range(int(math.floor(max_budget)) + 1)]
 
 
-def curves(results: Sequence[dict[str, Any]], strategies: Sequence[str], metrics: Sequence[str],
-           budgets: Sequence[float] | None = None) -> dict[str, dict[str, list[float]]]:
+def curves(
+    results: Sequence[dict[str, Any]],
+    strategies: Sequence[str],
+    metrics: Sequence[str],
+    budgets: Sequence[float] | None = None,
+) -> dict[str, dict[str, list[float]]]:
     r"""Mean ± standard error of each metric over trials, per query count or per effort budget.
 
     Args:
@@ -132,7 +141,9 @@ def curves(results: Sequence[dict[str, Any]], strategies: Sequence[str], metrics
     return out
 
 
-def final_values(per_point: dict[str, dict[str, list[float]]], metrics: Sequence[str]) -> dict[str, dict[str, list[float]]]:
+def final_values(
+    per_point: dict[str, dict[str, list[float]]], metrics: Sequence[str]
+) -> dict[str, dict[str, list[float]]]:
     """``{strategy: {metric: [mean, sem]}}`` at the last point of :func:`curves`' output."""
     return {s: {k: [v[f"{k}_mean"][-1], v[f"{k}_sem"][-1]] for k in metrics} for s, v in per_point.items()}
 
@@ -146,8 +157,9 @@ def write_json(path: str | os.PathLike, obj: Any) -> Path:
     return path
 
 
-def write_summary_csv(path: str | os.PathLike, summary: dict[str, dict[str, list[float]]],
-                      x_name: str = "queries") -> Path:
+def write_summary_csv(
+    path: str | os.PathLike, summary: dict[str, dict[str, list[float]]], x_name: str = "queries"
+) -> Path:
     r"""Long-format CSV, one row per (strategy, point): ``strategy, x_name, <column>...``.
 
     Args:
@@ -206,8 +218,14 @@ def plot_mean_sem(
     return path
 
 
-def write_experiment_files(out: str | os.PathLike, name: str, result: dict[str, Any], summary: dict[str, Any],
-                           figures: dict[str, dict[str, Any]], effort: dict[str, Any] | None = None) -> None:
+def write_experiment_files(
+    out: str | os.PathLike,
+    name: str,
+    result: dict[str, Any],
+    summary: dict[str, Any],
+    figures: dict[str, dict[str, Any]],
+    effort: dict[str, Any] | None = None,
+) -> None:
     r"""Write a run's files into ``out``: ``<name>.json`` (``result``), ``<name>.csv`` (its
     per-query curves, ``result["strategies"]``, long format), ``<name>_summary.json``
     (``summary``), ``<name>_effort.csv`` (the per-effort curves ``effort``, if given) and one
@@ -222,9 +240,11 @@ def write_experiment_files(out: str | os.PathLike, name: str, result: dict[str, 
         plot_mean_sem(out / file_name, **kwargs)
 
 
-def metric_panels(per_point: dict[str, dict[str, list[float]]], x: Sequence[float],
-                  labels: dict[str, str]) -> list[tuple[str, dict[str, tuple]]]:
+def metric_panels(
+    per_point: dict[str, dict[str, list[float]]], x: Sequence[float], labels: dict[str, str]
+) -> list[tuple[str, dict[str, tuple]]]:
     """``plot_mean_sem``'s panels: one per metric of ``labels`` (``{metric: y label}``), one
     curve per strategy of :func:`curves`' output against ``x``."""
-    return [(label, {s: (x, v[f"{k}_mean"], v[f"{k}_sem"]) for s, v in per_point.items()})
-            for k, label in labels.items()]
+    return [
+        (label, {s: (x, v[f"{k}_mean"], v[f"{k}_sem"]) for s, v in per_point.items()}) for k, label in labels.items()
+    ]

@@ -39,7 +39,15 @@ from torch import Tensor
 
 from torchpref.models.kernels import fixed_rbf_kernel
 from torchpref.models.preference_gp import PreferenceGP
-from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, Selector, UCBRatings
+from torchpref.selection.strategies import (
+    UCBC,
+    InformationPerEffort,
+    RandomMixed,
+    RandomRankings,
+    RandomRatings,
+    Selector,
+    UCBRatings,
+)
 from torchpref.selection.top_profile import ProfileVariancePerEffort
 from torchpref.selection.variance_reduction import VariancePerEffort
 
@@ -58,9 +66,17 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def run_trials(trial_fn: Callable[..., Any], trial_args_list: Sequence[tuple], executor: Executor | None = None,
-               progress: bool = True, *, workers: int | None = None, description: str = "trials",
-               sizes: Sequence[int] | None = None, unit: str = "trial") -> list[Any]:
+def run_trials(
+    trial_fn: Callable[..., Any],
+    trial_args_list: Sequence[tuple],
+    executor: Executor | None = None,
+    progress: bool = True,
+    *,
+    workers: int | None = None,
+    description: str = "trials",
+    sizes: Sequence[int] | None = None,
+    unit: str = "trial",
+) -> list[Any]:
     r"""Run ``trial_fn(*args)`` for every ``args`` in ``trial_args_list``; results in input order.
 
     Args:
@@ -110,8 +126,9 @@ def run_trials(trial_fn: Callable[..., Any], trial_args_list: Sequence[tuple], e
             bar.close()
 
 
-def _run_on(ex: Executor, trial_fn: Callable[..., Any], args_list: list[tuple], done: Callable[[int, Any], None],
-            own: bool) -> None:
+def _run_on(
+    ex: Executor, trial_fn: Callable[..., Any], args_list: list[tuple], done: Callable[[int, Any], None], own: bool
+) -> None:
     """Submit every call to ``ex`` and hand each result to ``done(index, result)`` as it completes;
     an ``own`` executor is shut down afterwards, its pending calls cancelled on an error."""
     try:
@@ -139,23 +156,29 @@ _FACTORIES: dict[str, Callable[..., Selector]] = {
     "random mixed": lambda m, **_: RandomMixed(m=m),
     "UCB ratings": lambda gamma, **_: UCBRatings(gamma=gamma),
     "info per effort": lambda m, gamma, rating_cost, ranking_cost: InformationPerEffort(
-        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma),
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma
+    ),
     "top & level info": lambda m, gamma, rating_cost, ranking_cost: InformationPerEffort(
-        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma, target="top+levels"),
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma, target="top+levels"
+    ),
     "variance per effort": lambda m, rating_cost, ranking_cost, **_: VariancePerEffort(
-        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost),
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost
+    ),
     "profile per effort": lambda m, rating_cost, ranking_cost, **_: ProfileVariancePerEffort(
-        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost),
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost
+    ),
     "clipped profile": lambda m, rating_cost, ranking_cost, **_: ProfileVariancePerEffort(
-        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, clipped=True),
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, clipped=True
+    ),
 }
 
 #: every strategy :func:`make_selector` knows, by name
 STRATEGIES = tuple(_FACTORIES)
 
 
-def make_selector(name: str, *, m: int = 5, gamma: float = 3.0, rating_cost: float = 1.0,
-                  ranking_cost: float | None = None) -> Selector:
+def make_selector(
+    name: str, *, m: int = 5, gamma: float = 3.0, rating_cost: float = 1.0, ranking_cost: float | None = None
+) -> Selector:
     r"""The selector called ``name`` (one of :data:`STRATEGIES`).
 
     Args:
@@ -179,14 +202,20 @@ def make_model(X: Tensor, comparisons: Tensor, settings: dict[str, float]) -> Pr
     ``lengthscale``, ``outputscale``, ``comparison_noise``, ``rating_scale``, ``rating_precision``;
     the kernel is :func:`~torchpref.models.kernels.fixed_rbf_kernel`'s."""
     kernel = fixed_rbf_kernel(settings["lengthscale"], settings["outputscale"], X)
-    return PreferenceGP(X, comparisons=comparisons, covar_module=kernel,
-                        comparison_noise=settings["comparison_noise"], rating_scale=settings["rating_scale"],
-                        rating_precision=settings["rating_precision"])
+    return PreferenceGP(
+        X,
+        comparisons=comparisons,
+        covar_module=kernel,
+        comparison_noise=settings["comparison_noise"],
+        rating_scale=settings["rating_scale"],
+        rating_precision=settings["rating_precision"],
+    )
 
 
 # ------------------------------------------------------------------------- the skeleton
-def check_run(queries: int, strategies: Sequence[str] | None, default: Sequence[str],
-              batch_size: int | None = None) -> list[str]:
+def check_run(
+    queries: int, strategies: Sequence[str] | None, default: Sequence[str], batch_size: int | None = None
+) -> list[str]:
     """Validate a run's arguments; returns its strategies (``default`` if ``None``)."""
     if not isinstance(queries, int) or queries < 1:
         raise ValueError(f"queries must be a positive integer, got {queries!r}.")
@@ -199,8 +228,16 @@ def check_run(queries: int, strategies: Sequence[str] | None, default: Sequence[
     return strategies
 
 
-def run_by_strategy(batch_fn: Callable[..., list[dict[str, Any]]], seeds: Sequence[int], strategies: Sequence[str],
-                    batch_size: int, args: tuple = (), *, first: Sequence[str] = (), **run_kw) -> list[dict[str, Any]]:
+def run_by_strategy(
+    batch_fn: Callable[..., list[dict[str, Any]]],
+    seeds: Sequence[int],
+    strategies: Sequence[str],
+    batch_size: int,
+    args: tuple = (),
+    *,
+    first: Sequence[str] = (),
+    **run_kw,
+) -> list[dict[str, Any]]:
     r"""Run ``batch_fn(seeds_chunk, *args, strategy)`` for every strategy and chunk of at most
     ``batch_size`` trial seeds (one executor call each, :func:`run_trials`) and gather the
     results per trial.
@@ -240,11 +277,19 @@ def place_records(results: list[dict[str, Any]], first: int, strategy: str, part
 def run_cli(args, experiment: Callable[..., dict[str, Any]], **kwargs) -> int:
     r"""``torchpref reproduce NAME``: run ``experiment(trials=, queries=, seed=, out=, workers=,
     **kwargs)`` and print where the files went and each strategy's final values."""
-    res = experiment(trials=args.trials, queries=args.queries, seed=args.seed, out=args.out,
-                     workers=getattr(args, "workers", None), **kwargs)
+    res = experiment(
+        trials=args.trials,
+        queries=args.queries,
+        seed=args.seed,
+        out=args.out,
+        workers=getattr(args, "workers", None),
+        **kwargs,
+    )
     s = res["summary"]
     print(f"{args.trials} trials x {args.queries} queries in {s['wall_time_s']:.1f} s; files in {args.out}")
     for name, values in s["final"].items():
-        print(f"  {name:16s} " + "   ".join(f"{k} {m:.4g}" + (f" ± {e:.2g}" if args.trials > 1 else "")
-                                          for k, (m, e) in values.items()))
+        print(
+            f"  {name:16s} "
+            + "   ".join(f"{k} {m:.4g}" + (f" ± {e:.2g}" if args.trials > 1 else "") for k, (m, e) in values.items())
+        )
     return 0

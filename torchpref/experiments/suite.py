@@ -58,8 +58,16 @@ CHECKPOINTS = (10, 20)
 #: (``strategies=`` / ``--strategies``). "top & level info" left the default when the two profile
 #: selectors came in: it was best or tied in the fewest cells but random ratings' and costs as
 #: much CPU as the costliest, and the default run must fit in 10 minutes (docs/suite.md).
-STRATEGIES = ["UCBC", "random ratings", "random rankings", "UCB ratings", "info per effort",
-              "variance per effort", "profile per effort", "clipped profile"]
+STRATEGIES = [
+    "UCBC",
+    "random ratings",
+    "random rankings",
+    "UCB ratings",
+    "info per effort",
+    "variance per effort",
+    "profile per effort",
+    "clipped profile",
+]
 METRICS = ("wrms", "tp", "regret")
 #: the learned condition refits after these many queries
 REFIT_AFTER = (3, 6, 10, 15)
@@ -76,8 +84,9 @@ def _grid(dim: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     steps = torch.tensor(LENGTHSCALE_STEPS, dtype=torch.float64)
     ls = (centre * steps.exp()).repeat_interleave(len(OUTPUTSCALES))
     os_ = torch.tensor(OUTPUTSCALES, dtype=torch.float64).repeat(len(LENGTHSCALE_STEPS))
-    prior = (torch.distributions.Normal(math.log(centre), LENGTHSCALE_PRIOR_SD).log_prob(ls.log())
-             + torch.distributions.Gamma(2.0, 1.0).log_prob(os_))
+    prior = torch.distributions.Normal(math.log(centre), LENGTHSCALE_PRIOR_SD).log_prob(
+        ls.log()
+    ) + torch.distributions.Gamma(2.0, 1.0).log_prob(os_)
     return ls, os_, prior
 
 
@@ -114,14 +123,20 @@ def _start_model(family: Family, condition: str, x0s: list[torch.Tensor], firsts
     ls, os_, prior = _grid(family.dim)
     start = int(prior.argmax())  # before any refit: the prior's mode on the grid
     kernel = FixedRBFKernel(ls[start].expand(T).clone(), os_[start].expand(T).clone())
-    template = PreferenceGP(x0s[0], torch.tensor([[firsts[0], 1 - firsts[0]]]), covar_module=kernel,
-                            comparison_noise=settings["comparison_noise"], rating_scale=settings["rating_scale"],
-                            rating_precision=settings["rating_precision"])
+    template = PreferenceGP(
+        x0s[0],
+        torch.tensor([[firsts[0], 1 - firsts[0]]]),
+        covar_module=kernel,
+        comparison_noise=settings["comparison_noise"],
+        rating_scale=settings["rating_scale"],
+        rating_precision=settings["rating_precision"],
+    )
     return BatchedPreferenceGP(template, [m.data for m in models])
 
 
-def run_batch(trial_seeds: tuple[int, ...], family_name: str, condition: str, queries: int,
-              strategy: str) -> list[dict[str, Any]]:
+def run_batch(
+    trial_seeds: tuple[int, ...], family_name: str, condition: str, queries: int, strategy: str
+) -> list[dict[str, Any]]:
     r"""Trials of one family, condition and strategy at once (one batched model).
 
     Returns:
@@ -143,8 +158,11 @@ def run_batch(trial_seeds: tuple[int, ...], family_name: str, condition: str, qu
         mean, var = model.marginals(eval_X)
         est = model.likelihood.rating.expected_rating(mean, var)
         chosen = f_true.gather(1, mean.argmax(-1, keepdim=True)).squeeze(-1)
-        return {"wrms": wrms(est, u_true), "tp": true_positives(est, u_true, k=TOP_K).to(est),
-                "regret": (best - chosen) / margin}
+        return {
+            "wrms": wrms(est, u_true),
+            "tp": true_positives(est, u_true, k=TOP_K).to(est),
+            "regret": (best - chosen) / margin,
+        }
 
     def refit(step: int, model: BatchedPreferenceGP) -> None:
         if condition == "learned" and step + 1 in REFIT_AFTER:
@@ -154,17 +172,34 @@ def run_batch(trial_seeds: tuple[int, ...], family_name: str, condition: str, qu
         model = _start_model(family, condition, [s.x0 for s in setups], firsts)
         gens = [torch.Generator().manual_seed(s.selector_seed) for s in setups]
         if family.pool is None:
-            candidates = BoxCandidates(torch.tensor([[0.0] * family.dim, [1.0] * family.dim], dtype=torch.float64),
-                                       NUM_CANDIDATES)
+            candidates = BoxCandidates(
+                torch.tensor([[0.0] * family.dim, [1.0] * family.dim], dtype=torch.float64), NUM_CANDIDATES
+            )
         else:
             candidates = _TrialPools([s.pool for s in setups], gens)
         hists = run_active_learning_batch(
-            model, [s.user for s in setups], candidates, make_selector(strategy), queries, generators=gens,
+            model,
+            [s.user for s in setups],
+            candidates,
+            make_selector(strategy),
+            queries,
+            generators=gens,
             metrics=metrics,
-            costs={"rating": RATING_COST, "ranking": RANKING_COST}, refit=refit)
+            costs={"rating": RATING_COST, "ranking": RANKING_COST},
+            refit=refit,
+        )
     cpu = (time.process_time() - cpu0) / len(hists)
-    return [{strategy: {**{k: h.metric(k) for k in METRICS}, "cost": h.cumulative_cost(),
-                        "kinds": [r.query.kind for r in h.records], "cpu_s": cpu}} for h in hists]
+    return [
+        {
+            strategy: {
+                **{k: h.metric(k) for k in METRICS},
+                "cost": h.cumulative_cost(),
+                "kinds": [r.query.kind for r in h.records],
+                "cpu_s": cpu,
+            }
+        }
+        for h in hists
+    ]
 
 
 class _TrialPools:
@@ -183,10 +218,20 @@ def make_selector(name: str):
     return runner.make_selector(name, m=M, gamma=GAMMA, rating_cost=RATING_COST, ranking_cost=RANKING_COST)
 
 
-def run_suite(families: Sequence[str] | None = None, trials: int = 50, queries: int = 20, seed: int = 0,
-              out: str | Path | None = "benchmarks/results", executor: Executor | None = None, *,
-              workers: int | None = None, strategies: Sequence[str] | None = None,
-              conditions: Sequence[str] = CONDITIONS, batch_size: int = 50, progress: bool = True) -> dict[str, Any]:
+def run_suite(
+    families: Sequence[str] | None = None,
+    trials: int = 50,
+    queries: int = 20,
+    seed: int = 0,
+    out: str | Path | None = "benchmarks/results",
+    executor: Executor | None = None,
+    *,
+    workers: int | None = None,
+    strategies: Sequence[str] | None = None,
+    conditions: Sequence[str] = CONDITIONS,
+    batch_size: int = 50,
+    progress: bool = True,
+) -> dict[str, Any]:
     r"""Run the suite and (if ``out`` is given) write ``suite.json``, ``suite.csv``,
     ``suite_summary.json`` and the figures ``suite_fixed.png`` / ``suite_learned.png``.
 
@@ -210,28 +255,51 @@ def run_suite(families: Sequence[str] | None = None, trials: int = 50, queries: 
     families = _checked(FAMILIES if families is None else families, conditions)
     strategies = runner.check_run(queries, strategies, STRATEGIES, batch_size)
     seeds = {f: runner.trial_seeds(seed + 7919 * i, trials) for i, f in enumerate(FAMILIES) if f in families}
-    keys = [(f, c, s, i) for f in families for c in conditions for s in strategies for i in range(0, trials, batch_size)]
+    keys = [
+        (f, c, s, i) for f in families for c in conditions for s in strategies for i in range(0, trials, batch_size)
+    ]
     keys.sort(key=lambda k: (k[1] != "learned", k[2] != "info per effort"))  # the costliest first
     tasks = [(tuple(seeds[f][i : i + batch_size]), f, c, queries, s) for f, c, s, i in keys]
     t0 = time.perf_counter()
-    parts = runner.run_trials(run_batch, tasks, executor=executor, progress=progress, workers=workers,
-                              description="suite trials", sizes=[len(t[0]) for t in tasks])
+    parts = runner.run_trials(
+        run_batch,
+        tasks,
+        executor=executor,
+        progress=progress,
+        workers=workers,
+        description="suite trials",
+        sizes=[len(t[0]) for t in tasks],
+    )
     wall = time.perf_counter() - t0
-    results: dict[tuple[str, str], list[dict[str, Any]]] = {(f, c): [{} for _ in range(trials)]
-                                                            for f in families for c in conditions}
+    results: dict[tuple[str, str], list[dict[str, Any]]] = {
+        (f, c): [{} for _ in range(trials)] for f in families for c in conditions
+    }
     for (f, c, s, i), part in zip(keys, parts):
         runner.place_records(results[f, c], i, s, part)
     checkpoints = sorted({q for q in CHECKPOINTS if q <= queries} | {queries})
     summary = summarise(results, strategies, METRICS, budgets=CHECKPOINTS, checkpoints=checkpoints)
     cpu = sum(r[s]["cpu_s"] for trials_ in results.values() for r in trials_ for s in strategies)
-    summary.update(trials=trials, queries=queries, seed=seed, wall_time_s=wall, cpu_time_s=cpu, workers=workers,
-                   settings=_settings(families))
+    summary.update(
+        trials=trials,
+        queries=queries,
+        seed=seed,
+        wall_time_s=wall,
+        cpu_time_s=cpu,
+        workers=workers,
+        settings=_settings(families),
+    )
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
         write_json(Path(out) / "suite_trials.json", {f"{f}/{c}": v for (f, c), v in results.items()})
         write_suite_files(Path(out), summary, families, conditions, strategies, METRICS)
-    return {"families": families, "conditions": list(conditions), "strategies": strategies, "trials": trials,
-            "queries": queries, "summary": summary}
+    return {
+        "families": families,
+        "conditions": list(conditions),
+        "strategies": strategies,
+        "trials": trials,
+        "queries": queries,
+        "summary": summary,
+    }
 
 
 def _checked(families: Sequence[str], conditions: Sequence[str]) -> list[str]:
@@ -251,22 +319,42 @@ def _checked(families: Sequence[str], conditions: Sequence[str]) -> list[str]:
 
 def _settings(families: list[str]) -> dict[str, Any]:
     """The run's settings as the summary records them."""
-    return {"m": M, "gamma": GAMMA, "top_k": TOP_K, "refit_after": REFIT_AFTER,
-            "costs": {"rating": RATING_COST, "ranking": RANKING_COST},
-            "families": {f: {"dim": FAMILIES[f].dim, "description": FAMILIES[f].description,
-                             "model": model_settings(FAMILIES[f]), "pool": FAMILIES[f].pool,
-                             "likert": FAMILIES[f].likert} for f in families}}
+    return {
+        "m": M,
+        "gamma": GAMMA,
+        "top_k": TOP_K,
+        "refit_after": REFIT_AFTER,
+        "costs": {"rating": RATING_COST, "ranking": RANKING_COST},
+        "families": {
+            f: {
+                "dim": FAMILIES[f].dim,
+                "description": FAMILIES[f].description,
+                "model": model_settings(FAMILIES[f]),
+                "pool": FAMILIES[f].pool,
+                "likert": FAMILIES[f].likert,
+            }
+            for f in families
+        },
+    }
 
 
 def run(args) -> int:
     """``torchpref reproduce suite``: run and report."""
-    res = run_suite(families=args.families, trials=args.trials, queries=args.queries, seed=args.seed,
-                    out=args.out, workers=getattr(args, "workers", None),
-                    strategies=getattr(args, "strategies", None))
+    res = run_suite(
+        families=args.families,
+        trials=args.trials,
+        queries=args.queries,
+        seed=args.seed,
+        out=args.out,
+        workers=getattr(args, "workers", None),
+        strategies=getattr(args, "strategies", None),
+    )
     s = res["summary"]
-    print(f"{len(res['families'])} families x {len(res['conditions'])} conditions x {args.trials} trials x "
-          f"{args.queries} queries in {s['wall_time_s']:.1f} s ({s['cpu_time_s']:.0f} s of trial CPU time); "
-          f"files in {args.out}")
+    print(
+        f"{len(res['families'])} families x {len(res['conditions'])} conditions x {args.trials} trials x "
+        f"{args.queries} queries in {s['wall_time_s']:.1f} s ({s['cpu_time_s']:.0f} s of trial CPU time); "
+        f"files in {args.out}"
+    )
     for line in s["verdict_lines"]:
         print("  " + line)
     return 0

@@ -53,8 +53,13 @@ from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
 #: the authors' model hyperparameters for this experiment (docs/decisions.md): their 1-D run's
 #: ``log_hyp = log([0.02, 0.6, 0.2, 0.8, 60])`` is ``[lengthscale, sigma_f, sigma_R, sigma_B, nu]``,
 #: so the kernel variance is ``sigma_f^2 = 0.36`` (not 1: the evidence is in docs/wave.md).
-MODEL_SETTINGS = {"lengthscale": 0.02, "outputscale": 0.36, "comparison_noise": 0.2, "rating_scale": 0.8,
-                  "rating_precision": 60.0}
+MODEL_SETTINGS = {
+    "lengthscale": 0.02,
+    "outputscale": 0.36,
+    "comparison_noise": 0.2,
+    "rating_scale": 0.8,
+    "rating_precision": 60.0,
+}
 M = 5  # items per ranking query
 GAMMA = 3.0  # eq. 12 (the paper's text; the authors' code used 2)
 NUM_CANDIDATES = 100
@@ -87,8 +92,9 @@ def _setup(trial_seed: int) -> tuple[WaveFunction, list[int], torch.Tensor, torc
     return truth, seeds, u_true, x0
 
 
-def _start(truth: WaveFunction, seeds: list[int],
-           x0: torch.Tensor) -> tuple[SimulatedUser, PreferenceGP, torch.Generator]:
+def _start(
+    truth: WaveFunction, seeds: list[int], x0: torch.Tensor
+) -> tuple[SimulatedUser, PreferenceGP, torch.Generator]:
     """A fresh user, the model of its answer to the first pair, and the selector's generator:
     every strategy of a trial starts from these."""
     user = SimulatedUser.paper_wave(lambda X: truth(X, noise=False), generator=torch.Generator().manual_seed(seeds[0]))
@@ -107,8 +113,12 @@ def _metrics(est: torch.Tensor, u_true: torch.Tensor) -> dict[str, torch.Tensor]
 
 
 def _record(hist) -> dict[str, list]:
-    return {"wrms": hist.metric("wrms"), "tp": hist.metric("tp"), "cost": hist.cumulative_cost(),
-            "kinds": [r.query.kind for r in hist.records]}
+    return {
+        "wrms": hist.metric("wrms"),
+        "tp": hist.metric("tp"),
+        "cost": hist.cumulative_cost(),
+        "kinds": [r.query.kind for r in hist.records],
+    }
 
 
 def run_trial(trial_seed: int, queries: int, strategies: tuple[str, ...] = tuple(STRATEGIES)) -> dict[str, Any]:
@@ -130,8 +140,16 @@ def run_trial(trial_seed: int, queries: int, strategies: tuple[str, ...] = tuple
     with torch.inference_mode():  # nothing in a trial needs gradients (fixed hyperparameters)
         for name in strategies:
             user, model, gen = _start(truth, seeds, x0)
-            hist = run_active_learning(model, user, _candidates(), make_selector(name), queries, generator=gen,
-                                       metrics=metrics, costs={"rating": RATING_COST, "ranking": RANKING_COST})
+            hist = run_active_learning(
+                model,
+                user,
+                _candidates(),
+                make_selector(name),
+                queries,
+                generator=gen,
+                metrics=metrics,
+                costs={"rating": RATING_COST, "ranking": RANKING_COST},
+            )
             out[name] = _record(hist)
     return out
 
@@ -155,9 +173,16 @@ def run_trial_batch(trial_seeds: tuple[int, ...], queries: int, strategy: str) -
     with torch.inference_mode():
         starts = [_start(truth, seeds, x0) for truth, seeds, _, x0 in setups]
         model = BatchedPreferenceGP.from_models([m for _, m, _ in starts])
-        hists = run_active_learning_batch(model, [u for u, _, _ in starts], _candidates(), make_selector(strategy),
-                                          queries, generators=[g for _, _, g in starts], metrics=metrics,
-                                          costs={"rating": RATING_COST, "ranking": RANKING_COST})
+        hists = run_active_learning_batch(
+            model,
+            [u for u, _, _ in starts],
+            _candidates(),
+            make_selector(strategy),
+            queries,
+            generators=[g for _, _, g in starts],
+            metrics=metrics,
+            costs={"rating": RATING_COST, "ranking": RANKING_COST},
+        )
     return [{strategy: _record(h)} for h in hists]
 
 
@@ -167,8 +192,9 @@ def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str,
     per_query = curves(results, strategies, METRICS)
     per_effort = curves(results, strategies, METRICS, budgets)
     final = {s: {k: [r[s][k][-1] for r in results] for k in METRICS} for s in strategies}
-    at_budget = {s: {k: [at_budgets(r[s][k], r[s]["cost"], budgets)[-1] for r in results] for k in METRICS}
-                 for s in strategies}
+    at_budget = {
+        s: {k: [at_budgets(r[s][k], r[s]["cost"], budgets)[-1] for r in results] for k in METRICS} for s in strategies
+    }
     pairs = []
     if "UCBC" in strategies:
         pairs += [("UCBC", s) for s in strategies if s not in ("UCBC", "info per effort")]
@@ -180,15 +206,29 @@ def summarise(results: list[dict[str, Any]], strategies: list[str]) -> dict[str,
             key = f"{a} vs {b}"
             tests["queries"][key] = {k: paired_tests(final[a][k], final[b][k]) for k in METRICS}
             tests["effort"][key] = {k: paired_tests(at_budget[a][k], at_budget[b][k]) for k in METRICS}
-    return {"queries": len(results[0][strategies[0]]["wrms"]) - 1, "per_query": per_query,
-            "per_effort": per_effort, "budgets": budgets, "final": final_values(per_query, METRICS),
-            "paired_tests": tests, "fraction_ratings": fraction_ratings(results, strategies)}
+    return {
+        "queries": len(results[0][strategies[0]]["wrms"]) - 1,
+        "per_query": per_query,
+        "per_effort": per_effort,
+        "budgets": budgets,
+        "final": final_values(per_query, METRICS),
+        "paired_tests": tests,
+        "fraction_ratings": fraction_ratings(results, strategies),
+    }
 
 
-def run_wave_experiment(trials: int = 100, queries: int = 20, seed: int = 10,
-                        out: str | Path | None = "benchmarks/results", executor: Executor | None = None, *,
-                        workers: int | None = None, strategies: list[str] | None = None, progress: bool = True,
-                        batch_size: int | None = 50) -> dict[str, Any]:
+def run_wave_experiment(
+    trials: int = 100,
+    queries: int = 20,
+    seed: int = 10,
+    out: str | Path | None = "benchmarks/results",
+    executor: Executor | None = None,
+    *,
+    workers: int | None = None,
+    strategies: list[str] | None = None,
+    progress: bool = True,
+    batch_size: int | None = 50,
+) -> dict[str, Any]:
     r"""Run the Fig. 6 experiment and (if ``out`` is given) write its files.
 
     Files in ``out``: ``wave.json`` (``{"trials", "queries", "strategies": {name: {"wrms_mean",
@@ -220,14 +260,26 @@ def run_wave_experiment(trials: int = 100, queries: int = 20, seed: int = 10,
     if batch_size is None:
         results = runner.run_trials(run_trial, [(s, queries, tuple(strategies)) for s in seeds], **run_kw)
     else:
-        results = runner.run_by_strategy(run_trial_batch, seeds, strategies, batch_size, (queries,),
-                                         first=("info per effort",), **run_kw)
+        results = runner.run_by_strategy(
+            run_trial_batch, seeds, strategies, batch_size, (queries,), first=("info per effort",), **run_kw
+        )
     wall = time.perf_counter() - t0
     summary = summarise(results, strategies)
-    summary.update(trials=trials, seed=seed, wall_time_s=wall, workers=workers,
-                   settings={"model": MODEL_SETTINGS, "m": M, "gamma": GAMMA, "candidates": NUM_CANDIDATES,
-                             "grid_points": GRID_POINTS, "top_k": TOP_K,
-                             "costs": {"rating": RATING_COST, "ranking": RANKING_COST}})
+    summary.update(
+        trials=trials,
+        seed=seed,
+        wall_time_s=wall,
+        workers=workers,
+        settings={
+            "model": MODEL_SETTINGS,
+            "m": M,
+            "gamma": GAMMA,
+            "candidates": NUM_CANDIDATES,
+            "grid_points": GRID_POINTS,
+            "top_k": TOP_K,
+            "costs": {"rating": RATING_COST, "ranking": RANKING_COST},
+        },
+    )
     result = {"trials": trials, "queries": queries, "strategies": summary["per_query"]}
     if out is not None:
         _write_files(out, result, summary)
@@ -240,11 +292,15 @@ def _write_files(out: str | Path, result: dict[str, Any], summary: dict[str, Any
     trials, queries = result["trials"], result["queries"]
     labels = {"wrms": "WRMS (eq. 14)", "tp": f"true positives (top {TOP_K})"}
     figures = {
-        "wave.png": dict(panels=metric_panels(summary["per_query"], list(range(queries + 1)), labels),
-                         title=f"Wave functions, {trials} trials (mean ± s.e.)"),
-        "wave_effort.png": dict(panels=metric_panels(summary["per_effort"], summary["budgets"], labels),
-                                xlabel=f"effort (rating {RATING_COST:g}, best-of-{M} {RANKING_COST:g})",
-                                title=f"At equal effort, {trials} trials (mean ± s.e.)"),
+        "wave.png": dict(
+            panels=metric_panels(summary["per_query"], list(range(queries + 1)), labels),
+            title=f"Wave functions, {trials} trials (mean ± s.e.)",
+        ),
+        "wave_effort.png": dict(
+            panels=metric_panels(summary["per_effort"], summary["budgets"], labels),
+            xlabel=f"effort (rating {RATING_COST:g}, best-of-{M} {RANKING_COST:g})",
+            title=f"At equal effort, {trials} trials (mean ± s.e.)",
+        ),
     }
     write_experiment_files(out, "wave", result, summary, figures, effort=summary["per_effort"])
 

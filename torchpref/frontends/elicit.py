@@ -29,8 +29,14 @@ from torch import Tensor
 
 from torchpref.data.features import FeaturesError, printable, read_features_csv
 from torchpref.data.queries import Query, RankingQuery, first_unique_rows
-from torchpref.sessions.session import (PreferenceSession, SessionFileCorrupt, SessionFileError, SessionMismatchError,
-                               default_ranking_size, read_session_file)
+from torchpref.sessions.session import (
+    PreferenceSession,
+    SessionFileCorrupt,
+    SessionFileError,
+    SessionMismatchError,
+    default_ranking_size,
+    read_session_file,
+)
 from torchpref.selection.strategies import UCBC
 
 __all__ = ["FeaturesError", "FeaturesWorld", "LakeWorld", "plot_paths", "read_features_csv", "run"]
@@ -81,8 +87,10 @@ class LakeWorld(FeaturesWorld):
         from torchpref.lake.scenario import cached_scenario, scenario_cache_path
 
         if not scenario_cache_path(seed).exists():
-            print(f"Building the lake of seed {seed} (once; it is cached in {scenario_cache_path(seed).parent}) ...",
-                  file=sys.stderr)
+            print(
+                f"Building the lake of seed {seed} (once; it is cached in {scenario_cache_path(seed).parent}) ...",
+                file=sys.stderr,
+            )
         self.scenario = cached_scenario(seed, progress=True)
         self.out_dir = out_dir
         super().__init__(self.scenario.train_X, ["distance", "information"], None)
@@ -95,8 +103,11 @@ class LakeWorld(FeaturesWorld):
         """Write a map of the query's paths, labelled by their letters, and say where it is."""
         rows = list(query.indices) if isinstance(query, RankingQuery) else [query.index]
         letters = LETTERS[: len(rows)] if isinstance(query, RankingQuery) else ["?"]
-        title = (f"Query {number}: which path is best?" if isinstance(query, RankingQuery)
-                 else f"Query {number}: rate this path from 1 to {NUM_LEVELS}")
+        title = (
+            f"Query {number}: which path is best?"
+            if isinstance(query, RankingQuery)
+            else f"Query {number}: rate this path from 1 to {NUM_LEVELS}"
+        )
         png = plot_paths(self.scenario, rows, letters, title, self.out_dir / f"query-{number:02d}.png")
         print(f"Map of the {'paths' if len(rows) > 1 else 'path'}: {png}", file=out)
 
@@ -113,20 +124,31 @@ class LakeWorld(FeaturesWorld):
         shown = plan["shown_row"]
         sure = 100 * float(torch.special.ndtr(torch.tensor(float(PLAN_SETTINGS["beta"]))))
         if plan["source"] == "fallback":
-            text = (f"Recommended: path {shown} (the best path you answered about): no planned path is at least "
-                    f"{sure:.0f} % sure to be better.")
+            text = (
+                f"Recommended: path {shown} (the best path you answered about): no planned path is at least "
+                f"{sure:.0f} % sure to be better."
+            )
         else:
-            text = (f"Recommended: a planned path, distance {d:.1f}, information {info:.1f}: the learned utility is "
-                    f"at least {sure:.0f} % sure it beats path {shown}, the best path you answered about.")
+            text = (
+                f"Recommended: a planned path, distance {d:.1f}, information {info:.1f}: the learned utility is "
+                f"at least {sure:.0f} % sure it beats path {shown}, the best path you answered about."
+            )
         paths = [self.scenario.train_paths[i], self.scenario.train_paths[shown]]
-        labels = [f"pool's best (path {i}): d={float(x[0]):.0f}, I={float(x[1]):.0f}",
-                  f"best answered (path {shown}{', recommended' if plan['source'] == 'fallback' else ''}): "
-                  f"d={plan['shown_objectives'][0]:.0f}, I={plan['shown_objectives'][1]:.0f}"]
+        labels = [
+            f"pool's best (path {i}): d={float(x[0]):.0f}, I={float(x[1]):.0f}",
+            f"best answered (path {shown}{', recommended' if plan['source'] == 'fallback' else ''}): "
+            f"d={plan['shown_objectives'][0]:.0f}, I={plan['shown_objectives'][1]:.0f}",
+        ]
         if plan["source"] != "fallback":
             paths.append(torch.tensor(plan["path"]))
             labels.append(f"planned (recommended): d={d:.0f}, I={info:.0f}")
-        png = plot_map(self.scenario, paths, labels, self.out_dir / "best-path.png",
-                       title="The pool's best path, the best answered path and the planned path")
+        png = plot_map(
+            self.scenario,
+            paths,
+            labels,
+            self.out_dir / "best-path.png",
+            title="The pool's best path, the best answered path and the planned path",
+        )
         print(f"{text} Map: {png}", file=out)
 
 
@@ -136,13 +158,22 @@ def plot_paths(scenario, rows: list[int], letters, title: str, path: Path) -> Pa
     from torchpref.lake.plotting import plot_paths as plot_map
 
     X = scenario.train_X
-    labels = [f"{letter}: d={float(X[r, 0]):.0f}, I={float(X[r, 1]):.0f}".lstrip(": ") for r, letter in zip(rows, letters)]
+    labels = [
+        f"{letter}: d={float(X[r, 0]):.0f}, I={float(X[r, 1]):.0f}".lstrip(": ") for r, letter in zip(rows, letters)
+    ]
     return plot_map(scenario, [scenario.train_paths[r] for r in rows], labels, Path(path), title=title, dpi=90)
 
 
 # ----------------------------------------------------------------------------- terminal
-def _table(world: FeaturesWorld, rows: list[int | None], X: Tensor, letters, out: TextIO, extra: str = "",
-           extras: list[str] | None = None) -> None:
+def _table(
+    world: FeaturesWorld,
+    rows: list[int | None],
+    X: Tensor,
+    letters,
+    out: TextIO,
+    extra: str = "",
+    extras: list[str] | None = None,
+) -> None:
     """Items as rows: a letter (or rank), the label, the objectives' values, and ``extras``."""
     names = world.names
     width = [max(10, len(n)) for n in names]
@@ -187,13 +218,19 @@ def _ask_answer(query: Query, inp: TextIO, out: TextIO):
                 return ("answer", None)
             if len(text) == 1 and text.upper() in valid:
                 return ("answer", valid.index(text.upper()))
-            print(f"{printable(text)!r} is not one of the items: type a letter from {valid[0]} to {valid[-1]} "
-                  "(or ? for help).", file=out)
+            print(
+                f"{printable(text)!r} is not one of the items: type a letter from {valid[0]} to {valid[-1]} "
+                "(or ? for help).",
+                file=out,
+            )
         else:
             if text.isascii() and text.isdigit() and 1 <= int(text) <= NUM_LEVELS:  # not '²' or '①'
                 return ("answer", int(text))
-            print(f"{printable(text)!r} is not a rating: type a whole number from 1 (unacceptable) to {NUM_LEVELS} "
-                  "(excellent), or ? for help.", file=out)
+            print(
+                f"{printable(text)!r} is not a rating: type a whole number from 1 (unacceptable) to {NUM_LEVELS} "
+                "(excellent), or ? for help.",
+                file=out,
+            )
 
 
 def _show_query(world: FeaturesWorld, session: PreferenceSession, query: Query, out: TextIO) -> None:
@@ -204,8 +241,11 @@ def _show_query(world: FeaturesWorld, session: PreferenceSession, query: Query, 
         rows = list(query.indices) if query.indices is not None else [None] * query.m
         _table(world, rows, query.items, LETTERS[: query.m], out)
     else:
-        print(f"Query {number} of {session.num_queries}: rate this {world.noun} from 1 (unacceptable) to "
-              f"{NUM_LEVELS} (excellent).", file=out)
+        print(
+            f"Query {number} of {session.num_queries}: rate this {world.noun} from 1 (unacceptable) to "
+            f"{NUM_LEVELS} (excellent).",
+            file=out,
+        )
         _table(world, [query.index], query.items, [" "], out)
     world.show(query, number, out)
 
@@ -217,13 +257,25 @@ def _summary(world: FeaturesWorld, session: PreferenceSession, out: TextIO, top:
     level = (NUM_LEVELS * session.expected_rating(X) + 0.5).clamp(1, NUM_LEVELS)  # inverse of likert_to_unit
     order = distinct[mean[distinct].argsort(descending=True)[:top]]
     print("", file=out)
-    print(f"Learned utility: your top {order.numel()} {world.noun}s "
-          f"(from {_plural(session.step, 'answer')}; utility: posterior mean +- standard deviation, higher is "
-          "better; expected rating: on the 1-5 scale):", file=out)
-    extras = [f"  {float(mean[i]):+6.2f} +- {float(std[i]):.2f}   {float(level[i]):.1f} / {NUM_LEVELS}"
-              for i in order.tolist()]
-    _table(world, order.tolist(), X[order], [str(k + 1) for k in range(order.numel())], out,
-           "     utility   expected rating", extras)
+    print(
+        f"Learned utility: your top {order.numel()} {world.noun}s "
+        f"(from {_plural(session.step, 'answer')}; utility: posterior mean +- standard deviation, higher is "
+        "better; expected rating: on the 1-5 scale):",
+        file=out,
+    )
+    extras = [
+        f"  {float(mean[i]):+6.2f} +- {float(std[i]):.2f}   {float(level[i]):.1f} / {NUM_LEVELS}"
+        for i in order.tolist()
+    ]
+    _table(
+        world,
+        order.tolist(),
+        X[order],
+        [str(k + 1) for k in range(order.numel())],
+        out,
+        "     utility   expected rating",
+        extras,
+    )
     world.finish(session, out)
 
 
@@ -241,21 +293,30 @@ def session_path(args) -> Path | None:
     return Path(f"{Path(args.features).stem if args.features else args.world}.session.jsonl")
 
 
-def _open_session(world: FeaturesWorld, args, path: Path | None, seed: int, inp: TextIO,
-                  out: TextIO) -> PreferenceSession | None:
+def _open_session(
+    world: FeaturesWorld, args, path: Path | None, seed: int, inp: TextIO, out: TextIO
+) -> PreferenceSession | None:
     n = torch.unique(world.X, dim=0).shape[0]  # distinct items
     if n < 2:
         raise SessionFileError("need at least two distinct items to elicit preferences.")
-    kwargs = dict(selector=UCBC(m=default_ranking_size(n)), seed=seed, num_queries=args.queries,
-                  num_levels=NUM_LEVELS, names=world.names, session_file=path,
-                  metadata={"world": args.world or "features", "features": args.features})
+    kwargs = dict(
+        selector=UCBC(m=default_ranking_size(n)),
+        seed=seed,
+        num_queries=args.queries,
+        num_levels=NUM_LEVELS,
+        names=world.names,
+        session_file=path,
+        metadata={"world": args.world or "features", "features": args.features},
+    )
     try:
         return PreferenceSession(world.X, **kwargs)
     except SessionMismatchError as err:
         what = "CSV" if args.features else "world"
         theirs, mine = err.theirs.strip("()"), err.mine.strip("()")
-        raise SessionFileError(f"{path} was started with other {err.setting} ({theirs}) than this {what}'s ({mine}); "
-                               f"give another --session file, or the {what} it was started with.") from None
+        raise SessionFileError(
+            f"{path} was started with other {err.setting} ({theirs}) than this {what}'s ({mine}); "
+            f"give another --session file, or the {what} it was started with."
+        ) from None
     except SessionFileCorrupt as err:
         print(f"torchpref elicit: {err}", file=sys.stderr)
         if not err.repairable:
@@ -289,8 +350,10 @@ def run(args, stdin: TextIO | None = None, stdout: TextIO | None = None) -> int:
     path = session_path(args)
     seed = _file_seed(path)
     if seed is not None and args.seed is not None and args.seed != seed:
-        print(f"Note: {path} was started with seed {seed}; continuing with it (--seed {args.seed} is for a new "
-              "session).", file=out)
+        print(
+            f"Note: {path} was started with seed {seed}; continuing with it (--seed {args.seed} is for a new session).",
+            file=out,
+        )
     seed = seed if seed is not None else (0 if args.seed is None else args.seed)
     if args.features is not None:
         X, names, labels = read_features_csv(args.features, getattr(args, "id_column", None))
@@ -307,8 +370,11 @@ def run(args, stdin: TextIO | None = None, stdout: TextIO | None = None) -> int:
 
 def _loop(world: FeaturesWorld, session: PreferenceSession, path: Path | None, inp: TextIO, out: TextIO) -> int:
     n = world.X.shape[0]
-    print(f"{_plural(n, world.noun)}, objectives: {', '.join(world.names)}. "
-          f"{_plural(session.num_queries, 'query', 'queries')}; type ? for help.", file=out)
+    print(
+        f"{_plural(n, world.noun)}, objectives: {', '.join(world.names)}. "
+        f"{_plural(session.num_queries, 'query', 'queries')}; type ? for help.",
+        file=out,
+    )
     if path is not None:
         note = f"resuming with {_plural(session.step, 'answer')}" if session.step else "a new session"
         print(f"Answers are saved to {path} as you give them ({note}).", file=out)
@@ -336,8 +402,7 @@ def _loop(world: FeaturesWorld, session: PreferenceSession, path: Path | None, i
                 print(f"That answer could not be used ({exc}); please try again.", file=out)
                 continue
             if reply[1] is None:
-                print("Noted: no preference. The model now takes these items to be about equally good.",
-                      file=out)
+                print("Noted: no preference. The model now takes these items to be about equally good.", file=out)
     except KeyboardInterrupt:
         print(f"\nInterrupted after {_plural(session.step, 'answer')} ({saved}).", file=out)
         return 130

@@ -67,8 +67,10 @@ def table_picture(item: Tensor, index: int | None = None, names: list[str] | Non
     """
     values = [float(v) for v in item.reshape(-1)]
     names = names if names is not None else [f"x{k + 1}" for k in range(len(values))]
-    rows = "".join(f"<tr><td>{html.escape(str(n))}</td><td style='text-align:right'>{v:.4g}</td></tr>"
-                   for n, v in zip(names, values))
+    rows = "".join(
+        f"<tr><td>{html.escape(str(n))}</td><td style='text-align:right'>{v:.4g}</td></tr>"
+        for n, v in zip(names, values)
+    )
     head = f"<b>item #{index}</b>" if index is not None else ""
     return f"{head}<table>{rows}</table>"
 
@@ -109,8 +111,10 @@ def as_picture(picture: Any, width: str = "100%"):
             if fmt is not None:
                 return _image(data, fmt, width)
             return w.HTML(data)
-    raise TypeError(f"a render hook must return a figure, image bytes, a Path, an HTML string or a widget, "
-                    f"got {type(picture).__name__}.")
+    raise TypeError(
+        f"a render hook must return a figure, image bytes, a Path, an HTML string or a widget, "
+        f"got {type(picture).__name__}."
+    )
 
 
 def lake_renderer(scenario: LakeScenario) -> RenderHook:
@@ -158,8 +162,14 @@ class PreferenceWidget:
         status: an ``ipywidgets.HTML`` line saying what was recorded (or what went wrong).
     """
 
-    def __init__(self, session: PreferenceSession, render: RenderHook | None = None, *, noun: str = "item",
-                 picture_width: str = "360px") -> None:
+    def __init__(
+        self,
+        session: PreferenceSession,
+        render: RenderHook | None = None,
+        *,
+        noun: str = "item",
+        picture_width: str = "360px",
+    ) -> None:
         if not isinstance(session, PreferenceSession):
             raise TypeError(f"session must be a PreferenceSession, got {type(session).__name__}.")
         if render is not None and not callable(render):
@@ -196,8 +206,10 @@ class PreferenceWidget:
                 pic.add_class("torchpref-picture")
                 return pic
             except Exception as exc:  # noqa: BLE001  (the hook is the caller's code: show its failure)
-                failure = _widgets().HTML(f"<span style='color:#b00'>render hook failed: "
-                                          f"{html.escape(type(exc).__name__ + ': ' + str(exc))}</span>")
+                failure = _widgets().HTML(
+                    f"<span style='color:#b00'>render hook failed: "
+                    f"{html.escape(type(exc).__name__ + ': ' + str(exc))}</span>"
+                )
         table = as_picture(table_picture(item, index, self.session.names))
         return table if failure is None else _widgets().VBox([failure, table])
 
@@ -220,8 +232,10 @@ class PreferenceWidget:
         if isinstance(q, RankingQuery):
             idx = q.indices if q.indices is not None else (None,) * q.m
             self.prompt.value = f"<h3>{number}: which {self.noun} is best?</h3>"
-            cards = [w.VBox([self.picture(x, i), self._button(f"{LETTERS[k]} is best", k, "primary")])
-                     for k, (x, i) in enumerate(zip(q.items, idx))]
+            cards = [
+                w.VBox([self.picture(x, i), self._button(f"{LETTERS[k]} is best", k, "primary")])
+                for k, (x, i) in enumerate(zip(q.items, idx))
+            ]
             self.extra.children = [self._button("no preference", None)]
         else:
             levels = s.num_levels

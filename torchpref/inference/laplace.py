@@ -58,16 +58,20 @@ class ModeResult:
 
     def select(self, index) -> "ModeResult":
         """The problems ``index`` (an int drops the batch dimension)."""
+
         def pick(v):
             return tuple(w[index] for w in v) if isinstance(v, tuple) else v[index] if isinstance(v, Tensor) else v
+
         return replace(self, **{fl.name: pick(getattr(self, fl.name)) for fl in fields(self)})
 
     def batched(self) -> "ModeResult":
         """With a batch dimension (a no-op for a batched result)."""
         if self.f.dim() == 2:
             return self
+
         def add(v):
             return tuple(w[None] for w in v) if isinstance(v, tuple) else v[None] if isinstance(v, Tensor) else v
+
         return replace(self, **{fl.name: add(getattr(self, fl.name)) for fl in fields(self)})
 
 
@@ -113,17 +117,30 @@ def find_mode(
         L = L[None]
     n = L.shape[-1]
     tol = default_tolerance(L.dtype) if tol is None else tol
-    opts = NewtonOptions(max_iter, tol, max_chord if n >= chord_min_size else 0,
-                         L.dtype == torch.float64 and n >= single_precision_min_size)
+    opts = NewtonOptions(
+        max_iter,
+        tol,
+        max_chord if n >= chord_min_size else 0,
+        L.dtype == torch.float64 and n >= single_precision_min_size,
+    )
     # inference mode: no autograd bookkeeping on the many small tensors of the iterations; the
     # results are cloned out of it, as later autograd passes may save them for backward
     with torch.inference_mode():
-        starts = () if f0 is None else tuple(f.detach().to(L).reshape(L.shape[:-1]) for f in
-                                               (f0 if isinstance(f0, tuple) else (f0,)))
+        starts = (
+            ()
+            if f0 is None
+            else tuple(f.detach().to(L).reshape(L.shape[:-1]) for f in (f0 if isinstance(f0, tuple) else (f0,)))
+        )
         out = newton_mode(L.detach(), obs, starts, opts)
-    mode = ModeResult(out.point.a.clone(), out.point.f.clone(), out.factor.M.clone(),
-                      tuple(w.clone() for w in out.factor.weights), out.iterations, out.converged.clone(),
-                      out.factor.fisher.clone())
+    mode = ModeResult(
+        out.point.a.clone(),
+        out.point.f.clone(),
+        out.factor.M.clone(),
+        tuple(w.clone() for w in out.factor.weights),
+        out.iterations,
+        out.converged.clone(),
+        out.factor.fisher.clone(),
+    )
     decrement = out.decrement.clone()
     _warn(mode, decrement)
     return mode.select(0) if single else mode
@@ -150,21 +167,26 @@ def _warn(mode: ModeResult, decrement: Tensor) -> None:
         warnings.warn(
             f"the Laplace Hessian is not positive definite at the returned mode{which(mode.fisher_fallback)}; "
             "the predictive covariance uses the Fisher (expected) W instead",
-            LaplaceConvergenceWarning, stacklevel=3)
+            LaplaceConvergenceWarning,
+            stacklevel=3,
+        )
     if not bool(mode.converged.all()):
         bad = ~mode.converged
         warnings.warn(
             f"Newton's method for the Laplace mode{which(bad)} did not converge in {mode.iterations} "
             f"iterations (Newton decrement {float(decrement[bad].max()):.3g})",
-            LaplaceConvergenceWarning, stacklevel=3)
+            LaplaceConvergenceWarning,
+            stacklevel=3,
+        )
 
 
 def _eye(n: int, like: Tensor) -> Tensor:
     return torch.eye(n, dtype=like.dtype, device=like.device)
 
 
-def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor | None = None,
-                     jitter: float | Tensor = 0.0) -> Tensor:
+def laplace_evidence(
+    K: Tensor, obs: Observations, mode: ModeResult, L: Tensor | None = None, jitter: float | Tensor = 0.0
+) -> Tensor:
     r"""The Laplace evidence ``log q(Y)`` per problem, differentiable in the hyperparameters.
 
     Args:
@@ -219,15 +241,18 @@ def laplace_evidence(K: Tensor, obs: Observations, mode: ModeResult, L: Tensor |
     return out[0] if single else out
 
 
-def _kernel_gradient(alpha: Tensor, WV_t: Tensor, h: Tensor, Sigma_h: Tensor, obs: Observations,
-                     weights: tuple[Tensor, ...]) -> Tensor:
+def _kernel_gradient(
+    alpha: Tensor, WV_t: Tensor, h: Tensor, Sigma_h: Tensor, obs: Observations, weights: tuple[Tensor, ...]
+) -> Tensor:
     r"""``d log q / d K = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``
     (``B x n x n``; see :func:`laplace_evidence`), given ``W V^T`` (``Sigma = V^T V``), whose
     product with its transpose is ``W Sigma W``."""
     n = WV_t.shape[-1]
     W = obs.W_dense(n, weights, like=WV_t)
     b = h - obs.W_vector(weights, Sigma_h)  # (I - W Sigma) h
-    return 0.5 * (alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - W + WV_t @ WV_t.mT - b.unsqueeze(-1) * alpha.unsqueeze(-2))
+    return 0.5 * (
+        alpha.unsqueeze(-1) * alpha.unsqueeze(-2) - W + WV_t @ WV_t.mT - b.unsqueeze(-1) * alpha.unsqueeze(-2)
+    )
 
 
 def _second_order_value(ll: Tensor, g: Tensor, L: Tensor, mode: ModeResult, h: Tensor) -> Tensor:
@@ -237,8 +262,13 @@ def _second_order_value(ll: Tensor, g: Tensor, L: Tensor, mode: ModeResult, h: T
     a, M = mode.a, mode.B_chol
     grad_a = (L.mT @ g.unsqueeze(-1)).squeeze(-1) - a
     step = torch.cholesky_solve(grad_a.unsqueeze(-1), M).squeeze(-1)
-    return (ll - 0.5 * (a * a).sum(-1) - torch.log(torch.diagonal(M, dim1=-2, dim2=-1)).sum(-1)
-            + 0.5 * (grad_a * step).sum(-1) - 0.5 * (h * (L @ step.unsqueeze(-1)).squeeze(-1)).sum(-1))
+    return (
+        ll
+        - 0.5 * (a * a).sum(-1)
+        - torch.log(torch.diagonal(M, dim1=-2, dim2=-1)).sum(-1)
+        + 0.5 * (grad_a * step).sum(-1)
+        - 0.5 * (h * (L @ step.unsqueeze(-1)).squeeze(-1)).sum(-1)
+    )
 
 
 def _solve_t(L: Tensor, a: Tensor) -> Tensor:
@@ -246,8 +276,9 @@ def _solve_t(L: Tensor, a: Tensor) -> Tensor:
     return torch.linalg.solve_triangular(L.mT, a.unsqueeze(-1), upper=True).squeeze(-1)
 
 
-def traced_mode(L: Tensor, obs: Observations, mode: ModeResult, keep_value: bool = False
-                ) -> tuple[Tensor, Tensor, Tensor]:
+def traced_mode(
+    L: Tensor, obs: Observations, mode: ModeResult, keep_value: bool = False
+) -> tuple[Tensor, Tensor, Tensor]:
     r"""The mode as a differentiable function of ``L`` and the observations' targets.
 
     One Newton step from the detached mode, ``a~ = a + B^{-1} grad Psi(a)``, taken with autograd

@@ -62,10 +62,15 @@ class NewtonPoint:
 
         def pick(x: Tensor, y: Tensor) -> Tensor:
             return torch.where(take.reshape(-1, *[1] * (x.dim() - 1)), x, y)
+
         f = None if self.f is None or other.f is None else pick(self.f, other.f)
-        return NewtonPoint(pick(self.a, other.a), f, pick(self.psi, other.psi),
-                           pick(self.grad, other.grad),
-                           tuple(pick(x, y) for x, y in zip(self.weights, other.weights)))
+        return NewtonPoint(
+            pick(self.a, other.a),
+            f,
+            pick(self.psi, other.psi),
+            pick(self.grad, other.grad),
+            tuple(pick(x, y) for x, y in zip(self.weights, other.weights)),
+        )
 
 
 @dataclass(frozen=True)
@@ -82,9 +87,11 @@ class Factor:
         if bool(take.all()):
             return self
         t1, t2 = take.reshape(-1, 1), take.reshape(-1, 1, 1)
-        return Factor(torch.where(t2, self.M, other.M),
-                      tuple(torch.where(t1, x, y) for x, y in zip(self.weights, other.weights)),
-                      torch.where(take, self.fisher, other.fisher))
+        return Factor(
+            torch.where(t2, self.M, other.M),
+            tuple(torch.where(t1, x, y) for x, y in zip(self.weights, other.weights)),
+            torch.where(take, self.fisher, other.fisher),
+        )
 
 
 @dataclass(frozen=True)
@@ -163,11 +170,13 @@ class Problem:
             self._L32 = self.L.float()
             self._rows32 = None if self.rows is None else tuple(R.float() for R in self.rows)
         M, info = torch.linalg.cholesky_ex(
-            self.obs.whitened_hessian(self._L32, tuple(w.float() for w in point.weights), self._rows32))
+            self.obs.whitened_hessian(self._L32, tuple(w.float() for w in point.weights), self._rows32)
+        )
         return None if bool((info > 0).any()) else M
 
-    def line_search(self, point: NewtonPoint, step: Tensor, decrement: Tensor, active: list[bool],
-                    full: list[bool] | None = None) -> tuple[NewtonPoint, list[bool]]:
+    def line_search(
+        self, point: NewtonPoint, step: Tensor, decrement: Tensor, active: list[bool], full: list[bool] | None = None
+    ) -> tuple[NewtonPoint, list[bool]]:
         """Armijo backtracking for the ``active`` problems; the ``full`` ones take the whole step
         untested. All problems still searching share the step length (each halves it from 1 until
         its test passes), so one evaluation per length serves them all. Returns the new point and
@@ -224,8 +233,9 @@ def float32_step(prob: Problem, point: NewtonPoint, active: list[bool], tol: flo
     return None if any(failed) else (new, dec)
 
 
-def chord_steps(prob: Problem, point: NewtonPoint, M: Tensor, decrement: list[float], eligible: list[bool],
-                opts: NewtonOptions) -> tuple[NewtonPoint, list[float]]:
+def chord_steps(
+    prob: Problem, point: NewtonPoint, M: Tensor, decrement: list[float], eligible: list[bool], opts: NewtonOptions
+) -> tuple[NewtonPoint, list[float]]:
     """Up to ``opts.max_chord`` steps with the factor ``M`` of an earlier point (a new gradient,
     the old ``B``), for each ``eligible`` problem while its decrement contracts fourfold."""
     tol, tiny = _in_dtype(opts.tol, M.dtype), _in_dtype(1e-8, M.dtype)
@@ -302,5 +312,10 @@ def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: 
     if not all(has_factor):  # stuck or out of iterations: a factor at the final points
         fresh = prob.factorise(point)
         final = fresh if final is None else _pick(final, has_factor, fresh)
-    return NewtonResult(replace(point, f=prob.utilities(point)), final, torch.tensor(converged, device=L.device),
-                        torch.tensor(decrement, dtype=L.dtype, device=L.device), it)
+    return NewtonResult(
+        replace(point, f=prob.utilities(point)),
+        final,
+        torch.tensor(converged, device=L.device),
+        torch.tensor(decrement, dtype=L.dtype, device=L.device),
+        it,
+    )

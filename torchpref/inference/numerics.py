@@ -317,8 +317,10 @@ def _central_interval(a: Tensor, b: Tensor, a_inf: Tensor, b_inf: Tensor):
     middle = (hi > 0) | hi_inf
     a_m = torch.where(middle & ~a_inf, a, torch.ones_like(a))
     b_m = torch.where(middle & ~b_inf, b, -torch.ones_like(b))
-    P_mid = 0.5 * (torch.where(a_inf, torch.ones_like(a), torch.erf(a_m / math.sqrt(2)))
-                   - torch.where(b_inf, -torch.ones_like(b), torch.erf(b_m / math.sqrt(2))))
+    P_mid = 0.5 * (
+        torch.where(a_inf, torch.ones_like(a), torch.erf(a_m / math.sqrt(2)))
+        - torch.where(b_inf, -torch.ones_like(b), torch.erf(b_m / math.sqrt(2)))
+    )
     log_mid = torch.log(P_mid)
     r_a_mid = torch.where(a_inf, torch.zeros_like(a), torch.exp(-0.5 * a_m * a_m - LOG_2PI_HALF - log_mid))
     r_b_mid = torch.where(b_inf, torch.zeros_like(b), torch.exp(-0.5 * b_m * b_m - LOG_2PI_HALF - log_mid))

@@ -122,8 +122,9 @@ class Term:
             out.index_add_(0, self._flat_index(c, B, n), X.reshape(-1, k), alpha=coef)
         return out.reshape(B, n, k)
 
-    def evaluate(self, f: Tensor, fisher: Tensor | None = None, eta: Tensor | None = None
-                 ) -> tuple[Tensor, Tensor, Tensor]:
+    def evaluate(
+        self, f: Tensor, fisher: Tensor | None = None, eta: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """``(log p summed per problem (B), d log p / d eta (B x m), weights w (B x m))``;
         ``fisher`` (``B`` bool) swaps in the Fisher weights for those problems; ``eta``: the
         predictors at ``f`` if already computed."""
@@ -163,8 +164,9 @@ class Term:
         """The values matching :meth:`W_entries`: ``coef_c coef_e w_k``."""
         key = ("coef", w.dtype, w.device)
         if key not in self._patterns:  # the c^2 products coef_c coef_e, one per row
-            self._patterns[key] = torch.tensor([ci * ce for ci in self.coef for ce in self.coef], dtype=w.dtype,
-                                               device=w.device).unsqueeze(-1)
+            self._patterns[key] = torch.tensor(
+                [ci * ce for ci in self.coef for ce in self.coef], dtype=w.dtype, device=w.device
+            ).unsqueeze(-1)
         return (self._patterns[key] * w.reshape(1, -1)).reshape(-1)
 
 
@@ -195,10 +197,20 @@ class Observations:
     _sparse: dict = field(default_factory=dict, repr=False)
 
     @classmethod
-    def from_data(cls, comparisons: Tensor, ratings: Tensor, rating_index: Tensor, comparison_likelihood,
-                  rating_likelihood, comparison_mask: Tensor | None = None,
-                  rating_mask: Tensor | None = None, *, ties: Tensor | None = None, tie_likelihood=None,
-                  tie_mask: Tensor | None = None) -> "Observations":
+    def from_data(
+        cls,
+        comparisons: Tensor,
+        ratings: Tensor,
+        rating_index: Tensor,
+        comparison_likelihood,
+        rating_likelihood,
+        comparison_mask: Tensor | None = None,
+        rating_mask: Tensor | None = None,
+        *,
+        ties: Tensor | None = None,
+        tie_likelihood=None,
+        tie_mask: Tensor | None = None,
+    ) -> "Observations":
         """Comparisons (``p x 2`` or ``B x p x 2``), ratings (``q`` or ``B x q``, of items
         ``rating_index``) and ties (``t x 2`` or ``B x t x 2``, scored by ``tie_likelihood``) as
         terms; empty kinds are left out. A likelihood with ``log_concave = True`` (the ordinal
@@ -214,8 +226,15 @@ class Observations:
         if comparisons.shape[-2]:
             terms.append(pairwise_term(comparison_likelihood, comparisons, comparison_mask, log_concave=True))
         if ratings.shape[-1]:
-            terms.append(item_term(rating_likelihood, rating_index, ratings, rating_mask,
-                                   log_concave=getattr(rating_likelihood, "log_concave", False)))
+            terms.append(
+                item_term(
+                    rating_likelihood,
+                    rating_index,
+                    ratings,
+                    rating_mask,
+                    log_concave=getattr(rating_likelihood, "log_concave", False),
+                )
+            )
         if ties is not None and ties.shape[-2]:
             if tie_likelihood is None:
                 raise ValueError("ties need a tie_likelihood.")
@@ -319,8 +338,13 @@ class Observations:
         """``W`` (``B x n x n``, eq. 8) densely, for the evidence's gradient, inspection and tests
         (dtype and device of the weights, or of ``like`` when there are no terms)."""
         ref = weights[0] if weights else like
-        W = torch.zeros(self.batch, n, n, dtype=ref.dtype if ref is not None else torch.float64,
-                        device=ref.device if ref is not None else None)
+        W = torch.zeros(
+            self.batch,
+            n,
+            n,
+            dtype=ref.dtype if ref is not None else torch.float64,
+            device=ref.device if ref is not None else None,
+        )
         for t, w in zip(self.terms, weights):
             W.view(-1).index_put_((t.W_flat_index(n),), t.W_values(w), accumulate=True)
         return W

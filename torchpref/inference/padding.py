@@ -57,8 +57,16 @@ class PaddedData:
         return cls(data.train_X, data.comparisons, data.ratings, data.rating_index, ties=data.ties)
 
     @classmethod
-    def create(cls, train_X: Tensor, comparisons=None, ratings=None, rating_index=None,
-               rating_eps: float = DEFAULT_RATING_EPS, ties=None, rating_levels: int | None = None) -> "PaddedData":
+    def create(
+        cls,
+        train_X: Tensor,
+        comparisons=None,
+        ratings=None,
+        rating_index=None,
+        rating_eps: float = DEFAULT_RATING_EPS,
+        ties=None,
+        rating_levels: int | None = None,
+    ) -> "PaddedData":
         """Batched training data, validated per problem: items ``b x n x d``, ``comparisons`` /
         ``ties`` ``b x p x 2`` and ``ratings`` / ``rating_index`` ``b x q`` (or sequences of ``b``
         per-problem tensors of any lengths); ratings are levels ``1..rating_levels`` when given."""
@@ -71,9 +79,20 @@ class PaddedData:
                 raise ValueError(f"batched training data: expected {b} per-problem entries, got {len(value)}.")
             return value[k]
 
-        return cls.stack([PreferenceData.create(train_X[k], part(comparisons, k), part(ratings, k),
-                                                part(rating_index, k), rating_eps=rating_eps, ties=part(ties, k),
-                                                rating_levels=rating_levels) for k in range(b)])
+        return cls.stack(
+            [
+                PreferenceData.create(
+                    train_X[k],
+                    part(comparisons, k),
+                    part(ratings, k),
+                    part(rating_index, k),
+                    rating_eps=rating_eps,
+                    ties=part(ties, k),
+                    rating_levels=rating_levels,
+                )
+                for k in range(b)
+            ]
+        )
 
     @classmethod
     def stack(cls, data: Sequence[PreferenceData]) -> "PaddedData":
@@ -130,24 +149,36 @@ class PaddedData:
             return t[b] if mask is None else t[b][mask[b]]
 
         ties = None if flat.ties is None else keep(flat.ties, flat.tie_mask)
-        return PreferenceData(keep(flat.X, flat.item_mask), keep(flat.comparisons, flat.comparison_mask),
-                              keep(flat.ratings, flat.rating_mask), keep(flat.rating_index, flat.rating_mask), ties)
+        return PreferenceData(
+            keep(flat.X, flat.item_mask),
+            keep(flat.comparisons, flat.comparison_mask),
+            keep(flat.ratings, flat.rating_mask),
+            keep(flat.rating_index, flat.rating_mask),
+            ties,
+        )
 
     def flat(self) -> "PaddedData":
         """The same problems with the batch dimensions flattened into one (``B = prod(batch_shape)``)."""
         B = self.num_problems
 
         def f(t: Tensor | None, k: int) -> Tensor | None:
-            return None if t is None else t.reshape(B, *t.shape[t.dim() - k:])
+            return None if t is None else t.reshape(B, *t.shape[t.dim() - k :])
 
-        return PaddedData(f(self.X, 2), f(self.comparisons, 2), f(self.ratings, 1), f(self.rating_index, 1),
-                          f(self.item_mask, 1), f(self.comparison_mask, 1), f(self.rating_mask, 1),
-                          f(self.ties, 2), f(self.tie_mask, 1))
+        return PaddedData(
+            f(self.X, 2),
+            f(self.comparisons, 2),
+            f(self.ratings, 1),
+            f(self.rating_index, 1),
+            f(self.item_mask, 1),
+            f(self.comparison_mask, 1),
+            f(self.rating_mask, 1),
+            f(self.ties, 2),
+            f(self.tie_mask, 1),
+        )
 
     def map(self, fn) -> "PaddedData":
         """The same problems with ``fn`` applied to every tensor (e.g. a device move)."""
-        return PaddedData(*(None if getattr(self, f.name) is None else fn(getattr(self, f.name))
-                            for f in fields(self)))
+        return PaddedData(*(None if getattr(self, f.name) is None else fn(getattr(self, f.name)) for f in fields(self)))
 
     def with_items(self, X: Tensor) -> "PaddedData":
         """The same problems with items ``X`` (e.g. transformed by an input transform)."""
@@ -156,9 +187,18 @@ class PaddedData:
     def observations(self, comparison_likelihood, rating_likelihood, tie_likelihood=None) -> Observations:
         """The observations of the ``B`` flattened problems as likelihood terms."""
         d = self.flat()
-        return Observations.from_data(d.comparisons, d.ratings, d.rating_index, comparison_likelihood,
-                                      rating_likelihood, d.comparison_mask, d.rating_mask, ties=d.ties,
-                                      tie_likelihood=tie_likelihood, tie_mask=d.tie_mask)
+        return Observations.from_data(
+            d.comparisons,
+            d.ratings,
+            d.rating_index,
+            comparison_likelihood,
+            rating_likelihood,
+            d.comparison_mask,
+            d.rating_mask,
+            ties=d.ties,
+            tie_likelihood=tie_likelihood,
+            tie_mask=d.tie_mask,
+        )
 
     def prior_covariance(self, K: Tensor) -> Tensor:
         """``K`` (``... x N x N``) with padded items made independent with unit variance."""
@@ -172,25 +212,33 @@ class PaddedData:
         """``K_X*`` (``... x N x s``) with the padded items' rows zeroed."""
         return K_xs if self.item_mask is None else torch.where(self.item_mask.unsqueeze(-1), K_xs, 0.0)
 
-    def append(self, X: Tensor, comparisons: Tensor | None = None, ratings: Tensor | None = None,
-               rating_index: Tensor | None = None) -> "PaddedData":
+    def append(
+        self,
+        X: Tensor,
+        comparisons: Tensor | None = None,
+        ratings: Tensor | None = None,
+        rating_index: Tensor | None = None,
+    ) -> "PaddedData":
         """New items ``X`` (``... x m x d``, broadcast to the batch) appended to every problem,
         with observations among them (indices into ``X``'s ``m`` rows, ``... x k x 2`` / ``... x r``).
         For unpadded items only (the fantasy batches of :meth:`PreferenceGP.fantasize`)."""
         if self.item_mask is not None:
             raise ValueError("appending items to a batch with padded items is not supported.")
-        shape = torch.broadcast_shapes(self.batch_shape, X.shape[:-2],
-                                       *([] if comparisons is None else [comparisons.shape[:-2]]),
-                                       *([] if ratings is None else [ratings.shape[:-1]]))
+        shape = torch.broadcast_shapes(
+            self.batch_shape,
+            X.shape[:-2],
+            *([] if comparisons is None else [comparisons.shape[:-2]]),
+            *([] if ratings is None else [ratings.shape[:-1]]),
+        )
         N = self.num_items
         Xn = torch.cat([self.X.expand(*shape, *self.X.shape[-2:]), X.expand(*shape, *X.shape[-2:])], dim=-2)
 
         def grow(old: Tensor, new: Tensor | None, k: int, offset: bool) -> Tensor:
-            old = old.expand(*shape, *old.shape[old.dim() - k:])
+            old = old.expand(*shape, *old.shape[old.dim() - k :])
             if new is None:
                 return old
             new = new.to(old.device) + (N if offset else 0)
-            return torch.cat([old, new.expand(*shape, *new.shape[new.dim() - k:]).to(old.dtype)], dim=-k)
+            return torch.cat([old, new.expand(*shape, *new.shape[new.dim() - k :]).to(old.dtype)], dim=-k)
 
         def mask(old: Tensor | None, size_old: int, new: Tensor | None, k: int) -> Tensor | None:
             if old is None:

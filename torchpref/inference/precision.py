@@ -48,7 +48,10 @@ def call_in_dtype(module: torch.nn.Module, dtype: torch.dtype, fn: Callable[...,
     only; the conversion is differentiable, so gradients reach the parameters in their own dtype."""
     if all(t.dtype == dtype for t in chain(module.parameters(), args)):
         return fn(*args)
-    converted = {f"module.{name}": t.to(dtype)
-                 for name, t in chain(module.named_parameters(), module.named_buffers()) if t.is_floating_point()}
+    converted = {
+        f"module.{name}": t.to(dtype)
+        for name, t in chain(module.named_parameters(), module.named_buffers())
+        if t.is_floating_point()
+    }
     args = tuple(a.to(dtype) if a.is_floating_point() else a for a in args)
     return functional_call(_Evaluate(module, fn), converted, args)

@@ -170,12 +170,22 @@ class InformationField:
         return InformationField(self.grid * factor, self.extent)
 
     @classmethod
-    def random(cls, *, generator: torch.Generator | None = None,
-               extent: tuple[float, float, float, float] = (-250.0, 250.0, -175.0, 175.0),
-               shape: tuple[int, int] = (141, 201), num_gaussians: int = 8, amplitude: tuple[float, float] = (0.4, 1.0),
-               width: tuple[float, float] = (25.0, 60.0), noise_amplitude: float = 0.4, noise_cells: int = 4,
-               noise_octaves: int = 3, baseline: float = 0.05, saturation: float | None = 0.4,
-               dtype=torch.float64) -> InformationField:
+    def random(
+        cls,
+        *,
+        generator: torch.Generator | None = None,
+        extent: tuple[float, float, float, float] = (-250.0, 250.0, -175.0, 175.0),
+        shape: tuple[int, int] = (141, 201),
+        num_gaussians: int = 8,
+        amplitude: tuple[float, float] = (0.4, 1.0),
+        width: tuple[float, float] = (25.0, 60.0),
+        noise_amplitude: float = 0.4,
+        noise_cells: int = 4,
+        noise_octaves: int = 3,
+        baseline: float = 0.05,
+        saturation: float | None = 0.4,
+        dtype=torch.float64,
+    ) -> InformationField:
         r"""A random field: ``baseline + sum_k a_k exp(-|p - c_k|^2 / (2 s_k^2)) + noise``, clamped at 0.
 
         Args:
@@ -205,7 +215,11 @@ class InformationField:
         grid = baseline + _gaussian_bumps(extent, shape, num_gaussians, amplitude, width, generator, dtype)
         xmin, xmax, ymin, ymax = extent
         aspect = (xmax - xmin) / (ymax - ymin)
-        cells = (max(1, round(noise_cells * aspect)), noise_cells) if aspect >= 1 else (noise_cells, max(1, round(noise_cells / aspect)))
+        cells = (
+            (max(1, round(noise_cells * aspect)), noise_cells)
+            if aspect >= 1
+            else (noise_cells, max(1, round(noise_cells / aspect)))
+        )
         noise = perlin_grid(shape, cells, octaves=noise_octaves, generator=generator, dtype=dtype)
         grid = (grid + noise_amplitude * noise).clamp_min(0.0)
         if saturation is not None:
@@ -213,9 +227,15 @@ class InformationField:
         return cls(grid, extent)
 
 
-def _gaussian_bumps(extent: tuple[float, float, float, float], shape: tuple[int, int], num_gaussians: int,
-                    amplitude: tuple[float, float], width: tuple[float, float], generator: torch.Generator | None,
-                    dtype) -> Tensor:
+def _gaussian_bumps(
+    extent: tuple[float, float, float, float],
+    shape: tuple[int, int],
+    num_gaussians: int,
+    amplitude: tuple[float, float],
+    width: tuple[float, float],
+    generator: torch.Generator | None,
+    dtype,
+) -> Tensor:
     """``sum_k a_k exp(-|p - c_k|^2 / (2 s_k^2))`` on the ``shape`` grid over ``extent``, with centres
     ``c_k``, heights ``a_k`` and widths ``s_k`` drawn uniformly (in that order)."""
     xmin, xmax, ymin, ymax = extent

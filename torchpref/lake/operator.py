@@ -57,7 +57,9 @@ class LakeOperator:
     def _check(X) -> Tensor:
         X = torch.as_tensor(X, dtype=torch.float64)
         if X.dim() < 1 or X.shape[-1] != 2:
-            raise ValueError(f"objective vectors must be ... x 2 ([distance, information]), got shape {tuple(X.shape)}.")
+            raise ValueError(
+                f"objective vectors must be ... x 2 ([distance, information]), got shape {tuple(X.shape)}."
+            )
         if not torch.isfinite(X).all():
             raise ValueError(f"objective vectors must be finite, got {X.flatten().tolist()[:6]}.")
         return X

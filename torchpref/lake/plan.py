@@ -68,8 +68,9 @@ class PlanResult:
         return self.source == "planned"
 
 
-def _optimise(lake, field, utility, start: Tensor, steps: int, lr: float, penalty: float, margin: float,
-              step: float) -> Tensor:
+def _optimise(
+    lake, field, utility, start: Tensor, steps: int, lr: float, penalty: float, margin: float, step: float
+) -> Tensor:
     """Adam on the interior waypoints of ``start`` (``k x T x 2``); returns the final paths."""
     sdf, extent = shore_distance_grid(lake, margin)
     first, last = start[:, :1].clone(), start[:, -1:].clone()
@@ -86,10 +87,22 @@ def _optimise(lake, field, utility, start: Tensor, steps: int, lr: float, penalt
     return torch.cat([first, inner.detach(), last], dim=1)
 
 
-def plan_with_utility(scenario, utility: Callable[[Tensor], Tensor], *, starts: Tensor | None = None,
-                      fallback: Tensor | None = None, pool_paths: Tensor | None = None, pool_X: Tensor | None = None,
-                      num_starts: int = 3, num_points: int = 30, steps: int = 150, lr: float = 1.0,
-                      penalty: float = 10.0, margin: float = 1.0, step: float = 2.0) -> PlanResult:
+def plan_with_utility(
+    scenario,
+    utility: Callable[[Tensor], Tensor],
+    *,
+    starts: Tensor | None = None,
+    fallback: Tensor | None = None,
+    pool_paths: Tensor | None = None,
+    pool_X: Tensor | None = None,
+    num_starts: int = 3,
+    num_points: int = 30,
+    steps: int = 150,
+    lr: float = 1.0,
+    penalty: float = 10.0,
+    margin: float = 1.0,
+    step: float = 2.0,
+) -> PlanResult:
     r"""Optimise paths for a utility of their objectives and keep the best candidate.
 
     Args:
@@ -117,8 +130,9 @@ def plan_with_utility(scenario, utility: Callable[[Tensor], Tensor], *, starts: 
         A :class:`PlanResult`; its path is on the water whenever the fallback is.
     """
     if num_starts < 1 or steps < 0 or num_points < 2:
-        raise ValueError(f"need num_starts >= 1, steps >= 0 and num_points >= 2, got {num_starts}, {steps} and "
-                         f"{num_points}.")
+        raise ValueError(
+            f"need num_starts >= 1, steps >= 0 and num_points >= 2, got {num_starts}, {steps} and {num_points}."
+        )
     if isinstance(scenario, tuple):
         lake, field = scenario
     else:
@@ -130,13 +144,19 @@ def plan_with_utility(scenario, utility: Callable[[Tensor], Tensor], *, starts: 
         return utility(X).reshape(X.shape[:-1])
 
     starts, fallback = _starts_and_fallback(field, u_of, starts, fallback, pool_paths, pool_X, num_starts)
-    planned = _optimise(lake, field, u_of, resample_by_arc_length(starts, num_points), steps, lr, penalty, margin,
-                        step)
+    planned = _optimise(lake, field, u_of, resample_by_arc_length(starts, num_points), steps, lr, penalty, margin, step)
     return _best_candidate(lake, field, u_of, fallback, starts, planned)
 
 
-def _starts_and_fallback(field, u_of: Callable[[Tensor], Tensor], starts: Tensor | None, fallback: Tensor | None,
-                         pool_paths: Tensor | None, pool_X: Tensor | None, num_starts: int) -> tuple[Tensor, Tensor]:
+def _starts_and_fallback(
+    field,
+    u_of: Callable[[Tensor], Tensor],
+    starts: Tensor | None,
+    fallback: Tensor | None,
+    pool_paths: Tensor | None,
+    pool_X: Tensor | None,
+    num_starts: int,
+) -> tuple[Tensor, Tensor]:
     """The starting paths and the fallback path, float64, checked; those not given are the
     pool paths of largest utility."""
     if starts is None or fallback is None:
@@ -151,13 +171,16 @@ def _starts_and_fallback(field, u_of: Callable[[Tensor], Tensor], starts: Tensor
     starts = torch.as_tensor(starts, dtype=torch.float64)
     fallback = torch.as_tensor(fallback, dtype=torch.float64)
     if starts.dim() != 3 or starts.shape[0] < 1 or starts.shape[-1] != 2 or fallback.dim() != 2:
-        raise ValueError(f"starts must be k x T x 2 (k >= 1) and fallback T x 2, got shapes {tuple(starts.shape)} "
-                         f"and {tuple(fallback.shape)}.")
+        raise ValueError(
+            f"starts must be k x T x 2 (k >= 1) and fallback T x 2, got shapes {tuple(starts.shape)} "
+            f"and {tuple(fallback.shape)}."
+        )
     return starts, fallback
 
 
-def _best_candidate(lake, field, u_of: Callable[[Tensor], Tensor], fallback: Tensor, starts: Tensor,
-                    planned: Tensor) -> PlanResult:
+def _best_candidate(
+    lake, field, u_of: Callable[[Tensor], Tensor], fallback: Tensor, starts: Tensor, planned: Tensor
+) -> PlanResult:
     """The candidate of largest utility among those on the water; the fallback unless another's is
     strictly larger."""
     with torch.no_grad():

@@ -39,7 +39,9 @@ def path_cost(paths: Tensor, field: InformationField, weights: Tensor, *, step: 
     return _weighted_cost(path_length(paths), path_information(paths, field, step=step), weights, field.max)
 
 
-def shore_distance_grid(lake: Lake, margin: float, spacing: float = 3.0) -> tuple[Tensor, tuple[float, float, float, float]]:
+def shore_distance_grid(
+    lake: Lake, margin: float, spacing: float = 3.0
+) -> tuple[Tensor, tuple[float, float, float, float]]:
     """:meth:`Lake.signed_distance` tabulated on a grid of ``spacing`` over the lake's bounds padded
     by ``2 margin + 10``: ``(grid, extent)`` for :func:`bilinear_sample`, a cheap differentiable
     shore penalty for optimisers (the exact test stays :meth:`Lake.path_on_water`)."""
@@ -99,8 +101,17 @@ def _smooth_noise_factor(n: int) -> Tensor:
 class _StompState:
     """STOMP's path per weight, its smooth noise, the rollouts' cost and the best iterate on the water."""
 
-    def __init__(self, lake: Lake, field: InformationField, w: Tensor, T: int, margin: float, penalty: float,
-                 subdivisions: int, generator: torch.Generator | None):
+    def __init__(
+        self,
+        lake: Lake,
+        field: InformationField,
+        w: Tensor,
+        T: int,
+        margin: float,
+        penalty: float,
+        subdivisions: int,
+        generator: torch.Generator | None,
+    ):
         self.lake, self.field, self.w, self.generator = lake, field, w, generator
         self.margin, self.penalty, self.subdivisions = margin, penalty, subdivisions
         self.L = _smooth_noise_factor(T - 2)
@@ -121,13 +132,16 @@ class _StompState:
         f = self.field(mid)
         shore = torch.relu(bilinear_sample(self.sdf, self.sdf_extent, mid) + self.margin).pow(2)
         w4 = self.w.view(-1, 1, 1, 1)
-        return (piece.unsqueeze(-1) * (1 + w4 * (self.field.max - f))
-                + self.penalty * shore / self.subdivisions).sum((-1, -2))
+        return (piece.unsqueeze(-1) * (1 + w4 * (self.field.max - f)) + self.penalty * shore / self.subdivisions).sum(
+            (-1, -2)
+        )
 
     def keep_best(self, paths: Tensor) -> None:
         """Keep, per weight, ``paths`` where it is on the water and cheaper than the best so far."""
         ok = self.lake.path_on_water(paths)
-        c = torch.where(ok, path_cost(paths, self.field, self.w, step=2.0), torch.full_like(self.best_cost, float("inf")))
+        c = torch.where(
+            ok, path_cost(paths, self.field, self.w, step=2.0), torch.full_like(self.best_cost, float("inf"))
+        )
         better = c < self.best_cost
         self.best[better] = paths[better]
         self.best_cost = torch.where(better, c, self.best_cost)
@@ -149,10 +163,23 @@ def _stomp_step(state: _StompState, theta: Tensor, sigma: float, K: int, tempera
     return resample_by_arc_length(theta, T)
 
 
-def stomp(lake: Lake, field: InformationField, weights, *, generator: torch.Generator | None = None,
-          num_waypoints: int = 40, num_rollouts: int = 16, iterations: int = 50, noise_std: float = 30.0,
-          init_std: float = 200.0, temperature: float = 10.0, margin: float = 3.0, penalty: float = 50.0,
-          subdivisions: int = 3, progress: bool = False) -> Tensor:
+def stomp(
+    lake: Lake,
+    field: InformationField,
+    weights,
+    *,
+    generator: torch.Generator | None = None,
+    num_waypoints: int = 40,
+    num_rollouts: int = 16,
+    iterations: int = 50,
+    noise_std: float = 30.0,
+    init_std: float = 200.0,
+    temperature: float = 10.0,
+    margin: float = 3.0,
+    penalty: float = 50.0,
+    subdivisions: int = 3,
+    progress: bool = False,
+) -> Tensor:
     r"""STOMP (Kalakrishnan et al. 2011) batched over a sweep of weights.
 
     Each iteration draws ``K`` smooth noisy rollouts ``theta + eps`` per weight, with
@@ -206,7 +233,9 @@ def stomp(lake: Lake, field: InformationField, weights, *, generator: torch.Gene
             state.keep_best(theta)
     found = torch.isfinite(state.best_cost)
     if not found.all() and not bool(lake.path_on_water(state.straight[:1])):
-        raise RuntimeError("STOMP found no path on the water for some weights; the straight start-goal line crosses land.")
+        raise RuntimeError(
+            "STOMP found no path on the water for some weights; the straight start-goal line crosses land."
+        )
     return state.best
 
 
@@ -294,11 +323,12 @@ class _Tree:
         return self.X[order.gather(1, pos)]
 
 
-def _extend(tree: _Tree, lake: Lake, field: InformationField, s: Tensor, step: float, radius: float,
-            info_step: float) -> Tensor | None:
+def _extend(
+    tree: _Tree, lake: Lake, field: InformationField, s: Tensor, step: float, radius: float, info_step: float
+) -> Tensor | None:
     """Steer from the nearest vertex towards sample ``s`` and add the new vertex to ``tree`` from
     the neighbours within ``radius`` it can reach on the water: the vertex, or ``None`` if none."""
-    X = tree.X[:tree.count]
+    X = tree.X[: tree.count]
     d = (X - s).norm(dim=-1)
     near = int(d.argmin())
     if float(d[near]) < 1e-9:
@@ -315,9 +345,20 @@ def _extend(tree: _Tree, lake: Lake, field: InformationField, s: Tensor, step: f
     return new
 
 
-def rrt_star(lake: Lake, field: InformationField, weights, *, generator: torch.Generator | None = None,
-             num_samples: int = 600, step: float = 30.0, radius: float = 45.0, goal_bias: float = 0.05,
-             info_step: float = 2.0, recompute_every: int = 100, progress: bool = False) -> Tensor:
+def rrt_star(
+    lake: Lake,
+    field: InformationField,
+    weights,
+    *,
+    generator: torch.Generator | None = None,
+    num_samples: int = 600,
+    step: float = 30.0,
+    radius: float = 45.0,
+    goal_bias: float = 0.05,
+    info_step: float = 2.0,
+    recompute_every: int = 100,
+    progress: bool = False,
+) -> Tensor:
     r"""RRT* (Karaman and Frazzoli 2011) for a sweep of weights on one shared tree.
 
     Sampling, nearest-vertex steering and edge validity do not depend on ``w``, so all

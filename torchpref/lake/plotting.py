@@ -53,8 +53,15 @@ def draw_lake(ax, scenario: LakeScenario, *, colorbar: bool = True):
     ax.add_patch(Polygon(lake.vertices.numpy(), closed=True, facecolor="none", edgecolor="#3b3b3b", lw=1.5, zorder=2))
     for pt, name, m in ((lake.start, "start", "o"), (lake.goal, "goal", "*")):
         ax.plot(*pt.tolist(), m, color="white", mec="black", ms=11, zorder=5)
-        ax.annotate(name, pt.tolist(), xytext=(6, 8), textcoords="offset points", fontsize=9, zorder=5,
-                    bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.7))
+        ax.annotate(
+            name,
+            pt.tolist(),
+            xytext=(6, 8),
+            textcoords="offset points",
+            fontsize=9,
+            zorder=5,
+            bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.7),
+        )
     ax.set_xlim(xmin, xmax)
     ax.set_ylim(ymin, ymax)
     ax.set_aspect("equal")
@@ -75,8 +82,17 @@ def draw_paths(ax, paths, labels, *, colours=None, styles=None, markers: bool = 
         ax.plot(xy[:, 0], xy[:, 1], ls, color=c, lw=2.2, label=label, zorder=3)
         if markers and ":" in label:
             at = xy[min(len(xy) - 1, int(len(xy) * (k + 1) / (n + 1)))]
-            ax.annotate(label.split(":")[0], at, fontsize=10, fontweight="bold", color=c, zorder=4,
-                        ha="center", va="center", bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=c, alpha=0.9))
+            ax.annotate(
+                label.split(":")[0],
+                at,
+                fontsize=10,
+                fontweight="bold",
+                color=c,
+                zorder=4,
+                ha="center",
+                va="center",
+                bbox=dict(boxstyle="round,pad=0.2", fc="white", ec=c, alpha=0.9),
+            )
 
 
 def plot_paths(scenario: LakeScenario, paths, labels, path: str | Path, *, title: str = "", dpi: int = 110) -> Path:
@@ -109,8 +125,16 @@ def plot_field(scenario: LakeScenario, path: str | Path, *, num_examples: int = 
         for j, k in enumerate(picks.tolist()):
             xy = paths[k].numpy()
             label = f"{name}: w={float(w[k]):.2g}, d={float(X[k, 0]):.0f}, I={float(X[k, 1]):.0f}"
-            ax.plot(xy[:, 0], xy[:, 1], ls, color=colour, lw=1.6, alpha=0.55 + 0.45 * j / max(1, num_examples - 1),
-                    label=label, zorder=3)
+            ax.plot(
+                xy[:, 0],
+                xy[:, 1],
+                ls,
+                color=colour,
+                lw=1.6,
+                alpha=0.55 + 0.45 * j / max(1, num_examples - 1),
+                label=label,
+                zorder=3,
+            )
     ax.set_title("Information field over the lake, with paths from both planners")
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.06), ncol=2, fontsize=7.5, frameon=False)
     fig.tight_layout()
@@ -123,14 +147,24 @@ def plot_objectives(scenario: LakeScenario, path: str | Path, operator: LakeOper
     plt = _pyplot()
     operator = LakeOperator() if operator is None else operator
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), sharex=True, sharey=True)
-    for ax, (name, X, planner) in zip(axes, (("training", scenario.train_X, scenario.train_planner),
-                                                ("test", scenario.test_X, scenario.test_planner))):
+    for ax, (name, X, planner) in zip(
+        axes, (("training", scenario.train_X, scenario.train_planner), ("test", scenario.test_X, scenario.test_planner))
+    ):
         level = operator.level(X)
         for k in range(1, 6):
             for p, marker in ((0, "o"), (1, "^")):
                 m = (level == k) & (planner == p)
-                ax.scatter(X[m, 0], X[m, 1], s=22, marker=marker, color=LEVEL_COLOURS[k - 1], edgecolor="black",
-                           lw=0.3, label=f"rating {k}" if p == 0 else None, zorder=3)
+                ax.scatter(
+                    X[m, 0],
+                    X[m, 1],
+                    s=22,
+                    marker=marker,
+                    color=LEVEL_COLOURS[k - 1],
+                    edgecolor="black",
+                    lw=0.3,
+                    label=f"rating {k}" if p == 0 else None,
+                    zorder=3,
+                )
         ax.axhline(operator.info_poor, color="grey", ls=":", lw=1)
         ax.axhline(operator.info_good, color="grey", ls="--", lw=1)
         for d in (500, 550, 600, 650):
@@ -143,8 +177,10 @@ def plot_objectives(scenario: LakeScenario, path: str | Path, operator: LakeOper
     handles, labels = axes[0].get_legend_handles_labels()
     from matplotlib.lines import Line2D
 
-    handles += [Line2D([], [], marker="o", ls="", color="white", mec="black"),
-                Line2D([], [], marker="^", ls="", color="white", mec="black")]
+    handles += [
+        Line2D([], [], marker="o", ls="", color="white", mec="black"),
+        Line2D([], [], marker="^", ls="", color="white", mec="black"),
+    ]
     labels += ["STOMP", "RRT*"]
     fig.legend(handles, labels, loc="center right", fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0, 0.9, 1))

@@ -18,8 +18,17 @@ from .geometry import Lake
 from .objectives import path_objectives
 from .planners import pad_paths, rrt_star, stomp
 
-__all__ = ["LakeScenario", "make_scenario", "PLANNERS", "SCENARIO_VERSION", "cached_scenario", "default_cache_dir",
-           "load_scenario", "save_scenario", "scenario_cache_path"]
+__all__ = [
+    "LakeScenario",
+    "make_scenario",
+    "PLANNERS",
+    "SCENARIO_VERSION",
+    "cached_scenario",
+    "default_cache_dir",
+    "load_scenario",
+    "save_scenario",
+    "scenario_cache_path",
+]
 
 PLANNERS = ("stomp", "rrt_star")
 """Planner names; ``LakeScenario.train_planner`` holds indices into this tuple."""
@@ -51,10 +60,19 @@ class LakeScenario:
     test_weights: Tensor
 
 
-def make_scenario(seed: int | None = None, *, generator: torch.Generator | None = None, paths_per_planner: int = 100,
-                  weight_range: tuple[float, float] = (0.01, 1000.0), share_five: float | None = 0.1,
-                  lake: Lake | None = None, field: InformationField | None = None, stomp_options: dict | None = None,
-                  rrt_options: dict | None = None, progress: bool = False) -> LakeScenario:
+def make_scenario(
+    seed: int | None = None,
+    *,
+    generator: torch.Generator | None = None,
+    paths_per_planner: int = 100,
+    weight_range: tuple[float, float] = (0.01, 1000.0),
+    share_five: float | None = 0.1,
+    lake: Lake | None = None,
+    field: InformationField | None = None,
+    stomp_options: dict | None = None,
+    rrt_options: dict | None = None,
+    progress: bool = False,
+) -> LakeScenario:
     r"""Build a lake-monitoring scenario.
 
     Each set has ``paths_per_planner`` STOMP and as many RRT* paths, planned for weights drawn
@@ -93,16 +111,25 @@ def make_scenario(seed: int | None = None, *, generator: torch.Generator | None 
     if share_five is not None and not 0 < share_five < 1:
         raise ValueError(f"share_five must be in (0, 1), got {share_five}.")
 
-    train, test = (_plan_set(lake, field, paths_per_planner, weight_range, generator, progress, stomp_options,
-                             rrt_options) for _ in range(2))
+    train, test = (
+        _plan_set(lake, field, paths_per_planner, weight_range, generator, progress, stomp_options, rrt_options)
+        for _ in range(2)
+    )
     if share_five is not None:
         field, train, test = _scaled_for_share_five(field, train, test, share_five)
     return LakeScenario(lake, field, *train, *test)
 
 
-def _plan_set(lake: Lake, field: InformationField, n: int, weight_range: tuple[float, float],
-              generator: torch.Generator, progress: bool, stomp_options: dict | None,
-              rrt_options: dict | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _plan_set(
+    lake: Lake,
+    field: InformationField,
+    n: int,
+    weight_range: tuple[float, float],
+    generator: torch.Generator,
+    progress: bool,
+    stomp_options: dict | None,
+    rrt_options: dict | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """One set: ``n`` STOMP and ``n`` RRT* paths for weights drawn log-uniformly from
     ``weight_range`` (sorted): ``(paths, objectives, planner indices, weights)``."""
     w_min, w_max = weight_range
@@ -136,8 +163,16 @@ SCENARIO_VERSION = 1
 """Version of :func:`make_scenario`'s output; bump it whenever the same seed would build a
 different scenario, so that cached scenarios of the old builder are not used."""
 
-_TENSORS = ("train_paths", "train_X", "train_planner", "train_weights", "test_paths", "test_X", "test_planner",
-            "test_weights")
+_TENSORS = (
+    "train_paths",
+    "train_X",
+    "train_planner",
+    "train_weights",
+    "test_paths",
+    "test_X",
+    "test_planner",
+    "test_weights",
+)
 
 
 def default_cache_dir() -> Path:
@@ -159,9 +194,15 @@ def save_scenario(scenario: LakeScenario, path: str | os.PathLike) -> Path:
     """Write ``scenario`` to ``path`` atomically (a temporary file, then a rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    state = {"version": SCENARIO_VERSION, "vertices": scenario.lake.vertices, "start": scenario.lake.start,
-             "goal": scenario.lake.goal, "grid": scenario.field.grid, "extent": list(scenario.field.extent),
-             **{k: getattr(scenario, k) for k in _TENSORS}}
+    state = {
+        "version": SCENARIO_VERSION,
+        "vertices": scenario.lake.vertices,
+        "start": scenario.lake.start,
+        "goal": scenario.lake.goal,
+        "grid": scenario.field.grid,
+        "extent": list(scenario.field.extent),
+        **{k: getattr(scenario, k) for k in _TENSORS},
+    }
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
@@ -181,8 +222,16 @@ def load_scenario(path: str | os.PathLike) -> LakeScenario:
         lake = Lake(state["vertices"], state["start"], state["goal"])
         field = InformationField(state["grid"], tuple(state["extent"]))
         return LakeScenario(lake, field, *(state[k] for k in _TENSORS))
-    except (OSError, RuntimeError, KeyError, TypeError, ValueError, AttributeError, EOFError,
-            pickle.UnpicklingError) as exc:
+    except (
+        OSError,
+        RuntimeError,
+        KeyError,
+        TypeError,
+        ValueError,
+        AttributeError,
+        EOFError,
+        pickle.UnpicklingError,
+    ) as exc:
         raise ValueError(f"{path} is not a usable lake scenario: {exc}") from exc
 
 
@@ -199,6 +248,7 @@ def cached_scenario(seed: int, cache_dir: str | os.PathLike | None = None, *, pr
     try:
         save_scenario(scenario, path)
     except OSError as exc:
-        warnings.warn(f"could not cache the lake scenario of seed {seed} in {path.parent}: {exc}", RuntimeWarning,
-                      stacklevel=2)
+        warnings.warn(
+            f"could not cache the lake scenario of seed {seed} in {path.parent}: {exc}", RuntimeWarning, stacklevel=2
+        )
     return scenario

@@ -5,4 +5,10 @@ from __future__ import annotations
 from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
 
-__all__ = ['BetaRatingLikelihood', 'OrdinalRatingLikelihood', 'PairwiseProbitLikelihood', 'StrictPreferenceLikelihood', 'TieLikelihood']
+__all__ = [
+    'BetaRatingLikelihood',
+    'OrdinalRatingLikelihood',
+    'PairwiseProbitLikelihood',
+    'StrictPreferenceLikelihood',
+    'TieLikelihood',
+]

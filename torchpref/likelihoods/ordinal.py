@@ -50,16 +50,22 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
 
     log_concave = True  # its weights in W are never negative
 
-    def __init__(self, tie_threshold: float = 0.1, comparison: PairwiseProbitLikelihood | None = None, *,
-                 learn: bool = False, tie_threshold_prior: Prior | None = None,
-                 tie_threshold_constraint: Interval | None = None):
+    def __init__(
+        self,
+        tie_threshold: float = 0.1,
+        comparison: PairwiseProbitLikelihood | None = None,
+        *,
+        learn: bool = False,
+        tie_threshold_prior: Prior | None = None,
+        tie_threshold_constraint: Interval | None = None,
+    ):
         super().__init__()
         self.comparison = comparison if comparison is not None else PairwiseProbitLikelihood()
-        self._register("tie_threshold", tie_threshold, tie_threshold_constraint, tie_threshold_prior,
-                       learn)
+        self._register("tie_threshold", tie_threshold, tie_threshold_constraint, tie_threshold_prior, learn)
 
-    tie_threshold = scalar_parameter("tie_threshold",
-                                     '``tau``, the largest perceived difference answered with "no preference".')
+    tie_threshold = scalar_parameter(
+        "tie_threshold", '``tau``, the largest perceived difference answered with "no preference".'
+    )
 
     def forward(self, function_samples: Tensor, ties: Tensor) -> Bernoulli:
         """Distribution of "no preference" for each row ``[i, j]`` of ``ties`` (``t x 2`` long)
@@ -99,8 +105,9 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
         """Analytic predictive of "no preference" for each row of ``ties`` under a joint Gaussian."""
         m, S = function_dist.mean, function_dist.covariance_matrix
         i, j = ties[:, 0], ties[:, 1]
-        return Bernoulli(probs=self.tie_probability(m[..., i] - m[..., j], S[..., i, i] + S[..., j, j] - 2 * S[..., i, j]))
-
+        return Bernoulli(
+            probs=self.tie_probability(m[..., i] - m[..., j], S[..., i, i] + S[..., j, j] - 2 * S[..., i, j])
+        )
 
 
 class StrictPreferenceLikelihood(Likelihood):
@@ -154,6 +161,7 @@ class StrictPreferenceLikelihood(Likelihood):
         r = torch.sqrt(2 * self.tie.comparison.comparison_noise**2 + var_diff.clamp_min(0))
         return torch.special.ndtr((mean_diff - self.tie.tie_threshold) / r)
 
+
 def default_cut_points(num_levels: int, rating_scale: float = 1.0) -> Tensor:
     r"""``c_k = sqrt 2 sigma_B Phi^{-1}(k / K)``, ``k = 1..K-1``: where the Beta likelihood's mean
     rating (eq. 7) crosses the edges of the ``K`` equal bins of ``likert_to_unit``, so that the
@@ -186,27 +194,37 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
 
     log_concave = True  # its weights in W are never negative
 
-    def __init__(self, num_levels: int = 5, cut_points: Tensor | Sequence[float] | None = None,
-                 level_noise: float = 0.2, *, learn: bool = False, cut_points_prior: Prior | None = None,
-                 learn_noise: bool = False, level_noise_prior: Prior | None = None):
+    def __init__(
+        self,
+        num_levels: int = 5,
+        cut_points: Tensor | Sequence[float] | None = None,
+        level_noise: float = 0.2,
+        *,
+        learn: bool = False,
+        cut_points_prior: Prior | None = None,
+        learn_noise: bool = False,
+        level_noise_prior: Prior | None = None,
+    ):
         super().__init__()
         if int(num_levels) != num_levels or num_levels < 2:
             raise ValueError(f"num_levels must be an integer of at least 2, got {num_levels}.")
         self.num_levels = int(num_levels)
         self._register("level_noise", level_noise, None, level_noise_prior, learn_noise)
-        self.register_parameter("raw_cut_points", torch.nn.Parameter(
-            torch.zeros(self.num_levels - 1, dtype=torch.float64), requires_grad=learn))
+        self.register_parameter(
+            "raw_cut_points",
+            torch.nn.Parameter(torch.zeros(self.num_levels - 1, dtype=torch.float64), requires_grad=learn),
+        )
         self.cut_points = default_cut_points(self.num_levels) if cut_points is None else cut_points
         if learn and cut_points_prior is None:
             from gpytorch.priors import NormalPrior
 
             cut_points_prior = NormalPrior(self.cut_points.detach().clone(), 0.5)
         if cut_points_prior is not None:
-            self.register_prior("cut_points_prior", cut_points_prior, lambda m: m.cut_points,
-                                lambda m, v: setattr(m, "cut_points", v))
+            self.register_prior(
+                "cut_points_prior", cut_points_prior, lambda m: m.cut_points, lambda m, v: setattr(m, "cut_points", v)
+            )
 
-    level_noise = scalar_parameter("level_noise",
-                                   "``sigma``, the noise on the latent utility when a level is picked.")
+    level_noise = scalar_parameter("level_noise", "``sigma``, the noise on the latent utility when a level is picked.")
 
     @property
     def cut_points(self) -> Tensor:
@@ -219,8 +237,9 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
         raw = self.raw_cut_points
         c = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).reshape(-1)
         if c.numel() != self.num_levels - 1 or not torch.isfinite(c).all() or (c.diff() <= 0).any():
-            raise ValueError(f"cut_points must be {self.num_levels - 1} finite, strictly increasing values, "
-                             f"got {c.tolist()}.")
+            raise ValueError(
+                f"cut_points must be {self.num_levels - 1} finite, strictly increasing values, got {c.tolist()}."
+            )
         gaps = c.diff()
         with torch.no_grad():  # softplus^-1(g) = g + log(-expm1(-g))
             raw.copy_(torch.cat([c[:1], gaps + torch.log(-torch.expm1(-gaps))]))
@@ -228,8 +247,11 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
     def check_levels(self, levels: Tensor | Sequence[float]) -> Tensor:
         """``levels`` as a long tensor, or a ``ValueError`` naming any value not an integer in ``1..K``."""
         y = torch.as_tensor(levels)
-        bad = (y != y.round()) | (y < 1) | (y > self.num_levels) if y.is_floating_point() else (
-            (y < 1) | (y > self.num_levels))
+        bad = (
+            (y != y.round()) | (y < 1) | (y > self.num_levels)
+            if y.is_floating_point()
+            else ((y < 1) | (y > self.num_levels))
+        )
         if bad.any():
             raise ValueError(f"rating levels must be integers in 1..{self.num_levels}, got {y[bad][:5].tolist()}.")
         return y.long()
@@ -288,4 +310,3 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
     def marginal(self, function_dist: MultivariateNormal) -> Categorical:
         """Predictive distribution of the level at each point (category ``k - 1`` is level ``k``)."""
         return Categorical(probs=self.level_probabilities(function_dist.mean, function_dist.variance))
-

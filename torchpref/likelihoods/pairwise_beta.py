@@ -64,11 +64,16 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
             comparisons only it is not identifiable separately from the kernel's outputscale).
     """
 
-    def __init__(self, comparison_noise: float = 0.1, *, learn: bool = False,
-                 comparison_noise_prior: Prior | None = None, comparison_noise_constraint: Interval | None = None):
+    def __init__(
+        self,
+        comparison_noise: float = 0.1,
+        *,
+        learn: bool = False,
+        comparison_noise_prior: Prior | None = None,
+        comparison_noise_constraint: Interval | None = None,
+    ):
         super().__init__()
-        self._register("comparison_noise", comparison_noise, comparison_noise_constraint,
-                       comparison_noise_prior, learn)
+        self._register("comparison_noise", comparison_noise, comparison_noise_constraint, comparison_noise_prior, learn)
 
     comparison_noise = scalar_parameter("comparison_noise", "``sigma_R`` (eq. 3): the noise of a comparison.")
 
@@ -150,19 +155,36 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         learn: whether both are trainable parameters (off by default).
     """
 
-    def __init__(self, rating_scale: float = 1.0, rating_precision: float = 80.0, *, learn: bool = False,
-                 rating_scale_prior: Prior | None = None, rating_precision_prior: Prior | None = None,
-                 rating_scale_constraint: Interval | None = None, rating_precision_constraint: Interval | None = None):
+    def __init__(
+        self,
+        rating_scale: float = 1.0,
+        rating_precision: float = 80.0,
+        *,
+        learn: bool = False,
+        rating_scale_prior: Prior | None = None,
+        rating_precision_prior: Prior | None = None,
+        rating_scale_constraint: Interval | None = None,
+        rating_precision_constraint: Interval | None = None,
+    ):
         super().__init__()
         self._register("rating_scale", rating_scale, rating_scale_constraint, rating_scale_prior, learn)
-        self._register("rating_precision", rating_precision, rating_precision_constraint,
-                       rating_precision_prior, learn, default="precision")
+        self._register(
+            "rating_precision",
+            rating_precision,
+            rating_precision_constraint,
+            rating_precision_prior,
+            learn,
+            default="precision",
+        )
 
-    rating_scale = scalar_parameter("rating_scale",
-                                    "``sigma_B`` (eq. 7): how the latent utility maps onto the rating scale.")
+    rating_scale = scalar_parameter(
+        "rating_scale", "``sigma_B`` (eq. 7): how the latent utility maps onto the rating scale."
+    )
 
-    rating_precision = scalar_parameter("rating_precision", "``nu`` (eqs. 4-7): the precision of a rating's Beta "
-                                        "distribution (larger: less noisy ratings).")
+    rating_precision = scalar_parameter(
+        "rating_precision",
+        "``nu`` (eqs. 4-7): the precision of a rating's Beta distribution (larger: less noisy ratings).",
+    )
 
     def mean_link(self, f: Tensor) -> Tensor:
         r"""``mu = Phi(f / (sqrt 2 sigma_B))``, eq. 7 (:func:`rating_link`)."""
@@ -192,8 +214,16 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         a, b = nu * torch.exp(log_mu), nu * torch.exp(log_1mmu)
         r_a, r_b = inv_mills(t) / c, inv_mills(-t) / c  # mu' / mu, mu' / (1 - mu)
         dmu = normal_pdf(t) / c
-        logp = ((a - 1) * torch.log(u) + (b - 1) * torch.log1p(-u) + torch.lgamma(nu)
-                - torch.lgamma(a + 1) - torch.lgamma(b + 1) + 2 * torch.log(nu) + log_mu + log_1mmu)
+        logp = (
+            (a - 1) * torch.log(u)
+            + (b - 1) * torch.log1p(-u)
+            + torch.lgamma(nu)
+            - torch.lgamma(a + 1)
+            - torch.lgamma(b + 1)
+            + 2 * torch.log(nu)
+            + log_mu
+            + log_1mmu
+        )
         g = nu * (torch.log(u) - torch.log1p(-u) - torch.digamma(a + 1) + torch.digamma(b + 1)) * dmu + r_a - r_b
         F = r_a**2 + r_b**2 + nu**2 * (torch.polygamma(1, a + 1) + torch.polygamma(1, b + 1)) * dmu**2
         return logp, g, F, (c, t, nu, a, b, r_a, r_b, dmu)
@@ -242,8 +272,11 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         to 0 or 1 (the direct form is ``inf * 0 = NaN`` there)."""
         c, t, nu, a, b = self._shape(eta)
         dmu = normal_pdf(t) / c
-        return ((inv_mills(t) / c) ** 2 + (inv_mills(-t) / c) ** 2
-                + nu**2 * (torch.polygamma(1, a + 1) + torch.polygamma(1, b + 1)) * dmu**2)
+        return (
+            (inv_mills(t) / c) ** 2
+            + (inv_mills(-t) / c) ** 2
+            + nu**2 * (torch.polygamma(1, a + 1) + torch.polygamma(1, b + 1)) * dmu**2
+        )
 
     def expected_rating(self, mean: Tensor, var: Tensor) -> Tensor:
         r"""Predictive mean rating (eq. 11 for the Beta mean): ``Phi(m / sqrt(2 sigma_B^2 + v))``
@@ -268,12 +301,14 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         # nodes d_k = d + sqrt(2) s x_k; int g = sqrt(2) s sum_k w_k e^{x_k^2} g(d_k)
         dk = d.unsqueeze(-1) + (SQRT2 * s).unsqueeze(-1) * x
         lp = self.log_prob(mean.unsqueeze(-1) + dk, u.unsqueeze(-1)) - 0.5 * dk * dk / v.unsqueeze(-1)
-        out = (torch.logsumexp(lp + x * x + torch.log(w), dim=-1) + torch.log(SQRT2 * s)
-               - 0.5 * torch.log(2 * math.pi * v))
+        out = (
+            torch.logsumexp(lp + x * x + torch.log(w), dim=-1) + torch.log(SQRT2 * s) - 0.5 * torch.log(2 * math.pi * v)
+        )
         return torch.where(var > 0, out, self.log_prob(mean, u))
 
-    def _integrand_peak(self, u: Tensor, m: Tensor, v: Tensor, max_iter: int = 50,
-                        max_halvings: int = 30) -> tuple[Tensor, Tensor]:
+    def _integrand_peak(
+        self, u: Tensor, m: Tensor, v: Tensor, max_iter: int = 50, max_halvings: int = 30
+    ) -> tuple[Tensor, Tensor]:
         r"""The mode ``d`` (in ``delta = f - m``) and scale ``s = (-h)^{-1/2}`` of eq. 11's integrand
         ``log g(d) = log Beta(u; m + d) - d^2 / (2 v)``, by Newton steps with elementwise
         backtracking (never decreasing ``log g``; Fisher scoring where ``h`` is not negative).

@@ -94,8 +94,9 @@ class _ScalarParamsMixin:
         super().__init__(*args, **kwargs)
         weak_load_hook(self)
 
-    def _register(self, name: str, value: float, constraint: Interval | None, prior, learn: bool,
-                  default: str = "positive") -> None:
+    def _register(
+        self, name: str, value: float, constraint: Interval | None, prior, learn: bool, default: str = "positive"
+    ) -> None:
         """Register ``raw_{name}`` at ``value`` with ``constraint`` (a new default constraint
         ``default`` of :data:`DEFAULT_CONSTRAINTS` if ``None``) and ``prior``."""
         constraint = DEFAULT_CONSTRAINTS[default]() if constraint is None else constraint
@@ -103,11 +104,13 @@ class _ScalarParamsMixin:
         if kind and isinstance(value, (int, float)) and not isinstance(value, bool):
             key = (kind, float(value))
             if key not in _SHARED_RAW_VALUES:
-                _SHARED_RAW_VALUES[key] = _raw_value(name, value, DEFAULT_CONSTRAINTS[kind](),
-                                                     torch.zeros((), dtype=torch.float64))
+                _SHARED_RAW_VALUES[key] = _raw_value(
+                    name, value, DEFAULT_CONSTRAINTS[kind](), torch.zeros((), dtype=torch.float64)
+                )
             raw_value = _SHARED_RAW_VALUES[key]
-        raw = torch.nn.Parameter(torch.zeros((), dtype=torch.float64) if raw_value is None else raw_value.clone(),
-                                 requires_grad=learn)
+        raw = torch.nn.Parameter(
+            torch.zeros((), dtype=torch.float64) if raw_value is None else raw_value.clone(), requires_grad=learn
+        )
         self.register_parameter(f"raw_{name}", raw)
         self.register_constraint(f"raw_{name}", constraint)
         if prior is not None:
@@ -136,8 +139,10 @@ class _ScalarParamsMixin:
             if local_metadata.get("assign_to_params_buffers", False):
                 return True
             loaded = ((b, state_dict.get(f"{prefix}{key}.{name}")) for name, b in constraint._buffers.items())
-            return any(v is not None and not (isinstance(v, Tensor) and v.shape == b.shape and torch.equal(v.to(b), b))
-                       for b, v in loaded)
+            return any(
+                v is not None and not (isinstance(v, Tensor) and v.shape == b.shape and torch.equal(v.to(b), b))
+                for b, v in loaded
+            )
 
         self._own_constraints(changes)
         return super()._load_from_state_dict(state_dict, prefix, local_metadata, *args, **kwargs)

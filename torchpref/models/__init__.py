@@ -2,10 +2,28 @@
 
 from __future__ import annotations
 
-from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PAPER_FIG4_SETTINGS, PreferenceGP, default_covar_module
+from torchpref.models.preference_gp import (
+    LaplaceMarginalLogLikelihood,
+    PAPER_FIG4_SETTINGS,
+    PreferenceGP,
+    default_covar_module,
+)
 from torchpref.models.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
 from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.models.pairwise_interface import TrainDataMismatchError
 from torchpref.models.kernels import FixedRBFKernel, fixed_rbf_kernel
 
-__all__ = ['BatchedPreferenceGP', 'CheckpointError', 'FixedRBFKernel', 'LaplaceMarginalLogLikelihood', 'PAPER_FIG4_SETTINGS', 'PreferenceGP', 'TrainDataMismatchError', 'default_covar_module', 'fixed_rbf_kernel', 'load_model', 'model_checkpoint', 'save_model']
+__all__ = [
+    'BatchedPreferenceGP',
+    'CheckpointError',
+    'FixedRBFKernel',
+    'LaplaceMarginalLogLikelihood',
+    'PAPER_FIG4_SETTINGS',
+    'PreferenceGP',
+    'TrainDataMismatchError',
+    'default_covar_module',
+    'fixed_rbf_kernel',
+    'load_model',
+    'model_checkpoint',
+    'save_model',
+]

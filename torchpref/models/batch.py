@@ -76,8 +76,14 @@ class BatchedPreferenceGP:
         """The observations of one trial."""
         return self._data[trial]
 
-    def add_observations(self, trial: int, X: Tensor | None = None, comparisons: Tensor | None = None,
-                         ratings: Tensor | None = None, rating_index: Tensor | None = None) -> None:
+    def add_observations(
+        self,
+        trial: int,
+        X: Tensor | None = None,
+        comparisons: Tensor | None = None,
+        ratings: Tensor | None = None,
+        rating_index: Tensor | None = None,
+    ) -> None:
         r"""Add items and observations to one trial, as :meth:`PreferenceGP.add_observations`
         (validated first: on error nothing changes)."""
         if not 0 <= trial < self.num_trials:
@@ -88,13 +94,19 @@ class BatchedPreferenceGP:
     def trial_model(self, trial: int) -> PreferenceGP:
         """A stand-alone :class:`~torchpref.PreferenceGP` of one trial (same hyperparameters)."""
         d, t, lik = self._data[trial], self.model, self.likelihood
-        return PreferenceGP(d.train_X, d.comparisons, d.ratings, d.rating_index,
-                            covar_module=copy.deepcopy(t.covar_module),  # its own: fitting it changes no trial
-                            comparison_noise=float(lik.comparison.comparison_noise),
-                            rating_scale=float(lik.rating.rating_scale),
-                            rating_precision=float(lik.rating.rating_precision),
-                            rating_eps=t.rating_eps, max_newton_iter=t.max_newton_iter,
-                            laplace_dtype=t._laplace_dtype)
+        return PreferenceGP(
+            d.train_X,
+            d.comparisons,
+            d.ratings,
+            d.rating_index,
+            covar_module=copy.deepcopy(t.covar_module),  # its own: fitting it changes no trial
+            comparison_noise=float(lik.comparison.comparison_noise),
+            rating_scale=float(lik.rating.rating_scale),
+            rating_precision=float(lik.rating.rating_precision),
+            rating_eps=t.rating_eps,
+            max_newton_iter=t.max_newton_iter,
+            laplace_dtype=t._laplace_dtype,
+        )
 
     # ------------------------------------------------------------------ inference
     def _current(self) -> PreferenceGP:

@@ -49,18 +49,30 @@ def model_checkpoint(model: PreferenceGP) -> dict[str, Any]:
     """The model's data, hyperparameters and settings as a dictionary of tensors and plain
     values (see the module docstring)."""
     if model.batch_shape:
-        raise ValueError(f"save_model saves a model of one problem; this one has batch_shape {tuple(model.batch_shape)}.")
+        raise ValueError(
+            f"save_model saves a model of one problem; this one has batch_shape {tuple(model.batch_shape)}."
+        )
     d = model.data
     learn = bool(model.likelihood.comparison.raw_comparison_noise.requires_grad)
     return {
         "format": FORMAT,
         "version": VERSION,
-        "data": {"train_X": d.train_X, "comparisons": d.comparisons, "ratings": d.ratings,
-                 "rating_index": d.rating_index, "ties": d.ties},
+        "data": {
+            "train_X": d.train_X,
+            "comparisons": d.comparisons,
+            "ratings": d.ratings,
+            "rating_index": d.rating_index,
+            "ties": d.ties,
+        },
         "state_dict": model.state_dict(),
-        "settings": {"rating_eps": float(model.rating_eps), "max_newton_iter": int(model.max_newton_iter),
-                     "learn_likelihood": learn, "rating_levels": model.rating_levels,
-                     "ties_offered": bool(model.ties_offered), "laplace_dtype": model._laplace_dtype},
+        "settings": {
+            "rating_eps": float(model.rating_eps),
+            "max_newton_iter": int(model.max_newton_iter),
+            "learn_likelihood": learn,
+            "rating_levels": model.rating_levels,
+            "ties_offered": bool(model.ties_offered),
+            "laplace_dtype": model._laplace_dtype,
+        },
     }
 
 
@@ -116,19 +128,33 @@ def load_model(
         model = PreferenceGP(None, None, covar_module=covar_module, input_transform=input_transform, **settings)
         model.to(ck["data"]["train_X"].dtype)
     else:
-        data = PreferenceData.create(**ck["data"], rating_eps=settings.get("rating_eps", DEFAULT_RATING_EPS),
-                                     rating_levels=settings.get("rating_levels"))
-        model = PreferenceGP(data.train_X, data.comparisons, data.ratings, data.rating_index, ties=data.ties,
-                             covar_module=covar_module, input_transform=input_transform, **settings)
+        data = PreferenceData.create(
+            **ck["data"],
+            rating_eps=settings.get("rating_eps", DEFAULT_RATING_EPS),
+            rating_levels=settings.get("rating_levels"),
+        )
+        model = PreferenceGP(
+            data.train_X,
+            data.comparisons,
+            data.ratings,
+            data.rating_index,
+            ties=data.ties,
+            covar_module=covar_module,
+            input_transform=input_transform,
+            **settings,
+        )
     missing, unexpected = _key_mismatch(model, ck["state_dict"])
     if missing or unexpected:
-        raise CheckpointError(f"the saved hyperparameters do not fit this kernel / input transform: missing {missing}, "
-                              f"unexpected {unexpected}; pass covar_module / input_transform like the saved ones.")
+        raise CheckpointError(
+            f"the saved hyperparameters do not fit this kernel / input transform: missing {missing}, "
+            f"unexpected {unexpected}; pass covar_module / input_transform like the saved ones."
+        )
     try:
         model.load_state_dict(ck["state_dict"])
     except RuntimeError as err:  # a shape that does not fit
-        raise CheckpointError(f"{where}: the saved hyperparameters do not fit this kernel / input transform: "
-                              f"{' '.join(str(err).split())}") from err
+        raise CheckpointError(
+            f"{where}: the saved hyperparameters do not fit this kernel / input transform: {' '.join(str(err).split())}"
+        ) from err
     return model
 
 
@@ -140,11 +166,15 @@ def _read(path: str | os.PathLike, map_location) -> Any:
     except (FileNotFoundError, IsADirectoryError, PermissionError):
         raise
     except pickle.UnpicklingError as err:
-        raise CheckpointError(f"{path} is not a {FORMAT} checkpoint: it holds something other than tensors and "
-                              "plain values, or is not a file written by torch.save; not loaded.") from err
+        raise CheckpointError(
+            f"{path} is not a {FORMAT} checkpoint: it holds something other than tensors and "
+            "plain values, or is not a file written by torch.save; not loaded."
+        ) from err
     except Exception as err:  # noqa: BLE001  (zip, EOF and OS errors of a truncated or foreign file)
-        raise CheckpointError(f"{path} is not a readable {FORMAT} checkpoint (truncated, damaged or another kind "
-                              f"of file): {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}") from err
+        raise CheckpointError(
+            f"{path} is not a readable {FORMAT} checkpoint (truncated, damaged or another kind "
+            f"of file): {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+        ) from err
 
 
 def _check_contents(ck: Any, where: str) -> None:
@@ -152,7 +182,9 @@ def _check_contents(ck: Any, where: str) -> None:
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
         raise CheckpointError(f"{where} is not a {FORMAT} checkpoint.")
     if ck.get("version") != VERSION:
-        raise CheckpointError(f"checkpoint version {ck.get('version')!r} is not supported (this torchpref reads {VERSION}).")
+        raise CheckpointError(
+            f"checkpoint version {ck.get('version')!r} is not supported (this torchpref reads {VERSION})."
+        )
     for key, allowed in (("data", DATA_KEYS), ("settings", SETTINGS_KEYS), ("state_dict", None)):
         entry = ck.get(key)
         if not isinstance(entry, dict):

@@ -13,7 +13,12 @@ from torch import Tensor
 
 from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.likelihoods.scalar_params import shared_constraint, weak_load_hook
-from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood, default_cut_points
+from torchpref.likelihoods.ordinal import (
+    OrdinalRatingLikelihood,
+    StrictPreferenceLikelihood,
+    TieLikelihood,
+    default_cut_points,
+)
 
 #: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
 #: reproduce the paper: ``PreferenceGP(X, ..., **PAPER_FIG4_SETTINGS)`` (docs/botorch.md).
@@ -44,8 +49,12 @@ class PreferenceLikelihood(Module):
     ``rating`` (Beta, or ordinal for levels), ``tie`` (which shares ``comparison``'s ``sigma_R``) and
     ``strict`` (a comparison where "no preference" was allowed, the tie's upper category)."""
 
-    def __init__(self, comparison: PairwiseProbitLikelihood, rating: BetaRatingLikelihood | OrdinalRatingLikelihood,
-                 tie: TieLikelihood | None = None):
+    def __init__(
+        self,
+        comparison: PairwiseProbitLikelihood,
+        rating: BetaRatingLikelihood | OrdinalRatingLikelihood,
+        tie: TieLikelihood | None = None,
+    ):
         super().__init__()
         weak_load_hook(self)
         self.comparison = comparison
@@ -54,22 +63,36 @@ class PreferenceLikelihood(Module):
         self.strict = StrictPreferenceLikelihood(self.tie)
 
     @classmethod
-    def create(cls, comparison_noise: float, rating_scale: float, rating_precision: float, learn: bool,
-               tie_threshold: float, rating_levels: int | None = None, cut_points: Tensor | None = None,
-               level_noise: float | None = None) -> "PreferenceLikelihood":
+    def create(
+        cls,
+        comparison_noise: float,
+        rating_scale: float,
+        rating_precision: float,
+        learn: bool,
+        tie_threshold: float,
+        rating_levels: int | None = None,
+        cut_points: Tensor | None = None,
+        level_noise: float | None = None,
+    ) -> "PreferenceLikelihood":
         r"""The model's likelihoods from its settings (:class:`~torchpref.models.preference_gp.PreferenceGP`'s
         arguments of the same names): a Beta rating likelihood, or for ``rating_levels`` an ordinal
         one whose ``level_noise`` defaults to ``sqrt(pi) sigma_B / sqrt(nu + 1)``."""
         positive = shared_constraint("positive")  # the model's likelihoods share their default constraints
         comparison = PairwiseProbitLikelihood(comparison_noise, learn=learn, comparison_noise_constraint=positive)
         if rating_levels is None:
-            rating = BetaRatingLikelihood(rating_scale, rating_precision, learn=learn, rating_scale_constraint=positive,
-                                          rating_precision_constraint=shared_constraint("precision"))
+            rating = BetaRatingLikelihood(
+                rating_scale,
+                rating_precision,
+                learn=learn,
+                rating_scale_constraint=positive,
+                rating_precision_constraint=shared_constraint("precision"),
+            )
         else:
             if cut_points is None:
                 cut_points = default_cut_points(int(rating_levels), rating_scale)
             if level_noise is None:  # sd of Beta(nu/2, nu/2) over d mu / d f at f = 0
                 level_noise = math.sqrt(math.pi) * rating_scale / math.sqrt(rating_precision + 1)
             rating = OrdinalRatingLikelihood(int(rating_levels), cut_points, level_noise, learn=learn)
-        return cls(comparison, rating, TieLikelihood(tie_threshold, comparison, learn=learn,
-                                                     tie_threshold_constraint=positive))
+        return cls(
+            comparison, rating, TieLikelihood(tie_threshold, comparison, learn=learn, tie_threshold_constraint=positive)
+        )

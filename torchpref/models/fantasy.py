@@ -30,12 +30,15 @@ if TYPE_CHECKING:
 def _check_indices(name: str, index: Tensor, m: int) -> Tensor:
     index = torch.as_tensor(index)
     if index.is_floating_point() or (index.numel() and ((index < 0) | (index >= m)).any()):
-        raise ValueError(f"{name} must hold integer indices into the {m} rows of X, got {index.flatten()[:6].tolist()}.")
+        raise ValueError(
+            f"{name} must hold integer indices into the {m} rows of X, got {index.flatten()[:6].tolist()}."
+        )
     return index.long()
 
 
-def batch_shape_of(X: Tensor, comparisons: Tensor | None, ratings: Tensor | None,
-                   model_batch: torch.Size = torch.Size()) -> torch.Size:
+def batch_shape_of(
+    X: Tensor, comparisons: Tensor | None, ratings: Tensor | None, model_batch: torch.Size = torch.Size()
+) -> torch.Size:
     r"""The batch shape that ``batch_X x m x d`` items, ``batch_C x k x 2`` comparisons,
     ``batch_R x r`` ratings and a model of batch shape ``model_batch`` broadcast to.
 
@@ -54,8 +57,13 @@ def batch_shape_of(X: Tensor, comparisons: Tensor | None, ratings: Tensor | None
         raise ValueError(f"the batch shapes do not broadcast: {named}.") from None
 
 
-def condition_batch(model: "PreferenceGP", X: Tensor, comparisons: Tensor | None = None,
-                    ratings: Tensor | None = None, rating_index: Tensor | None = None) -> "PreferenceGP":
+def condition_batch(
+    model: "PreferenceGP",
+    X: Tensor,
+    comparisons: Tensor | None = None,
+    ratings: Tensor | None = None,
+    rating_index: Tensor | None = None,
+) -> "PreferenceGP":
     r"""A new model with the items ``X`` and observations among them added to every problem.
 
     Args:
@@ -75,8 +83,10 @@ def condition_batch(model: "PreferenceGP", X: Tensor, comparisons: Tensor | None
     if comparisons is not None:
         comparisons = _check_indices("comparisons", comparisons, m)
         if comparisons.shape[-1] != 2 or (comparisons[..., 0] == comparisons[..., 1]).any():
-            raise ValueError(f"comparisons must be ... x k x 2 with two different items per row, got "
-                             f"shape {tuple(comparisons.shape)}.")
+            raise ValueError(
+                f"comparisons must be ... x k x 2 with two different items per row, got "
+                f"shape {tuple(comparisons.shape)}."
+            )
     if (ratings is None) != (rating_index is None):
         raise ValueError("ratings and rating_index must be given together.")
     if ratings is not None:
@@ -142,7 +152,9 @@ def fantasize(model: "PreferenceGP", X: Tensor, sampler: MCSampler, kind: str | 
         A model of batch shape ``sampler.sample_shape x broadcast(batch, model.batch_shape)``.
     """
     if not isinstance(sampler, MCSampler):
-        raise TypeError(f"sampler must be a BoTorch MCSampler (e.g. PairwiseSobolQMCNormalSampler), got {sampler!r:.60}.")
+        raise TypeError(
+            f"sampler must be a BoTorch MCSampler (e.g. PairwiseSobolQMCNormalSampler), got {sampler!r:.60}."
+        )
     kind = kind or ("comparisons" if isinstance(sampler, PairwiseMCSampler) else "ratings")
     if kind == "comparisons":
         if not isinstance(sampler, PairwiseMCSampler):

@@ -14,14 +14,17 @@ from torchpref.inference.laplace import Observations
 from torchpref.inference.padding import PaddedData
 
 
-def create_data(train_X, comparisons, ratings, rating_index, rating_eps: float, ties=None,
-                rating_levels: int | None = None) -> PreferenceData | PaddedData:
+def create_data(
+    train_X, comparisons, ratings, rating_index, rating_eps: float, ties=None, rating_levels: int | None = None
+) -> PreferenceData | PaddedData:
     """Validated data: one problem for ``n x d`` items, one per batch element for ``b x n x d``."""
     if isinstance(train_X, Tensor) and train_X.dim() == 3:
-        return PaddedData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps, ties=ties,
-                                 rating_levels=rating_levels)
-    return PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=rating_eps, ties=ties,
-                                 rating_levels=rating_levels)
+        return PaddedData.create(
+            train_X, comparisons, ratings, rating_index, rating_eps=rating_eps, ties=ties, rating_levels=rating_levels
+        )
+    return PreferenceData.create(
+        train_X, comparisons, ratings, rating_index, rating_eps=rating_eps, ties=ties, rating_levels=rating_levels
+    )
 
 
 class ModelData:
@@ -177,15 +180,17 @@ class ModelData:
             ``self``.
         """
         if not isinstance(self._data, PreferenceData):
-            raise NotImplementedError("add_observations needs a model of one problem; a batched model is "
-                                      "conditioned with condition_on_observations.")
+            raise NotImplementedError(
+                "add_observations needs a model of one problem; a batched model is "
+                "conditioned with condition_on_observations."
+            )
         new = self._data.add(X, comparisons, ratings, rating_index, rating_eps=self.rating_eps, ties=ties)
         warm = None
         if self._cache is not None or self._data.num_observations:
             f_old = self._state().mode.f[0]
             if new.n > self._data.n:
                 with torch.no_grad():
-                    extra = self.posterior(new.train_X[self._data.n:].unsqueeze(-2)).mean.reshape(-1)
+                    extra = self.posterior(new.train_X[self._data.n :].unsqueeze(-2)).mean.reshape(-1)
                 warm = torch.cat([f_old, extra])
             else:
                 warm = f_old
@@ -196,8 +201,10 @@ class ModelData:
         super()._apply(fn, *args, **kwargs)
         data = getattr(self, "_data", None)
         if isinstance(data, PreferenceData):
-            self._data = PreferenceData(*(fn(t) for t in (data.train_X, data.comparisons, data.ratings, data.rating_index,
-                                                          data.ties)), data.rating_levels)
+            self._data = PreferenceData(
+                *(fn(t) for t in (data.train_X, data.comparisons, data.ratings, data.rating_index, data.ties)),
+                data.rating_levels,
+            )
         elif data is not None:
             self._data = data.map(fn)
         if data is not None:

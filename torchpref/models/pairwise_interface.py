@@ -37,7 +37,12 @@ class TrainDataMismatchError(ValueError, RuntimeError):
 def prior_only_data(dtype: torch.dtype = torch.float64, device: torch.device | None = None) -> PreferenceData:
     """No items, no observations and no known input dimension: BoTorch's prior-only model."""
     empty = torch.zeros(0, dtype=torch.long, device=device)
-    return PreferenceData(torch.zeros(0, 0, dtype=dtype, device=device), empty.view(0, 2), torch.zeros(0, dtype=dtype, device=device), empty)
+    return PreferenceData(
+        torch.zeros(0, 0, dtype=dtype, device=device),
+        empty.view(0, 2),
+        torch.zeros(0, dtype=dtype, device=device),
+        empty,
+    )
 
 
 class PairwiseGPInterface:
@@ -145,12 +150,21 @@ class PairwiseGPInterface:
         if strict:
             _check_strict(self, train_X, comparisons, ratings)
         if train_X.dim() != 2:
-            raise UnsupportedError(f"set_train_data takes n x d items, got shape {tuple(train_X.shape)}; "
-                                   "a batched model is built by the constructor or condition_on_observations.")
+            raise UnsupportedError(
+                f"set_train_data takes n x d items, got shape {tuple(train_X.shape)}; "
+                "a batched model is built by the constructor or condition_on_observations."
+            )
         if self._data.dim == 0 and train_X.shape[-1] == 0:
             return
-        new = PreferenceData.create(train_X, comparisons, ratings, rating_index, rating_eps=self.rating_eps, ties=ties,
-                                    rating_levels=self.rating_levels)
+        new = PreferenceData.create(
+            train_X,
+            comparisons,
+            ratings,
+            rating_index,
+            rating_eps=self.rating_eps,
+            ties=ties,
+            rating_levels=self.rating_levels,
+        )
         self._set_data(new.to(device=old_X.device, dtype=old_X.dtype), None)
 
     def condition_on_observations(
@@ -201,8 +215,12 @@ class PairwiseGPInterface:
                 rating_index = torch.arange(ratings.shape[-1], device=X.device).expand(ratings.shape)
         if not self.has_data and self._data.dim == 0:  # prior-only: these become the data
             return _condition_prior_only(self, X, comparisons, ratings, rating_index)
-        batched = (self.batch_shape or X.dim() > 2 or (comparisons is not None and comparisons.dim() > 2)
-                   or (ratings is not None and ratings.dim() > 1))
+        batched = (
+            self.batch_shape
+            or X.dim() > 2
+            or (comparisons is not None and comparisons.dim() > 2)
+            or (ratings is not None and ratings.dim() > 1)
+        )
         if batched:
             return condition_batch(self, X, comparisons, ratings, rating_index)
         return copy.deepcopy(self).add_observations(X, comparisons, ratings, rating_index)
@@ -220,11 +238,15 @@ class PairwiseGPInterface:
             try:
                 noise = noise.expand(cov.shape[:-1])
             except RuntimeError:
-                raise ValueError(f"observation_noise must be variances of shape {(*cov.shape[:-1], 1)} (or "
-                                 f"broadcast to it), got shape {tuple(observation_noise.shape)}.") from None
+                raise ValueError(
+                    f"observation_noise must be variances of shape {(*cov.shape[:-1], 1)} (or "
+                    f"broadcast to it), got shape {tuple(observation_noise.shape)}."
+                ) from None
             ok = (noise.detach() >= 0) & noise.detach().isfinite()
             if not bool(ok.all()):
-                raise ValueError(f"observation_noise must be finite variances >= 0, got {noise.detach()[~ok][:3].tolist()}.")
+                raise ValueError(
+                    f"observation_noise must be finite variances >= 0, got {noise.detach()[~ok][:3].tolist()}."
+                )
         else:
             noise = (self.likelihood.comparison.comparison_noise**2).to(cov).expand(cov.shape[:-1])
         return MultivariateNormal(mvn.mean, DenseLinearOperator(cov + torch.diag_embed(noise)))
@@ -244,8 +266,10 @@ def ranking_comparisons(items: Tensor, ranks: Tensor) -> Tensor:
     ranks = ranks.long().reshape(items.shape)
     ri, rj = ranks.unsqueeze(-1), ranks.unsqueeze(-2)  # r x m x 1, r x 1 x m
     # a rank strictly between those of i and j: r x m x m x m, m is a query's size
-    between = ((ranks.view(-1, 1, 1, ranks.shape[-1]) > ri.unsqueeze(-1))
-               & (ranks.view(-1, 1, 1, ranks.shape[-1]) < rj.unsqueeze(-1))).any(-1)
+    between = (
+        (ranks.view(-1, 1, 1, ranks.shape[-1]) > ri.unsqueeze(-1))
+        & (ranks.view(-1, 1, 1, ranks.shape[-1]) < rj.unsqueeze(-1))
+    ).any(-1)
     k, i, j = ((ri < rj) & ~between).nonzero(as_tuple=True)
     return torch.stack([items[k, i], items[k, j]], dim=-1).long()
 
@@ -262,9 +286,13 @@ def _condition_prior_only(model, X: Tensor, comparisons, ratings, rating_index):
     if comparisons is not None:
         comparisons = comparisons.expand(*batch, *comparisons.shape[-2:])
     if ratings is not None:
-        ratings, rating_index = ratings.expand(*batch, ratings.shape[-1]), rating_index.expand(*batch, ratings.shape[-1])
-    new._set_data(create_data(X, comparisons, ratings, rating_index, model.rating_eps,
-                              rating_levels=model.rating_levels), None)
+        ratings, rating_index = (
+            ratings.expand(*batch, ratings.shape[-1]),
+            rating_index.expand(*batch, ratings.shape[-1]),
+        )
+    new._set_data(
+        create_data(X, comparisons, ratings, rating_index, model.rating_eps, rating_levels=model.rating_levels), None
+    )
     return new
 
 

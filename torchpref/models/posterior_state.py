@@ -83,8 +83,13 @@ class PosteriorState:
         return self.data is data and torch.equal(self.fingerprint, fingerprint)
 
     @classmethod
-    def build(cls, model: "PreferenceGP", fp: Tensor, previous: "PosteriorState | None",
-              prior: "tuple[PaddedData, Tensor] | None" = None) -> "PosteriorState":
+    def build(
+        cls,
+        model: "PreferenceGP",
+        fp: Tensor,
+        previous: "PosteriorState | None",
+        prior: "tuple[PaddedData, Tensor] | None" = None,
+    ) -> "PosteriorState":
         """Solve the modes of ``model``'s problems, warm-started from ``previous`` where sizes match.
         ``prior``: the model's :meth:`~torchpref.PreferenceGP._prior` if already computed."""
         with torch.no_grad():
@@ -132,7 +137,7 @@ class PosteriorState:
             k_ss = K[N:].reshape(E, q, E, q).diagonal(dim1=0, dim2=2).permute(2, 0, 1)  # E x q x q
         else:
             k_ss = kernel(Xe, diag=diag)  # E x S x q (x q)
-        tail = k_ss.shape[len(S) + 2:]  # () for variances, (q,) for covariances
+        tail = k_ss.shape[len(S) + 2 :]  # () for variances, (q,) for covariances
         if N == 0:  # no items yet: the prior
             return k_ss.new_zeros(shape + (q,)), k_ss.reshape(*shape, q, *tail)
         if not S:  # one problem: one kernel call for all test points

@@ -31,7 +31,11 @@ from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwisePr
 from torchpref.likelihoods.scalar_params import weak_load_hook
 from torchpref.models.model_data import ModelData, create_data
 from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS: re-exported)
-    MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS, PreferenceLikelihood, default_covar_module)
+    MIN_LENGTHSCALE,
+    PAPER_FIG4_SETTINGS,
+    PreferenceLikelihood,
+    default_covar_module,
+)
 from torchpref.inference.numerics import pin_coincident
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, TieLikelihood
 from torchpref.inference.padding import PaddedData
@@ -40,8 +44,9 @@ from torchpref.inference.precision import call_in_dtype, check_laplace_dtype, so
 from torchpref.models.predictives import Predictives
 
 
-def _initial_data(train_X, comparisons, ratings, rating_index, rating_eps: float, ties,
-                  rating_levels: int | None) -> PreferenceData | PaddedData:
+def _initial_data(
+    train_X, comparisons, ratings, rating_index, rating_eps: float, ties, rating_levels: int | None
+) -> PreferenceData | PaddedData:
     """The constructor's validated data; for ``train_X = None`` BoTorch's prior-only model."""
     if train_X is not None:
         return create_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
@@ -67,8 +72,10 @@ def _warn_dtype(dtype: torch.dtype) -> None:
 def _follows(module: torch.nn.Module, device: torch.device, dtype: torch.dtype) -> bool:
     """Whether ``module.to(device=device, dtype=dtype)`` would change nothing: every parameter and
     buffer on ``device``, the floating ones in ``dtype``."""
-    return all(t.device == device and (t.dtype == dtype or not (t.is_floating_point() or t.is_complex()))
-               for t in chain(module.parameters(), module.buffers()))
+    return all(
+        t.device == device and (t.dtype == dtype or not (t.is_floating_point() or t.is_complex()))
+        for t in chain(module.parameters(), module.buffers())
+    )
 
 
 class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
@@ -162,9 +169,16 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         X = data.train_X if isinstance(data, PreferenceData) else data.X
         _warn_dtype(X.dtype)
         self.covar_module = covar_module if covar_module is not None else default_covar_module(X.shape[-1])
-        self.likelihood = PreferenceLikelihood.create(comparison_noise, rating_scale, rating_precision,
-                                                      learn_likelihood, tie_threshold, rating_levels, cut_points,
-                                                      level_noise)
+        self.likelihood = PreferenceLikelihood.create(
+            comparison_noise,
+            rating_scale,
+            rating_precision,
+            learn_likelihood,
+            tie_threshold,
+            rating_levels,
+            cut_points,
+            level_noise,
+        )
         self._rating_levels = None if rating_levels is None else int(rating_levels)
         self.ties_offered = bool(ties_offered)
         if input_transform is not None:
@@ -221,9 +235,14 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         """The "no preference" likelihood (:class:`~torchpref.TieLikelihood`)."""
         return self.likelihood.tie
 
-
-    def fantasize(self, X: Tensor, sampler: MCSampler, observation_noise: Tensor | None = None,
-                  kind: str | None = None, **kwargs: Any) -> "PreferenceGP":
+    def fantasize(
+        self,
+        X: Tensor,
+        sampler: MCSampler,
+        observation_noise: Tensor | None = None,
+        kind: str | None = None,
+        **kwargs: Any,
+    ) -> "PreferenceGP":
         r"""A batched fantasy model (see :func:`~torchpref.models.fantasy.fantasize`): comparisons among
         the ``q`` points of ``X`` (``batch x q x d``) with a ``PairwiseMCSampler``, ratings of them
         with any other sampler (or as ``kind`` says). ``observation_noise`` is not used: the
@@ -239,6 +258,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         k = self.covar_module
         X2 = X1 if X2 is None else X2
         if any(getattr(m, "active_dims", None) is not None for m in submodules(k)):
+
             def evaluate(A, B, diag):
                 out = k(A, B, diag=diag)
                 return out if diag else out.to_dense()
@@ -290,8 +310,10 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
             ValueError: the model has no items (prior-only or empty): there is nothing to fit.
         """
         if self.train_X.shape[-2] == 0:
-            raise ValueError("the evidence needs data: this model has no items (a prior-only or empty model); "
-                             "add observations before fitting its hyperparameters.")
+            raise ValueError(
+                "the evidence needs data: this model has no items (a prior-only or empty model); "
+                "add observations before fitting its hyperparameters."
+            )
         padded, K = self._prior()
         state = self._state((padded, K))
         N = padded.num_items
@@ -358,8 +380,9 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         dtype = self.train_X.dtype
         if X.dtype != dtype and X.is_floating_point():
             if torch.finfo(X.dtype).eps < torch.finfo(dtype).eps:  # would lose precision: say so
-                raise ValueError(f"X is {X.dtype} but the model is {dtype}: convert one of them "
-                                 f"(X.to({dtype}) or model.to(...)).")
+                raise ValueError(
+                    f"X is {X.dtype} but the model is {dtype}: convert one of them (X.to({dtype}) or model.to(...))."
+                )
             X = X.to(dtype)  # BoTorch's optimisers and objectives hand over float32 candidates
         elif not X.is_floating_point():  # integer items: predictions in the model's dtype, not truncated
             X = X.to(dtype)
@@ -373,9 +396,11 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
             if not bool(finite.all()):
                 bad = X.detach()[~finite][:3].tolist()
                 raise ValueError(f"X must be finite, got {int((~finite).sum())} non-finite value(s) such as {bad}.")
-            raise ValueError(f"X is too large for the kernel: values up to {float(Xt.detach().abs().max()):.3g} "
-                             "(after any input transform) overflow its squared distances; the model expects "
-                             "items in the unit cube (scale them, or pass input_transform=Normalize(d, bounds)).")
+            raise ValueError(
+                f"X is too large for the kernel: values up to {float(Xt.detach().abs().max()):.3g} "
+                "(after any input transform) overflow its squared distances; the model expects "
+                "items in the unit cube (scale them, or pass input_transform=Normalize(d, bounds))."
+            )
         return Xt
 
     def __call__(self, X: Tensor) -> MultivariateNormal:  # skip gpytorch's GP.__call__ machinery
@@ -412,10 +437,14 @@ class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
         model's raise :class:`~torchpref.models.pairwise_interface.TrainDataMismatchError` (``PairwiseGP``:
         ``RuntimeError``) rather than being ignored."""
         given = args[1] if len(args) > 1 else None
-        if isinstance(given, Tensor) and not (given.shape == self.model.comparisons.shape
-                                              and torch.equal(given.to(self.model.comparisons), self.model.comparisons)):
-            raise TrainDataMismatchError(f"the evidence is of the model's own comparisons; got other comparisons "
-                                         f"(shape {tuple(given.shape)}): use set_train_data to change them.")
+        if isinstance(given, Tensor) and not (
+            given.shape == self.model.comparisons.shape
+            and torch.equal(given.to(self.model.comparisons), self.model.comparisons)
+        ):
+            raise TrainDataMismatchError(
+                f"the evidence is of the model's own comparisons; got other comparisons "
+                f"(shape {tuple(given.shape)}): use set_train_data to change them."
+            )
         res = self.model.log_marginal_likelihood()
         # the model's priors, its likelihood's among them, each once (GPyTorch's exact MLL walks
         # ``model.named_priors()`` alike; walking ``self`` would count the likelihood's twice)

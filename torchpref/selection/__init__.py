@@ -2,9 +2,32 @@
 
 from __future__ import annotations
 
-from torchpref.selection.strategies import InformationPerEffort, RandomMixed, RandomRankings, RandomRatings, UCBC, UCBRatings
+from torchpref.selection.strategies import (
+    InformationPerEffort,
+    RandomMixed,
+    RandomRankings,
+    RandomRatings,
+    UCBC,
+    UCBRatings,
+)
 from torchpref.selection.variance_reduction import VariancePerEffort
 from torchpref.selection.top_profile import ProfileVariancePerEffort, profile_variance_reduction, top_profile
 from torchpref.selection.active import History, QueryRecord, fit_model, run_active_learning, run_active_learning_batch
 
-__all__ = ['History', 'InformationPerEffort', 'ProfileVariancePerEffort', 'QueryRecord', 'RandomMixed', 'RandomRankings', 'RandomRatings', 'UCBC', 'UCBRatings', 'VariancePerEffort', 'fit_model', 'profile_variance_reduction', 'run_active_learning', 'run_active_learning_batch', 'top_profile']
+__all__ = [
+    'History',
+    'InformationPerEffort',
+    'ProfileVariancePerEffort',
+    'QueryRecord',
+    'RandomMixed',
+    'RandomRankings',
+    'RandomRatings',
+    'UCBC',
+    'UCBRatings',
+    'VariancePerEffort',
+    'fit_model',
+    'profile_variance_reduction',
+    'run_active_learning',
+    'run_active_learning_batch',
+    'top_profile',
+]

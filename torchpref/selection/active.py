@@ -125,11 +125,18 @@ class _Trial:
         self.model.add_observations(self.trial, X, comparisons, ratings, rating_index)
 
 
-def run_active_learning_batch(model: BatchedPreferenceGP, users: Sequence[User], candidates: Candidates,
-                              selector: Selector, num_queries: int, *, generators: Sequence[torch.Generator],
-                              metrics: Callable[[BatchedPreferenceGP], dict[str, Tensor]] | None = None,
-                              costs: dict[str, float] | None = None,
-                              refit: Callable[[int, BatchedPreferenceGP], Any] | None = None) -> list[History]:
+def run_active_learning_batch(
+    model: BatchedPreferenceGP,
+    users: Sequence[User],
+    candidates: Candidates,
+    selector: Selector,
+    num_queries: int,
+    *,
+    generators: Sequence[torch.Generator],
+    metrics: Callable[[BatchedPreferenceGP], dict[str, Tensor]] | None = None,
+    costs: dict[str, float] | None = None,
+    refit: Callable[[int, BatchedPreferenceGP], Any] | None = None,
+) -> list[History]:
     r""":func:`run_active_learning` for ``T`` independent trials at once (fixed hyperparameters).
 
     Trial ``b`` asks ``users[b]``, draws its candidates and makes its selector's random choices
@@ -176,8 +183,11 @@ def run_active_learning_batch(model: BatchedPreferenceGP, users: Sequence[User],
     return histories
 
 
-def _measure(metrics: Callable[[BatchedPreferenceGP], dict[str, Tensor]] | None, model: BatchedPreferenceGP,
-             histories: list[History]) -> None:
+def _measure(
+    metrics: Callable[[BatchedPreferenceGP], dict[str, Tensor]] | None,
+    model: BatchedPreferenceGP,
+    histories: list[History],
+) -> None:
     """Append each trial's metrics (``metrics(model)``: ``T`` values per name) to its history."""
     if metrics is not None:
         values = {k: v.tolist() for k, v in metrics(model).items()}

@@ -66,13 +66,21 @@ class Selector:
 
     name = "selector"
 
-    def select(self, model: Model, X: Tensor, indices: Tensor | None, step: int, num_steps: int,
-               generator: torch.Generator) -> Query:
+    def select(
+        self, model: Model, X: Tensor, indices: Tensor | None, step: int, num_steps: int, generator: torch.Generator
+    ) -> Query:
         """The next query for ``model`` among the candidates ``X`` (``N x d``)."""
         return self.select_batch(model, X.unsqueeze(0), [indices], step, num_steps, [generator])[0]
 
-    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
-                     generators: Sequence[torch.Generator]) -> list[Query]:
+    def select_batch(
+        self,
+        model: Model,
+        X: Tensor,
+        indices: Sequence[Tensor | None],
+        step: int,
+        num_steps: int,
+        generators: Sequence[torch.Generator],
+    ) -> list[Query]:
         """One query per trial: ``X`` is ``T x N x d``, ``indices`` and ``generators`` one per trial."""
         raise NotImplementedError(f"{type(self).__name__} implements no select_batch: it runs one trial at a time.")
 
@@ -86,13 +94,23 @@ class PerEffortSelector(Selector):
         values per unit of effort."""
         raise NotImplementedError
 
-    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
-                     generators: Sequence[torch.Generator]) -> list[Query]:
+    def select_batch(
+        self,
+        model: Model,
+        X: Tensor,
+        indices: Sequence[Tensor | None],
+        step: int,
+        num_steps: int,
+        generators: Sequence[torch.Generator],
+    ) -> list[Query]:
         with torch.no_grad():
             rating_row, rating_value, ranking_rows, ranking_value = self.values(model, X, generators)
-        return [ranking_query(X[b], indices[b], ranking_rows[b])
-                if ranking_rows is not None and bool(ranking_value[b] > rating_value[b])
-                else rating_query(X[b], indices[b], int(rating_row[b])) for b in range(X.shape[0])]
+        return [
+            ranking_query(X[b], indices[b], ranking_rows[b])
+            if ranking_rows is not None and bool(ranking_value[b] > rating_value[b])
+            else rating_query(X[b], indices[b], int(rating_row[b]))
+            for b in range(X.shape[0])
+        ]
 
 
 class RandomRatings(Selector):
@@ -100,10 +118,19 @@ class RandomRatings(Selector):
 
     name = "random ratings"
 
-    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
-                     generators: Sequence[torch.Generator]) -> list[Query]:
-        return [rating_query(X[b], indices[b], int(torch.randint(X.shape[1], (1,), generator=g)))
-                for b, g in enumerate(generators)]
+    def select_batch(
+        self,
+        model: Model,
+        X: Tensor,
+        indices: Sequence[Tensor | None],
+        step: int,
+        num_steps: int,
+        generators: Sequence[torch.Generator],
+    ) -> list[Query]:
+        return [
+            rating_query(X[b], indices[b], int(torch.randint(X.shape[1], (1,), generator=g)))
+            for b, g in enumerate(generators)
+        ]
 
 
 class RandomRankings(Selector):
@@ -114,11 +141,20 @@ class RandomRankings(Selector):
     def __init__(self, m: int = 5):
         self.m = _ranking_size(m)
 
-    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
-                     generators: Sequence[torch.Generator]) -> list[Query]:
+    def select_batch(
+        self,
+        model: Model,
+        X: Tensor,
+        indices: Sequence[Tensor | None],
+        step: int,
+        num_steps: int,
+        generators: Sequence[torch.Generator],
+    ) -> list[Query]:
         _check_m(self.m, X[0])
-        return [ranking_query(X[b], indices[b], torch.randperm(X.shape[1], generator=g)[: self.m])
-                for b, g in enumerate(generators)]
+        return [
+            ranking_query(X[b], indices[b], torch.randperm(X.shape[1], generator=g)[: self.m])
+            for b, g in enumerate(generators)
+        ]
 
 
 class RandomMixed(Selector):
@@ -129,8 +165,15 @@ class RandomMixed(Selector):
     def __init__(self, m: int = 5, p_ranking: float = 0.5):
         self.m, self.p_ranking = _ranking_size(m), p_ranking
 
-    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
-                     generators: Sequence[torch.Generator]) -> list[Query]:
+    def select_batch(
+        self,
+        model: Model,
+        X: Tensor,
+        indices: Sequence[Tensor | None],
+        step: int,
+        num_steps: int,
+        generators: Sequence[torch.Generator],
+    ) -> list[Query]:
         out = []
         for b, g in enumerate(generators):
             coin = float(torch.rand((), generator=g, dtype=torch.float64))
@@ -155,8 +198,9 @@ def joint_posterior(model: Model | BatchedPreferenceGP, X: Tensor) -> tuple[Tens
     return mvn.mean.reshape(T, N), mvn.covariance_matrix.reshape(T, N, N)
 
 
-def joint_samples(mean: Tensor, cov: Tensor, generators: Sequence[torch.Generator],
-                  num_samples: int) -> tuple[Tensor, Tensor]:
+def joint_samples(
+    mean: Tensor, cov: Tensor, generators: Sequence[torch.Generator], num_samples: int
+) -> tuple[Tensor, Tensor]:
     """``T x S x N`` joint samples of ``N(mean, cov)`` (``T x N``, ``T x N x N``; ``S =
     num_samples``, one ``randn`` draw from each trial's generator) and the std (``T x N``)."""
     T, N = mean.shape
@@ -167,8 +211,9 @@ def joint_samples(mean: Tensor, cov: Tensor, generators: Sequence[torch.Generato
     L, _, failed = cholesky_batch(cov, torch.stack(jitters))
     if bool(failed.any()):  # fall back on independent samples
         L[failed] = torch.diag_embed(std[failed])
-    z = torch.stack([torch.randn(num_samples, N, generator=g, dtype=mean.dtype, device=mean.device)
-                     for g in generators])
+    z = torch.stack(
+        [torch.randn(num_samples, N, generator=g, dtype=mean.dtype, device=mean.device) for g in generators]
+    )
     return mean.unsqueeze(-2) + z @ L.mT, std
 
 
@@ -180,8 +225,15 @@ class UCBRatings(Selector):
     def __init__(self, gamma: float = 3.0):
         self.gamma = gamma
 
-    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
-                     generators: Sequence[torch.Generator]) -> list[Query]:
+    def select_batch(
+        self,
+        model: Model,
+        X: Tensor,
+        indices: Sequence[Tensor | None],
+        step: int,
+        num_steps: int,
+        generators: Sequence[torch.Generator],
+    ) -> list[Query]:
         best = _ucb(model, X, self.gamma).argmax(-1).tolist()
         return [rating_query(X[b], indices[b], i) for b, i in enumerate(best)]
 
@@ -212,8 +264,15 @@ class UCBC(Selector):
         """The probability ``max(0, (T - t) / T)`` of a ranking at zero-based query ``step`` of ``num_steps``."""
         return max(0.0, (num_steps - step) / num_steps)
 
-    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
-                     generators: Sequence[torch.Generator]) -> list[Query]:
+    def select_batch(
+        self,
+        model: Model,
+        X: Tensor,
+        indices: Sequence[Tensor | None],
+        step: int,
+        num_steps: int,
+        generators: Sequence[torch.Generator],
+    ) -> list[Query]:
         ucb = _ucb(model, X, self.gamma)
         out = []
         for b, g in enumerate(generators):
@@ -295,10 +354,21 @@ class InformationPerEffort(Selector):
 
     name = "info per effort"
 
-    def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
-                 gamma: float = 3.0, num_samples: int = 128, target: str = "top", top_fraction: float = 0.2,
-                 num_plausible: int = 15, num_bins: int = 10, min_count: int = 8, bias_correction: bool = True,
-                 level_edges: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8)):
+    def __init__(
+        self,
+        m: int = 5,
+        rating_cost: float = 1.0,
+        ranking_cost: float | None = None,
+        gamma: float = 3.0,
+        num_samples: int = 128,
+        target: str = "top",
+        top_fraction: float = 0.2,
+        num_plausible: int = 15,
+        num_bins: int = 10,
+        min_count: int = 8,
+        bias_correction: bool = True,
+        level_edges: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8),
+    ):
         m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
         if target not in ("top", "top+levels", "maximizer", "utility"):
             raise ValueError(f"target must be 'top', 'top+levels', 'maximizer' or 'utility', got {target!r}.")
@@ -321,8 +391,15 @@ class InformationPerEffort(Selector):
         c = math.sqrt(2) * rating_likelihood.rating_scale.to(F) * torch.special.ndtri(edges)
         return F.unsqueeze(-2) > c.reshape(-1, 1)
 
-    def select_batch(self, model: Model, X: Tensor, indices: Sequence[Tensor | None], step: int, num_steps: int,
-                     generators: Sequence[torch.Generator]) -> list[Query]:
+    def select_batch(
+        self,
+        model: Model,
+        X: Tensor,
+        indices: Sequence[Tensor | None],
+        step: int,
+        num_steps: int,
+        generators: Sequence[torch.Generator],
+    ) -> list[Query]:
         with torch.no_grad():
             mean, cov = joint_posterior(model, X)
             F, std = joint_samples(mean, cov, generators, self.num_samples)  # T x S x N
@@ -355,8 +432,10 @@ class InformationPerEffort(Selector):
                     def info(P: Tensor) -> Tensor:
                         return torch.stack([sample_information(P[b], labels[b], K + 1) for b in range(T)])
                 else:
+
                     def info(P: Tensor) -> Tensor:
                         return sample_information(P)
+
             cand = order[:, : min(self.num_plausible, N)]  # T x K
             Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, cand.shape[1]))  # T x S x K
             rating_info = info(rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # T x K x S x G -> T x K
@@ -367,5 +446,7 @@ class InformationPerEffort(Selector):
             chosen, value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, info, start=0)
             ranking = (value / self.ranking_cost > rating_value).tolist()
             rows = cand.gather(1, chosen)  # T x m
-        return [ranking_query(X[b], indices[b], rows[b]) if ranking[b]
-                else rating_query(X[b], indices[b], best_rating[b]) for b in range(T)]
+        return [
+            ranking_query(X[b], indices[b], rows[b]) if ranking[b] else rating_query(X[b], indices[b], best_rating[b])
+            for b in range(T)
+        ]

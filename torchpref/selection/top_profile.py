@@ -85,8 +85,9 @@ def profile_variance_reduction(P: Tensor, V: Tensor, bias_correction: bool = Tru
         ranking the queries stays unbiased).
     """
     if V.dim() != 3 or P.dim() != 4 or V.shape[:2] != (P.shape[0], P.shape[2]):
-        raise ValueError(f"V must be T x S x n with T, S those of P (T x B x S x Y: {tuple(P.shape)}), got shape "
-                         f"{tuple(V.shape)}.")
+        raise ValueError(
+            f"V must be T x S x n with T, S those of P (T x B x S x Y: {tuple(P.shape)}), got shape {tuple(V.shape)}."
+        )
     return _reduction(P, _Moments.of(V), bias_correction)
 
 
@@ -150,13 +151,23 @@ class ProfileVariancePerEffort(PerEffortSelector):
 
     name = "profile per effort"
 
-    def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
-                 num_samples: int = 256, top_fraction: float = 0.2, num_plausible: int = 15, num_bins: int = 10,
-                 clipped: bool = False):
+    def __init__(
+        self,
+        m: int = 5,
+        rating_cost: float = 1.0,
+        ranking_cost: float | None = None,
+        num_samples: int = 256,
+        top_fraction: float = 0.2,
+        num_plausible: int = 15,
+        num_bins: int = 10,
+        clipped: bool = False,
+    ):
         m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
         if num_samples < 2 or num_plausible < 1 or num_bins < 2:
-            raise ValueError(f"need num_samples >= 2, num_plausible >= 1 and num_bins >= 2, got {num_samples}, "
-                             f"{num_plausible} and {num_bins}.")
+            raise ValueError(
+                f"need num_samples >= 2, num_plausible >= 1 and num_bins >= 2, got {num_samples}, "
+                f"{num_plausible} and {num_bins}."
+            )
         if not 0 < top_fraction < 1:
             raise ValueError(f"top_fraction must be in (0, 1), got {top_fraction}.")
         self.m, self.rating_cost, self.ranking_cost = m, rating_cost, ranking_cost

@@ -104,8 +104,9 @@ def ranking_mode_hessians(mean: Tensor, cov: Tensor, comparison_likelihood: Like
         lp, d1, d2 = comparison_likelihood.derivatives(eta)
         lp, d1, w = lp * off, d1 * off, -d2 * off
         grad = eye * d1.sum(-1, keepdim=True) - d1  # d l_J / d f_k
-        W = torch.diag_embed(w + eye * w.sum(-1, keepdim=True)) - (w.unsqueeze(-1) * eye.unsqueeze(-2)
-                                                                     + w.unsqueeze(-2) * eye.unsqueeze(-1))
+        W = torch.diag_embed(w + eye * w.sum(-1, keepdim=True)) - (
+            w.unsqueeze(-1) * eye.unsqueeze(-2) + w.unsqueeze(-2) * eye.unsqueeze(-1)
+        )
         return lp.sum(-1), grad, W
 
     def objective(g: Tensor, lp: Tensor) -> Tensor:
@@ -180,9 +181,16 @@ class VariancePerEffort(PerEffortSelector):
 
     name = "variance per effort"
 
-    def __init__(self, m: int = 5, rating_cost: float = 1.0, ranking_cost: float | None = None,
-                 num_samples: int = 128, top_fraction: float = 0.2, num_plausible: int = 15,
-                 num_hessian_samples: int = 32):
+    def __init__(
+        self,
+        m: int = 5,
+        rating_cost: float = 1.0,
+        ranking_cost: float | None = None,
+        num_samples: int = 128,
+        top_fraction: float = 0.2,
+        num_plausible: int = 15,
+        num_hessian_samples: int = 32,
+    ):
         m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
         if num_samples < 2 or num_plausible < 2:
             raise ValueError(f"need num_samples >= 2 and num_plausible >= 2, got {num_samples} and {num_plausible}.")
@@ -225,8 +233,15 @@ class VariancePerEffort(PerEffortSelector):
         chosen, value = self._greedy(Fc, mean, cov, (w, g), cand, lik.comparison)
         return rating_row, rating_value / self.rating_cost, cand.gather(1, chosen), value / self.ranking_cost
 
-    def _greedy(self, Fc: Tensor, mean: Tensor, cov: Tensor, weights: tuple[Tensor, Tensor], cand: Tensor,
-                comparison: Likelihood) -> tuple[Tensor, Tensor]:
+    def _greedy(
+        self,
+        Fc: Tensor,
+        mean: Tensor,
+        cov: Tensor,
+        weights: tuple[Tensor, Tensor],
+        cand: Tensor,
+        comparison: Likelihood,
+    ) -> tuple[Tensor, Tensor]:
         """Greedy best-of-``m`` set among the ``K`` plausible items: ``T x m`` columns, ``T`` values."""
         T, S, K = Fc.shape
         j, k = torch.triu_indices(K, K, 1, device=Fc.device)
@@ -241,8 +256,9 @@ class VariancePerEffort(PerEffortSelector):
             mean_q = mean.gather(1, rows.reshape(T, -1)).reshape(rows.shape)
             H = ranking_mode_hessians(mean_q, block, comparison)  # T x R x J x q x q
             R = rows.shape[1]
-            red = variance_reduction(cov, weights[0], rows.repeat_interleave(q, 1), H.reshape(T, R * q, q, q),
-                                     weights[1])
+            red = variance_reduction(
+                cov, weights[0], rows.repeat_interleave(q, 1), H.reshape(T, R * q, q, q), weights[1]
+            )
             vals = (red.reshape(T, R, q) * P).sum(-1)
             b = vals.argmax(-1)
             best = sets[torch.arange(T), b]  # T x q

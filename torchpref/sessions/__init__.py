@@ -2,9 +2,76 @@
 
 from __future__ import annotations
 
-from torchpref.sessions.session import FORMAT_VERSION, PreferenceSession, SessionAnswer, SessionFileCorrupt, SessionFileError, SessionMismatchError, SessionRepairWarning, SessionVersionError, default_ranking_size, default_session_model, read_session_file, step_generator
-from torchpref.sessions.settings import MAX_REDRAWS, SessionAnswer, SessionSettings, as_items, default_ranking_size, default_session_model, step_generator
-from torchpref.sessions.journal import ANSWER_KINDS, FORMAT_VERSION, Journal, SessionFileCorrupt, SessionFileError, SessionMismatchError, SessionRepairWarning, SessionVersionError, read_session_file
-from torchpref.sessions.records import ANSWER_KINDS, FORMAT_VERSION, SessionFileCorrupt, SessionFileError, SessionMismatchError, SessionRepairWarning, SessionVersionError, check_new_record, dumps_settings, records_in_force, validate_header, validate_records
+from torchpref.sessions.session import (
+    FORMAT_VERSION,
+    PreferenceSession,
+    SessionAnswer,
+    SessionFileCorrupt,
+    SessionFileError,
+    SessionMismatchError,
+    SessionRepairWarning,
+    SessionVersionError,
+    default_ranking_size,
+    default_session_model,
+    read_session_file,
+    step_generator,
+)
+from torchpref.sessions.settings import (
+    MAX_REDRAWS,
+    SessionAnswer,
+    SessionSettings,
+    as_items,
+    default_ranking_size,
+    default_session_model,
+    step_generator,
+)
+from torchpref.sessions.journal import (
+    ANSWER_KINDS,
+    FORMAT_VERSION,
+    Journal,
+    SessionFileCorrupt,
+    SessionFileError,
+    SessionMismatchError,
+    SessionRepairWarning,
+    SessionVersionError,
+    read_session_file,
+)
+from torchpref.sessions.records import (
+    ANSWER_KINDS,
+    FORMAT_VERSION,
+    SessionFileCorrupt,
+    SessionFileError,
+    SessionMismatchError,
+    SessionRepairWarning,
+    SessionVersionError,
+    check_new_record,
+    dumps_settings,
+    records_in_force,
+    validate_header,
+    validate_records,
+)
 
-__all__ = ['ANSWER_KINDS', 'FORMAT_VERSION', 'Journal', 'MAX_REDRAWS', 'PreferenceSession', 'SessionAnswer', 'SessionFileCorrupt', 'SessionFileError', 'SessionMismatchError', 'SessionRepairWarning', 'SessionSettings', 'SessionVersionError', 'as_items', 'check_new_record', 'default_ranking_size', 'default_session_model', 'dumps_settings', 'read_session_file', 'records_in_force', 'step_generator', 'validate_header', 'validate_records']
+__all__ = [
+    'ANSWER_KINDS',
+    'FORMAT_VERSION',
+    'Journal',
+    'MAX_REDRAWS',
+    'PreferenceSession',
+    'SessionAnswer',
+    'SessionFileCorrupt',
+    'SessionFileError',
+    'SessionMismatchError',
+    'SessionRepairWarning',
+    'SessionSettings',
+    'SessionVersionError',
+    'as_items',
+    'check_new_record',
+    'default_ranking_size',
+    'default_session_model',
+    'dumps_settings',
+    'read_session_file',
+    'records_in_force',
+    'step_generator',
+    'validate_header',
+    'validate_records',
+]

@@ -29,9 +29,18 @@ import warnings
 from pathlib import Path
 from typing import Callable
 
-from torchpref.sessions.records import (ANSWER_KINDS, FORMAT_VERSION, SessionFileCorrupt, SessionFileError,
-                               SessionMismatchError, SessionRepairWarning, SessionVersionError, check_new_record,
-                               validate_header, validate_records)
+from torchpref.sessions.records import (
+    ANSWER_KINDS,
+    FORMAT_VERSION,
+    SessionFileCorrupt,
+    SessionFileError,
+    SessionMismatchError,
+    SessionRepairWarning,
+    SessionVersionError,
+    check_new_record,
+    validate_header,
+    validate_records,
+)
 
 __all__ = [
     "ANSWER_KINDS",
@@ -86,8 +95,11 @@ def _parse(path, data: bytes) -> tuple[dict | None, list[dict], bool]:
             reason = "not a valid record (nested too deeply)"
             raise SessionFileCorrupt(path, i + 1, reason, last, line, offset) from None
         except (UnicodeDecodeError, ValueError) as exc:
-            reason = (f"the last line is incomplete (no newline at its end; {exc})" if last and newline_missing
-                      else f"not a valid record ({exc})")
+            reason = (
+                f"the last line is incomplete (no newline at its end; {exc})"
+                if last and newline_missing
+                else f"not a valid record ({exc})"
+            )
             raise SessionFileCorrupt(path, i + 1, reason, last, line, offset) from None
         parsed.append(rec)
         offset += len(line) + 1
@@ -202,8 +214,9 @@ class Journal:
         """Move a partial last line to ``path.dropped`` and truncate the file before it (reported)."""
         dropped = Path(str(self.path) + ".dropped")
         with open(dropped, "ab") as f:
-            f.write(f"# {now()} line {err.line_number} of {self.path.name}: {err.reason}\n".encode() + err.partial
-                    + b"\n")
+            f.write(
+                f"# {now()} line {err.line_number} of {self.path.name}: {err.reason}\n".encode() + err.partial + b"\n"
+            )
             f.flush()
             os.fsync(f.fileno())
         os.ftruncate(self._fd, err.offset)

@@ -120,8 +120,8 @@ class _Line:
 
     def matrix(self, value, name: str, cols: int, min_rows: int = 1, max_rows: int | None = None) -> list:
         ok = isinstance(value, list) and all(
-            isinstance(r, list) and len(r) == cols and all(_is_number(x) and math.isfinite(x) for x in r)
-            for r in value)
+            isinstance(r, list) and len(r) == cols and all(_is_number(x) and math.isfinite(x) for x in r) for r in value
+        )
         if not ok:
             self.fail(f"{name} must be a list of rows of {cols} finite numbers, got {value!r:.120}")
         if len(value) < min_rows or (max_rows is not None and len(value) > max_rows):
@@ -147,8 +147,11 @@ def validate_header(path, h: dict) -> None:
         c.fail(f"the first record must be the header, got {h!r:.200}")
     version = c.integer("version", lo=1)
     if version > FORMAT_VERSION:
-        c.fail(f"format version {version} is newer than this torchpref {__version__} reads (up to "
-               f"{FORMAT_VERSION}); upgrade torchpref to open it", SessionVersionError)
+        c.fail(
+            f"format version {version} is newer than this torchpref {__version__} reads (up to "
+            f"{FORMAT_VERSION}); upgrade torchpref to open it",
+            SessionVersionError,
+        )
     dim = c.integer("dim", lo=1)
     c.integer("seed")
     c.integer("num_queries", lo=1)
@@ -216,8 +219,11 @@ def _check_query(c: _Line, q, kind: str, m: int, header: dict) -> None:
         return
     spec = header["candidates"]
     n = len(spec["items"]) if spec["kind"] == "pool" else 0
-    if not (isinstance(idx, list) and len(idx) == m and all(isinstance(i, int) and not isinstance(i, bool)
-                                                           and 0 <= i < n for i in idx)):
+    if not (
+        isinstance(idx, list)
+        and len(idx) == m
+        and all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < n for i in idx)
+    ):
         c.fail(f"pool_indices must be {m} rows of the pool of {n} items, got {idx!r:.80}")
     if any(spec["items"][i] != row for i, row in zip(idx, c.rec["items"])):
         c.fail(f"the items are not the pool's rows {idx}")
@@ -239,8 +245,10 @@ def _check_record(c: _Line, header: dict, last_seq: int, active: set[int]) -> in
     if not isinstance(v, int) or isinstance(v, bool) or v < 1:
         c.fail(f"record format version 'v' must be a positive integer, got {v!r:.80}")
     if v > FORMAT_VERSION:
-        c.fail(f"record format version {v} is newer than {FORMAT_VERSION}; upgrade torchpref to open it",
-               SessionVersionError)
+        c.fail(
+            f"record format version {v} is newer than {FORMAT_VERSION}; upgrade torchpref to open it",
+            SessionVersionError,
+        )
     seq = c.integer("seq", lo=1)
     if seq <= last_seq:
         c.fail(f"sequence number {seq} does not follow {last_seq}")

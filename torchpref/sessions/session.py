@@ -29,13 +29,35 @@ from torch import Tensor
 
 from torchpref.sessions.journal import Journal, now, read_session_file
 from torchpref.models.preference_gp import PreferenceGP
-from torchpref.data.queries import (Candidates, FinitePool, Query, RankingQuery, RatingQuery, first_unique_rows,
-                               record_answer)
-from torchpref.sessions.records import (FORMAT_VERSION, SessionFileCorrupt, SessionFileError, SessionMismatchError,
-                               SessionRepairWarning, SessionVersionError, check_new_record, records_in_force)
-from torchpref.sessions.settings import (MAX_REDRAWS, SessionAnswer, SessionSettings, as_items,
-                                        candidates_from_header, default_ranking_size, default_session_model,
-                                        step_generator)
+from torchpref.data.queries import (
+    Candidates,
+    FinitePool,
+    Query,
+    RankingQuery,
+    RatingQuery,
+    first_unique_rows,
+    record_answer,
+)
+from torchpref.sessions.records import (
+    FORMAT_VERSION,
+    SessionFileCorrupt,
+    SessionFileError,
+    SessionMismatchError,
+    SessionRepairWarning,
+    SessionVersionError,
+    check_new_record,
+    records_in_force,
+)
+from torchpref.sessions.settings import (
+    MAX_REDRAWS,
+    SessionAnswer,
+    SessionSettings,
+    as_items,
+    candidates_from_header,
+    default_ranking_size,
+    default_session_model,
+    step_generator,
+)
 from torchpref.selection.strategies import UCBC, Selector
 
 __all__ = [
@@ -136,7 +158,9 @@ class PreferenceSession:
         return self._candidates.X if isinstance(self._candidates, FinitePool) else None
 
     @classmethod
-    def load(cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Any) -> "PreferenceSession":
+    def load(
+        cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Any
+    ) -> "PreferenceSession":
         """Resume the session in ``path`` with the settings in its header (seed, levels, bounds,
         candidates, names); ``selector``, ``model_factory``, ``repair`` and ``num_queries`` may be given.
 
@@ -159,8 +183,13 @@ class PreferenceSession:
         kwargs.setdefault("num_queries", header["num_queries"])
         kwargs.setdefault("num_levels", header["num_levels"])
         kwargs.setdefault("names", header.get("names"))
-        return cls(candidates, session_file=path, seed=header["seed"],
-                   bounds=torch.tensor(header["bounds"], dtype=torch.float64), **kwargs)
+        return cls(
+            candidates,
+            session_file=path,
+            seed=header["seed"],
+            bounds=torch.tensor(header["bounds"], dtype=torch.float64),
+            **kwargs,
+        )
 
     def close(self) -> None:
         """Release the file (every answer is already on disk)."""
@@ -319,12 +348,17 @@ class PreferenceSession:
             raise TypeError(f"query must be a RatingQuery or RankingQuery, got {type(query).__name__}.")
         last = self._answered
         if last is not None and last[1] is query and any(r["seq"] == last[0] for r in self._active):
-            raise ValueError(f"this query is already answered (answer {last[0]}); ask() gives the next one. Another "
-                             "answer about the same items: tell_rating, tell_choice or tell_no_preference.")
+            raise ValueError(
+                f"this query is already answered (answer {last[0]}); ask() gives the next one. Another "
+                "answer about the same items: tell_rating, tell_choice or tell_no_preference."
+            )
         pending = self._pending is not None and self._pending[1] is query and self._pending[0] == self.step
         rows = [query.index] if isinstance(query, RatingQuery) else query.indices
-        info = {"kind": query.kind, "step": self.step if pending else None,
-                "pool_indices": None if rows is None or rows[0] is None else [int(i) for i in rows]}
+        info = {
+            "kind": query.kind,
+            "step": self.step if pending else None,
+            "pool_indices": None if rows is None or rows[0] is None else [int(i) for i in rows],
+        }
         if info["pool_indices"] is not None:
             self._check_pool_rows(query, info["pool_indices"])
         self._tell(query, answer, info)
@@ -335,10 +369,15 @@ class PreferenceSession:
         touched; the file's format checks it again)."""
         pool = self._pool
         items = as_items(query.items, self.dim, "the query's items")
-        if (pool is None or not all(0 <= i < pool.shape[0] for i in rows)
-                or not torch.equal(pool[rows].to(items), items)):
-            raise ValueError(f"the query's items are not this session's pool rows {rows}: a query of another "
-                             "session, or one edited after ask().")
+        if (
+            pool is None
+            or not all(0 <= i < pool.shape[0] for i in rows)
+            or not torch.equal(pool[rows].to(items), items)
+        ):
+            raise ValueError(
+                f"the query's items are not this session's pool rows {rows}: a query of another "
+                "session, or one edited after ask()."
+            )
 
     def tell_rating(self, x: Tensor, rating: int | float) -> None:
         """A rating of any item ``x`` (``d``), given out of turn: a Likert level (or ``[0, 1]``)."""
@@ -371,9 +410,14 @@ class PreferenceSession:
         except Exception:
             self._model_seqs = seqs  # the model rolls back on error (PreferenceGP.add_observations)
             raise
-        rec = {"type": "answer", "v": FORMAT_VERSION, "seq": self._next_seq, "time": now(),
-               "kind": "rating" if query.kind == "rating" else ("choice" if value is not None else "no_preference"),
-               "items": items.tolist()}
+        rec = {
+            "type": "answer",
+            "v": FORMAT_VERSION,
+            "seq": self._next_seq,
+            "time": now(),
+            "kind": "rating" if query.kind == "rating" else ("choice" if value is not None else "no_preference"),
+            "items": items.tolist(),
+        }
         if query.kind == "rating":
             rec.update(answer=int(answer) if self.num_levels is not None else value, value=value)
         else:
@@ -394,8 +438,6 @@ class PreferenceSession:
             raise ValueError("nothing to undo: no answers in force.")
         undone = self.history[-1]
         model = self._replay(active[:-1])
-        self._append({"type": "undo", "v": FORMAT_VERSION, "seq": self._next_seq, "time": now(),
-                      "undoes": undone.seq})
+        self._append({"type": "undo", "v": FORMAT_VERSION, "seq": self._next_seq, "time": now(), "undoes": undone.seq})
         self._model, self._model_seqs = model, tuple(r["seq"] for r in active[:-1])
         return undone
-

@@ -65,8 +65,16 @@ class SessionAnswer:
         """The answer of an ``answer`` record of the session file."""
         q = r.get("query") or {}
         pool = q.get("pool_indices")
-        return cls(r["seq"], r["kind"], torch.tensor(r["items"], dtype=torch.float64), r.get("answer"),
-                   r.get("value"), q.get("step"), None if pool is None else tuple(pool), r["time"])
+        return cls(
+            r["seq"],
+            r["kind"],
+            torch.tensor(r["items"], dtype=torch.float64),
+            r.get("answer"),
+            r.get("value"),
+            q.get("step"),
+            None if pool is None else tuple(pool),
+            r["time"],
+        )
 
 
 def step_generator(seed: int, step: int, attempt: int = 0) -> torch.Generator:
@@ -184,8 +192,15 @@ class SessionSettings:
     names: list[str] | None
 
     @classmethod
-    def validated(cls, candidates: Tensor | Candidates, bounds: Tensor | None, seed: int, num_queries: int,
-                  num_levels: int | None, names: Sequence[str] | None) -> "SessionSettings":
+    def validated(
+        cls,
+        candidates: Tensor | Candidates,
+        bounds: Tensor | None,
+        seed: int,
+        num_queries: int,
+        num_levels: int | None,
+        names: Sequence[str] | None,
+    ) -> "SessionSettings":
         """Check and convert a session's arguments (bounds default to the candidates' range).
 
         Raises:
@@ -203,8 +218,16 @@ class SessionSettings:
             raise ValueError(f"names must give {dim} names, got {list(names)}.")
         levels = None if num_levels is None else _whole("num_levels", num_levels, 2)
         num_queries = _whole("num_queries", num_queries, 1)
-        return cls(candidates, spec, dim, bounds, _whole("seed", seed, None), num_queries, levels,
-                   None if names is None else [str(n) for n in names])
+        return cls(
+            candidates,
+            spec,
+            dim,
+            bounds,
+            _whole("seed", seed, None),
+            num_queries,
+            levels,
+            None if names is None else [str(n) for n in names],
+        )
 
     def header(self, metadata: dict | None) -> dict:
         """A new session file's header record.
@@ -218,8 +241,10 @@ class SessionSettings:
         try:
             json.loads(json.dumps(metadata or {}, allow_nan=False))
         except (TypeError, ValueError, RecursionError) as err:
-            raise ValueError(f"metadata must hold only JSON values (strings, finite numbers, booleans, None, "
-                             f"lists, dictionaries): {err}") from None
+            raise ValueError(
+                f"metadata must hold only JSON values (strings, finite numbers, booleans, None, "
+                f"lists, dictionaries): {err}"
+            ) from None
         return {
             "type": "header",
             "version": FORMAT_VERSION,
@@ -241,9 +266,17 @@ class SessionSettings:
         if h["dim"] != self.dim:
             raise SessionMismatchError(
                 f"session file {path} was written for {h['dim']}-dimensional items, but these items have "
-                f"{self.dim} dimensions.", "dim", str(h["dim"]), str(self.dim))
-        for key, mine in (("candidates", self.spec), ("bounds", self.bounds.tolist()), ("seed", self.seed),
-                          ("num_levels", self.num_levels)):
+                f"{self.dim} dimensions.",
+                "dim",
+                str(h["dim"]),
+                str(self.dim),
+            )
+        for key, mine in (
+            ("candidates", self.spec),
+            ("bounds", self.bounds.tolist()),
+            ("seed", self.seed),
+            ("num_levels", self.num_levels),
+        ):
             if dumps_settings(h[key]) != dumps_settings(mine):
                 theirs = h[key]
                 if key == "candidates":
@@ -251,4 +284,7 @@ class SessionSettings:
                 raise SessionMismatchError(
                     f"session file {path} was written with {key} {theirs}, but this session has {key} {mine}; "
                     f"open it with PreferenceSession.load({str(path)!r}) to use the file's settings.",
-                    key, str(theirs), str(mine))
+                    key,
+                    str(theirs),
+                    str(mine),
+                )

@@ -2,8 +2,39 @@
 
 from __future__ import annotations
 
-from torchpref.simulation.metrics import wrms, wrms_authors, true_positives, error_on_best, rating_from_latent, expected_rating
+from torchpref.simulation.metrics import (
+    wrms,
+    wrms_authors,
+    true_positives,
+    error_on_best,
+    rating_from_latent,
+    expected_rating,
+)
 from torchpref.simulation.users import User, SimulatedUser, LikertUser, sample_beta, sample_log_gamma, RATING_CLAMP
-from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid, GaussianBumps, Plateau, RescaledUtility
+from torchpref.simulation.utility_functions import (
+    WaveFunction,
+    evaluation_grid,
+    GaussianBumps,
+    Plateau,
+    RescaledUtility,
+)
 
-__all__ = ['GaussianBumps', 'LikertUser', 'Plateau', 'RATING_CLAMP', 'RescaledUtility', 'SimulatedUser', 'User', 'WaveFunction', 'error_on_best', 'evaluation_grid', 'expected_rating', 'rating_from_latent', 'sample_beta', 'sample_log_gamma', 'true_positives', 'wrms', 'wrms_authors']
+__all__ = [
+    'GaussianBumps',
+    'LikertUser',
+    'Plateau',
+    'RATING_CLAMP',
+    'RescaledUtility',
+    'SimulatedUser',
+    'User',
+    'WaveFunction',
+    'error_on_best',
+    'evaluation_grid',
+    'expected_rating',
+    'rating_from_latent',
+    'sample_beta',
+    'sample_log_gamma',
+    'true_positives',
+    'wrms',
+    'wrms_authors',
+]

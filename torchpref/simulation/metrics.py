@@ -40,11 +40,14 @@ def _pair(name_a: str, a: Tensor, name_b: str, b: Tensor) -> tuple[Tensor, Tenso
     if not b.is_floating_point():
         b = b.to(torch.float64)
     if a.dim() == 0 or b.dim() == 0:
-        raise ValueError(f"{name_a} and {name_b} need a last (points) dimension, got shapes "
-                         f"{tuple(a.shape)} and {tuple(b.shape)}.")
+        raise ValueError(
+            f"{name_a} and {name_b} need a last (points) dimension, got shapes {tuple(a.shape)} and {tuple(b.shape)}."
+        )
     if a.shape[-1] != b.shape[-1] or a.shape[-1] == 0:
-        raise ValueError(f"{name_a} and {name_b} must have the same non-zero number of points, got "
-                         f"shapes {tuple(a.shape)} and {tuple(b.shape)}.")
+        raise ValueError(
+            f"{name_a} and {name_b} must have the same non-zero number of points, got "
+            f"shapes {tuple(a.shape)} and {tuple(b.shape)}."
+        )
     if a.shape != b.shape:
         try:
             torch.broadcast_shapes(a.shape, b.shape)
@@ -180,16 +183,16 @@ def error_on_best(
         if mask.dtype != torch.bool:
             raise ValueError(f"mask must be a boolean tensor, got dtype {mask.dtype}.")
         if mask.dim() == 0 or mask.shape[-1] != u_est.shape[-1]:
-            raise ValueError(f"mask must have {u_est.shape[-1]} points in its last dimension, got shape "
-                             f"{tuple(mask.shape)}.")
+            raise ValueError(
+                f"mask must have {u_est.shape[-1]} points in its last dimension, got shape {tuple(mask.shape)}."
+            )
     err = (u_est - u_true).abs()
     shape = torch.broadcast_shapes(err.shape, mask.shape)
     err, mask = err.expand(shape), mask.expand(shape)
     count = mask.sum(dim=-1)
     if (count == 0).any():
         raise ValueError(
-            f"error_on_best: {int((count == 0).sum())} batch element(s) select no item "
-            f"(threshold={threshold})."
+            f"error_on_best: {int((count == 0).sum())} batch element(s) select no item (threshold={threshold})."
         )
     return torch.where(mask, err, torch.zeros_like(err)).sum(dim=-1) / count
 

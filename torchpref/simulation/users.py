@@ -301,8 +301,9 @@ class SimulatedUser:
             raise ValueError(f"X must be a non-empty n x d tensor, got shape {tuple(X.shape)}.")
         f = torch.as_tensor(self.utility(X))
         if f.shape != (X.shape[0],):
-            raise ValueError(f"utility must map n x d to n values: got shape {tuple(f.shape)} for "
-                             f"input {tuple(X.shape)}.")
+            raise ValueError(
+                f"utility must map n x d to n values: got shape {tuple(f.shape)} for input {tuple(X.shape)}."
+            )
         if not torch.isfinite(f).all():
             raise ValueError(f"utility returned non-finite values {f.tolist()}.")
         return f.detach()

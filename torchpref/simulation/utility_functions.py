@@ -287,8 +287,10 @@ class GaussianBumps:
         self.heights = _as_parameter("heights", heights)
         self.widths = _as_parameter("widths", widths)
         if self.centres.dim() != 2 or not self.centres.shape[0] == self.heights.numel() == self.widths.numel():
-            raise ValueError(f"need K x d centres and K heights and widths, got shapes {tuple(self.centres.shape)}, "
-                             f"{tuple(self.heights.shape)}, {tuple(self.widths.shape)}.")
+            raise ValueError(
+                f"need K x d centres and K heights and widths, got shapes {tuple(self.centres.shape)}, "
+                f"{tuple(self.heights.shape)}, {tuple(self.widths.shape)}."
+            )
 
     def __call__(self, X: Tensor) -> Tensor:
         """``n x d`` -> ``n`` values."""
@@ -310,7 +312,10 @@ class Plateau:
     """
 
     def __init__(self, centre: Tensor, radius: float, edge: float, tilt: Tensor):
-        self.centre, self.tilt = torch.as_tensor(centre, dtype=torch.float64), torch.as_tensor(tilt, dtype=torch.float64)
+        self.centre, self.tilt = (
+            torch.as_tensor(centre, dtype=torch.float64),
+            torch.as_tensor(tilt, dtype=torch.float64),
+        )
         if not (radius > 0 and edge > 0):
             raise ValueError(f"radius and edge must be positive, got {radius} and {edge}.")
         self.radius, self.edge = float(radius), float(edge)
