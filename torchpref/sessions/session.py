@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -160,7 +161,7 @@ class PreferenceSession:
     @classmethod
     def load(
         cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Any
-    ) -> "PreferenceSession":
+    ) -> PreferenceSession:
         """Resume the session in ``path`` with the settings in its header (seed, levels, bounds,
         candidates, names); ``selector``, ``model_factory``, ``repair`` and ``num_queries`` may be given.
 
@@ -196,7 +197,7 @@ class PreferenceSession:
         if self._journal is not None:
             self._journal.close()
 
-    def __enter__(self) -> "PreferenceSession":
+    def __enter__(self) -> PreferenceSession:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -12,7 +12,8 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -61,7 +62,7 @@ class SessionAnswer:
     time: str
 
     @classmethod
-    def from_record(cls, r: dict) -> "SessionAnswer":
+    def from_record(cls, r: dict) -> SessionAnswer:
         """The answer of an ``answer`` record of the session file."""
         q = r.get("query") or {}
         pool = q.get("pool_indices")
@@ -200,7 +201,7 @@ class SessionSettings:
         num_queries: int,
         num_levels: int | None,
         names: Sequence[str] | None,
-    ) -> "SessionSettings":
+    ) -> SessionSettings:
         """Check and convert a session's arguments (bounds default to the candidates' range).
 
         Raises:
