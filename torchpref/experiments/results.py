@@ -193,8 +193,9 @@ def plot_mean_sem(
         xlabel: the shared x-axis label.
         title: an optional figure title.
     """
-    import matplotlib
+    from torchpref.extras import require
 
+    matplotlib = require("matplotlib", "drawing an experiment's curves")
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 

@@ -48,9 +48,9 @@ _MAGIC = ((b"\x89PNG", "png"), (b"\xff\xd8", "jpeg"), (b"GIF8", "gif"))
 
 
 def _widgets():
-    import ipywidgets
+    from torchpref.extras import require
 
-    return ipywidgets
+    return require("ipywidgets", "the notebook widget")
 
 
 def _image(data: bytes, fmt: str, width: str):
