@@ -135,3 +135,37 @@ def test_every_extra_named_exists_in_pyproject():
     for module, extra in EXTRAS.items():
         line = next(row for row in text.splitlines() if row.startswith(f"{extra} = ["))
         assert f'"{module}' in line, line
+
+
+# --------------------------------------------------------------------------- annotations
+def _unannotated_public_functions() -> list[str]:
+    """Public functions and public methods (and ``__init__``) of public classes, in public modules,
+    with a parameter or the return (not of ``__init__`` or a property setter) unannotated."""
+    out = []
+    for f in sorted((ROOT / "torchpref").rglob("*.py")):
+        if any(part.startswith("_") and part != "__init__.py" for part in f.relative_to(ROOT).parts):
+            continue
+
+        def check(fn: ast.FunctionDef | ast.AsyncFunctionDef, qualname: str) -> None:
+            args = fn.args.posonlyargs + fn.args.args + fn.args.kwonlyargs
+            missing = [a.arg for a in args if a.annotation is None and a.arg not in ("self", "cls")]
+            if fn.returns is None and fn.name != "__init__":
+                missing.append("return")
+            if missing:
+                out.append(f"{f.relative_to(ROOT)}:{fn.lineno} {qualname}: {', '.join(missing)}")
+
+        for node in ast.parse(f.read_text()).body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and not node.name.startswith("_"):
+                check(node, node.name)
+            elif isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
+                for m in node.body:
+                    if isinstance(m, (ast.FunctionDef, ast.AsyncFunctionDef)) and (
+                        not m.name.startswith("_") or m.name == "__init__"
+                    ):
+                        check(m, f"{node.name}.{m.name}")
+    return out
+
+
+def test_the_public_api_is_fully_annotated():
+    missing = _unannotated_public_functions()
+    assert not missing, "unannotated parameters or returns:\n" + "\n".join(missing)

@@ -24,6 +24,7 @@ ranking query. So one acquisition function values both query types and a selecto
 
 from __future__ import annotations
 
+from typing import Any
 import math
 
 import torch
@@ -65,7 +66,7 @@ def latent_ucb(model: Model, gamma: float = 3.0) -> UpperConfidenceBound:
     return UpperConfidenceBound(model, beta=gamma**2)
 
 
-def item_ucb(model, X: Tensor, gamma: float = 3.0) -> tuple[Tensor, Tensor, Tensor]:
+def item_ucb(model: Model, X: Tensor, gamma: float = 3.0) -> tuple[Tensor, Tensor, Tensor]:
     r"""Eq. 12's ``mean + gamma * std`` of the latent utility at each point of ``X`` (``... x d``),
     with the posterior mean and std (each ``...``). Uses the marginals of a
     :class:`~torchpref.PreferenceGP` or a :class:`~torchpref.BatchedPreferenceGP` (``T x N x d``
@@ -176,7 +177,7 @@ def choice_probabilities(f: Tensor, comparison_noise: float | Tensor, num_quadra
     return p / p.sum(-1, keepdim=True)
 
 
-def rating_bin_probabilities(f: Tensor, rating_likelihood, num_bins: int = 32) -> Tensor:
+def rating_bin_probabilities(f: Tensor, rating_likelihood: Any, num_bins: int = 32) -> Tensor:
     r"""``...`` utilities -> ``... x num_bins``: the probability of a rating in each of
     ``num_bins`` equal bins of ``[0, 1]`` (Beta density of eqs. 4-7 at the bins' midpoints,
     normalised). A binned rating carries at most the information of the rating itself. For an

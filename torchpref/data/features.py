@@ -91,7 +91,7 @@ def _label_column(path: Path, header: list[str], body: list[list[str]], id_colum
     return None
 
 
-def read_features_csv(path, id_column: str | None = None) -> tuple[Tensor, list[str], list[str] | None]:
+def read_features_csv(path: str | Path, id_column: str | None = None) -> tuple[Tensor, list[str], list[str] | None]:
     """Items from a CSV: a header row of column names, then one row per item.
 
     Args:

@@ -11,6 +11,7 @@ query).
 
 from __future__ import annotations
 
+from typing import Any
 import operator
 from dataclasses import dataclass, field
 
@@ -20,7 +21,7 @@ from torch import Tensor
 from torchpref.data.preference_data import best_of_m, best_of_m_with_ties, likert_to_unit, unit_to_likert
 
 
-def as_integer(value) -> int | None:
+def as_integer(value: Any) -> int | None:
     """``value`` as an ``int`` if it is an integer (a Python, NumPy or 0-d integer tensor one; not
     a bool, a float or text), else ``None``."""
     if isinstance(value, bool):
@@ -108,7 +109,7 @@ class RankingQuery:
 Query = RatingQuery | RankingQuery
 
 
-def record_answer(model, query: Query, answer, *, num_levels: int | None = None):
+def record_answer(model: Any, query: Query, answer: Any, *, num_levels: int | None = None) -> None:
     r"""Validate ``answer`` to ``query`` and add it to ``model``: the one path from an answer to
     observations (the active-learning loop, the session live and on replay).
 
@@ -154,7 +155,7 @@ def record_answer(model, query: Query, answer, *, num_levels: int | None = None)
     raise TypeError(f"query must be a RatingQuery or RankingQuery, got {type(query).__name__}.")
 
 
-def no_preference_observations(model, query: RankingQuery) -> None:
+def no_preference_observations(model: Any, query: RankingQuery) -> None:
     """No preference among ``query.items``: a tie between every two of them
     (:class:`~torchpref.TieLikelihood`; docs/likelihoods.md)."""
     model.add_observations(query.items, ties=torch.combinations(torch.arange(query.m), 2))
@@ -173,7 +174,7 @@ def ranking_query(X: Tensor, indices: Tensor | None, rows: Tensor) -> RankingQue
     return RankingQuery(X[rows], None if indices is None else tuple(int(indices[r]) for r in rows))
 
 
-def ask_user(user, query: Query):
+def ask_user(user: Any, query: Query) -> Any:
     """The answer of a user (``rate(x)`` / ``choose(X)``) to ``query``, as given (it is validated
     where it is used, by :func:`record_answer`)."""
     if isinstance(query, RatingQuery):

@@ -37,6 +37,9 @@ from Python: :func:`run_lake_experiment`.
 
 from __future__ import annotations
 
+import argparse
+from torch import Tensor
+
 import functools
 import math
 import os
@@ -100,11 +103,11 @@ class NormalisedOperator:
     def __init__(self, operator: LakeOperator, bounds: torch.Tensor):
         self.operator, self.bounds = operator, bounds
 
-    def rate(self, z) -> float:
+    def rate(self, z: Tensor) -> float:
         """The operator's rating of the normalised item ``z`` (``d``)."""
         return self.operator.rate(unnormalise(torch.as_tensor(z, dtype=torch.float64), self.bounds))
 
-    def choose(self, Z) -> int:
+    def choose(self, Z: Tensor) -> int:
         """The operator's choice among the normalised items ``Z`` (``m x d``)."""
         return self.operator.choose(unnormalise(torch.as_tensor(Z, dtype=torch.float64), self.bounds))
 
@@ -452,7 +455,7 @@ def _lake_summary(summary: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     """``torchpref reproduce lake``: run and report."""
     lakes = getattr(args, "lakes", 1) or 1
     res = run_lake_experiment(

@@ -28,9 +28,12 @@ shorter when the information is enough, more information when it is not).
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import torch
+from botorch.models.model import Model
 from botorch.utils.transforms import normalize as normalise
 from torch import Tensor
 
@@ -39,6 +42,9 @@ from torchpref.lake.objectives import path_objectives
 from torchpref.experiments.results import paired_tests
 from torchpref.lake.plan import SOURCES, plan_with_utility
 from torchpref.lake.planners import pad_paths, rrt_star, stomp
+
+if TYPE_CHECKING:
+    from torchpref.lake.scenario import LakeScenario
 
 #: planning settings: ``beta`` of the bound, the reference (``"shown"``: the best shown path;
 #: ``"pick"``: the model's pool pick), the trust region (``None``: none), the number of best pool
@@ -59,7 +65,7 @@ PLAN_SETTINGS: dict[str, Any] = {
 }
 
 
-def model_utility(model, bounds: Tensor):
+def model_utility(model: Model, bounds: Tensor) -> Callable[[Tensor], Tensor]:
     """The posterior mean of ``model`` (trained on objectives normalised by ``bounds``) as a
     differentiable function of the lake's objectives ``n x 2`` -> ``n``."""
 
@@ -71,7 +77,7 @@ def model_utility(model, bounds: Tensor):
 
 
 def improvement_bound(
-    model,
+    model: Model,
     bounds: Tensor,
     reference: Tensor,
     beta: float,
@@ -79,7 +85,7 @@ def improvement_bound(
     answered: Tensor | None = None,
     trust_radius: float | None = None,
     trust_weight: float = 100.0,
-):
+) -> Callable[[Tensor], Tensor]:
     r"""The criterion ``c`` of the module docstring as a function of the lake's objectives.
 
     Args:
@@ -115,7 +121,7 @@ def improvement_bound(
     return criterion
 
 
-def fresh_paths(scenario, num: int, generator: torch.Generator) -> Tensor:
+def fresh_paths(scenario: LakeScenario, num: int, generator: torch.Generator) -> Tensor:
     """``2 num x T x 2`` new STOMP and RRT* paths (not in the scenario's sets) for ``num`` weights
     spread log-uniformly over :func:`~torchpref.lake.scenario.make_scenario`'s sweep."""
     w = torch.logspace(-2, 3, num, dtype=torch.float64) / scenario.field.max
@@ -139,8 +145,8 @@ def compare(operator: LakeOperator, X: Tensor, X_other: Tensor) -> dict[str, Any
 
 
 def plan_for_model(
-    scenario,
-    model,
+    scenario: LakeScenario,
+    model: Model,
     bounds: Tensor,
     pool_rows: Tensor,
     fresh: Tensor | None = None,
@@ -252,7 +258,7 @@ def summarise_plans(plans: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def plot_plan_maps(scenario, plans: dict[str, dict[str, Any]], path) -> Any:
+def plot_plan_maps(scenario: LakeScenario, plans: dict[str, dict[str, Any]], path: str | Path) -> Any:
     """Fig. 7-style maps, one panel per strategy: the field on the water (colour bar, land
     masked), the best shown path, the model's pool pick and the planned path."""
     from torchpref.lake.plotting import _pyplot, _save, draw_lake, draw_paths
@@ -280,7 +286,7 @@ def plot_plan_maps(scenario, plans: dict[str, dict[str, Any]], path) -> Any:
     return _save(fig, path)
 
 
-def plot_plan_levels(plans: list[dict[str, Any]], lake_of: list[int], path, title: str = "") -> Any:
+def plot_plan_levels(plans: list[dict[str, Any]], lake_of: list[int], path: str | Path, title: str = "") -> Any:
     """The operator's level of the planned path, the pool pick and the best shown path over the
     trials (lakes separated by vertical lines)."""
     from torchpref.lake.plotting import _pyplot, _save

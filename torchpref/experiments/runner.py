@@ -30,6 +30,7 @@ on one thread per process, and the setting belongs to the worker, not to an impo
 
 from __future__ import annotations
 
+import argparse
 import os
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from typing import Any
@@ -275,7 +276,7 @@ def place_records(results: list[dict[str, Any]], first: int, strategy: str, part
         results[first + k][strategy] = r[strategy]
 
 
-def run_cli(args, experiment: Callable[..., dict[str, Any]], **kwargs) -> int:
+def run_cli(args: argparse.Namespace, experiment: Callable[..., dict[str, Any]], **kwargs) -> int:
     r"""``torchpref reproduce NAME``: run ``experiment(trials=, queries=, seed=, out=, workers=,
     **kwargs)`` and print where the files went and each strategy's final values."""
     res = experiment(

@@ -25,12 +25,13 @@ from Python: :func:`run_suite`. Results: ``docs/suite.md``.
 
 from __future__ import annotations
 
+import argparse
 import copy
 import math
 import time
 from concurrent.futures import Executor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from collections.abc import Sequence
 
 import torch
@@ -45,6 +46,9 @@ from torchpref.models.kernels import FixedRBFKernel
 from torchpref.simulation.metrics import true_positives, wrms
 from torchpref.models.preference_gp import PreferenceGP
 from torchpref.data.queries import BoxCandidates, FinitePool
+
+if TYPE_CHECKING:
+    from torchpref.selection.strategies import Selector
 
 M = 5
 GAMMA = 3.0
@@ -213,7 +217,7 @@ class _TrialPools:
         return self._by_generator[id(generator)].draw(generator)
 
 
-def make_selector(name: str):
+def make_selector(name: str) -> Selector:
     """The suite's selector ``name`` (:func:`~torchpref.experiments.runner.make_selector` with
     ``m``, ``gamma`` and the suite's effort model)."""
     return runner.make_selector(name, m=M, gamma=GAMMA, rating_cost=RATING_COST, ranking_cost=RANKING_COST)
@@ -339,7 +343,7 @@ def _settings(families: list[str]) -> dict[str, Any]:
     }
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     """``torchpref reproduce suite``: run and report."""
     res = run_suite(
         families=args.families,

@@ -23,6 +23,7 @@ from Python: :func:`run_wave_experiment`.
 
 from __future__ import annotations
 
+import argparse
 import functools
 import time
 from concurrent.futures import Executor
@@ -305,6 +306,6 @@ def _write_files(out: str | Path, result: dict[str, Any], summary: dict[str, Any
     write_experiment_files(out, "wave", result, summary, figures, effort=summary["per_effort"])
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     """``torchpref reproduce wave``: run and report where the files went."""
     return runner.run_cli(args, run_wave_experiment)

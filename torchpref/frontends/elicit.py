@@ -20,9 +20,11 @@ The model works on the objectives normalised to the unit cube by the items' rang
 
 from __future__ import annotations
 
+import argparse
+from collections.abc import Sequence
 import sys
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 import torch
 from torch import Tensor
@@ -38,6 +40,9 @@ from torchpref.sessions.session import (
     read_session_file,
 )
 from torchpref.selection.strategies import UCBC
+
+if TYPE_CHECKING:
+    from torchpref.lake.scenario import LakeScenario
 
 __all__ = ["FeaturesError", "FeaturesWorld", "LakeWorld", "plot_paths", "read_features_csv", "run"]
 
@@ -152,7 +157,7 @@ class LakeWorld(FeaturesWorld):
         print(f"{text} Map: {png}", file=out)
 
 
-def plot_paths(scenario, rows: list[int], letters, title: str, path: Path) -> Path:
+def plot_paths(scenario: LakeScenario, rows: list[int], letters: Sequence[str], title: str, path: Path) -> Path:
     """The lake's map (:func:`torchpref.lake.plotting.plot_paths`: field with colour bar, land
     masked) with the training paths ``rows``, labelled by ``letters``, as a PNG."""
     from torchpref.lake.plotting import plot_paths as plot_map
@@ -283,7 +288,7 @@ def _plural(n: int, noun: str, nouns: str | None = None) -> str:
     return f"{n} {noun}" if n == 1 else f"{n} {nouns or noun + 's'}"
 
 
-def session_path(args) -> Path | None:
+def session_path(args: argparse.Namespace) -> Path | None:
     """The session file: ``--session``, none with ``--no-session``, else ``NAME.session.jsonl``
     in the current folder (``NAME``: the CSV's name, or ``lake``)."""
     if args.no_session:
@@ -338,7 +343,7 @@ def _file_seed(path: Path | None) -> int | None:
     return None if header is None else header["seed"]
 
 
-def run(args, stdin: TextIO | None = None, stdout: TextIO | None = None) -> int:
+def run(args: argparse.Namespace, stdin: TextIO | None = None, stdout: TextIO | None = None) -> int:
     """Run an elicitation in the terminal (``args`` from :mod:`torchpref.cli`); returns the exit code.
 
     Raises:

@@ -76,7 +76,7 @@ def table_picture(item: Tensor, index: int | None = None, names: list[str] | Non
     return f"{head}<table>{rows}</table>"
 
 
-def as_picture(picture: Any, width: str = "100%"):
+def as_picture(picture: Any, width: str = "100%") -> Any:
     """An ``ipywidgets`` widget showing what a render hook returned.
 
     Args:
@@ -195,7 +195,7 @@ class PreferenceWidget:
         display(self.box)
 
     # ------------------------------------------------------------------ drawing
-    def picture(self, item: Tensor, index: int | None):
+    def picture(self, item: Tensor, index: int | None) -> Any:
         """The widget showing one option (the render hook's picture, or the table fallback).
 
         A render hook that raises, or returns something that is no picture, gets the table with

@@ -56,7 +56,7 @@ class ModeResult:
     converged: Tensor  # B bool
     fisher_fallback: Tensor  # B bool: exact B not PD at the mode, the Fisher W used instead
 
-    def select(self, index) -> ModeResult:
+    def select(self, index: int | slice | Tensor) -> ModeResult:
         """The problems ``index`` (an int drops the batch dimension)."""
 
         def pick(v):

@@ -216,7 +216,9 @@ def newton_direction(M: Tensor, grad: Tensor) -> tuple[Tensor, Tensor]:
     return step, (grad * step).sum(-1)
 
 
-def float32_step(prob: Problem, point: NewtonPoint, active: list[bool], tol: float):
+def float32_step(
+    prob: Problem, point: NewtonPoint, active: list[bool], tol: float
+) -> tuple[NewtonPoint, Tensor] | None:
     """One step with ``B`` factorised in float32: ``(new point, decrements)``, or ``None`` when
     float32 does not suffice (failed factorisation, or a step that does not increase ``Psi``)."""
     M = prob.factorise_float32(point)

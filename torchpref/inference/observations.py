@@ -20,7 +20,7 @@ gradient and weight). Its index and target must still be values the likelihood c
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 from collections.abc import Callable, Sequence
 
 import torch
@@ -171,12 +171,12 @@ class Term:
         return (self._patterns[key] * w.reshape(1, -1)).reshape(-1)
 
 
-def pairwise_term(likelihood, comparisons: Tensor, mask: Tensor | None = None, **kw) -> Term:
+def pairwise_term(likelihood: Any, comparisons: Tensor, mask: Tensor | None = None, **kw) -> Term:
     """A term on ``f_i - f_j`` for comparisons ``B x p x 2`` (rows ``[i, j]``)."""
     return Term(likelihood, comparisons, (1.0, -1.0), mask=mask, **kw)
 
 
-def item_term(likelihood, index: Tensor, target: Tensor | None = None, mask: Tensor | None = None, **kw) -> Term:
+def item_term(likelihood: Any, index: Tensor, target: Tensor | None = None, mask: Tensor | None = None, **kw) -> Term:
     """A term on ``f_i`` for items ``index`` (``B x q``) with observed values ``target``."""
     return Term(likelihood, index.unsqueeze(-1), (1.0,), target=target, mask=mask, **kw)
 
@@ -203,13 +203,13 @@ class Observations:
         comparisons: Tensor,
         ratings: Tensor,
         rating_index: Tensor,
-        comparison_likelihood,
-        rating_likelihood,
+        comparison_likelihood: Any,
+        rating_likelihood: Any,
         comparison_mask: Tensor | None = None,
         rating_mask: Tensor | None = None,
         *,
         ties: Tensor | None = None,
-        tie_likelihood=None,
+        tie_likelihood: Any = None,
         tie_mask: Tensor | None = None,
     ) -> Observations:
         """Comparisons (``p x 2`` or ``B x p x 2``), ratings (``q`` or ``B x q``, of items

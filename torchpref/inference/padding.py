@@ -13,8 +13,9 @@ mask false and holds index 0 (and rating 0.5, or level 1), values every likeliho
 
 from __future__ import annotations
 
+from typing import Any
 from dataclasses import dataclass, fields, replace
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -60,11 +61,11 @@ class PaddedData:
     def create(
         cls,
         train_X: Tensor,
-        comparisons=None,
-        ratings=None,
-        rating_index=None,
+        comparisons: Tensor | Sequence[Tensor] | None = None,
+        ratings: Tensor | Sequence[Tensor] | None = None,
+        rating_index: Tensor | Sequence[Tensor] | None = None,
         rating_eps: float = DEFAULT_RATING_EPS,
-        ties=None,
+        ties: Tensor | Sequence[Tensor] | None = None,
         rating_levels: int | None = None,
     ) -> PaddedData:
         """Batched training data, validated per problem: items ``b x n x d``, ``comparisons`` /
@@ -176,7 +177,7 @@ class PaddedData:
             f(self.tie_mask, 1),
         )
 
-    def map(self, fn) -> PaddedData:
+    def map(self, fn: Callable[[Tensor], Tensor]) -> PaddedData:
         """The same problems with ``fn`` applied to every tensor (e.g. a device move)."""
         return PaddedData(*(None if getattr(self, f.name) is None else fn(getattr(self, f.name)) for f in fields(self)))
 
@@ -184,7 +185,9 @@ class PaddedData:
         """The same problems with items ``X`` (e.g. transformed by an input transform)."""
         return replace(self, X=X)
 
-    def observations(self, comparison_likelihood, rating_likelihood, tie_likelihood=None) -> Observations:
+    def observations(
+        self, comparison_likelihood: Any, rating_likelihood: Any, tie_likelihood: Any = None
+    ) -> Observations:
         """The observations of the ``B`` flattened problems as likelihood terms."""
         d = self.flat()
         return Observations.from_data(

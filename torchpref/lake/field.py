@@ -53,7 +53,9 @@ def perlin_noise(points: Tensor, gradients: Tensor) -> Tensor:
     return torch.lerp(bottom, top, sv)
 
 
-def random_gradients(nu: int, nv: int, *, generator: torch.Generator | None = None, dtype=torch.float64) -> Tensor:
+def random_gradients(
+    nu: int, nv: int, *, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64
+) -> Tensor:
     """Random unit gradient vectors on an ``nu x nv`` lattice (angles uniform on the circle)."""
     angle = 2 * math.pi * torch.rand(nu, nv, generator=generator, dtype=dtype)
     return torch.stack([angle.cos(), angle.sin()], dim=-1)
@@ -66,7 +68,7 @@ def perlin_grid(
     octaves: int = 3,
     persistence: float = 0.5,
     generator: torch.Generator | None = None,
-    dtype=torch.float64,
+    dtype: torch.dtype = torch.float64,
 ) -> Tensor:
     r"""Fractal Perlin noise on a ``ny x nx`` grid: a sum of octaves with ``2^k cells`` lattice
     cells across and amplitudes ``persistence^k``.
@@ -184,7 +186,7 @@ class InformationField:
         noise_octaves: int = 3,
         baseline: float = 0.05,
         saturation: float | None = 0.4,
-        dtype=torch.float64,
+        dtype: torch.dtype = torch.float64,
     ) -> InformationField:
         r"""A random field: ``baseline + sum_k a_k exp(-|p - c_k|^2 / (2 s_k^2)) + noise``, clamped at 0.
 

@@ -64,7 +64,7 @@ class LakeOperator:
             raise ValueError(f"objective vectors must be finite, got {X.flatten().tolist()[:6]}.")
         return X
 
-    def level(self, X) -> Tensor:
+    def level(self, X: Tensor) -> Tensor:
         r"""Likert levels of objective vectors.
 
         Args:
@@ -81,7 +81,7 @@ class LakeOperator:
         u = torch.where(info < self.info_poor, torch.ones_like(info), u)
         return u.long()
 
-    def utility(self, X) -> Tensor:
+    def utility(self, X: Tensor) -> Tensor:
         r"""A score that orders paths as the levels do and breaks ties within a level:
         ``10^7 level + information`` below ``info_good`` (more is better) and
         ``10^7 level + 10^6 - distance`` from there on (enough information first, then the
@@ -91,7 +91,7 @@ class LakeOperator:
         tie = torch.where(X[..., 1] < self.info_good, X[..., 1], 1e6 - X[..., 0])
         return lv * 1e7 + tie
 
-    def rate(self, x) -> float:
+    def rate(self, x: Tensor) -> float:
         r"""A rating query: the level of one path mapped to ``[0, 1]`` by
         :func:`torchpref.data.preference_data.likert_to_unit` (level ``k`` -> ``(k - 1/2) / 5``).
 
@@ -103,7 +103,7 @@ class LakeOperator:
             raise ValueError(f"rate takes one objective vector of shape (2,), got {tuple(x.shape)}.")
         return float(likert_to_unit(self.level(x), num_levels=self.num_levels))
 
-    def choose(self, X) -> int:
+    def choose(self, X: Tensor) -> int:
         r"""A ranking query: the index of the preferred row of ``X`` (``m x 2``).
 
         The best level wins; among rows of the best level a path with at least ``info_good``

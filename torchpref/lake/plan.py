@@ -24,6 +24,7 @@ is wrapped by its user (see :mod:`torchpref.experiments.lake`).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
 from dataclasses import dataclass
 from collections.abc import Callable
 
@@ -33,6 +34,9 @@ from torch import Tensor
 from .field import bilinear_sample
 from .objectives import path_objectives
 from .planners import pad_paths, resample_by_arc_length, shore_distance_grid
+
+if TYPE_CHECKING:
+    from torchpref.lake.scenario import LakeScenario
 
 __all__ = ["PlanResult", "plan_with_utility", "SOURCES"]
 
@@ -88,7 +92,7 @@ def _optimise(
 
 
 def plan_with_utility(
-    scenario,
+    scenario: LakeScenario,
     utility: Callable[[Tensor], Tensor],
     *,
     starts: Tensor | None = None,

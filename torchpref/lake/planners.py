@@ -10,6 +10,8 @@ STOMP as one ``n_w x K x T x 2`` tensor computation, RRT* by sharing one tree's 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor
 from tqdm.auto import tqdm
@@ -56,7 +58,7 @@ def shore_distance_grid(
     return lake.signed_distance(pts), extent
 
 
-def pad_paths(paths) -> Tensor:
+def pad_paths(paths: Sequence[Tensor]) -> Tensor:
     """Stack paths (each ``T_i x 2``, or batches ``n_i x T_i x 2``) into one ``n x T x 2`` tensor,
     the shorter ones padded by repeating their last point (which changes neither their length
     nor their information)."""
@@ -166,7 +168,7 @@ def _stomp_step(state: _StompState, theta: Tensor, sigma: float, K: int, tempera
 def stomp(
     lake: Lake,
     field: InformationField,
-    weights,
+    weights: Tensor | Sequence[float],
     *,
     generator: torch.Generator | None = None,
     num_waypoints: int = 40,
@@ -348,7 +350,7 @@ def _extend(
 def rrt_star(
     lake: Lake,
     field: InformationField,
-    weights,
+    weights: Tensor | Sequence[float],
     *,
     generator: torch.Generator | None = None,
     num_samples: int = 600,

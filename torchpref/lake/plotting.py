@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from typing import Any
+from collections.abc import Sequence
+from torch import Tensor
+
 from pathlib import Path
 
 import torch
@@ -36,7 +40,7 @@ def _save(fig, path: str | Path, dpi: int = 130) -> Path:
     return path
 
 
-def draw_lake(ax, scenario: LakeScenario, *, colorbar: bool = True):
+def draw_lake(ax: Any, scenario: LakeScenario, *, colorbar: bool = True) -> Any:
     """The field on the water of ``ax`` (land masked grey, its own colour scale and colour bar),
     the shoreline, start and goal. Returns the field's image."""
     import numpy as np
@@ -72,7 +76,15 @@ def draw_lake(ax, scenario: LakeScenario, *, colorbar: bool = True):
     return im
 
 
-def draw_paths(ax, paths, labels, *, colours=None, styles=None, markers: bool = True) -> None:
+def draw_paths(
+    ax: Any,
+    paths: Sequence[Tensor],
+    labels: Sequence[str],
+    *,
+    colours: Sequence[str] | None = None,
+    styles: Sequence[str] | None = None,
+    markers: bool = True,
+) -> None:
     """Paths (each ``T x 2``) on ``ax`` with their labels in the legend; with ``markers`` each path
     also carries its label's part before a colon at a point along it, staggered so that labels of paths
     that run together do not cover each other."""
@@ -97,7 +109,15 @@ def draw_paths(ax, paths, labels, *, colours=None, styles=None, markers: bool = 
             )
 
 
-def plot_paths(scenario: LakeScenario, paths, labels, path: str | Path, *, title: str = "", dpi: int = 110) -> Path:
+def plot_paths(
+    scenario: LakeScenario,
+    paths: Sequence[Tensor],
+    labels: Sequence[str],
+    path: str | Path,
+    *,
+    title: str = "",
+    dpi: int = 110,
+) -> Path:
     """A map of the lake (:func:`draw_lake`) with ``paths`` (each ``T x 2``) and their ``labels``,
     written to ``path``."""
     plt = _pyplot()

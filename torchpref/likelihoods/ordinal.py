@@ -233,7 +233,7 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
         return torch.cat([r[:1], r[:1] + torch.cumsum(torch.nn.functional.softplus(r[1:]), 0)])
 
     @cut_points.setter
-    def cut_points(self, value) -> None:
+    def cut_points(self, value: Tensor | Sequence[float]) -> None:
         raw = self.raw_cut_points
         c = torch.as_tensor(value, dtype=raw.dtype, device=raw.device).reshape(-1)
         if c.numel() != self.num_levels - 1 or not torch.isfinite(c).all() or (c.diff() <= 0).any():

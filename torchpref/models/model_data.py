@@ -19,7 +19,13 @@ if TYPE_CHECKING:
 
 
 def create_data(
-    train_X, comparisons, ratings, rating_index, rating_eps: float, ties=None, rating_levels: int | None = None
+    train_X: Tensor,
+    comparisons: Tensor | None,
+    ratings: Tensor | None,
+    rating_index: Tensor | None,
+    rating_eps: float,
+    ties: Tensor | None = None,
+    rating_levels: int | None = None,
 ) -> PreferenceData | PaddedData:
     """Validated data: one problem for ``n x d`` items, one per batch element for ``b x n x d``."""
     if isinstance(train_X, Tensor) and train_X.dim() == 3:

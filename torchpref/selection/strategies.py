@@ -89,7 +89,9 @@ class PerEffortSelector(Selector):
     r"""A selector that values each trial's best rating and best ranking per unit of effort
     (:meth:`values`) and asks the larger (the rating where they are equal)."""
 
-    def values(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]):
+    def values(
+        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
         r"""``(rating rows T, rating values T, ranking rows T x m or None, ranking values T)``,
         values per unit of effort."""
         raise NotImplementedError

@@ -175,7 +175,9 @@ class ProfileVariancePerEffort(PerEffortSelector):
         self.num_samples, self.top_fraction = num_samples, top_fraction
         self.num_plausible, self.num_bins, self.clipped = num_plausible, num_bins, clipped
 
-    def values(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]):
+    def values(
+        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
         r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
         T x m or None, ranking values T)``, values per unit of effort."""
         mean, cov = joint_posterior(model, X)

@@ -212,7 +212,9 @@ class VariancePerEffort(PerEffortSelector):
         g = (up - down) / (2 * h)
         return w, g
 
-    def values(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]):
+    def values(
+        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
         r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
         T x m, ranking values T)``, values per unit of effort."""
         mean, cov = joint_posterior(model, X)

@@ -109,7 +109,7 @@ def _parse(path, data: bytes) -> tuple[dict | None, list[dict], bool]:
     return header, parsed[1:], newline_missing
 
 
-def read_session_file(path) -> tuple[dict | None, list[dict], int]:
+def read_session_file(path: str | os.PathLike[str]) -> tuple[dict | None, list[dict], int]:
     """Parse and validate a session file without changing it (and without locking it).
 
     Returns:
@@ -180,7 +180,7 @@ class Journal:
         SessionVersionError: a newer format version.
     """
 
-    def __init__(self, path, new_header: Callable[[], dict] | None, *, repair: bool = False):
+    def __init__(self, path: str | os.PathLike[str], new_header: Callable[[], dict] | None, *, repair: bool = False):
         self.path = Path(path)
         if self.path.is_dir():
             raise SessionFileError(f"session file {self.path} is a directory; give a file name.")

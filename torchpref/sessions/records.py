@@ -56,7 +56,7 @@ class SessionFileCorrupt(SessionFileError):
         offset: the byte offset where the bad line starts.
     """
 
-    def __init__(self, path, line_number: int, reason: str, repairable: bool, partial: bytes, offset: int):
+    def __init__(self, path: Any, line_number: int, reason: str, repairable: bool, partial: bytes, offset: int):
         self.path, self.line_number, self.reason = str(path), line_number, reason
         self.repairable, self.partial, self.offset = repairable, partial, offset
         fix = (
@@ -140,7 +140,7 @@ def _is_number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
-def validate_header(path, h: dict) -> None:
+def validate_header(path: Any, h: dict) -> None:
     """Check a header record (line 1 of ``path``); raises :class:`SessionFileError` naming the field."""
     c = _Line(f"session file {path}, line 1", h)
     if h.get("type") != "header":
@@ -229,7 +229,7 @@ def _check_query(c: _Line, q, kind: str, m: int, header: dict) -> None:
         c.fail(f"the items are not the pool's rows {idx}")
 
 
-def validate_records(path, header: dict, records: list[dict], first_line: int = 2) -> None:
+def validate_records(path: Any, header: dict, records: list[dict], first_line: int = 2) -> None:
     """Check every record after the header: format version, sequence numbers, answer schema,
     undo targets. Raises :class:`SessionFileError` (or :class:`SessionVersionError`) naming the line."""
     last_seq, active = 0, set()

@@ -109,7 +109,7 @@ def default_session_model(train_X: Tensor) -> PreferenceGP:
     return PreferenceGP(train_X, covar_module=kernel, ties_offered=True)
 
 
-def as_items(X, dim: int, name: str) -> Tensor:
+def as_items(X: Any, dim: int, name: str) -> Tensor:
     """``X`` as an ``m x dim`` float64 tensor of finite numbers (a ``dim`` vector is one row).
 
     Raises:
@@ -261,7 +261,7 @@ class SessionSettings:
             "metadata": metadata or {},
         }
 
-    def check_header(self, h: dict, path) -> None:
+    def check_header(self, h: dict, path: Any) -> None:
         """Raise :class:`~torchpref.sessions.records.SessionMismatchError` where the header ``h`` of the file
         ``path`` was written with other items, candidates, bounds, seed or levels."""
         if h["dim"] != self.dim:

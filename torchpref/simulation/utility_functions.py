@@ -22,7 +22,7 @@ be used wherever BoTorch expects one, and it is also the ``utility`` of a
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from botorch.test_functions.synthetic import SyntheticTestFunction
@@ -342,7 +342,7 @@ class RescaledUtility:
         flips: ``D`` booleans: axes to reverse.
     """
 
-    def __init__(self, g, bounds: Tensor, reference: Tensor, flips: Tensor | None = None):
+    def __init__(self, g: Callable[[Tensor], Tensor], bounds: Tensor, reference: Tensor, flips: Tensor | None = None):
         self.g, self.bounds = g, torch.as_tensor(bounds, dtype=torch.float64)
         D = self.bounds.shape[-1]
         self.flips = torch.zeros(D, dtype=torch.bool) if flips is None else torch.as_tensor(flips, dtype=torch.bool)
