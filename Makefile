@@ -1,17 +1,29 @@
 # Two commands do all the set-up: `make demo` and `make test`; each creates .venv if needed.
+# `make test` with CI=true (as .ci/run sets) also runs lint, types, docs and the wheel check.
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+DEV_STAMP := $(VENV)/.installed-dev
+DOCS_STAMP := $(VENV)/.installed-docs
+TORCH := torch==2.13.0
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	# the pinned torch first (the CPU build where pip's configuration offers it), so that the
 	# range in pyproject.toml installs nothing more
-	$(BIN)/pip install --quiet "torch==2.13.0"
+	$(BIN)/pip install --quiet "$(TORCH)"
 	$(BIN)/pip install --quiet -e ".[test,notebooks,benchmarks]"
 	touch $(STAMP)
+
+$(DEV_STAMP): $(STAMP)
+	$(BIN)/pip install --quiet -e ".[dev]"
+	touch $(DEV_STAMP)
+
+$(DOCS_STAMP): $(STAMP)
+	$(BIN)/pip install --quiet -e ".[docs]"
+	touch $(DOCS_STAMP)
 
 venv: $(STAMP)
 
@@ -20,11 +32,41 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+ifeq ($(CI),true)
+	$(MAKE) lint types docs wheel-check
+endif
 
 bench: $(STAMP)
 	$(BIN)/python -m pytest benchmarks/ --benchmark-only -q
 
-clean:
-	rm -rf $(VENV)
+# ruff: lint, and the formatting check (`make format` applies it)
+lint: $(DEV_STAMP)
+	$(BIN)/ruff check torchpref tests benchmarks docs/conf.py
+	$(BIN)/ruff format --check torchpref tests benchmarks docs/conf.py
 
-.PHONY: venv demo test bench clean
+format: $(DEV_STAMP)
+	$(BIN)/ruff format torchpref tests benchmarks docs/conf.py
+
+# mypy over the package (configuration in pyproject.toml)
+types: $(DEV_STAMP)
+	$(BIN)/mypy
+
+# the site, warnings as errors; the notebooks are executed (TORCHPREF_DOCS_EXECUTE=off skips that)
+docs: $(DOCS_STAMP)
+	rm -rf docs/_build/html docs/_generated
+	$(BIN)/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+
+# sdist + wheel, twine check, then the wheel in fresh venvs: without the plot extra the demo says
+# so in one line; with it, it runs
+wheel: $(DEV_STAMP)
+	rm -rf dist
+	$(BIN)/python -m build --outdir dist .
+	$(BIN)/twine check --strict dist/*
+
+wheel-check: wheel
+	PY=$(PY) TORCH="$(TORCH)" .ci/wheel-check dist
+
+clean:
+	rm -rf $(VENV) dist build docs/_build docs/_generated docs/jupyter_execute
+
+.PHONY: venv demo test bench lint format types docs wheel wheel-check clean

@@ -109,7 +109,9 @@ class RankingQuery:
 Query = RatingQuery | RankingQuery
 
 
-def record_answer(model: Any, query: Query, answer: Any, *, num_levels: int | None = None) -> None:
+def record_answer(
+    model: Any, query: Query, answer: Any, *, num_levels: int | None = None
+) -> float | int | list[int] | None:
     r"""Validate ``answer`` to ``query`` and add it to ``model``: the one path from an answer to
     observations (the active-learning loop, the session live and on replay).
 

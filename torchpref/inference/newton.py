@@ -218,7 +218,7 @@ def newton_direction(M: Tensor, grad: Tensor) -> tuple[Tensor, Tensor]:
 
 def float32_step(
     prob: Problem, point: NewtonPoint, active: list[bool], tol: float
-) -> tuple[NewtonPoint, Tensor] | None:
+) -> tuple[NewtonPoint, list[float]] | None:
     """One step with ``B`` factorised in float32: ``(new point, decrements)``, or ``None`` when
     float32 does not suffice (failed factorisation, or a step that does not increase ``Psi``)."""
     M = prob.factorise_float32(point)
