@@ -169,3 +169,55 @@ def _unannotated_public_functions() -> list[str]:
 def test_the_public_api_is_fully_annotated():
     missing = _unannotated_public_functions()
     assert not missing, "unannotated parameters or returns:\n" + "\n".join(missing)
+
+
+# --------------------------------------------------------------------------- the front door
+README_TEXT = (ROOT / "README.md").read_text()
+
+
+def test_readme_is_a_front_door():
+    assert len(README_TEXT.splitlines()) <= 150
+    assert "make demo" in README_TEXT and "make test" in README_TEXT
+    assert 'pip install ".[plot]"' in README_TEXT and "(docs/index.md)" in README_TEXT
+
+
+def test_every_result_path_in_the_readme_exists():
+    """Every figure and every ``benchmarks/results/...`` file the README names is there (globs too)."""
+    images = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", README_TEXT)
+    named = re.findall(r"`(benchmarks/results/[^`]+)`", README_TEXT)
+    assert images and named
+    for path in images:
+        assert path.startswith("benchmarks/results/") and (ROOT / path).is_file(), path
+    for text in named:
+        first, *rest = [p.strip() for p in text.split(",")]
+        folder = Path(first).parent
+        for part in [first, *(str(folder / r) for r in rest)]:
+            assert list(ROOT.glob(part.rstrip("/"))), part
+
+
+def test_every_local_link_in_the_readme_and_docs_resolves():
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    broken = []
+    for page in pages:
+        for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", page.read_text()):
+            if "://" not in target and not (page.parent / target).exists():
+                broken.append(f"{page.relative_to(ROOT)} -> {target}")
+    assert not broken, "\n".join(broken)
+
+
+def test_the_docs_site_picks_up_every_page():
+    index = (ROOT / "docs" / "index.md").read_text()
+    assert ":glob:" in index and "\n*\n" in index and "notebooks/*" in index
+    assert (ROOT / "docs" / "notebooks").resolve() == (ROOT / "notebooks").resolve()
+
+
+def test_the_package_has_a_license_file():
+    assert (ROOT / "LICENSE").read_text().startswith("MIT License")
+    assert 'license-files = ["LICENSE"]' in (ROOT / "pyproject.toml").read_text()
+
+
+def test_ci_runs_the_readme_test_command():
+    run = (ROOT / ".ci" / "run").read_text()
+    assert run.rstrip().endswith("make test") and "CI=true" in run
+    make = (ROOT / "Makefile").read_text()
+    assert "ifeq ($(CI),true)" in make and "lint types docs wheel-check" in make
