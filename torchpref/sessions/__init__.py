@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from torchpref.sessions.journal import Journal, read_session_file
 from torchpref.sessions.records import (
     ANSWER_KINDS,
     FORMAT_VERSION,
@@ -16,6 +17,7 @@ from torchpref.sessions.records import (
     validate_header,
     validate_records,
 )
+from torchpref.sessions.session import PreferenceSession
 from torchpref.sessions.settings import (
     MAX_REDRAWS,
     SessionAnswer,
@@ -25,8 +27,6 @@ from torchpref.sessions.settings import (
     default_session_model,
     step_generator,
 )
-from torchpref.sessions.journal import Journal, read_session_file
-from torchpref.sessions.session import PreferenceSession
 
 __all__ = [
     'ANSWER_KINDS',

@@ -50,6 +50,8 @@ class SessionAnswer:
         step: the query number it answered, or ``None`` if given out of turn.
         pool_indices: the items' rows in the candidate pool, where known.
         time: ISO 8601 timestamp.
+        response_time: seconds from the question being shown to the answer, where the front end
+            measured it (``None`` otherwise; files written before it existed have none).
     """
 
     seq: int
@@ -60,6 +62,7 @@ class SessionAnswer:
     step: int | None
     pool_indices: tuple[int, ...] | None
     time: str
+    response_time: float | None = None
 
     @classmethod
     def from_record(cls, r: dict) -> SessionAnswer:
@@ -75,6 +78,7 @@ class SessionAnswer:
             q.get("step"),
             None if pool is None else tuple(pool),
             r["time"],
+            r.get("response_time"),
         )
 
 
