@@ -15,11 +15,16 @@ four; ratings only leave ``g`` and ``b`` to their priors, comparisons only leave
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, TieLikelihood
 from torchpref.likelihoods.person import LapseProbitLikelihood, PersonRatingLikelihood
 from torchpref.models.defaults import PreferenceLikelihood
+
+if TYPE_CHECKING:
+    from torchpref.models.preference_gp import PreferenceGP
 
 __all__ = ["calibrate_person", "fit_person", "person_parameters"]
 
@@ -33,13 +38,13 @@ PERSON_PARAMETERS = (
 
 
 def calibrate_person(
-    model,
+    model: PreferenceGP,
     *,
     rating_offset: float = 0.0,
     rating_gain: float = 1.0,
     lapse_rate: float = 0.05,
     learn_precision: bool = True,
-):
+) -> PreferenceGP:
     r"""Replace ``model``'s rating and comparison likelihoods by the person's (in place), keeping its
     ``sigma_B``, ``nu`` and ``sigma_R``; returns ``model``. The posterior is re-solved on next use.
 
@@ -73,13 +78,13 @@ def calibrate_person(
     return model
 
 
-def person_parameters(model) -> dict[str, torch.Tensor]:
+def person_parameters(model: PreferenceGP) -> dict[str, torch.Tensor]:
     """The raw parameters of the person's likelihoods that are trainable, by name (``likelihood.``...)."""
     named = dict(model.likelihood.named_parameters())
     return {f"likelihood.{k}": named[k] for k in PERSON_PARAMETERS if k in named and named[k].requires_grad}
 
 
-def fit_person(model, *, max_iter: int = 50):
+def fit_person(model: PreferenceGP, *, max_iter: int = 50) -> PreferenceGP:
     r"""Fit the person's parameters (:func:`person_parameters`) by the Laplace evidence plus their log
     priors (L-BFGS, the kernel and ``sigma_R`` kept); returns ``model``. The model must have been
     through :func:`calibrate_person`. A fit that fails numerically puts the old values back and
