@@ -30,9 +30,15 @@ def tables(folder: Path) -> str:
     v = s["verdicts"]
     strategies = list(next(iter(next(iter(v.values())).values()))["wrms"]["mean"])
     points = list(next(iter(v.values())))
-    out = [f"### {folder.name}: effort `{s['settings'].get('effort', 'units')}`, {s['trials']} trials, "
-           f"{s['wall_time_s']:.0f} s wall, {s['cpu_time_s']:.0f} s of trial CPU\n"]
-    head = "| strategy | ratings | " + " | ".join(f"{p}: {m}" for p in points for m in ("all",)) + " | equal effort: WRMS / TP / regret |"
+    out = [
+        f"### {folder.name}: effort `{s['settings'].get('effort', 'units')}`, {s['trials']} trials, "
+        f"{s['wall_time_s']:.0f} s wall, {s['cpu_time_s']:.0f} s of trial CPU\n"
+    ]
+    head = (
+        "| strategy | ratings | "
+        + " | ".join(f"{p}: {m}" for p in points for m in ("all",))
+        + " | equal effort: WRMS / TP / regret |"
+    )
     out += [head, "|" + "---|" * (3 + len(points))]
     cells = {p: len(v) * len(METRICS) for p in points}
     for st in strategies:
@@ -48,7 +54,11 @@ def tables(folder: Path) -> str:
             + f" | {' / '.join(str(x) for x in per_metric)} (of {len(v) * len(eff)} each) |"
         )
     out.append("")
-    out.append("| family / condition | " + " | ".join(f"{p}: {m}" for p in points if p.startswith("effort") for m in METRICS) + " |")
+    out.append(
+        "| family / condition | "
+        + " | ".join(f"{p}: {m}" for p in points if p.startswith("effort") for m in METRICS)
+        + " |"
+    )
     out.append("|" + "---|" * (1 + len(METRICS) * sum(p.startswith("effort") for p in points)))
     for fc in v:
         row = []
@@ -60,8 +70,11 @@ def tables(folder: Path) -> str:
                 tied = [SHORT.get(x, x) for x, st in cell["status"].items() if st == "tied"]
                 best = SHORT.get(cell["best"], cell["best"])
                 mark = "PPS" in [best] + tied
-                row.append(f"{'**' if best == 'PPS' else ''}{best}{'**' if best == 'PPS' else ''}"
-                           + (f" (+{','.join(tied)})" if tied else "") + ("" if mark else " ✗"))
+                row.append(
+                    f"{'**' if best == 'PPS' else ''}{best}{'**' if best == 'PPS' else ''}"
+                    + (f" (+{','.join(tied)})" if tied else "")
+                    + ("" if mark else " ✗")
+                )
         out.append(f"| {fc} | " + " | ".join(row) + " |")
     return "\n".join(out)
 

@@ -111,6 +111,8 @@ def operator_user(variant: str, user, trial_seed: int):
     offset = 0.29 * float(torch.randn((), generator=g, dtype=torch.float64))
     lapse = 0.05 + 0.2 * float(torch.rand((), generator=g, dtype=torch.float64))
     return RealisticLakeOperator(user, g, level_offset=offset, lapse_rate=lapse)
+
+
 make_model = functools.partial(runner.make_model, settings=MODEL_SETTINGS)
 
 

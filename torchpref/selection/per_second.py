@@ -24,7 +24,7 @@ reweighted by each answer's likelihood) with three changes:
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from botorch.models.model import Model

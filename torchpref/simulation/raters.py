@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, replace
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -82,12 +82,12 @@ class EffortModel:
             raise ValueError(f"an answer must take some time, got {self}.")
 
     @classmethod
-    def plain(cls) -> "EffortModel":
+    def plain(cls) -> EffortModel:
         """Plain stimuli: FIRE's seconds, no viewing time."""
         return cls()
 
     @classmethod
-    def trajectories(cls, view_seconds: float = TRAJECTORY_VIEW_SECONDS) -> "EffortModel":
+    def trajectories(cls, view_seconds: float = TRAJECTORY_VIEW_SECONDS) -> EffortModel:
         """Options that must be watched: FIRE's seconds plus ``view_seconds`` per option shown."""
         return cls(view_seconds=view_seconds)
 
@@ -166,7 +166,7 @@ class RaterProfile:
     @classmethod
     def typical(
         cls, generator: torch.Generator, spread: float = 1.0, rating_scale: float = 0.8, **overrides
-    ) -> "RaterProfile":
+    ) -> RaterProfile:
         r"""A person drawn from the published ranges (docs/suite.md), for utilities whose spread over
         items (standard deviation) is ``spread``:
 
@@ -206,7 +206,7 @@ class RaterProfile:
         """The profile as plain values (for a results file)."""
         return asdict(self)
 
-    def with_effort(self, effort: EffortModel) -> "RaterProfile":
+    def with_effort(self, effort: EffortModel) -> RaterProfile:
         """The same person under another effort model."""
         return replace(self, effort=effort)
 
