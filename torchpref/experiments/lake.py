@@ -38,8 +38,6 @@ from Python: :func:`run_lake_experiment`.
 from __future__ import annotations
 
 import argparse
-from torch import Tensor
-
 import functools
 import math
 import os
@@ -50,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import Tensor
 
 from torchpref.selection.active import run_active_learning
 from torchpref.data.preference_data import likert_to_unit
@@ -103,7 +102,7 @@ OPERATORS = ("paper", "realistic")
 LAKE_EFFORT = EffortModel.trajectories()
 
 
-def operator_user(variant: str, user, trial_seed: int):
+def operator_user(variant: str, user: Any, trial_seed: int) -> Any:
     """The operator of ``variant`` (:data:`OPERATORS`) answering through ``user`` (the paper's,
     normalised); a realistic one is drawn from ``trial_seed`` (the same person for every strategy)."""
     if variant == "paper":

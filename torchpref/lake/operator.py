@@ -12,6 +12,8 @@ so a path with at least 150 information is rated 5 below distance 500, 4 below 5
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor
 
@@ -144,7 +146,7 @@ class RealisticLakeOperator:
 
     def __init__(
         self,
-        operator,
+        operator: Any,
         generator: torch.Generator,
         *,
         level_offset: float = 0.29,
@@ -167,7 +169,7 @@ class RealisticLakeOperator:
         if self.drift_sd > 0:
             self.drift += self.drift_sd * float(torch.randn((), generator=self.generator, dtype=torch.float64))
 
-    def rate(self, x) -> float:
+    def rate(self, x: Tensor) -> float:
         """The person's rating of one path (module notes of the class)."""
         K = self.num_levels
         level = round(float(self.operator.rate(x)) * K + 0.5)  # the bin centre back to its level
@@ -176,7 +178,7 @@ class RealisticLakeOperator:
         self._step()
         return float(likert_to_unit(torch.tensor(k), num_levels=K))
 
-    def choose(self, X) -> int:
+    def choose(self, X: Tensor) -> int:
         """The person's choice among ``m`` paths: a lapse with probability ``lapse_rate``."""
         m = torch.as_tensor(X).shape[0]
         lapse = float(torch.rand((), generator=self.generator, dtype=torch.float64)) < self.lapse_rate

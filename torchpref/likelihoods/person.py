@@ -122,7 +122,7 @@ class PersonRatingLikelihood(BetaRatingLikelihood):
         return self.raw_rating_offset
 
     @rating_offset.setter
-    def rating_offset(self, value) -> None:
+    def rating_offset(self, value: float | Tensor) -> None:
         self._set_offset(value)
 
     def _set_offset(self, value) -> None:

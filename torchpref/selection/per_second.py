@@ -131,7 +131,9 @@ class ProfilePerSecond(ProfileVariancePerEffort):
         V = torch.cat([top_profile(F, k, rating_likelihood, False), top_profile(F, k, rating_likelihood, True)], -1)
         return V, items.repeat(2)
 
-    def values(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]):
+    def values(
+        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
         r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
         T x m or None, ranking values T)``, values per second."""
         cost = self.seconds()
