@@ -42,14 +42,42 @@ def _counting(cls, key):
     cls.__init__ = __init__
 
 
+def _names() -> dict[str, object]:
+    """``TORCHPREF_SWAP_NAMES``: ``name=module:attr,...``, names to rebind in the test modules."""
+    out = {}
+    for entry in filter(None, os.environ.get("TORCHPREF_SWAP_NAMES", "").split(",")):
+        name, target = entry.split("=")
+        module, attr = target.split(":")
+        out[name] = getattr(importlib.import_module(module), attr)
+    return out
+
+
 def pytest_configure(config):
-    for module in (botorch.models, pairwise_gp):
-        module.PairwiseGP = PreferenceGP
-        module.PairwiseLaplaceMarginalLogLikelihood = LaplaceMarginalLogLikelihood
+    if os.environ.get("TORCHPREF_SWAP_BOTORCH", "1") == "1":
+        for module in (botorch.models, pairwise_gp):
+            module.PairwiseGP = PreferenceGP
+            module.PairwiseLaplaceMarginalLogLikelihood = LaplaceMarginalLogLikelihood
     _counting(PreferenceGP, "PreferenceGP")
     _counting(ORIGINAL_MODEL, "PairwiseGP")
     for name in filter(None, os.environ.get("TORCHPREF_SWAP_IMPORT", "").split(",")):
         importlib.import_module(name)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """Rebind ``TORCHPREF_SWAP_NAMES`` in each test module (its functions read them at call time)."""
+    names = _names()
+    originals: dict[int, object] = {}  # id(original object) -> its replacement
+    for module in {id(m): m for m in (getattr(item, "module", None) for item in items) if m is not None}.values():
+        for name, value in names.items():
+            if name in vars(module):
+                originals[id(vars(module)[name])] = value
+                setattr(module, name, value)
+    # parametrize arguments were bound at import: the same objects are swapped there
+    for item in items:
+        params = getattr(getattr(item, "callspec", None), "params", {})
+        for key, value in list(params.items()):
+            if id(value) in originals:
+                params[key] = originals[id(value)]
 
 
 def pytest_runtest_setup(item):

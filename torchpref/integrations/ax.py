@@ -33,9 +33,7 @@ try:
     from ax.generators.torch.botorch_modular import surrogate as _ax_surrogate
     from ax.generators.torch.botorch_modular import utils as _ax_utils
 except ImportError as err:  # pragma: no cover - exercised where Ax is absent
-    raise ImportError(
-        "torchpref.integrations.ax needs Ax (ax-platform): pip install 'torchpref[ax]'"
-    ) from err
+    raise ImportError("torchpref.integrations.ax needs Ax (ax-platform): pip install 'torchpref[ax]'") from err
 
 import torch
 from botorch.fit import fit_gpytorch_mll
@@ -70,7 +68,7 @@ def laplace_mll_class(mll_class: type | None) -> type:
     Raises:
         ValueError: any other MLL class, named.
     """
-    if mll_class is None or (isinstance(mll_class, type) and issubclass(mll_class, _READ_AS_LAPLACE)):
+    if mll_class is None or mll_class in _READ_AS_LAPLACE:  # exactly these (LOO-PL subclasses the exact MLL)
         return LaplaceMarginalLogLikelihood
     if isinstance(mll_class, type) and issubclass(mll_class, LaplaceMarginalLogLikelihood):
         return mll_class
