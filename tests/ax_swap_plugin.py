@@ -87,9 +87,10 @@ def pytest_runtest_setup(item):
 def pytest_runtest_logreport(report):
     entry = _counts.setdefault(report.nodeid, {"PreferenceGP": 0, "PairwiseGP": 0})
     if report.when == "call" or (report.when == "setup" and report.outcome != "passed"):
-        entry["outcome"] = "xfailed" if hasattr(report, "wasxfail") else report.outcome
+        if entry.get("outcome") != "failed":  # a failed subtest's report comes before the test's own
+            entry["outcome"] = "xfailed" if hasattr(report, "wasxfail") else report.outcome
         if report.outcome == "failed":
-            entry["error"] = str(report.longrepr)[-1500:]
+            entry["error"] = entry.get("error", "") + str(report.longrepr)[-1500:]
 
 
 def pytest_sessionfinish(session, exitstatus):

@@ -26,7 +26,7 @@ Nothing here is imported by ``import torchpref``; importing it twice changes not
 from __future__ import annotations
 
 import dataclasses
-import logging
+import threading
 from typing import Any
 
 try:
@@ -45,7 +45,6 @@ from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, Prefere
 
 __all__ = ["RATING_METRICS_OPTION", "is_preference_model_class", "laplace_mll_class", "rating_inputs"]
 
-logger = logging.getLogger(__name__)
 
 #: The ``ModelConfig.model_options`` key naming the rating metrics whose data a
 #: ``PreferenceGP`` takes as ratings (a list of metric names).
@@ -103,27 +102,41 @@ def _copy_model_config_with_default_values(model_config, dataset, search_space_d
     return config
 
 
-def _route_rankings(surrogate, datasets) -> None:
-    """Where ``model_configs`` name a ``PreferenceGP`` and ``metric_to_model_configs`` does not name
-    the preference metric, give the metric those configs (Ax would fall back to ``PairwiseGP``)."""
+_ModelConfig = _ax_surrogate.ModelConfig
+_routed = threading.local()  # the PreferenceGP configs of the Surrogate.fit in progress, if any
+
+
+def _model_config(*args, **kwargs):
+    """Ax's ``ModelConfig`` as ``Surrogate.fit`` calls it; inside a fit that routes rankings, the bare
+    ``ModelConfig()`` Ax falls back to for a preference metric is the spec's ``PreferenceGP`` config."""
+    configs = getattr(_routed, "configs", None)
+    if configs and not args and not kwargs:
+        return dataclasses.replace(configs[0])
+    return _ModelConfig(*args, **kwargs)
+
+
+def _ranking_configs(surrogate, datasets) -> list:
+    """The spec's ``PreferenceGP`` configs where ``model_configs`` name one and some preference metric
+    is not named by ``metric_to_model_configs`` (Ax would fall back to ``PairwiseGP`` for it)."""
     spec = surrogate.surrogate_spec
     explicit = spec.metric_to_model_configs or {}
-    names = [
-        d.outcome_names[0] for d in datasets if isinstance(d, RankingDataset) and d.outcome_names[0] not in explicit
-    ]
-    configs = [c for c in spec.model_configs or [] if is_preference_model_class(c.botorch_model_class)]
-    if names and configs:
-        routed = {**explicit, **{name: [dataclasses.replace(c) for c in configs] for name in names}}
-        surrogate.surrogate_spec = dataclasses.replace(spec, metric_to_model_configs=routed)
-        logger.debug("preference metrics %s fitted with PreferenceGP (model_configs)", names)
+    if not any(isinstance(d, RankingDataset) and d.outcome_names[0] not in explicit for d in datasets):
+        return []
+    return [c for c in spec.model_configs or [] if is_preference_model_class(c.botorch_model_class)]
 
 
 _ORIGINAL_FIT = _ax_surrogate.Surrogate.fit
 
 
 def _fit(self, datasets, search_space_digest, *args, **kwargs):
-    _route_rankings(self, datasets)
-    return _ORIGINAL_FIT(self, datasets, search_space_digest, *args, **kwargs)
+    configs = _ranking_configs(self, datasets)
+    if not configs:
+        return _ORIGINAL_FIT(self, datasets, search_space_digest, *args, **kwargs)
+    _routed.configs = configs
+    try:
+        return _ORIGINAL_FIT(self, datasets, search_space_digest, *args, **kwargs)
+    finally:
+        _routed.configs = None
 
 
 _fit.__doc__ = _ORIGINAL_FIT.__doc__
@@ -214,6 +227,7 @@ def _register() -> None:
     _ax_utils.copy_model_config_with_default_values = _copy_model_config_with_default_values
     _ax_surrogate.copy_model_config_with_default_values = _copy_model_config_with_default_values
     _ax_surrogate.Surrogate.fit = _fit
+    _ax_surrogate.ModelConfig = _model_config  # only Surrogate.fit's fallback ModelConfig() is changed
     _ax_utils._torchpref_registered = True
 
 
