@@ -96,6 +96,9 @@ def _encode(record: dict) -> bytes:
     return (json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n").encode()
 
 
+_HEADER_START = b'{"type":"header",'
+
+
 def _reject_constant(name: str):
     raise ValueError(f"{name} is not a number JSON allows")
 
@@ -336,7 +339,10 @@ class Journal:
         try:
             header, records, newline_missing = _parse(self.path, data)
         except SessionFileCorrupt as err:
-            half_header = err.line_number == 1 and err.repairable
+            # a header whose write failed: only line, incomplete, and the start of a header as this
+            # module writes them (a file of anything else is never truncated without repair=True)
+            head = err.partial[: len(_HEADER_START)]
+            half_header = err.line_number == 1 and err.repairable and bool(head) and _HEADER_START.startswith(head)
             if not ((repair or half_header) and err.repairable) or self.read_only:
                 raise
             self._repair(err, half_header)
