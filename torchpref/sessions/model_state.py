@@ -156,6 +156,7 @@ class Saved:
         self.state = (model._data, model._cache, model._warm_f)
 
     def restore(self) -> None:
+        """Put the saved data and cache back (no computation)."""
         m = self.model
         m._data, m._cache, m._warm_f = self.state
         m._fit_input_transform()
