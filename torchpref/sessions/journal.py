@@ -483,9 +483,11 @@ class Journal:
 
     def close(self) -> None:
         """Release the file (every record is already on disk)."""
-        if self._fd is not None and os.getpid() == self._pid:
-            os.close(self._fd)
-            self._fd = None
+        if os.getpid() == self._pid:
+            with self._lock:
+                if self._fd is not None:
+                    os.close(self._fd)
+                    self._fd = None
         _OPEN.discard(self)
 
     def __enter__(self) -> Journal:

@@ -260,10 +260,11 @@ class PreferenceSession(ModelCache):
         )
 
     def close(self) -> None:
-        """Release the file (every answer is already on disk)."""
+        """Release the file (every answer is already on disk); waits for a call in another thread."""
         journal = getattr(self, "_journal", None)
         if journal is not None:
-            journal.close()
+            with self._guarded():
+                journal.close()
 
     def __enter__(self) -> PreferenceSession:
         return self
