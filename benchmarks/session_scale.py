@@ -1,9 +1,8 @@
 r"""Time per answer, per undo and per resume of a session with 10, 100, 1,000 and 5,000 answers
 (issue #22), against the previous release's sessions, which replayed every answer.
 
-One session over a pool of 100 items (2 objectives) is told answers out of turn (ratings, best-of-3
-and best-of-5 choices, no preference, in a fixed pseudo-random mix), and its file is copied when it
-holds each size. For each copy:
+A session over a pool of 100 items (2 objectives) holds answers given out of turn (ratings, best-of-3
+and best-of-5 choices, no preference, in a fixed pseudo-random mix), one file per size. For each:
 
 * ``answer``: one ``tell_rating`` (the model's update and the fsynced append), then undone, median
   of ``--repeats``;
@@ -75,7 +74,8 @@ def measure(path, repeats):
     return out
 
 if __name__ == "__main__":
-    print(json.dumps(measure(sys.argv[1], int(sys.argv[2]))))
+    import torchpref
+    print(json.dumps(dict(measure(sys.argv[1], int(sys.argv[2])), module=torchpref.__file__)))
 '''
 
 
@@ -85,31 +85,45 @@ def make_pool() -> torch.Tensor:
 
 
 def build_files(sizes: list[int], workdir: Path) -> dict[int, Path]:
-    """One session told ``max(sizes)`` answers; a copy of its file (and mode snapshot) at each size."""
+    """A session file with each number of answers (a fixed pseudo-random mix of ratings, best-of-3
+    and best-of-5 choices and no preference over the pool), written as records (the cost measured
+    is that of sessions holding them, not of telling them), each opened once and given one answer
+    and its undo so that its mode snapshot is current."""
     from tqdm import tqdm
 
-    from torchpref.sessions.model_state import snapshot_path
+    from torchpref.data.preference_data import likert_to_unit
+    from torchpref.sessions.journal import now
     from torchpref.sessions.session import PreferenceSession
 
     X = make_pool()
-    path = workdir / "live.jsonl"
-    s = PreferenceSession(X, session_file=path, seed=1, num_queries=max(sizes))
-    g = torch.Generator().manual_seed(7)
     files = {}
-    for k in tqdm(range(1, max(sizes) + 1), desc="telling answers", unit="answer"):
-        kind = int(torch.randint(10, (1,), generator=g))
-        if kind < 4:
-            s.tell_rating(X[int(torch.randint(100, (1,), generator=g))], int(torch.randint(1, 6, (1,), generator=g)))
-        elif kind < 9:
-            m = 3 if kind < 7 else 5
-            s.tell_choice(X[torch.randperm(100, generator=g)[:m]], int(torch.randint(m, (1,), generator=g)))
-        else:
-            s.tell_no_preference(X[torch.randperm(100, generator=g)[:3]])
-        if k in sizes:
-            files[k] = workdir / f"s{k}.jsonl"
-            shutil.copy(path, files[k])
-            shutil.copy(snapshot_path(path), snapshot_path(files[k]))
-    s.close()
+    for n in tqdm(sorted(sizes), desc="session files", unit="file"):
+        path = workdir / f"s{n}.jsonl"
+        PreferenceSession(X, session_file=path, seed=1, num_queries=max(sizes)).close()
+        g = torch.Generator().manual_seed(7)
+        lines = []
+        for k in range(1, n + 1):
+            kind = int(torch.randint(10, (1,), generator=g))
+            rec = {"type": "answer", "v": 1, "seq": k, "time": now()}
+            if kind < 4:
+                level = int(torch.randint(1, 6, (1,), generator=g))
+                item = X[int(torch.randint(100, (1,), generator=g))]
+                value = float(likert_to_unit(level, 5))
+                rec.update(kind="rating", items=[item.tolist()], answer=level, value=value)
+            else:
+                m = 3 if kind < 7 else 5
+                rows = torch.randperm(100, generator=g)[: 3 if kind == 9 else m]
+                chosen = None if kind == 9 else int(torch.randint(m, (1,), generator=g))
+                rec.update(kind="no_preference" if kind == 9 else "choice", items=X[rows].tolist(), answer=chosen)
+            rec.update(query=None, response_time=None)
+            lines.append(json.dumps(rec, separators=(",", ":")))
+        with open(path, "a") as fh:
+            fh.write("".join(line + "\n" for line in lines))
+        s = PreferenceSession.load(path)  # checks every record; one answer and its undo write the snapshot
+        s.tell_rating(X[0], 3)
+        s.undo()
+        s.close()
+        files[n] = path
     return files
 
 
@@ -137,10 +151,18 @@ def measure_baseline(checkout: Path, path: Path, repeats: int) -> dict[str, floa
     copy = path.with_name(path.stem + "_old.jsonl")
     shutil.copy(path, copy)
     env = dict(os.environ, PYTHONPATH=str(checkout), OMP_NUM_THREADS="1")
-    out = subprocess.run(
-        [sys.executable, "-c", MEASURE, str(copy), str(repeats)], env=env, capture_output=True, text=True, check=True
+    out = subprocess.run(  # run from the checkout: "-c" puts the working directory first on sys.path
+        [sys.executable, "-c", MEASURE, str(copy), str(repeats)],
+        env=env,
+        cwd=str(checkout),
+        capture_output=True,
+        text=True,
+        check=True,
     )
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    if not result.pop("module").startswith(str(checkout.resolve())):
+        raise RuntimeError(f"the baseline imported torchpref from outside {checkout}")
+    return result
 
 
 def plot(rows: list[dict], path: Path) -> None:
