@@ -255,7 +255,11 @@ def _arguments():
     ap.add_argument("--no-mixed", action="store_true", help="skip the 2,000-item mixed model")
     ap.add_argument("--no-memory", action="store_true")
     ap.add_argument(
-        "--memory-sizes", type=int, nargs="*", default=[500], help="sizes whose peak memory is measured (each a subprocess)"
+        "--memory-sizes",
+        type=int,
+        nargs="*",
+        default=[500],
+        help="sizes whose peak memory is measured (each a subprocess)",
     )
     ap.add_argument("--no-botorch-rust", action="store_true", help="leave botorch-rust out even if installed")
     ap.add_argument(
@@ -273,6 +277,7 @@ def _arguments():
         "thread the two agree on a quiet machine)",
     )
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--name", default="speed_pairwise", help="stem of the files written (e.g. speed_pairwise_large)")
     ap.add_argument("--child", nargs=4, metavar=("TASK", "LIB", "N", "P"), help=argparse.SUPPRESS)
     return ap.parse_args()
 
@@ -368,7 +373,7 @@ def main() -> None:
     fields += [f"ratio_{lib}" for lib in PEERS] + ["target", "met"]
     if not args.no_memory:
         fields += [f"{lib}_peak_rss_mib" for lib in ("torchpref", *PEERS)]
-    with open(args.out / "speed_pairwise.csv", "w", newline="") as fh:
+    with open(args.out / f"{args.name}.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
         for row in rows:
@@ -396,9 +401,9 @@ def main() -> None:
             "/proc/self/clear_refs (peak), and its RSS just before the task (baseline: imports + data)"
         ),
     }
-    with open(args.out / "speed_pairwise.json", "w") as fh:
+    with open(args.out / f"{args.name}.json", "w") as fh:
         json.dump({"meta": meta, "rows": rows, "fit_quality": quality}, fh, indent=2)
-    plot(rows, libs, args.out / "speed_pairwise.png")
+    plot(rows, libs, args.out / f"{args.name}.png")
 
     print()
     print(f"{'task':<11}{'n':>6}{'p':>6}" + "".join(f"{lib + '_s':>15}" for lib in libs) + "  ratios / target")
