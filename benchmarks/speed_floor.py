@@ -142,9 +142,16 @@ def _inputs(X, C, model):
     return L, R, mode.weights[0][0], mode.a[0], mode.B_chol[0]
 
 
+def _jitter(model) -> float:
+    """The diagonal jitter the model's kernel matrix needed, at least ``1e-10`` of its diagonal
+    (a factorisation with no jitter can fail where items nearly coincide, as at n = 200)."""
+    return max(float(model._state().jitter), 1e-10 * bc.INIT_OUTPUTSCALE)
+
+
 def torch_pieces(X, C, model, repeats: int, inner: int) -> dict[str, float]:
     """Each piece timed with torch ops, one call each where one op does it."""
     L, R, w, a, M = _inputs(X, C, model)
+    jitter = _jitter(model)
     n = L.shape[-1]
     ls = torch.full((X.shape[-1],), bc.INIT_LENGTHSCALE, dtype=X.dtype)
     eye = torch.eye(n, dtype=X.dtype)
@@ -155,6 +162,7 @@ def torch_pieces(X, C, model, repeats: int, inner: int) -> dict[str, float]:
     def prior():
         Z = X / ls
         K = torch.cdist(Z, Z).square_().mul_(-0.5).exp_().mul_(bc.INIT_OUTPUTSCALE)
+        K.diagonal().add_(jitter)  # near-coincident items: the jitter the model needed (0 if none)
         torch.linalg.cholesky(K)
 
     def factorisation():
@@ -185,6 +193,7 @@ def lapack_pieces(X, C, model, repeats: int, inner: int) -> dict[str, float]:
     from scipy.special import log_ndtr
 
     L, R, w, a, M = _inputs(X, C, model)
+    jitter = _jitter(model)
     L, R, w, a, M = L.numpy(), R.numpy(), w.numpy(), a.numpy(), np.asfortranarray(M.numpy())
     Xn = X.numpy() / bc.INIT_LENGTHSCALE
     n = L.shape[-1]
@@ -198,6 +207,7 @@ def lapack_pieces(X, C, model, repeats: int, inner: int) -> dict[str, float]:
         sq = (Xn * Xn).sum(-1)
         D2 = sq[:, None] + sq[None, :] - 2.0 * (Xn @ Xn.T)
         Kp = np.exp(-0.5 * D2) * bc.INIT_OUTPUTSCALE
+        Kp[np.diag_indices(n)] += jitter
         lapack.dpotrf(Kp, lower=1, overwrite_a=1)
 
     def factorisation():
