@@ -322,7 +322,7 @@ def main() -> None:
         libs.append("botorch_rust")
         rust_note = f"botorch-rust {getattr(botorch_rs, '__version__', '?')}"
     else:
-        rust_note = "not installed (pip install botorch-rust): skipped"
+        rust_note = 'not installed (pip install -e ".[speed-peers]", PyPI botorch-rust): skipped'
     log(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {args.clock} clock, load {os.getloadavg()}")
     log(f"peers: {', '.join(libs[1:])}; botorch-rust: {rust_note}")
     load_start = os.getloadavg()
