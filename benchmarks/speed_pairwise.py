@@ -412,7 +412,7 @@ def main() -> None:
         ratios = ", ".join(f"{r[f'ratio_{lib}']:.2f}x" for lib in PEERS if r.get(f"ratio_{lib}") is not None)
         met = "" if r["met"] is None else ("met" if r["met"] else "MISSED")
         print(f"{r['task']:<11}{r['n']:>6}{r['p']:>6}{cells}  {ratios}  {r['target']} {met}")
-    log(f"wrote {args.out / 'speed_pairwise.csv'}, .json, .png")
+    log(f"wrote {args.out / args.name}.csv, .json, .png")
 
 
 def plot(rows, libs, path: Path) -> None:
