@@ -2,14 +2,14 @@ r"""The ``torchpref`` command line.
 
     torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
     torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
-    torchpref reproduce suite [--families F ...] [--strategies S ...] [--trials N] [--queries Q] [--seed S] [--out DIR]
+    torchpref reproduce suite [--families F ...] [--strategies S ...] [--effort E] [--trials N] [--queries Q] [--seed S] [--out DIR]
     torchpref elicit lake [--session FILE]
     torchpref elicit --features items.csv [--id COLUMN] [--session FILE]
     torchpref --version
 
 Each subcommand lives in its own module, imported only when it runs. Every argument is checked
 before any work starts; an error a person can cause (a bad value, a file that cannot be read or
-written, Ctrl-C) is one line on stderr and a non-zero exit status, never a traceback (set
+written, Ctrl-C, an optional dependency that is not installed) is one line on stderr and a non-zero exit status, never a traceback (set
 ``TORCHPREF_DEBUG=1`` to see one).
 """
 
@@ -35,6 +35,13 @@ REPRODUCE = {
     "suite": "torchpref.experiments.suite",
 }
 ELICIT = "torchpref.frontends.elicit"
+NEEDS = {
+    "reproduce": ("matplotlib",),  # every experiment writes figures
+    "elicit lake": ("matplotlib",),  # each query shows the paths on the lake's map
+}
+"""Command (``"reproduce"``, or ``"elicit WORLD"``) -> the optional modules it needs, checked
+before any work starts (a missing one: one line naming the extra, exit status 3)."""
+MISSING_EXTRA = 3
 RESULTS = "torchpref-results"
 """The folder (in the current one) that holds a fresh folder per ``reproduce`` run by default."""
 
@@ -95,7 +102,19 @@ def build_parser() -> argparse.ArgumentParser:
     lake.add_argument("--cache", default=None, help="folder of cached lake scenarios (default ~/.cache/torchpref/lake)")
     suite = rep_sub.add_parser("suite", help="every strategy on the user-family benchmark suite (docs/suite.md)")
     _experiment_args(suite, 50, 20)
-    suite.add_argument("--families", nargs="+", default=None, help="families to run (default: all)")
+    suite.add_argument(
+        "--families",
+        nargs="+",
+        default=None,
+        help="families or groups ('idealised', 'realistic', 'all') to run (default: the idealised families)",
+    )
+    suite.add_argument(
+        "--effort",
+        choices=["units", "plain", "trajectories"],
+        default="units",
+        help="effort model: units (a rating 1, a ranking 2), plain (seconds) or trajectories (seconds with "
+        "viewing time per option); default units",
+    )
     suite.add_argument(
         "--strategies",
         nargs="+",
@@ -237,6 +256,15 @@ def _elicit(args) -> int:
     return int(_import(ELICIT).run(args) or 0)
 
 
+def _missing_extra(args: argparse.Namespace) -> str | None:
+    """The one-line message for an optional module the command needs and does not find, or ``None``."""
+    from torchpref.extras import missing
+
+    key = args.command if args.command != "elicit" or args.world is None else f"elicit {args.world}"
+    name = f"{args.command} {args.experiment}" if args.command == "reproduce" else key
+    return missing(NEEDS.get(key, ()), f"torchpref {name}")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status (errors and warnings: one line each on stderr)."""
     shown = warnings.showwarning
@@ -257,6 +285,9 @@ def _main(argv: list[str] | None) -> int:
     try:
         args = build_parser().parse_args(argv)
         command = f"torchpref {args.command}"
+        if (line := _missing_extra(args)) is not None:
+            print(line, file=sys.stderr)
+            return MISSING_EXTRA
         return _reproduce(args) if args.command == "reproduce" else _elicit(args)
     except KeyboardInterrupt:
         print(f"\n{command}: interrupted", file=sys.stderr)

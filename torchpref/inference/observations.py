@@ -20,7 +20,8 @@ gradient and weight). Its index and target must still be values the likelihood c
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple, Protocol, Sequence
+from typing import NamedTuple, Protocol
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -210,7 +211,7 @@ class Observations:
         ties: Tensor | None = None,
         tie_likelihood=None,
         tie_mask: Tensor | None = None,
-    ) -> "Observations":
+    ) -> Observations:
         """Comparisons (``p x 2`` or ``B x p x 2``), ratings (``q`` or ``B x q``, of items
         ``rating_index``) and ties (``t x 2`` or ``B x t x 2``, scored by ``tie_likelihood``) as
         terms; empty kinds are left out. A likelihood with ``log_concave = True`` (the ordinal
@@ -224,7 +225,8 @@ class Observations:
             tie_mask = None if tie_mask is None else tie_mask[None]
         terms = []
         if comparisons.shape[-2]:
-            terms.append(pairwise_term(comparison_likelihood, comparisons, comparison_mask, log_concave=True))
+            log_concave = getattr(comparison_likelihood, "log_concave", True)  # lapses are not
+            terms.append(pairwise_term(comparison_likelihood, comparisons, comparison_mask, log_concave=log_concave))
         if ratings.shape[-1]:
             terms.append(
                 item_term(

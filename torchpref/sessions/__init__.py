@@ -2,40 +2,17 @@
 
 from __future__ import annotations
 
-from torchpref.sessions.session import (
-    FORMAT_VERSION,
-    PreferenceSession,
-    SessionAnswer,
-    SessionFileCorrupt,
-    SessionFileError,
-    SessionMismatchError,
-    SessionRepairWarning,
-    SessionVersionError,
-    default_ranking_size,
-    default_session_model,
-    read_session_file,
-    step_generator,
-)
-from torchpref.sessions.settings import (
-    MAX_REDRAWS,
-    SessionAnswer,
-    SessionSettings,
-    as_items,
-    default_ranking_size,
-    default_session_model,
-    step_generator,
-)
 from torchpref.sessions.journal import (
-    ANSWER_KINDS,
-    FORMAT_VERSION,
+    MAX_FILE_BYTES,
     Journal,
-    SessionFileCorrupt,
-    SessionFileError,
-    SessionMismatchError,
-    SessionRepairWarning,
-    SessionVersionError,
+    MemoryJournal,
+    SessionFileGone,
+    SessionForkError,
+    SessionReadOnlyError,
+    read_header,
     read_session_file,
 )
+from torchpref.sessions.recorded import SessionSettingsError, describe_model, describe_selector
 from torchpref.sessions.records import (
     ANSWER_KINDS,
     FORMAT_VERSION,
@@ -50,25 +27,44 @@ from torchpref.sessions.records import (
     validate_header,
     validate_records,
 )
+from torchpref.sessions.session import PreferenceSession
+from torchpref.sessions.settings import (
+    MAX_REDRAWS,
+    SessionAnswer,
+    SessionSettings,
+    as_items,
+    default_ranking_size,
+    default_session_model,
+    step_generator,
+)
 
 __all__ = [
     'ANSWER_KINDS',
     'FORMAT_VERSION',
     'Journal',
+    'MAX_FILE_BYTES',
     'MAX_REDRAWS',
+    'MemoryJournal',
     'PreferenceSession',
     'SessionAnswer',
     'SessionFileCorrupt',
     'SessionFileError',
+    'SessionFileGone',
+    'SessionForkError',
     'SessionMismatchError',
+    'SessionReadOnlyError',
     'SessionRepairWarning',
     'SessionSettings',
+    'SessionSettingsError',
     'SessionVersionError',
     'as_items',
     'check_new_record',
     'default_ranking_size',
     'default_session_model',
+    'describe_model',
+    'describe_selector',
     'dumps_settings',
+    'read_header',
     'read_session_file',
     'records_in_force',
     'step_generator',

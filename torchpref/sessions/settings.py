@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -28,6 +30,7 @@ __all__ = [
     "SessionAnswer",
     "SessionSettings",
     "as_items",
+    "as_seconds",
     "default_ranking_size",
     "default_session_model",
     "step_generator",
@@ -49,6 +52,8 @@ class SessionAnswer:
         step: the query number it answered, or ``None`` if given out of turn.
         pool_indices: the items' rows in the candidate pool, where known.
         time: ISO 8601 timestamp.
+        response_time: seconds from the question being shown to the answer, where the front end
+            measured it (``None`` otherwise; files written before it existed have none).
     """
 
     seq: int
@@ -59,9 +64,10 @@ class SessionAnswer:
     step: int | None
     pool_indices: tuple[int, ...] | None
     time: str
+    response_time: float | None = None
 
     @classmethod
-    def from_record(cls, r: dict) -> "SessionAnswer":
+    def from_record(cls, r: dict) -> SessionAnswer:
         """The answer of an ``answer`` record of the session file."""
         q = r.get("query") or {}
         pool = q.get("pool_indices")
@@ -74,6 +80,7 @@ class SessionAnswer:
             q.get("step"),
             None if pool is None else tuple(pool),
             r["time"],
+            r.get("response_time"),
         )
 
 
@@ -200,7 +207,7 @@ class SessionSettings:
         num_queries: int,
         num_levels: int | None,
         names: Sequence[str] | None,
-    ) -> "SessionSettings":
+    ) -> SessionSettings:
         """Check and convert a session's arguments (bounds default to the candidates' range).
 
         Raises:
@@ -288,3 +295,19 @@ class SessionSettings:
                     str(theirs),
                     str(mine),
                 )
+
+
+def as_seconds(value) -> float | None:
+    """A response time as float seconds (``None`` stays ``None``).
+
+    Raises:
+        ValueError: not a finite real number >= 0 (a bool or text included), naming it.
+    """
+    if value is None:
+        return None
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not ok and isinstance(value, Tensor) and value.numel() == 1 and not value.dtype.is_complex:
+        value, ok = value.item(), value.dtype != torch.bool
+    if not ok or not math.isfinite(float(value)) or float(value) < 0:
+        raise ValueError(f"response_time must be None or a finite number of seconds >= 0, got {value!r:.80}.")
+    return float(value)
