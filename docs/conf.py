@@ -44,6 +44,8 @@ html_title = f"torchpref {release}"
 # the module that defines it (autodoc skips imported names)
 autodoc_default_options = {"members": True, "show-inheritance": True, "ignore-module-all": True}
 autodoc_member_order = "bysource"
+# the integrations' libraries are optional extras, not installed to build the docs: stand-ins
+autodoc_mock_imports = ["ax", "bofire"]
 autodoc_typehints = "description"
 autodoc_typehints_format = "short"
 autodoc_inherit_docstrings = False  # BoTorch's and GPyTorch's docstrings are theirs to render
