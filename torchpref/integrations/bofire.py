@@ -50,7 +50,7 @@ class PreferenceGPSurrogate(_PairwiseGPSurrogateData):
     type: Literal["PreferenceGPSurrogate"] = "PreferenceGPSurrogate"
 
     @model_validator(mode="after")
-    def validate_probit(self):
+    def validate_probit(self) -> PreferenceGPSurrogate:
         if self.likelihood != "probit":
             raise ValueError(
                 f"PreferenceGPSurrogate: likelihood={self.likelihood!r} is not supported (comparisons are scored "

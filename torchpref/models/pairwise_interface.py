@@ -177,7 +177,7 @@ class PairwiseGPInterface:
             raise ValueError(f"PreferenceGP has one output (index 0); got output indices {list(idcs)}.")
         return copy.deepcopy(self)
 
-    def load_state_dict(self, state_dict: dict[str, Any], strict: bool = False, assign: bool = False):
+    def load_state_dict(self, state_dict: dict[str, Any], strict: bool = False, assign: bool = False) -> Any:
         r"""Load hyperparameters; **non-strict by default**, as ``PairwiseGP.load_state_dict``.
 
         A state dict holds hyperparameters (kernel, likelihoods, input transform), never the data.

@@ -530,7 +530,7 @@ class MemoryJournal:
         """Nothing to release."""
 
 
-def read_header(path) -> dict | None:
+def read_header(path: str | os.PathLike[str]) -> dict | None:
     """The validated header of the session file ``path``, reading only its first line (``None`` if
     the file is empty or its first line is not complete: open it with :class:`Journal` to learn why).
 

@@ -22,7 +22,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -75,7 +75,7 @@ def _unique_in_order(Z: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def build_data(
-    anchor: Tensor, records: list[dict], transform, rating_eps: float, rating_levels: int | None
+    anchor: Tensor, records: list[dict], transform: Any, rating_eps: float, rating_levels: int | None
 ) -> tuple[PreferenceData, list[Sizes]]:
     """The data of a model built on ``anchor`` (``1 x d``) that was told the answer ``records``
     (in force, oldest first; items mapped by ``transform``), and its sizes before each.

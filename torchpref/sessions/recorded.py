@@ -19,9 +19,11 @@ import importlib
 import inspect
 import json
 import math
+from collections.abc import Callable
 from typing import Any
 
 import torch
+from torch import Tensor
 
 from torchpref.models.preference_gp import PreferenceGP, default_covar_module
 from torchpref.sessions.records import SessionMismatchError
@@ -100,7 +102,7 @@ def _jsonable(value) -> bool:
     return True
 
 
-def describe_selector(selector) -> dict[str, Any]:
+def describe_selector(selector: Any) -> dict[str, Any]:
     """The selector's class and options (its public attributes; those JSON cannot hold are named
     in ``"unrecorded"``: such a selector is not rebuilt from the file)."""
     options, unrecorded = {}, []
@@ -135,7 +137,7 @@ def _differences(recorded: dict, mine: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def settings_error(path, setting: str, recorded: dict, mine: dict, why: str) -> SessionSettingsError:
+def settings_error(path: Any, setting: str, recorded: dict, mine: dict, why: str) -> SessionSettingsError:
     """The error for a resumed file whose recorded ``setting`` this session does not reproduce."""
     diff = "; ".join(_differences(recorded, mine)[:4]) or "(not comparable)"
     return SessionSettingsError(
@@ -148,7 +150,7 @@ def settings_error(path, setting: str, recorded: dict, mine: dict, why: str) -> 
     )
 
 
-def recorded_model_factory(desc: dict, dim: int):
+def recorded_model_factory(desc: dict, dim: int) -> Callable[[Tensor], PreferenceGP] | None:
     """A ``train_X -> PreferenceGP`` that builds the recorded model: this version's
     :class:`~torchpref.PreferenceGP` with the default kernel's structure, the recorded settings
     and every recorded value loaded; ``None`` if this version cannot build it exactly."""
@@ -181,7 +183,7 @@ def recorded_model_factory(desc: dict, dim: int):
     return factory if same_description(describe_model(model), desc) else None
 
 
-def recorded_selector(desc: dict):
+def recorded_selector(desc: dict) -> Any:
     """The recorded selector, built again from its class and options; ``None`` if this version
     cannot (a class outside torchpref or gone, options it no longer takes or records otherwise)."""
     path = desc.get("class", "")
@@ -276,7 +278,7 @@ def legacy_selector_description(num_pool_items: int | None) -> dict[str, Any]:
     }
 
 
-def resume_settings(session, header: dict, selector, model_factory, migrate: bool):
+def resume_settings(session: Any, header: dict, selector: Any, model_factory: Any, migrate: bool) -> tuple[Any, Any]:
     """``(selector, model_factory)`` for ``session`` resuming a file with ``header``: the recorded
     ones (or the file's release's defaults where it records none) when none are given, else those
     given, checked to be the same.

@@ -283,7 +283,7 @@ def check_new_record(
     record: dict,
     *,
     last_seq: int | None = None,
-    in_force=None,
+    in_force: set[int] | None = None,
 ) -> None:
     """Check ``record`` as the next one after ``records`` (before it is written: the file never
     gets a record it could not read back). ``last_seq`` and ``in_force`` (the sequence numbers of

@@ -297,7 +297,7 @@ class SessionSettings:
                 )
 
 
-def as_seconds(value) -> float | None:
+def as_seconds(value: Any) -> float | None:
     """A response time as float seconds (``None`` stays ``None``).
 
     Raises:
