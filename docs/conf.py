@@ -45,7 +45,7 @@ html_title = f"torchpref {release}"
 autodoc_default_options = {"members": True, "show-inheritance": True, "ignore-module-all": True}
 autodoc_member_order = "bysource"
 # the integrations' libraries are optional extras, not installed to build the docs: stand-ins
-autodoc_mock_imports = ["ax", "bofire"]
+autodoc_mock_imports = ["ax", "bofire", "pydantic"]
 autodoc_typehints = "description"
 autodoc_typehints_format = "short"
 autodoc_inherit_docstrings = False  # BoTorch's and GPyTorch's docstrings are theirs to render
