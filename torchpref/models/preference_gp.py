@@ -39,7 +39,7 @@ from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_F
 from torchpref.inference.numerics import pin_coincident
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, TieLikelihood
 from torchpref.inference.padding import PaddedData
-from torchpref.models.posterior_state import PosteriorState, carries_gradients, fingerprint, submodules
+from torchpref.models.posterior_state import PosteriorState, cache_key, carries_gradients, submodules
 from torchpref.inference.precision import call_in_dtype, check_laplace_dtype, solve_dtype
 from torchpref.models.predictives import Predictives
 
@@ -191,6 +191,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
             self.to(device=X.device, dtype=X.dtype)
         self._data: PreferenceData | PaddedData = data
         self._cache: PosteriorState | None = None
+        self._transitions = 0  # train / eval switches: part of the cache's key
         self._warm_f: Tensor | None = None
         self._fit_input_transform()
         self._check_scaling()
@@ -281,10 +282,18 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
     def _state(self, prior: tuple[PaddedData, Tensor] | None = None) -> PosteriorState:
         """The mode and prediction cache for the current hyperparameters and data (cached);
         ``prior``: :meth:`_prior`'s result if already computed (then the kernel is not evaluated again)."""
-        fp = fingerprint(self)
-        if self._cache is None or not self._cache.is_current(self._data, fp):
-            self._cache = PosteriorState.build(self, fp, self._cache, prior)
+        fp, key = cache_key(self)
+        if self._cache is None or not self._cache.is_current(self._data, fp, key):
+            self._cache = PosteriorState.build(self, fp, key, self._cache, prior)
         return self._cache
+
+    def train(self, mode: bool = True) -> PreferenceGP:
+        """Train or eval mode, as for any module; a switch between them makes the posterior cache
+        stale (as GPyTorch resets an exact GP's ``prediction_strategy``): the next prediction
+        re-solves the mode, warm-started from the cached one."""
+        if mode != self.training:
+            self._transitions = getattr(self, "_transitions", 0) + 1
+        return super().train(mode)
 
     @property
     def mode(self) -> ModeResult:
