@@ -51,7 +51,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         PreferenceGP,
         default_covar_module,
     )
-    from torchpref.inference.numerics import JitterWarning, NotPSDError
+    from torchpref.inference.numerics import JitterWarning, LaplaceNumericalError, NotPSDError
     from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
     from torchpref.data.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
     from torchpref.sessions.session import PreferenceSession
@@ -93,6 +93,7 @@ _EXPORTS = {
     "latent_ucb": "acquisition.functions",
     "likert_to_unit": "data.preference_data",
     "NotPSDError": "inference.numerics",
+    "LaplaceNumericalError": "inference.numerics",
     "OrdinalRatingLikelihood": "likelihoods.ordinal",
     "PAPER_FIG4_SETTINGS": "models.preference_gp",
     "TrainDataMismatchError": "models.pairwise_interface",

@@ -22,7 +22,7 @@ from gpytorch.module import Module
 from torch import Tensor
 
 from torchpref.inference.laplace import ModeResult, Observations, PredictiveCache, find_mode, predict, predicted_mode
-from torchpref.inference.numerics import batched_cholesky, cholesky_jittered
+from torchpref.inference.numerics import NotPSDError, batched_cholesky, cholesky_jittered
 from torchpref.inference.padding import PaddedData
 
 if TYPE_CHECKING:
@@ -149,8 +149,10 @@ class PosteriorState:
         previous: PosteriorState | None,
         prior: "tuple[PaddedData, Tensor] | None" = None,
     ) -> "PosteriorState":
-        """Solve the modes of ``model``'s problems, warm-started from ``previous`` where sizes match.
-        ``prior``: the model's :meth:`~torchpref.PreferenceGP._prior` if already computed."""
+        """Solve the modes of ``model``'s problems, warm-started from ``previous`` where sizes match
+        (and from zeros if the warm-started solve fails: a start predicted for hyperparameters far
+        from the previous ones can be far from the new mode). ``prior``: the model's
+        :meth:`~torchpref.PreferenceGP._prior` if already computed."""
         with torch.no_grad():
             padded, K = model._prior() if prior is None else prior
             padded = padded.with_items(padded.X.detach())  # gradients in the items: see ``traced``
@@ -170,7 +172,12 @@ class PosteriorState:
                 warm = (previous.mode.f, predicted_mode(previous.mode.f, previous.pred, L))
             else:
                 warm = previous.mode.f if same_size else model._warm_f
-            mode = find_mode(L, obs, f0=warm, max_iter=model.max_newton_iter)
+            try:
+                mode = find_mode(L, obs, f0=warm, max_iter=model.max_newton_iter)
+            except NotPSDError:  # LaplaceNumericalError too: from a start far from the new mode
+                if warm is None:
+                    raise
+                mode = find_mode(L, obs, f0=None, max_iter=model.max_newton_iter)  # a cold start
             pred = PredictiveCache.from_mode(L, mode)
         return cls(model.data, fp, key, padded, jitter, model.likelihood, obs, mode, pred)
 
