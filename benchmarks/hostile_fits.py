@@ -9,7 +9,7 @@ and says how it ended: ``"fit"`` (a usable model: finite hyperparameters, a conv
 finite posterior), a named error (``ModelFittingError`` after BoTorch's retries, or a
 :class:`~torchpref.inference.numerics.NotPSDError`), or anything else (a defect).
 
-``python benchmarks/hostile_fits.py [--fits 100] [--max-n 30]`` runs many and writes
+``python benchmarks/hostile_fits.py [--fits 100] [--max-n 15]`` runs many and writes
 ``benchmarks/results/hostile_fits.json`` (a progress bar on stderr); ``tests/test_hostile_fits.py``
 runs a few in the default test run.
 """
@@ -40,7 +40,7 @@ def _log_uniform(lo: float, hi: float, g: torch.Generator, shape=()) -> torch.Te
     return torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * u)
 
 
-def hostile_model(seed: int, max_n: int = 30):
+def hostile_model(seed: int, max_n: int = 15):
     """The hostile problem of ``seed`` and a model started from hostile hyperparameters."""
     from gpytorch.kernels import RBFKernel, ScaleKernel
 
@@ -84,7 +84,7 @@ def usable(model) -> str | None:
     return None
 
 
-def fit_outcome(seed: int, max_n: int = 30) -> dict:
+def fit_outcome(seed: int, max_n: int = 15) -> dict:
     """Fit the hostile start of ``seed``; its outcome (``"fit"``, ``"unusable: ..."``, or the name
     of the exception raised), the exception's text and the time taken."""
     from botorch.fit import fit_gpytorch_mll
@@ -113,7 +113,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fits", type=int, default=100)
     ap.add_argument("--first-seed", type=int, default=0)
-    ap.add_argument("--max-n", type=int, default=30)
+    ap.add_argument("--max-n", type=int, default=15)
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "hostile_fits.json")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)

@@ -63,7 +63,7 @@ def _setting(value: object) -> bool:
 
 def cache_key(module: Module) -> tuple[Tensor, tuple]:
     """What the posterior of ``module``'s data depends on, in one pass over ``module`` and every
-    module below it (:func:`submodules`' order):
+    module below it (:func:`submodules`' order, each module once):
 
     * the *fingerprint*: the values of all parameters and buffers, concatenated (each tensor
       once; integer and boolean buffers such as a kernel's ``active_dims`` as floating values);
@@ -75,9 +75,15 @@ def cache_key(module: Module) -> tuple[Tensor, tuple]:
     Equal keys mean the same posterior for the same data. Tensors held as plain attributes
     (neither parameter nor buffer) are not looked into."""
     key, vals, seen = [], [], set()
-    for m in submodules(module):
+    for m in dict.fromkeys(submodules(module)):  # a module shared by several parents once
         key.append(type(m))
-        key.extend([(k, v) for k, v in m.__dict__.items() if k not in _NOT_STRUCTURE and _setting(v)])
+        key.extend(
+            [
+                (k, v)
+                for k, v in m.__dict__.items()
+                if (type(v) in _PLAIN or (type(v) is tuple and _setting(v))) and k not in _NOT_STRUCTURE
+            ]
+        )
         for tensors in (m._parameters, m._buffers):
             for k, t in tensors.items():
                 if t is not None:
