@@ -453,3 +453,27 @@ def test_a_pool_with_nan_items_is_named():
     X[1, 0] = float("nan")
     with pytest.raises(ValueError, match="the pool's items must be finite"):
         PreferenceSession(FinitePool(X))
+
+
+def test_response_time_is_recorded_validated_and_optional(tmp_path):
+    X = pool()
+    path = tmp_path / "s.jsonl"
+    s = PreferenceSession(X, session_file=path, seed=3)
+    q = s.ask()
+    s.tell(q, answer(q), response_time=2.5)
+    s.tell_rating(X[4], 3, response_time=0)
+    s.tell_choice(X[[5, 6]], 1)
+    s.tell_no_preference(X[[7, 8]], response_time=torch.tensor(1.25))
+    for bad in (-1.0, float("nan"), float("inf"), True, "3"):
+        with pytest.raises(ValueError, match="response_time"):
+            s.tell_rating(X[9], 3, response_time=bad)
+    assert s.step == 4
+    assert [h.response_time for h in s.history] == [2.5, 0.0, None, 1.25]
+    s.close()
+    assert [r["response_time"] for r in read_session_file(path)[1]] == [2.5, 0.0, None, 1.25]
+    lines = path.read_text().splitlines()
+    rec = json.loads(lines[2])
+    rec["response_time"] = -3
+    path.write_text("\n".join(lines[:2] + [json.dumps(rec)] + lines[3:]) + "\n")
+    with pytest.raises(SessionFileError, match="line 3: 'response_time' must be null"):
+        read_session_file(path)

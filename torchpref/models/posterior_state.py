@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import types
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
+from collections.abc import Callable
 
 import torch
 from gpytorch.module import Module
@@ -149,12 +150,12 @@ class PosteriorState:
     @classmethod
     def build(
         cls,
-        model: "PreferenceGP",
+        model: PreferenceGP,
         fp: Tensor,
         key: tuple,
         previous: PosteriorState | None,
-        prior: "tuple[PaddedData, Tensor] | None" = None,
-    ) -> "PosteriorState":
+        prior: tuple[PaddedData, Tensor] | None = None,
+    ) -> PosteriorState:
         """Solve the modes of ``model``'s problems, warm-started from ``previous`` where sizes match
         (and from zeros if the warm-started solve fails: a start predicted for hyperparameters far
         from the previous ones can be far from the new mode). ``prior``: the model's
@@ -187,7 +188,7 @@ class PosteriorState:
             pred = PredictiveCache.from_mode(L, mode)
         return cls(model.data, fp, key, padded, jitter, model.likelihood, obs, mode, pred)
 
-    def traced(self, padded: PaddedData, K: Tensor, obs: Observations) -> "PosteriorState":
+    def traced(self, padded: PaddedData, K: Tensor, obs: Observations) -> PosteriorState:
         """This state with a prediction cache traced through the mode
         (:meth:`~torchpref.inference.laplace.PredictiveCache.traced`), for the problems ``padded`` whose
         items or ratings carry gradients, their prior covariance ``K`` and observations ``obs``

@@ -2,40 +2,7 @@
 
 from __future__ import annotations
 
-from torchpref.sessions.session import (
-    FORMAT_VERSION,
-    PreferenceSession,
-    SessionAnswer,
-    SessionFileCorrupt,
-    SessionFileError,
-    SessionMismatchError,
-    SessionRepairWarning,
-    SessionVersionError,
-    default_ranking_size,
-    default_session_model,
-    read_session_file,
-    step_generator,
-)
-from torchpref.sessions.settings import (
-    MAX_REDRAWS,
-    SessionAnswer,
-    SessionSettings,
-    as_items,
-    default_ranking_size,
-    default_session_model,
-    step_generator,
-)
-from torchpref.sessions.journal import (
-    ANSWER_KINDS,
-    FORMAT_VERSION,
-    Journal,
-    SessionFileCorrupt,
-    SessionFileError,
-    SessionMismatchError,
-    SessionRepairWarning,
-    SessionVersionError,
-    read_session_file,
-)
+from torchpref.sessions.journal import Journal, read_session_file
 from torchpref.sessions.records import (
     ANSWER_KINDS,
     FORMAT_VERSION,
@@ -49,6 +16,16 @@ from torchpref.sessions.records import (
     records_in_force,
     validate_header,
     validate_records,
+)
+from torchpref.sessions.session import PreferenceSession
+from torchpref.sessions.settings import (
+    MAX_REDRAWS,
+    SessionAnswer,
+    SessionSettings,
+    as_items,
+    default_ranking_size,
+    default_session_model,
+    step_generator,
 )
 
 __all__ = [

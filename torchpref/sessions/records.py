@@ -131,7 +131,7 @@ class _Line:
 
     def bounds(self, value, name: str, dim: int) -> list:
         b = self.matrix(value, name, dim, 2, 2)
-        if not all(lo < hi for lo, hi in zip(*b)):
+        if not all(lo < hi for lo, hi in zip(*b, strict=True)):
             self.fail(f"{name} must have lower < upper in every dimension, got {b!r:.120}")
         return b
 
@@ -202,6 +202,9 @@ def _check_answer(c: _Line, rec: dict, header: dict) -> None:
         c.integer("answer", lo=0, hi=len(items) - 1)
     elif answer is not None:
         c.fail(f"no preference has answer null, got {answer!r:.80}")
+    rt = rec.get("response_time")
+    if rt is not None and not (_is_number(rt) and math.isfinite(rt) and rt >= 0):
+        c.fail(f"'response_time' must be null or a finite number of seconds >= 0, got {rt!r:.80}")
     _check_query(c, rec.get("query"), kind, len(items), header)
 
 
@@ -225,7 +228,7 @@ def _check_query(c: _Line, q, kind: str, m: int, header: dict) -> None:
         and all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < n for i in idx)
     ):
         c.fail(f"pool_indices must be {m} rows of the pool of {n} items, got {idx!r:.80}")
-    if any(spec["items"][i] != row for i, row in zip(idx, c.rec["items"])):
+    if any(spec["items"][i] != row for i, row in zip(idx, c.rec["items"], strict=True)):
         c.fail(f"the items are not the pool's rows {idx}")
 
 

@@ -20,9 +20,11 @@ anywhere in :meth:`~PreferenceSession.tell` leaves the model, the file and the h
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -160,7 +162,7 @@ class PreferenceSession:
     @classmethod
     def load(
         cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Any
-    ) -> "PreferenceSession":
+    ) -> PreferenceSession:
         """Resume the session in ``path`` with the settings in its header (seed, levels, bounds,
         candidates, names); ``selector``, ``model_factory``, ``repair`` and ``num_queries`` may be given.
 
@@ -196,7 +198,7 @@ class PreferenceSession:
         if self._journal is not None:
             self._journal.close()
 
-    def __enter__(self) -> "PreferenceSession":
+    def __enter__(self) -> PreferenceSession:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -333,14 +335,16 @@ class PreferenceSession:
         rr = list(q.indices)
         return RankingQuery(X[rr], None if idx is None else tuple(int(idx[r]) for r in rr))
 
-    def tell(self, query: Query, answer: int | float | None) -> None:
+    def tell(self, query: Query, answer: int | float | None, *, response_time: float | None = None) -> None:
         """Record ``answer`` to ``query``: a Likert level (or a ``[0, 1]`` rating if the session has
         no levels) for a :class:`~torchpref.RatingQuery`; the index of the chosen row of
         ``query.items`` for a :class:`~torchpref.RankingQuery`, or ``None`` for no preference
-        (see :func:`~torchpref.data.queries.record_answer`).
+        (see :func:`~torchpref.data.queries.record_answer`). ``response_time``: seconds from the
+        question being shown to the answer, if the front end measured it (kept in the record).
 
         Raises:
             ValueError: an invalid answer (naming it), a query already answered (a second click),
+                a ``response_time`` that is not a finite number of seconds >= 0,
                 or one whose pool rows are not this session's (another session's query); the
                 session and the file are unchanged.
         """
@@ -361,7 +365,7 @@ class PreferenceSession:
         }
         if info["pool_indices"] is not None:
             self._check_pool_rows(query, info["pool_indices"])
-        self._tell(query, answer, info)
+        self._tell(query, answer, info, response_time)
         self._answered = (self._records[-1]["seq"], query)
 
     def _check_pool_rows(self, query: Query, rows: list[int]) -> None:
@@ -379,28 +383,32 @@ class PreferenceSession:
                 "session, or one edited after ask()."
             )
 
-    def tell_rating(self, x: Tensor, rating: int | float) -> None:
-        """A rating of any item ``x`` (``d``), given out of turn: a Likert level (or ``[0, 1]``)."""
+    def tell_rating(self, x: Tensor, rating: int | float, *, response_time: float | None = None) -> None:
+        """A rating of any item ``x`` (``d``), given out of turn: a Likert level (or ``[0, 1]``);
+        ``response_time`` as in :meth:`tell`."""
         x = as_items(x, self.dim, "x")
         if x.shape[0] != 1:
             raise ValueError(f"a rating is of one item, got {x.shape[0]}.")
-        self._tell(RatingQuery(x[0]), rating, None)
+        self._tell(RatingQuery(x[0]), rating, None, response_time)
 
-    def tell_choice(self, X_shown: Tensor, chosen: int) -> None:
-        """A choice of row ``chosen`` among any shown items ``X_shown`` (``m x d``, ``m >= 2``)."""
+    def tell_choice(self, X_shown: Tensor, chosen: int, *, response_time: float | None = None) -> None:
+        """A choice of row ``chosen`` among any shown items ``X_shown`` (``m x d``, ``m >= 2``);
+        ``response_time`` as in :meth:`tell`."""
         X = as_items(X_shown, self.dim, "X_shown")
         RankingQuery(X).validate_answer(chosen)  # None is not a choice here
-        self._tell(RankingQuery(X), chosen, None)
+        self._tell(RankingQuery(X), chosen, None, response_time)
 
-    def tell_no_preference(self, X_shown: Tensor) -> None:
+    def tell_no_preference(self, X_shown: Tensor, *, response_time: float | None = None) -> None:
         """The person saw ``X_shown`` (``m x d``) and had no preference: a tie between every two of
-        the items shown (:func:`~torchpref.data.queries.no_preference_observations`)."""
-        self._tell(RankingQuery(as_items(X_shown, self.dim, "X_shown")), None, None)
+        the items shown (:func:`~torchpref.data.queries.no_preference_observations`);
+        ``response_time`` as in :meth:`tell`."""
+        self._tell(RankingQuery(as_items(X_shown, self.dim, "X_shown")), None, None, response_time)
 
-    def _tell(self, query: Query, answer, info: dict | None) -> None:
+    def _tell(self, query: Query, answer, info: dict | None, response_time=None) -> None:
         """Validate and add the answer to the model (:func:`~torchpref.data.queries.record_answer`),
         then append its record; the model is trusted again only once the record is in."""
         items = as_items(query.items, self.dim, "the query's items")
+        response_time = _seconds(response_time)
         if isinstance(query, RankingQuery) and items.shape[0] < 2:
             raise ValueError(f"a choice needs at least 2 items shown, got {items.shape[0]}.")
         model, seqs = self.model, self._model_seqs
@@ -423,6 +431,7 @@ class PreferenceSession:
         else:
             rec["answer"] = value
         rec["query"] = info
+        rec["response_time"] = response_time
         self._append(rec)
         self._model_seqs = seqs + (rec["seq"],)
 
@@ -441,3 +450,19 @@ class PreferenceSession:
         self._append({"type": "undo", "v": FORMAT_VERSION, "seq": self._next_seq, "time": now(), "undoes": undone.seq})
         self._model, self._model_seqs = model, tuple(r["seq"] for r in active[:-1])
         return undone
+
+
+def _seconds(value) -> float | None:
+    """A response time as float seconds (``None`` stays ``None``).
+
+    Raises:
+        ValueError: not a finite real number >= 0 (a bool or text included), naming it.
+    """
+    if value is None:
+        return None
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not ok and isinstance(value, Tensor) and value.numel() == 1 and not value.dtype.is_complex:
+        value, ok = value.item(), value.dtype != torch.bool
+    if not ok or not math.isfinite(float(value)) or float(value) < 0:
+        raise ValueError(f"response_time must be None or a finite number of seconds >= 0, got {value!r:.80}.")
+    return float(value)

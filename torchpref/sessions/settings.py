@@ -12,7 +12,8 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -49,6 +50,8 @@ class SessionAnswer:
         step: the query number it answered, or ``None`` if given out of turn.
         pool_indices: the items' rows in the candidate pool, where known.
         time: ISO 8601 timestamp.
+        response_time: seconds from the question being shown to the answer, where the front end
+            measured it (``None`` otherwise; files written before it existed have none).
     """
 
     seq: int
@@ -59,9 +62,10 @@ class SessionAnswer:
     step: int | None
     pool_indices: tuple[int, ...] | None
     time: str
+    response_time: float | None = None
 
     @classmethod
-    def from_record(cls, r: dict) -> "SessionAnswer":
+    def from_record(cls, r: dict) -> SessionAnswer:
         """The answer of an ``answer`` record of the session file."""
         q = r.get("query") or {}
         pool = q.get("pool_indices")
@@ -74,6 +78,7 @@ class SessionAnswer:
             q.get("step"),
             None if pool is None else tuple(pool),
             r["time"],
+            r.get("response_time"),
         )
 
 
@@ -200,7 +205,7 @@ class SessionSettings:
         num_queries: int,
         num_levels: int | None,
         names: Sequence[str] | None,
-    ) -> "SessionSettings":
+    ) -> SessionSettings:
         """Check and convert a session's arguments (bounds default to the candidates' range).
 
         Raises:
