@@ -48,8 +48,8 @@ def submodules(module: torch.nn.Module) -> list[torch.nn.Module]:
 #: such as a Matérn kernel's ``nu``, the model's ``ties_offered``, a constraint's transform function.
 _PLAIN = frozenset(
     {bool, int, float, complex, str, type(None), torch.dtype, torch.device, torch.Size}
-    | {types.FunctionType, types.BuiltinFunctionType, types.MethodType, types.BuiltinMethodType}
-)
+    | {types.FunctionType, types.BuiltinFunctionType, types.BuiltinMethodType}
+)  # not bound methods: ``setattr(m, "f", m.f)`` (a monkeypatch undone) changes nothing
 #: Attributes that do not change the posterior: the train / eval flag (its transitions reset the
 #: model's cache explicitly) and the model's once-only scaling warning,
 #: warm start and cache itself.
