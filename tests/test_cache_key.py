@@ -79,7 +79,8 @@ def _input_transform_bounds(model):
 
 
 def _constraint_transform(model):
-    model.likelihood.comparison.raw_comparison_noise_constraint._transform = torch.nn.Softplus(beta=3.0)
+    # the kernel's own constraint (the likelihoods' default constraints are shared by all models)
+    model.covar_module.base_kernel.raw_lengthscale_constraint._transform = torch.nn.Softplus(beta=3.0)
 
 
 def _kernel_dtype(model):
