@@ -89,6 +89,7 @@ def test_answers_recorded_with_response_times_then_summary(served):
     assert store.entry(sid).session.history[3].response_time == times[3]
     summary = c.get(f"/s/{sid}/summary?x=2&y=1")
     assert summary.status_code == 200 and summary.text.count("<tr>") == 6  # header + top 5
+    assert 'id="median-seconds">4.5<' in summary.text  # the median of 0.5 .. 7.5 s (upper of the middle two)
     png = c.get(f"/s/{sid}/utility.png?x=2&y=1")
     assert png.headers["content-type"] == "image/png" and png.content.startswith(b"\x89PNG")
     assert c.get(f"/s/{sid}/utility.png?x=7").status_code == 400
@@ -390,3 +391,68 @@ def test_lazy_export():
     from torchpref.frontends.serve import serve
 
     assert torchpref.serve is serve
+
+
+SCRIPT = """
+import sys, torch, torchpref
+from matplotlib.figure import Figure
+
+X = torch.tensor([[0.1, 0.2], [0.5, 0.9], [0.9, 0.4], [0.3, 0.7]], dtype=torch.float64)
+session = torchpref.PreferenceSession(X, session_file=sys.argv[1], num_queries=4, names=["a", "b"])
+
+def render(item, index):
+    fig = Figure(figsize=(2, 2))
+    fig.add_subplot().bar([0, 1], item.tolist())
+    return fig
+
+torchpref.serve(session, render=render, port=int(sys.argv[2]), noun="design")
+"""
+
+
+def test_serve_from_python_in_a_process(tmp_path):
+    """``torchpref.serve(session, render=...)`` as a user's script runs it: the page, its
+    pictures, an answer with its response time in the user's session file."""
+    import subprocess
+    import sys
+
+    from serve_support import START_S, free_port, get_json, post
+
+    script = tmp_path / "serve_me.py"
+    script.write_text(SCRIPT)
+    port = free_port()
+    log = open(tmp_path / "log.txt", "w+")
+    env = dict(os.environ, MPLBACKEND="Agg")
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(tmp_path / "me.session.jsonl"), str(port)],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env=env,
+    )
+    base = f"http://127.0.0.1:{port}/s/me/"
+    try:
+        import time
+
+        deadline = time.monotonic() + START_S
+        while True:
+            try:
+                st = get_json(base + "state", timeout=5)
+                break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    log.seek(0)
+                    pytest.fail(f"the script's server did not start:\n{log.read()[-3000:]}")
+                time.sleep(0.3)
+        import urllib.request
+
+        pic = st["question"]["options"][0]["picture"].rsplit("/", 1)[1]
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/picture/{pic}", timeout=60) as r:
+            assert r.read().startswith(b"\x89PNG")
+        a = 3 if st["question"]["kind"] == "rating" else 0
+        status, reply, _ = post(base + "answer", {"qid": st["qid"], "answer": a, "response_time": 4.5})
+        assert status == 200 and reply["answered"] == 1 and st["noun"] == "design"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+        log.close()
+    recs = _answers(tmp_path / "me.session.jsonl")
+    assert len(recs) == 1 and recs[0]["response_time"] == 4.5

@@ -380,7 +380,7 @@ def serve(
     if threads is not None:
         torch.set_num_threads(threads)
     try:
-        _run_uvicorn(app, host, port, token, ready)
+        _run_uvicorn(app, host, port, token, ready, f"s/{store.sids[0]}/" if store.fixed else "")
     finally:
         store.close()
         torch.set_num_threads(before)
@@ -409,7 +409,7 @@ def _store(source, render, names, labels, sessions, num_queries, seed, num_level
     return SessionStore(items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties)
 
 
-def _run_uvicorn(app, host: str, port: int, token: str | None, ready) -> None:
+def _run_uvicorn(app, host: str, port: int, token: str | None, ready, path: str = "") -> None:
     import socket
 
     import uvicorn
@@ -420,7 +420,7 @@ def _run_uvicorn(app, host: str, port: int, token: str | None, ready) -> None:
     sock.bind((host, port))  # bound here, so port 0 is known before the server starts
     bound = sock.getsockname()[1]
     shown = f"[{host}]" if ":" in host else host
-    url = f"http://{shown}:{bound}/" + (f"?token={token}" if token else "")
+    url = f"http://{shown}:{bound}/{path}" + (f"?token={token}" if token else "")
     config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="off")
     server = uvicorn.Server(config)
     print(f"torchpref serve: open {url}  (Ctrl-C stops; every answer is already saved)", flush=True)

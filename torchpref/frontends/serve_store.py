@@ -41,7 +41,7 @@ from torchpref.selection.strategies import UCBC
 
 __all__ = ["AnswerRefused", "MAX_RESPONSE_TIME", "SID_PATTERN", "SessionStore", "make_qid"]
 
-SID_PATTERN = re.compile(r"[A-Za-z0-9_-]{4,64}")
+SID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,64}")
 """What a session id may be (it names a file: no dots, no slashes)."""
 
 MAX_RESPONSE_TIME = 7 * 24 * 3600.0
@@ -103,7 +103,7 @@ class SessionStore:
             if sid is None:
                 sid = session.path.name.split(".")[0] if session.path is not None else "session"
             if not SID_PATTERN.fullmatch(sid):
-                raise ValueError(f"session id {sid!r:.80} must be 4-64 letters, digits, '-' or '_'.")
+                raise ValueError(f"session id {sid!r:.80} must be 1-64 letters, digits, '-' or '_'.")
             self._entries[sid] = _Entry(sid, session)
             self.directory = None if session.path is None else session.path.parent
             self.num_levels = session.num_levels

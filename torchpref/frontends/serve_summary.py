@@ -59,9 +59,13 @@ def summary_context(store, entry, query: Mapping[str, str]) -> dict[str, Any]:
         "noun": items.noun,
         "top": [],
         "levels": s.num_levels,
+        "median_seconds": None,
     }
     if s.step == 0:
         return ctx
+    seconds = sorted(a.response_time for a in s.history if a.response_time is not None)
+    if seconds:
+        ctx["median_seconds"] = f"{seconds[len(seconds) // 2]:.1f}"
     X = items.X
     distinct = first_unique_rows(X)
     mean, std = s.predict(X)
