@@ -198,7 +198,7 @@ def kill_run(folder: Path, kills: int = 20, seed: int = 0, progress=None) -> dic
             body, a = body_for()
             result: list = []
 
-            def send(body=body):
+            def send(body=body, result=result):
                 try:
                     result.append(post(base + "answer", body, timeout=30))
                 except OSError as exc:  # the connection died with the server

@@ -174,7 +174,7 @@ def test_two_browsers_two_sessions_at_once(server, browser):
     for k in range(5):
         for j, page in enumerate(pages):  # both answers in flight together
             given[j].append((_state(page)["qid"], _answer(page, k + j, by_keyboard=j == 1)))
-        for j, page in enumerate(pages):
+        for page in pages:
             _wait_answered(page, k + 1)
     for j, sid in enumerate(sids):
         recs = records(server.folder / "sessions" / f"{sid}.session.jsonl")
