@@ -69,7 +69,9 @@
         const word = q.words[String(j)] ? " " + q.words[String(j)] : "";
         levels.append(answerButton(String(j) + word, j, j <= 9 ? String(j) : "-"));
       }
-      box.append(card(o, o.label), levels);
+      const c = card(o, o.label);
+      c.classList.add("single");
+      box.append(c, levels);
     } else {
       box.append(el("h1", {}, `Rate this ${s.noun} from 0 (worst) to 1 (best)`));
       const slider = el("input", { type: "range", min: "0", max: "1", step: "0.01", value: "0.5", id: "slider",
