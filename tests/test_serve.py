@@ -78,7 +78,10 @@ def test_answers_recorded_with_response_times_then_summary(served):
         assert r.status_code == 200, r.text
         assert float(r.headers["server-timing"].split("dur=")[1]) > 0
         assert r.json()["answered"] == k + 1 and r.json()["recommended"]["label"].startswith("#")
-    assert c.get(f"/s/{sid}/state").json()["done"]
+    done = c.get(f"/s/{sid}/state").json()
+    assert done["done"] and done["question"] is None
+    r = c.post(f"/s/{sid}/answer", json={"qid": done["qid"], "answer": 1})
+    assert r.status_code == 409 and "all 8 questions are answered" in r.json()["error"]
     assert set(kinds) == {"rating", "ranking"}  # UCBC asks both kinds
     recs = _answers(store.path(sid))
     assert [r["response_time"] for r in recs] == times
@@ -456,3 +459,23 @@ def test_serve_from_python_in_a_process(tmp_path):
         log.close()
     recs = _answers(tmp_path / "me.session.jsonl")
     assert len(recs) == 1 and recs[0]["response_time"] == 4.5
+
+
+def test_ratings_in_the_unit_interval(tmp_path):
+    """A served session without levels (``num_levels=None``): the page's slider sends a number in
+    [0, 1], anything else is refused."""
+    from torchpref.frontends.serve import _store
+    from torchpref.selection.strategies import UCBRatings
+
+    session = PreferenceSession(
+        _items().X, selector=UCBRatings(), num_levels=None, session_file=tmp_path / "unit.session.jsonl"
+    )
+    store = _store(session, None, None, None, None, 3, 0, None, True, "item")
+    c = _client(store)
+    st = c.get("/s/unit/state").json()
+    assert st["question"]["kind"] == "rating" and st["question"]["levels"] is None
+    for bad in (1.5, -0.1, "0.5", True, None):
+        r = c.post("/s/unit/answer", json={"qid": st["qid"], "answer": bad})
+        assert r.status_code == 400 and "[0, 1]" in r.json()["error"], bad
+    assert c.post("/s/unit/answer", json={"qid": st["qid"], "answer": 0.7}).status_code == 200
+    assert [(r["answer"], r["value"]) for r in _answers(tmp_path / "unit.session.jsonl")] == [(0.7, 0.7)]

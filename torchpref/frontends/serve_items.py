@@ -109,6 +109,7 @@ class ServeItems:
 
     @property
     def has_pictures(self) -> bool:
+        """Whether items have pictures (a render function or image files)."""
         return self.render is not None
 
     def picture(self, i: int) -> tuple[bytes, str] | None:

@@ -125,6 +125,7 @@ class SessionStore:
 
     # ------------------------------------------------------------ sessions
     def path(self, sid: str) -> Path:
+        """The session file of ``sid``."""
         return self.directory / f"{sid}.session.jsonl"
 
     def create(self) -> str:
@@ -172,9 +173,11 @@ class SessionStore:
 
     @property
     def sids(self) -> list[str]:
+        """The ids of the sessions open now."""
         return list(self._entries)
 
     def close(self) -> None:
+        """Release the session files this store opened (a session given to it stays open)."""
         with self._lock:
             for e in self._entries.values():
                 if not self.fixed:
@@ -243,7 +246,12 @@ class SessionStore:
         body = _object(body, {"qid", "answer", "response_time"})
         with entry.lock:
             qid, q = self._current(entry)
-            if body.get("qid") != qid or q is None:
+            if body.get("qid") == qid and q is None:
+                n = entry.session.num_queries
+                raise AnswerRefused(
+                    f"all {n} questions are answered; undo to change an answer.", 409, self.state(entry)
+                )
+            if body.get("qid") != qid:
                 return self._not_current(entry, body)
             answer = self._checked_answer(entry, q, body.get("answer"))
             rt = _response_time(body.get("response_time"))
