@@ -36,8 +36,11 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Callable
 
+from torch import Tensor
+
 from torchpref.frontends.serve_items import PLOT_LOCK, ServeItems, items_from_csv, lake_items
 from torchpref.frontends.serve_store import AnswerRefused, SessionStore
+from torchpref.sessions.session import PreferenceSession
 
 __all__ = ["ServeError", "create_app", "run", "serve"]
 
@@ -328,7 +331,7 @@ def _check_network(host: str, port: int, allow_remote: bool, token: str | None) 
 
 
 def serve(
-    source,
+    source: PreferenceSession | Tensor | ServeItems,
     *,
     render: Callable | None = None,
     names: list[str] | None = None,
@@ -387,10 +390,7 @@ def serve(
 
 
 def _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun) -> SessionStore:
-    from torch import Tensor
-
     from torchpref.data.queries import FinitePool
-    from torchpref.sessions.session import PreferenceSession
 
     if isinstance(source, PreferenceSession):
         pool = source._candidates  # the session's own candidates: queries name their rows
