@@ -24,24 +24,24 @@ import json
 import matplotlib
 
 matplotlib.use("Agg")
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from botorch.acquisition import LearnedObjective  # noqa: E402
-from botorch.acquisition.logei import qLogNoisyExpectedImprovement  # noqa: E402
-from botorch.acquisition.monte_carlo import qSimpleRegret  # noqa: E402
-from botorch.acquisition.preference import AnalyticExpectedUtilityOfBestOption  # noqa: E402
-from botorch.fit import fit_gpytorch_mll  # noqa: E402
-from botorch.models.deterministic import FixedSingleSampleModel  # noqa: E402
-from botorch.models.gp_regression import SingleTaskGP  # noqa: E402
-from botorch.models.transforms.input import Normalize  # noqa: E402
-from botorch.optim.optimize import optimize_acqf  # noqa: E402
-from botorch.sampling import SobolQMCNormalSampler  # noqa: E402
-from botorch.test_functions.multi_objective import DTLZ2  # noqa: E402
-from botorch.utils.sampling import draw_sobol_samples  # noqa: E402
-from gpytorch.mlls import ExactMarginalLogLikelihood  # noqa: E402
-from tqdm import tqdm  # noqa: E402
+import numpy as np
+import torch
+from botorch.acquisition import LearnedObjective
+from botorch.acquisition.logei import qLogNoisyExpectedImprovement
+from botorch.acquisition.monte_carlo import qSimpleRegret
+from botorch.acquisition.preference import AnalyticExpectedUtilityOfBestOption
+from botorch.fit import fit_gpytorch_mll
+from botorch.models.deterministic import FixedSingleSampleModel
+from botorch.models.gp_regression import SingleTaskGP
+from botorch.models.transforms.input import Normalize
+from botorch.optim.optimize import optimize_acqf
+from botorch.sampling import SobolQMCNormalSampler
+from botorch.test_functions.multi_objective import DTLZ2
+from botorch.utils.sampling import draw_sobol_samples
+from gpytorch.mlls import ExactMarginalLogLikelihood
+from tqdm import tqdm
 
-from botorch_tutorials_common import (  # noqa: E402
+from botorch_tutorials_common import (
     MODELS,
     RESULTS,
     Record,

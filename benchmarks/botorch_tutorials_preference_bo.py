@@ -24,13 +24,13 @@ from itertools import combinations
 import matplotlib
 
 matplotlib.use("Agg")
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from botorch.acquisition.preference import AnalyticExpectedUtilityOfBestOption  # noqa: E402
-from botorch.optim import optimize_acqf  # noqa: E402
-from tqdm import tqdm  # noqa: E402
+import numpy as np
+import torch
+from botorch.acquisition.preference import AnalyticExpectedUtilityOfBestOption
+from botorch.optim import optimize_acqf
+from tqdm import tqdm
 
-from botorch_tutorials_common import (  # noqa: E402
+from botorch_tutorials_common import (
     MODELS,
     RESULTS,
     Record,

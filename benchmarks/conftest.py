@@ -11,7 +11,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import bench_common as bc  # noqa: E402
+import bench_common as bc
 
 # One thread by default, as in speed_pairwise.py: on a shared machine, spinning OpenMP threads make
 # multi-thread timings erratic. TORCHPREF_BENCH_THREADS=0 keeps torch's default.

@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import fuzz_problems as fp  # noqa: E402
+import fuzz_problems as fp
 
 TARGET = 1e-3  # relative float32-float64 agreement asked for
 

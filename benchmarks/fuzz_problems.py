@@ -157,7 +157,7 @@ def _run(problem: Problem, run: str, Xq: Tensor) -> dict:
         out["nan"] = not bool(torch.isfinite(mode.f).all()) or any(
             not (torch.isfinite(m).all() and torch.isfinite(S).all()) for m, S in out["moments"].values()
         )
-    except Exception as e:  # noqa: BLE001 - the outcome is what is measured
+    except Exception as e:
         out["error"] = f"{type(e).__name__}: {str(e)[:160]}"
     out["seconds"] = time.perf_counter() - t
     return out
@@ -172,7 +172,7 @@ def _pairwisegp(problem: Problem, Xq: Tensor) -> dict:
         model = PairwiseGP(problem.X.to(F32), problem.comparisons, covar_module=kernel(problem, F32))
         mean, cov = posterior_moments(model, Xq.to(F32), grad=False)
         out["nan"] = not bool(torch.isfinite(mean).all() and torch.isfinite(cov).all())
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:
         out["error"] = f"{type(e).__name__}: {str(e)[:160]}"
     return out
 

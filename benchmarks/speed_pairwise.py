@@ -95,7 +95,7 @@ def task_fns(task: str, lib: str, X, C, fitted=None):
 def measure_pair(task: str, n: int, p: int, repeats: int, fitted: dict | None = None) -> dict[str, float]:
     X, C = bc.make_comparisons(n, p)
     fns = {lib: task_fns(task, lib, X, C, fitted[lib] if fitted else None) for lib in ("torchpref", "pairwisegp")}
-    for lib, (fn, setup) in fns.items():  # warm-up (first-call overheads, caches)
+    for fn, setup in fns.values():  # warm-up (first-call overheads, caches)
         _timed(fn, setup)
     times = {lib: [] for lib in fns}
     for r in range(repeats):
@@ -150,7 +150,7 @@ def _child(task: str, lib: str, n: int, p: int) -> None:
     if task == "mixed_mode":
         X, C, u, ri = bc.make_mixed(n, p)
         before = _reset_peak()
-        bc.PreferenceGP(
+        _ = bc.PreferenceGP(
             X, comparisons=C, ratings=u, rating_index=ri, covar_module=bc.make_kernel(), comparison_noise=0.1
         ).mode
     else:

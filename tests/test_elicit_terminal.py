@@ -1,7 +1,6 @@
 """``torchpref elicit`` driven through a pseudo-terminal (pexpect), as a person would use it."""
 
 import io
-import json
 import re
 import sys
 from pathlib import Path

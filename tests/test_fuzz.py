@@ -11,7 +11,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-import fuzz_problems as fp  # noqa: E402
+import fuzz_problems as fp
 
 SEEDS = range(40)
 LONG_LENGTHSCALE = (679, 758)  # lengthscales 44 and 28 on the unit cube: native float32 is another model

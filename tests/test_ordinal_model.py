@@ -195,7 +195,10 @@ def test_ties_pull_utilities_together():
     C = torch.tensor([[0, 1], [0, 2]])
     without = PreferenceGP(X, C, covar_module=kernel(0.1, 1.0, 1))
     with_tie = PreferenceGP(X, C, covar_module=kernel(0.1, 1.0, 1), ties=torch.tensor([[1, 2]]))
-    gap = lambda m: abs(float(m.mode.f[1] - m.mode.f[2]))
+
+    def gap(m):
+        return abs(float(m.mode.f[1] - m.mode.f[2]))
+
     assert gap(with_tie) < gap(without) + 1e-12
     model = PreferenceGP(X, torch.tensor([[0, 1]]), covar_module=kernel(0.1, 1.0, 1))
     p0 = float(model.tie_probability(X[1:2], X[2:3]).detach())

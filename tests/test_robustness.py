@@ -14,7 +14,7 @@ from torchpref.models.preference_gp import PreferenceGP
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-import fuzz_problems as fp  # noqa: E402
+import fuzz_problems as fp
 
 F64 = torch.float64
 
@@ -85,7 +85,7 @@ def test_random_problems(chunk):
     for seed in range(chunk * PER_CHUNK, (chunk + 1) * PER_CHUNK):
         try:
             cfg, problems = check(seed)
-        except Exception as e:  # noqa: BLE001 - report every failing configuration at once
+        except Exception as e:
             cfg, problems = random_config(seed)[0], [f"{type(e).__name__}: {e}"]
         if problems:
             failures.append(f"{cfg}: {'; '.join(problems)}")
@@ -133,7 +133,7 @@ def test_damaged_or_foreign_checkpoint_files_are_named(tmp_path, capfd):
     import torchpref
 
     _, path = _saved(tmp_path)
-    for name, data in _foreign_files(path.read_bytes()).items():
+    for data in _foreign_files(path.read_bytes()).values():
         bad = tmp_path / "bad.pt"
         bad.write_bytes(data)
         with pytest.raises(torchpref.CheckpointError, match="bad.pt"):

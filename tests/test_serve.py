@@ -479,3 +479,16 @@ def test_ratings_in_the_unit_interval(tmp_path):
         assert r.status_code == 400 and "[0, 1]" in r.json()["error"], bad
     assert c.post("/s/unit/answer", json={"qid": st["qid"], "answer": 0.7}).status_code == 200
     assert [(r["answer"], r["value"]) for r in _answers(tmp_path / "unit.session.jsonl")] == [(0.7, 0.7)]
+
+
+def test_command_line_names_the_missing_extra(tmp_path, monkeypatch, capsys):
+    import sys
+
+    from torchpref.cli import MISSING_EXTRA, main
+
+    csv_path = tmp_path / "items.csv"
+    csv_path.write_text("a,b\n0,1\n1,0\n0.5,0.5\n")
+    monkeypatch.setitem(sys.modules, "uvicorn", None)
+    assert main(["serve", "--features", str(csv_path), "--sessions", str(tmp_path / "s")]) == MISSING_EXTRA
+    assert 'pip install "torchpref[serve]"' in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()  # checked before any work

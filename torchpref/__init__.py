@@ -130,7 +130,8 @@ _EXPORTS = {
     "wrms_authors": "simulation.metrics",
 }
 
-__all__ = sorted([*_EXPORTS, "__version__"])
+__all__ = ["__version__"]
+__all__ += sorted(_EXPORTS)  # noqa: PLE0605 (the lazy names, listed once above)
 
 
 def __getattr__(name: str) -> Any:

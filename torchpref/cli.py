@@ -9,7 +9,7 @@ r"""The ``torchpref`` command line.
 
 Each subcommand lives in its own module, imported only when it runs. Every argument is checked
 before any work starts; an error a person can cause (a bad value, a file that cannot be read or
-written, Ctrl-C) is one line on stderr and a non-zero exit status, never a traceback (set
+written, Ctrl-C, an optional dependency that is not installed) is one line on stderr and a non-zero exit status, never a traceback (set
 ``TORCHPREF_DEBUG=1`` to see one).
 """
 
@@ -36,6 +36,14 @@ REPRODUCE = {
 }
 ELICIT = "torchpref.frontends.elicit"
 SERVE = "torchpref.frontends.serve"
+NEEDS = {
+    "reproduce": ("matplotlib",),  # every experiment writes figures
+    "elicit lake": ("matplotlib",),  # each query shows the paths on the lake's map
+    "serve": ("starlette", "uvicorn", "jinja2", "matplotlib"),  # the web page and its plots
+}
+"""Command (``"reproduce"``, or ``"elicit WORLD"``) -> the optional modules it needs, checked
+before any work starts (a missing one: one line naming the extra, exit status 3)."""
+MISSING_EXTRA = 3
 RESULTS = "torchpref-results"
 """The folder (in the current one) that holds a fresh folder per ``reproduce`` run by default."""
 
@@ -271,6 +279,15 @@ def _serve(args) -> int:
     return int(_import(SERVE).run(args) or 0)
 
 
+def _missing_extra(args: argparse.Namespace) -> str | None:
+    """The one-line message for an optional module the command needs and does not find, or ``None``."""
+    from torchpref.extras import missing
+
+    key = args.command if args.command != "elicit" or args.world is None else f"elicit {args.world}"
+    name = f"{args.command} {args.experiment}" if args.command == "reproduce" else key
+    return missing(NEEDS.get(key, ()), f"torchpref {name}")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status (errors and warnings: one line each on stderr)."""
     shown = warnings.showwarning
@@ -291,6 +308,9 @@ def _main(argv: list[str] | None) -> int:
     try:
         args = build_parser().parse_args(argv)
         command = f"torchpref {args.command}"
+        if (line := _missing_extra(args)) is not None:
+            print(line, file=sys.stderr)
+            return MISSING_EXTRA
         if args.command == "serve":
             return _serve(args)
         return _reproduce(args) if args.command == "reproduce" else _elicit(args)

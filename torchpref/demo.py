@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -63,8 +64,9 @@ def fit_demo(seed: int = 0, num_ratings: int = 5, num_comparisons: int = 5) -> t
 
 def plot_demo(model: PreferenceGP, path: Path) -> None:
     """Figs. 4-5 of the fitted ``model`` (posterior, rating density, preference probability), written to ``path``."""
-    import matplotlib
+    from torchpref.extras import require
 
+    matplotlib = require("matplotlib", "the demo's figure")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -109,6 +111,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="torchpref-results/demo")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    from torchpref.extras import missing
+
+    if (line := missing(["matplotlib"], "python -m torchpref.demo")) is not None:
+        print(line, file=sys.stderr)
+        return 3
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     print("Fitting 5 ratings + 5 comparisons of a 1-D utility (Fig. 4) ...", flush=True)

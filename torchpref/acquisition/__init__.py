@@ -6,13 +6,9 @@ from torchpref.acquisition.functions import (
     QueryInformation,
     QueryUCB,
     choice_probabilities,
-    greedy_choice_set,
     item_ucb,
     latent_ucb,
-    membership_information,
     rating_bin_probabilities,
-    sample_information,
-    top_set_membership,
 )
 from torchpref.acquisition.information import entropy, membership_information, sample_information, top_set_membership
 from torchpref.acquisition.choice_sets import greedy_choice_set

@@ -9,7 +9,7 @@ or ``T`` independent trials at once. Also importable from :mod:`torchpref.acquis
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor

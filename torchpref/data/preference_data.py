@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -228,7 +229,7 @@ class PreferenceData:
         rating_eps: float = DEFAULT_RATING_EPS,
         ties: TensorLike | None = None,
         rating_levels: int | None = None,
-    ) -> "PreferenceData":
+    ) -> PreferenceData:
         """Validated data: ``train_X`` (``n x d``; integers become float64), ``comparisons``
         (``p x 2`` rows ``[preferred, other]``), ``ratings`` in ``[0, 1]`` (moved in to ``rating_eps``
         from the bounds; levels ``1..rating_levels`` when that is given) of the rows
@@ -278,7 +279,7 @@ class PreferenceData:
         """Comparisons plus ratings plus ties."""
         return self.comparisons.shape[0] + self.ratings.shape[0] + self.ties.shape[0]
 
-    def index_items(self, X: TensorLike, atol: float = 0.0) -> tuple["PreferenceData", Tensor]:
+    def index_items(self, X: TensorLike, atol: float = 0.0) -> tuple[PreferenceData, Tensor]:
         r"""Indices of the rows of ``X`` (``m x d``), adding those not already present.
 
         An item already in ``train_X`` (same coordinates, within ``atol``) reuses its index, and
@@ -324,7 +325,7 @@ class PreferenceData:
         rating_index: TensorLike | None = None,
         rating_eps: float = DEFAULT_RATING_EPS,
         ties: TensorLike | None = None,
-    ) -> "PreferenceData":
+    ) -> PreferenceData:
         """New data with items appended (by coordinates: duplicates reuse their index) and
         observations appended. Indices in ``comparisons`` / ``ties`` / ``rating_index`` refer to
         the rows of ``X`` when ``X`` is given, otherwise to the existing ``train_X``. Ratings are
@@ -354,7 +355,7 @@ class PreferenceData:
             self.rating_levels,
         )
 
-    def to(self, *args, **kwargs) -> "PreferenceData":
+    def to(self, *args, **kwargs) -> PreferenceData:
         """A copy with the items and ratings converted as by ``Tensor.to`` (the indices follow the device)."""
         X = self.train_X.to(*args, **kwargs)
         return PreferenceData(

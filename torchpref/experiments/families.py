@@ -16,7 +16,7 @@ condition learns the kernel's from the answers (:mod:`~torchpref.experiments.sui
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from botorch.test_functions import Branin, Hartmann, Levy

@@ -15,7 +15,8 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
+from collections.abc import Iterable, Sequence
 
 import torch
 
@@ -192,8 +193,9 @@ def plot_mean_sem(
         xlabel: the shared x-axis label.
         title: an optional figure title.
     """
-    import matplotlib
+    from torchpref.extras import require
 
+    matplotlib = require("matplotlib", "drawing an experiment's curves")
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 

@@ -45,7 +45,6 @@ from torchpref.sessions.session import PreferenceSession
 __all__ = ["ServeError", "create_app", "run", "serve"]
 
 HERE = Path(__file__).parent
-EXTRA = "torchpref serve needs the 'serve' extra: pip install 'torchpref[serve]' (starlette, uvicorn, jinja2)"
 MAX_BODY = 4096
 TOKEN_COOKIE = "torchpref_token"
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
@@ -62,13 +61,13 @@ class ServeError(ValueError):
     """Settings ``serve`` cannot run with (another interface without a token, a bad port)."""
 
 
-def _require():
-    try:
-        import jinja2  # noqa: F401
-        import starlette  # noqa: F401
-        import uvicorn  # noqa: F401
-    except ImportError:
-        raise ImportError(EXTRA) from None
+def _require() -> None:
+    """Import the ``serve`` extra's modules, or raise :class:`~torchpref.extras.MissingExtraError`
+    (an ``ImportError``) naming ``torchpref[serve]``."""
+    from torchpref.extras import require
+
+    for module in ("starlette", "uvicorn", "jinja2"):
+        require(module, "torchpref serve", extra="serve")
 
 
 def _is_loopback(host: str) -> bool:

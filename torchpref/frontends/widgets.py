@@ -29,7 +29,8 @@ import os
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 from torch import Tensor
 
@@ -47,9 +48,9 @@ _MAGIC = ((b"\x89PNG", "png"), (b"\xff\xd8", "jpeg"), (b"GIF8", "gif"))
 
 
 def _widgets():
-    import ipywidgets
+    from torchpref.extras import require
 
-    return ipywidgets
+    return require("ipywidgets", "the notebook widget")
 
 
 def _image(data: bytes, fmt: str, width: str):
@@ -205,7 +206,7 @@ class PreferenceWidget:
                 pic = as_picture(self.render(item, index), self.picture_width)
                 pic.add_class("torchpref-picture")
                 return pic
-            except Exception as exc:  # noqa: BLE001  (the hook is the caller's code: show its failure)
+            except Exception as exc:
                 failure = _widgets().HTML(
                     f"<span style='color:#b00'>render hook failed: "
                     f"{html.escape(type(exc).__name__ + ': ' + str(exc))}</span>"

@@ -56,7 +56,7 @@ class ModeResult:
     converged: Tensor  # B bool
     fisher_fallback: Tensor  # B bool: exact B not PD at the mode, the Fisher W used instead
 
-    def select(self, index) -> "ModeResult":
+    def select(self, index) -> ModeResult:
         """The problems ``index`` (an int drops the batch dimension)."""
 
         def pick(v):
@@ -64,7 +64,7 @@ class ModeResult:
 
         return replace(self, **{fl.name: pick(getattr(self, fl.name)) for fl in fields(self)})
 
-    def batched(self) -> "ModeResult":
+    def batched(self) -> ModeResult:
         """With a batch dimension (a no-op for a batched result)."""
         if self.f.dim() == 2:
             return self
@@ -146,7 +146,7 @@ def find_mode(
     return mode.select(0) if single else mode
 
 
-def predicted_mode(f: Tensor, cache: "PredictiveCache", L: Tensor) -> Tensor:
+def predicted_mode(f: Tensor, cache: PredictiveCache, L: Tensor) -> Tensor:
     r"""A start for the modes under new prior factors ``L`` (``B x n x n``, ``L L^T = K + jitter I``):
     the old modes ``f`` (``B x n``) moved to first order in the change of ``K`` (implicit function
     theorem, the likelihoods unchanged), ``f + (I + K_old W)^-1 (K - K_old) alpha`` with
@@ -339,14 +339,14 @@ class PredictiveCache:
         self.L, self.alpha, self.B_chol, self._A = L, alpha, B_chol, None
 
     @classmethod
-    def from_mode(cls, L: Tensor, mode: ModeResult) -> "PredictiveCache":
+    def from_mode(cls, L: Tensor, mode: ModeResult) -> PredictiveCache:
         """The cache for ``mode``, the Laplace mode of the problems whose prior factors are ``L``."""
         mode = mode.batched()
         L = L.reshape(mode.B_chol.shape)
         return cls(L, _solve_t(L, mode.a), mode.B_chol)
 
     @classmethod
-    def traced(cls, K: Tensor, jitter: float | Tensor, obs: Observations, mode: ModeResult) -> "PredictiveCache":
+    def traced(cls, K: Tensor, jitter: float | Tensor, obs: Observations, mode: ModeResult) -> PredictiveCache:
         """The cache for ``mode`` as a differentiable function of ``K`` (``B x n x n``) and of the
         observations' targets (:func:`traced_mode`): predictions then have gradients with
         respect to the training items (e.g. a fantasy model's fantasy points) and targets. The

@@ -55,7 +55,7 @@ class NewtonPoint:
     grad: Tensor
     weights: tuple[Tensor, ...]
 
-    def where(self, take: Tensor, other: "NewtonPoint") -> "NewtonPoint":
+    def where(self, take: Tensor, other: NewtonPoint) -> NewtonPoint:
         """This point for the problems in ``take`` (``B`` bool), ``other`` elsewhere."""
         if bool(take.all()):
             return self
@@ -82,7 +82,7 @@ class Factor:
     weights: tuple[Tensor, ...]
     fisher: Tensor
 
-    def where(self, take: Tensor, other: "Factor") -> "Factor":
+    def where(self, take: Tensor, other: Factor) -> Factor:
         """Problem by problem: this factor where ``take`` (``B``) is true, ``other`` elsewhere."""
         if bool(take.all()):
             return self
@@ -268,7 +268,7 @@ def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: 
     final: Factor | None = None
     far = far_allowed = opts.float32_far
     it = 0
-    for it in range(1, opts.max_iter + 1):
+    for it in range(1, opts.max_iter + 1):  # noqa: B007 (the count is read after the loop)
         if far:
             taken = float32_step(prob, point, active, opts.tol)
             if taken is not None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from linear_operator.utils.errors import NotPSDError as _LinearOperatorNotPSDError

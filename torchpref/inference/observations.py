@@ -20,7 +20,8 @@ gradient and weight). Its index and target must still be values the likelihood c
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple, Protocol, Sequence
+from typing import NamedTuple, Protocol
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -210,7 +211,7 @@ class Observations:
         ties: Tensor | None = None,
         tie_likelihood=None,
         tie_mask: Tensor | None = None,
-    ) -> "Observations":
+    ) -> Observations:
         """Comparisons (``p x 2`` or ``B x p x 2``), ratings (``q`` or ``B x q``, of items
         ``rating_index``) and ties (``t x 2`` or ``B x t x 2``, scored by ``tie_likelihood``) as
         terms; empty kinds are left out. A likelihood with ``log_concave = True`` (the ordinal

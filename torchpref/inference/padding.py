@@ -14,7 +14,7 @@ mask false and holds index 0 (and rating 0.5, or level 1), values every likeliho
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -52,7 +52,7 @@ class PaddedData:
     tie_mask: Tensor | None = None  # ... x T bool
 
     @classmethod
-    def single(cls, data: PreferenceData) -> "PaddedData":
+    def single(cls, data: PreferenceData) -> PaddedData:
         """One problem: batch shape ``()``, nothing padded."""
         return cls(data.train_X, data.comparisons, data.ratings, data.rating_index, ties=data.ties)
 
@@ -66,7 +66,7 @@ class PaddedData:
         rating_eps: float = DEFAULT_RATING_EPS,
         ties=None,
         rating_levels: int | None = None,
-    ) -> "PaddedData":
+    ) -> PaddedData:
         """Batched training data, validated per problem: items ``b x n x d``, ``comparisons`` /
         ``ties`` ``b x p x 2`` and ``ratings`` / ``rating_index`` ``b x q`` (or sequences of ``b``
         per-problem tensors of any lengths); ratings are levels ``1..rating_levels`` when given."""
@@ -95,7 +95,7 @@ class PaddedData:
         )
 
     @classmethod
-    def stack(cls, data: Sequence[PreferenceData]) -> "PaddedData":
+    def stack(cls, data: Sequence[PreferenceData]) -> PaddedData:
         """``len(data)`` problems of any sizes: batch shape ``(len(data),)``."""
         if not data:
             raise ValueError("need at least one problem.")
@@ -157,7 +157,7 @@ class PaddedData:
             ties,
         )
 
-    def flat(self) -> "PaddedData":
+    def flat(self) -> PaddedData:
         """The same problems with the batch dimensions flattened into one (``B = prod(batch_shape)``)."""
         B = self.num_problems
 
@@ -176,11 +176,11 @@ class PaddedData:
             f(self.tie_mask, 1),
         )
 
-    def map(self, fn) -> "PaddedData":
+    def map(self, fn) -> PaddedData:
         """The same problems with ``fn`` applied to every tensor (e.g. a device move)."""
         return PaddedData(*(None if getattr(self, f.name) is None else fn(getattr(self, f.name)) for f in fields(self)))
 
-    def with_items(self, X: Tensor) -> "PaddedData":
+    def with_items(self, X: Tensor) -> PaddedData:
         """The same problems with items ``X`` (e.g. transformed by an input transform)."""
         return replace(self, X=X)
 
@@ -218,7 +218,7 @@ class PaddedData:
         comparisons: Tensor | None = None,
         ratings: Tensor | None = None,
         rating_index: Tensor | None = None,
-    ) -> "PaddedData":
+    ) -> PaddedData:
         """New items ``X`` (``... x m x d``, broadcast to the batch) appended to every problem,
         with observations among them (indices into ``X``'s ``m`` rows, ``... x k x 2`` / ``... x r``).
         For unpadded items only (the fantasy batches of :meth:`PreferenceGP.fantasize`)."""

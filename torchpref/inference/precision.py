@@ -9,7 +9,7 @@ solves natively instead. Why, and what each costs: docs/precision.md.
 from __future__ import annotations
 
 from itertools import chain
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor

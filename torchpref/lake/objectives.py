@@ -6,7 +6,7 @@ their last point: zero-length segments add nothing to either objective.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor

@@ -25,7 +25,7 @@ is wrapped by its user (see :mod:`torchpref.experiments.lake`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor

@@ -18,7 +18,9 @@ PATH_COLOURS = ("#1f3fbf", "#111111", "#2ca02c", "#9467bd", "#17becf", "#8c564b"
 
 
 def _pyplot():
-    import matplotlib
+    from torchpref.extras import require
+
+    matplotlib = require("matplotlib", "drawing the lake")
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt

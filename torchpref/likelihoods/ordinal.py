@@ -11,7 +11,7 @@ are log-concave, so their part of ``W`` (eq. 8) is never negative. They follow t
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from gpytorch.constraints import Interval

@@ -7,7 +7,7 @@ reference cycles."""
 from __future__ import annotations
 
 import copy
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from gpytorch.constraints import Interval, Positive

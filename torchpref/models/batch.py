@@ -18,7 +18,7 @@ Hyperparameters are fixed (no fitting): use a :class:`~torchpref.PreferenceGP` t
 from __future__ import annotations
 
 import copy
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -54,7 +54,7 @@ class BatchedPreferenceGP:
         self._changed = False  # data added since the model's data was last set
 
     @classmethod
-    def from_models(cls, models: Sequence[PreferenceGP]) -> "BatchedPreferenceGP":
+    def from_models(cls, models: Sequence[PreferenceGP]) -> BatchedPreferenceGP:
         """One trial per model; all must hold the same hyperparameter values (a ``ValueError``
         names the first that does not). The first model's kernel and likelihoods are used."""
         if len(models) < 1:

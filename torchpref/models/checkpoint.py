@@ -170,7 +170,7 @@ def _read(path: str | os.PathLike, map_location) -> Any:
             f"{path} is not a {FORMAT} checkpoint: it holds something other than tensors and "
             "plain values, or is not a file written by torch.save; not loaded."
         ) from err
-    except Exception as err:  # noqa: BLE001  (zip, EOF and OS errors of a truncated or foreign file)
+    except Exception as err:
         raise CheckpointError(
             f"{path} is not a readable {FORMAT} checkpoint (truncated, damaged or another kind "
             f"of file): {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"

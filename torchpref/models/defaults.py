@@ -73,7 +73,7 @@ class PreferenceLikelihood(Module):
         rating_levels: int | None = None,
         cut_points: Tensor | None = None,
         level_noise: float | None = None,
-    ) -> "PreferenceLikelihood":
+    ) -> PreferenceLikelihood:
         r"""The model's likelihoods from its settings (:class:`~torchpref.models.preference_gp.PreferenceGP`'s
         arguments of the same names): a Beta rating likelihood, or for ``rating_levels`` an ordinal
         one whose ``level_noise`` defaults to ``sqrt(pi) sigma_B / sqrt(nu + 1)``."""

@@ -58,12 +58,12 @@ def batch_shape_of(
 
 
 def condition_batch(
-    model: "PreferenceGP",
+    model: PreferenceGP,
     X: Tensor,
     comparisons: Tensor | None = None,
     ratings: Tensor | None = None,
     rating_index: Tensor | None = None,
-) -> "PreferenceGP":
+) -> PreferenceGP:
     r"""A new model with the items ``X`` and observations among them added to every problem.
 
     Args:
@@ -113,7 +113,7 @@ def condition_batch(
     return new
 
 
-def perceived_utility(model: "PreferenceGP", X: Tensor) -> GPyTorchPosterior:
+def perceived_utility(model: PreferenceGP, X: Tensor) -> GPyTorchPosterior:
     r"""The posterior of ``f + eps`` at ``X`` with ``eps ~ N(0, sigma_R^2)`` independent per point:
     the utilities a person compares (eq. 3), so that ``P(f_i + eps_i > f_j + eps_j)`` is the
     probit likelihood of the comparison."""
@@ -136,7 +136,7 @@ def sampled_comparisons(sampler: PairwiseMCSampler, posterior: GPyTorchPosterior
     return torch.where((first >= second).unsqueeze(-1), pairs, pairs.flip(-1)).to(samples.device)
 
 
-def fantasize(model: "PreferenceGP", X: Tensor, sampler: MCSampler, kind: str | None = None) -> "PreferenceGP":
+def fantasize(model: PreferenceGP, X: Tensor, sampler: MCSampler, kind: str | None = None) -> PreferenceGP:
     r"""A fantasy model: ``model`` conditioned on sampled answers at ``X`` (``batch x q x d``).
 
     Args:

@@ -45,7 +45,7 @@ class FixedRBFKernel(Kernel):
     # ``ScaleKernel(RBFKernel())``'s attribute names, so code written for that kernel can read and
     # set the values: ``k.outputscale``, ``k.base_kernel.lengthscale`` (the kernel itself).
     @property
-    def base_kernel(self) -> "FixedRBFKernel":
+    def base_kernel(self) -> FixedRBFKernel:
         """The kernel itself, so ``kernel.base_kernel.lengthscale`` reads as for ``ScaleKernel(RBFKernel())``."""
         return self
 

@@ -4,6 +4,7 @@ transform applied to its items, and in-place updates that leave nothing half-don
 from __future__ import annotations
 
 import warnings
+from typing import TYPE_CHECKING
 
 import torch
 from botorch.exceptions.warnings import InputDataWarning
@@ -12,6 +13,9 @@ from torch import Tensor
 from torchpref.data.preference_data import PreferenceData
 from torchpref.inference.laplace import Observations
 from torchpref.inference.padding import PaddedData
+
+if TYPE_CHECKING:
+    from torchpref.models.preference_gp import PreferenceGP
 
 
 def create_data(
@@ -168,7 +172,7 @@ class ModelData:
         ratings: Tensor | None = None,
         rating_index: Tensor | None = None,
         ties: Tensor | None = None,
-    ) -> "PreferenceGP":
+    ) -> PreferenceGP:
         r"""Add items and observations in place, warm-starting the mode (no refit from scratch).
 
         Indices in ``comparisons``, ``ties`` and ``rating_index`` refer to the rows of ``X`` when

@@ -106,7 +106,7 @@ class PairwiseGPInterface:
         comparisons = ranking_comparisons(training_data._X.indices, training_data.Y)
         return {"train_X": training_data._X.values, "comparisons": comparisons, **kwargs}
 
-    def subset_output(self, idcs: list[int]) -> "PairwiseGPInterface":
+    def subset_output(self, idcs: list[int]) -> PairwiseGPInterface:
         """A copy of this one-output model for ``idcs == [0]`` (BoTorch's output subsetting).
 
         Raises:
@@ -176,7 +176,7 @@ class PairwiseGPInterface:
         ratings: Tensor | None = None,
         rating_index: Tensor | None = None,
         **kwargs: Any,
-    ) -> "PairwiseGPInterface":
+    ) -> PairwiseGPInterface:
         r"""A new model with the items ``X`` and observations among them added (``self`` is
         unchanged), with BoTorch's meaning of ``Y``.
 

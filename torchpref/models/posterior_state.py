@@ -10,7 +10,8 @@ replaced when either changes. Building it solves the Laplace modes of all the mo
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
+from collections.abc import Callable
 
 import torch
 from gpytorch.module import Module
@@ -85,11 +86,11 @@ class PosteriorState:
     @classmethod
     def build(
         cls,
-        model: "PreferenceGP",
+        model: PreferenceGP,
         fp: Tensor,
-        previous: "PosteriorState | None",
-        prior: "tuple[PaddedData, Tensor] | None" = None,
-    ) -> "PosteriorState":
+        previous: PosteriorState | None,
+        prior: tuple[PaddedData, Tensor] | None = None,
+    ) -> PosteriorState:
         """Solve the modes of ``model``'s problems, warm-started from ``previous`` where sizes match.
         ``prior``: the model's :meth:`~torchpref.PreferenceGP._prior` if already computed."""
         with torch.no_grad():
@@ -109,7 +110,7 @@ class PosteriorState:
             pred = PredictiveCache.from_mode(L, mode)
         return cls(model.data, fp, padded, jitter, model.likelihood, obs, mode, pred)
 
-    def traced(self, padded: PaddedData, K: Tensor, obs: Observations) -> "PosteriorState":
+    def traced(self, padded: PaddedData, K: Tensor, obs: Observations) -> PosteriorState:
         """This state with a prediction cache traced through the mode
         (:meth:`~torchpref.inference.laplace.PredictiveCache.traced`), for the problems ``padded`` whose
         items or ratings carry gradients, their prior covariance ``K`` and observations ``obs``

@@ -242,7 +242,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         observation_noise: Tensor | None = None,
         kind: str | None = None,
         **kwargs: Any,
-    ) -> "PreferenceGP":
+    ) -> PreferenceGP:
         r"""A batched fantasy model (see :func:`~torchpref.models.fantasy.fantasize`): comparisons among
         the ``q`` points of ``X`` (``batch x q x d``) with a ``PairwiseMCSampler``, ratings of them
         with any other sampler (or as ``kind`` says). ``observation_noise`` is not used: the

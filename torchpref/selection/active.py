@@ -3,7 +3,8 @@ r"""The active-learning loop: ask, record, update, measure (paper Sec. III.C, IV
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 import torch
 from botorch.fit import fit_gpytorch_mll

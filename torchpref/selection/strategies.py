@@ -10,7 +10,7 @@ random rankings, UCB ratings, random mixed. The paper's combined strategy is :cl
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from botorch.models.model import Model

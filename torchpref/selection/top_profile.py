@@ -37,7 +37,8 @@ noisy than each value.
 
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
+from collections.abc import Sequence
 
 import torch
 from botorch.models.model import Model
@@ -101,7 +102,7 @@ class _Moments(NamedTuple):
     var: Tensor
 
     @classmethod
-    def of(cls, V: Tensor) -> "_Moments":
+    def of(cls, V: Tensor) -> _Moments:
         return cls(V, torch.cat([V, V.square()], -1), V.mean(-2, keepdim=True), V.var(-2, keepdim=True))
 
 

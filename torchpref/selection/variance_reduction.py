@@ -34,7 +34,7 @@ so a rating (the level) and a ranking (the order) are valued on one scale.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from botorch.models.model import Model

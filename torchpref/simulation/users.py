@@ -25,7 +25,8 @@ generator's normal and uniform streams, since ``torch._standard_gamma`` takes no
 from __future__ import annotations
 
 import math
-from typing import Callable, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor

@@ -22,7 +22,7 @@ be used wherever BoTorch expects one, and it is also the ``utility`` of a
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from botorch.test_functions.synthetic import SyntheticTestFunction
