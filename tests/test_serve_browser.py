@@ -62,6 +62,7 @@ def browser():
 
 def _start_session(page, url: str) -> str:
     page.goto(url)
+    page.wait_for_function("document.activeElement && document.activeElement.id === 'start'", timeout=ACK_MS)
     page.keyboard.press("Enter")  # the Start button has the focus
     page.wait_for_url("**/s/*/", timeout=ACK_MS)
     page.wait_for_selector("body[data-qid]", timeout=ACK_MS)

@@ -1,5 +1,6 @@
 "use strict";
-// The landing page: start a new session and go to its link.
+// The landing page: start a new session and go to its link (Enter on the focused button).
+document.getElementById("start").focus();
 document.getElementById("start").addEventListener("click", async (ev) => {
   ev.target.disabled = true;
   const msg = document.getElementById("message");
