@@ -25,7 +25,9 @@ DIM = 2
 INIT_LENGTHSCALE = 0.3
 INIT_OUTPUTSCALE = 1.0
 UTILITY_SCALE = 2.0  # utilities of a few units: comparisons neither random nor all certain
-SIZES = [(100, 200), (500, 1000)]  # (n items, p comparisons)
+SIZES = [(100, 200), (500, 1000)]  # (n items, p comparisons): the pytest-benchmark sizes
+#: EUBO's ``optimize_acqf`` settings, as in BoTorch's preference-learning tutorial (q = 2, 3 restarts, 512 raw samples)
+EUBO_SETTINGS = {"q": 2, "num_restarts": 3, "raw_samples": 512}
 MIXED_N = 2000
 
 
@@ -123,6 +125,80 @@ def fit_pairwisegp(model: PairwiseGP) -> PairwiseLaplaceMarginalLogLikelihood:
     return mll
 
 
+# ------------------------------------------------ botorch-rust (optional peer: PyPI botorch-rust, import botorch_rs)
+def botorch_rust_available() -> bool:
+    """Whether ``botorch_rs`` (PyPI ``botorch-rust``) can be imported."""
+    try:
+        import botorch_rs  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def make_kernel_rs(dim: int = DIM):
+    """:func:`make_kernel` built from botorch-rust's own kernel and prior classes."""
+    from botorch_rs.kernels import RBFKernel as RsRBF
+    from botorch_rs.kernels import ScaleKernel as RsScale
+    from botorch_rs.priors import GammaPrior as RsGamma
+    from botorch_rs.priors import LogNormalPrior as RsLogNormal
+
+    k = RsScale(
+        RsRBF(ard_num_dims=dim, lengthscale_prior=RsLogNormal(math.sqrt(2) + 0.5 * math.log(dim), math.sqrt(3))),
+        outputscale_prior=RsGamma(2.0, 1.0),
+    )
+    k.base_kernel.lengthscale = INIT_LENGTHSCALE
+    k.outputscale = INIT_OUTPUTSCALE
+    return k
+
+
+def build_botorch_rust(X: Tensor, C: Tensor):
+    """botorch-rust's ``PairwiseGP`` (its constructor solves the MAP, as BoTorch's does)."""
+    from botorch_rs.models import PairwiseGP as RsPairwiseGP
+
+    return RsPairwiseGP(X, C, covar_module=make_kernel_rs(X.shape[-1]))
+
+
+def fit_botorch_rust(model):
+    """botorch-rust's ``fit_gpytorch_mll`` with its ``PairwiseLaplaceMarginalLogLikelihood``."""
+    from botorch_rs.fit import fit_gpytorch_mll as rs_fit
+    from botorch_rs.models.pairwise_gp import PairwiseLaplaceMarginalLogLikelihood as RsMLL
+
+    mll = RsMLL(model.likelihood, model)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", category=RuntimeWarning)
+        rs_fit(mll)
+    model.eval()
+    return mll
+
+
+def eubo_optimize(model, lib: str, seed: int = 0) -> Tensor:
+    """``optimize_acqf`` of EUBO (``AnalyticExpectedUtilityOfBestOption``) on ``[0, 1]^d`` with
+    :data:`EUBO_SETTINGS`; botorch-rust's own EUBO and ``optimize_acqf`` for its model."""
+    if lib == "botorch_rust":
+        from botorch_rs.acquisition.preference import AnalyticExpectedUtilityOfBestOption as Eubo
+        from botorch_rs.optim import optimize_acqf as optimize
+    else:
+        from botorch.acquisition.preference import AnalyticExpectedUtilityOfBestOption as Eubo
+        from botorch.optim import optimize_acqf as optimize
+    d = DIM
+    bounds = torch.stack([torch.zeros(d, dtype=DTYPE), torch.ones(d, dtype=DTYPE)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", category=RuntimeWarning)
+        cand, _ = optimize(Eubo(pref_model=model), bounds=bounds, options={"seed": seed}, **EUBO_SETTINGS)
+    return cand
+
+
+def evidence_botorch_rust(model) -> float:
+    """botorch-rust's Laplace evidence plus hyperparameter log priors (what its fit maximises)."""
+    from botorch_rs.models.pairwise_gp import PairwiseLaplaceMarginalLogLikelihood as RsMLL
+
+    mll = RsMLL(model.likelihood, model)
+    model.train()
+    val = float(mll(model(model.unconsolidated_datapoints), model.unconsolidated_comparisons))
+    model.eval()
+    return val
+
+
 def posterior_moments(model, X: Tensor) -> tuple[Tensor, Tensor]:
     with torch.no_grad():
         post = model.posterior(X)
@@ -138,8 +214,8 @@ def query_points(num: int = 1000, dim: int = DIM, seed: int = 7) -> Tensor:
 def hyperparameters(model) -> dict[str, list[float]]:
     k = model.covar_module
     return {
-        "lengthscale": [round(float(v), 5) for v in k.base_kernel.lengthscale.detach().reshape(-1)],
-        "outputscale": round(float(k.outputscale.detach()), 5),
+        "lengthscale": [round(float(v), 5) for v in torch.as_tensor(k.base_kernel.lengthscale).detach().reshape(-1)],
+        "outputscale": round(float(torch.as_tensor(k.outputscale).detach()), 5),
     }
 
 

@@ -63,3 +63,24 @@ def test_operator_validates():
         op.level(torch.tensor([float("nan"), 1.0]))
     with pytest.raises(ValueError, match="info_poor"):
         LakeOperator(info_poor=200.0)
+
+
+def test_realistic_operator_offsets_drifts_and_lapses():
+    """A realistic operator: ratings moved by its offset (in levels) and clipped to the scale, a
+    drift that walks over the answers, and random choices at its lapse rate."""
+    import torch
+
+    from torchpref.lake.operator import LakeOperator, RealisticLakeOperator
+
+    paper = LakeOperator()
+    x = torch.tensor([520.0, 160.0])  # level 4
+    up = RealisticLakeOperator(paper, torch.Generator().manual_seed(0), level_offset=1.0, drift_sd=0.0, level_noise=0.0)
+    assert up.rate(x) == 0.9 and up.rate(torch.tensor([400.0, 200.0])) == 0.9  # 4 + 1 = 5; 5 + 1 clipped to 5
+    noisy = RealisticLakeOperator(paper, torch.Generator().manual_seed(1), level_offset=0.0, drift_sd=0.2)
+    levels = [round(noisy.rate(x) * 5 + 0.5) for _ in range(300)]
+    assert set(levels) - {1, 2, 3, 4, 5} == set() and len(set(levels)) >= 3 and noisy.drift != 0.0
+    X = torch.tensor([[400.0, 200.0], [700.0, 200.0], [650.0, 100.0], [600.0, 140.0]])  # row 0 is best
+    for eps in (0.0, 0.5):
+        op = RealisticLakeOperator(paper, torch.Generator().manual_seed(2), lapse_rate=eps)
+        wrong = sum(op.choose(X) != 0 for _ in range(2000)) / 2000
+        assert abs(wrong - eps * 0.75) < 0.04

@@ -38,6 +38,9 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.models.pairwise_interface import TrainDataMismatchError
     from torchpref.inference.laplace import LaplaceConvergenceWarning
     from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
+    from torchpref.likelihoods.person import LapseProbitLikelihood, PersonRatingLikelihood
+    from torchpref.models.calibration import calibrate_person, fit_person
+    from torchpref.simulation.raters import EffortModel, RaterProfile, RealisticUser
     from torchpref.simulation.metrics import (
         error_on_best,
         expected_rating,
@@ -80,6 +83,13 @@ _EXPORTS = {
     "best_of_m_with_ties": "data.preference_data",
     "BetaRatingLikelihood": "likelihoods.pairwise_beta",
     "BoxCandidates": "data.queries",
+    "calibrate_person": "models.calibration",
+    "EffortModel": "simulation.raters",
+    "fit_person": "models.calibration",
+    "LapseProbitLikelihood": "likelihoods.person",
+    "PersonRatingLikelihood": "likelihoods.person",
+    "RaterProfile": "simulation.raters",
+    "RealisticUser": "simulation.raters",
     "default_covar_module": "models.preference_gp",
     "error_on_best": "simulation.metrics",
     "evaluation_grid": "simulation.utility_functions",

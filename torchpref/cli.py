@@ -2,7 +2,7 @@ r"""The ``torchpref`` command line.
 
     torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
     torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
-    torchpref reproduce suite [--families F ...] [--strategies S ...] [--trials N] [--queries Q] [--seed S] [--out DIR]
+    torchpref reproduce suite [--families F ...] [--strategies S ...] [--effort E] [--trials N] [--queries Q] [--seed S] [--out DIR]
     torchpref elicit lake [--session FILE]
     torchpref elicit --features items.csv [--id COLUMN] [--session FILE]
     torchpref --version
@@ -104,7 +104,19 @@ def build_parser() -> argparse.ArgumentParser:
     lake.add_argument("--cache", default=None, help="folder of cached lake scenarios (default ~/.cache/torchpref/lake)")
     suite = rep_sub.add_parser("suite", help="every strategy on the user-family benchmark suite (docs/suite.md)")
     _experiment_args(suite, 50, 20)
-    suite.add_argument("--families", nargs="+", default=None, help="families to run (default: all)")
+    suite.add_argument(
+        "--families",
+        nargs="+",
+        default=None,
+        help="families or groups ('idealised', 'realistic', 'all') to run (default: the idealised families)",
+    )
+    suite.add_argument(
+        "--effort",
+        choices=["units", "plain", "trajectories"],
+        default="units",
+        help="effort model: units (a rating 1, a ranking 2), plain (seconds) or trajectories (seconds with "
+        "viewing time per option); default units",
+    )
     suite.add_argument(
         "--strategies",
         nargs="+",

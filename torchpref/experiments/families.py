@@ -23,6 +23,7 @@ from botorch.test_functions import Branin, Hartmann, Levy
 from torch import Tensor
 
 from torchpref.likelihoods.pairwise_beta import rating_link
+from torchpref.simulation.raters import EffortModel, RaterProfile, RealisticUser, precision_for_noise
 from torchpref.simulation.users import LikertUser, SimulatedUser
 from torchpref.simulation.utility_functions import (
     GaussianBumps,
@@ -97,6 +98,10 @@ class Family:
         model: the fixed condition's model settings, if not the user's own noise (see
             :func:`model_settings`).
         description: what the family is.
+        rater: for a realistic family, ``(generator, spread) -> RaterProfile``: the person of a
+            trial, drawn for utilities of that spread (standard deviation over the metric
+            points); answers come from a :class:`~torchpref.simulation.raters.RealisticUser`.
+            ``None``: the paper's user (:class:`~torchpref.simulation.users.SimulatedUser`).
     """
 
     name: str
@@ -109,6 +114,12 @@ class Family:
     pool: int | None = None
     model: dict[str, float] | None = field(default=None)
     description: str = ""
+    rater: Callable[[torch.Generator, float], RaterProfile] | None = None
+
+    @property
+    def realistic(self) -> bool:
+        """Whether the family's people are realistic raters (:attr:`rater`)."""
+        return self.rater is not None
 
 
 #: the paper's model for the waves (docs/wave.md), with the authors' user
@@ -199,6 +210,102 @@ FAMILIES: dict[str, Family] = {
 }
 
 
+def _typical(**kw) -> Callable[[torch.Generator, float], RaterProfile]:
+    """People drawn by :meth:`RaterProfile.typical` with ``kw`` (values or ``generator -> value``) replacing draws."""
+
+    def draw(g: torch.Generator, spread: float) -> RaterProfile:
+        fixed = {k: (v(g, spread) if callable(v) else v) for k, v in kw.items()}
+        return RaterProfile.typical(g, spread, RATING_SCALE, comparison_noise=0.1, **fixed)
+
+    return draw
+
+
+def _partial_range(g: torch.Generator, spread: float) -> tuple[float, float]:
+    width, lo = torch.rand(2, generator=g, dtype=torch.float64).tolist()
+    width = 0.4 + 0.27 * width
+    return (lo * (1 - width), lo * (1 - width) + width)
+
+
+def _uniform_between(a: float, b: float) -> Callable[[torch.Generator, float], float]:
+    return lambda g, spread: a + (b - a) * float(torch.rand((), generator=g, dtype=torch.float64))
+
+
+def _scaled_normal(sd: float) -> Callable[[torch.Generator, float], float]:
+    return lambda g, spread: sd * spread * float(torch.randn((), generator=g, dtype=torch.float64))
+
+
+#: the realistic families (docs/suite.md): people drawn from the published ranges, with one trait
+#: pushed further in each; utilities from the idealised families' shapes
+REALISTIC_FAMILIES: dict[str, Family] = {
+    f.name: f
+    for f in [
+        Family(
+            "typical-peak",
+            2,
+            _narrow_peak,
+            0.1,
+            40.0,
+            0.05,
+            likert=True,
+            rater=_typical(levels=7),
+            description="the narrow-peak utility; typical people (all traits at the published ranges), 1-7 Likert",
+        ),
+        Family(
+            "offset-drift",
+            4,
+            _two_bumps,
+            0.1,
+            40.0,
+            0.25,
+            rater=_typical(rating_offset=_scaled_normal(0.48), drift_sd=lambda g, s: 0.1 * s),
+            description="two bumps in 4-D; twice the typical offset and drift, a slider",
+        ),
+        Family(
+            "compressed",
+            2,
+            _plateau,
+            0.1,
+            40.0,
+            0.1,
+            likert=True,
+            rater=_typical(scale_range=_partial_range, levels=5),
+            description="the plateau; people using 40-67 % of a 1-5 scale",
+        ),
+        Family(
+            "lapsing",
+            1,
+            _damped_wave,
+            0.1,
+            40.0,
+            0.03,
+            rater=_typical(
+                lapse_rate=_uniform_between(0.25, 0.4),
+                rating_precision=lambda g, s: precision_for_noise(0.15 * s, RATING_SCALE),
+                rating_offset=0.0,
+                drift_sd=0.0,
+                scale_range=(0.0, 1.0),
+            ),
+            description="one damped wave; choices lapse 25-40 % of the time, precise unbiased ratings",
+        ),
+        Family(
+            "typical-pool",
+            3,
+            lambda g: _botorch(Hartmann(dim=3), g),
+            0.1,
+            40.0,
+            0.2,
+            likert=True,
+            pool=300,
+            rater=_typical(levels=7),
+            description="Hartmann-3 over a pool of 300; typical people, 1-7 Likert",
+        ),
+    ]
+}
+
+#: the idealised families (the paper's users) and the realistic ones
+ALL_FAMILIES: dict[str, Family] = {**FAMILIES, **REALISTIC_FAMILIES}
+
+
 def model_settings(family: Family) -> dict[str, float]:
     """The fixed condition's model: ``family.model``, or the family's lengthscale, outputscale 1 and
     the user's own noise (``nu`` 20 for Likert raters: a level is a bin 0.2 wide)."""
@@ -210,7 +317,7 @@ def model_settings(family: Family) -> dict[str, float]:
         "comparison_noise": family.comparison_noise,
         "rating_scale": RATING_SCALE,
         "rating_precision": 20.0 if family.likert else family.rating_precision,
-    }
+    }  # a realistic family's model is the nominal person's: no offset, gain 1, no lapses
 
 
 @dataclass
@@ -226,8 +333,8 @@ class TrialSetup:
     selector_seed: int
 
 
-def setup(family: Family, trial_seed: int) -> TrialSetup:
-    """A trial of ``family`` drawn from ``trial_seed``."""
+def setup(family: Family, trial_seed: int, effort: EffortModel | None = None) -> TrialSetup:
+    """A trial of ``family`` drawn from ``trial_seed`` (``effort``: a realistic person's seconds)."""
     g = torch.Generator().manual_seed(int(trial_seed))
     utility = family.draw(g)
     user_seed, selector_seed = torch.randint(0, 2**62, (2,), generator=g).tolist()
@@ -239,7 +346,7 @@ def setup(family: Family, trial_seed: int) -> TrialSetup:
         family.rating_precision,
         torch.Generator().manual_seed(user_seed),
     )
-    if family.likert:
+    if family.likert and not family.realistic:
         user = LikertUser(user)
     pool = None
     if family.pool is not None:
@@ -251,4 +358,10 @@ def setup(family: Family, trial_seed: int) -> TrialSetup:
         x0 = _uniform(g, 2, family.dim)
     with torch.no_grad():
         f_true = utility(eval_X)
+    if family.realistic:  # the person, drawn for this utility's spread from the user's own stream
+        person_g = torch.Generator().manual_seed(user_seed)
+        profile = family.rater(person_g, float(f_true.std()))
+        if effort is not None:
+            profile = profile.with_effort(effort)
+        user = RealisticUser(utility, profile, person_g)
     return TrialSetup(user, eval_X, f_true, rating_link(f_true, rating_scale), x0, pool, selector_seed)

@@ -71,7 +71,8 @@ from torchpref.experiments.results import (
     write_summary_csv,
 )
 from torchpref.experiments.runner import run_trials, single_threaded
-from torchpref.lake.operator import LakeOperator
+from torchpref.lake.operator import LakeOperator, RealisticLakeOperator
+from torchpref.simulation.raters import EffortModel
 from torchpref.lake.plotting import plot_field, plot_objectives
 from torchpref.lake.scenario import SCENARIO_VERSION, LakeScenario, cached_scenario, scenario_cache_path
 from torchpref.simulation.metrics import wrms
@@ -91,6 +92,27 @@ STRATEGIES = ["UCBC", "random ratings", "UCB ratings", "info per effort"]
 
 
 make_selector = functools.partial(runner.make_selector, m=M, gamma=GAMMA)
+#: the operator variants: the paper's deterministic operator, or a realistic person
+#: (:class:`~torchpref.lake.operator.RealisticLakeOperator`: offset ``N(0, 0.29^2)`` levels, drift,
+#: noise 0.39 levels, lapses ``U(0.05, 0.25)``) who looks at every path shown (10 s each)
+OPERATORS = ("paper", "realistic")
+#: the realistic operator's seconds: FIRE's per answer plus 10 s of viewing per path shown
+LAKE_EFFORT = EffortModel.trajectories()
+
+
+def operator_user(variant: str, user, trial_seed: int):
+    """The operator of ``variant`` (:data:`OPERATORS`) answering through ``user`` (the paper's,
+    normalised); a realistic one is drawn from ``trial_seed`` (the same person for every strategy)."""
+    if variant == "paper":
+        return user
+    if variant != "realistic":
+        raise ValueError(f"unknown operator {variant!r}; choose from {list(OPERATORS)}.")
+    g = torch.Generator().manual_seed(int(trial_seed) + 7)
+    offset = 0.29 * float(torch.randn((), generator=g, dtype=torch.float64))
+    lapse = 0.05 + 0.2 * float(torch.rand((), generator=g, dtype=torch.float64))
+    return RealisticLakeOperator(user, g, level_offset=offset, lapse_rate=lapse)
+
+
 make_model = functools.partial(runner.make_model, settings=MODEL_SETTINGS)
 
 
@@ -128,6 +150,7 @@ def run_trial(
     plan: tuple[str, ...] = (),
     plan_settings: dict[str, Any] | None = None,
     fresh: torch.Tensor | None = None,
+    operator_variant: str = "paper",
 ) -> dict[str, Any]:
     r"""One trial: every strategy from the same first comparison on the shared scenario.
 
@@ -136,10 +159,12 @@ def run_trial(
             (:func:`~torchpref.experiments.lake_plan.plan_for_model`).
         plan_settings: overrides of :data:`~torchpref.experiments.lake_plan.PLAN_SETTINGS`.
         fresh: fresh planner paths to start from too.
+        operator_variant: ``"paper"`` or ``"realistic"`` (:data:`OPERATORS`); the realistic
+            operator's selectors weigh its seconds (:data:`LAKE_EFFORT`).
 
     Returns:
         ``{strategy: {"error5": [Q+1], "wrms": [Q+1], "chosen_rating": [Q+1], "kinds": [Q],
-        "plan": {...} or None}}``.
+        "seconds": [Q+1] (cumulative, :data:`LAKE_EFFORT`), "plan": {...} or None}}``.
     """
     single_threaded()
     operator = LakeOperator()
@@ -163,21 +188,32 @@ def run_trial(
         e5 = float((est[five] - u_true[five]).abs().mean()) if five.any() else float("nan")
         return {"error5": e5, "wrms": float(wrms(est, u_true)), "chosen_rating": float(level_test[mean.argmax()])}
 
+    costs = LAKE_EFFORT.costs(M)
     out = {}
     for name in strategies:
-        first = user.choose(x0)
+        person = operator_user(operator_variant, user, trial_seed)
+        first = person.choose(x0)
         model = make_model(x0.clone(), torch.tensor([[first, 1 - first]]))
+        selector = (
+            make_selector(name)
+            if operator_variant == "paper"
+            else make_selector(name, rating_cost=costs["rating"], ranking_cost=costs["ranking"])
+        )
         hist = run_active_learning(
             model,
-            user,
+            person,
             FinitePool(pool),
-            make_selector(name),
+            selector,
             queries,
             generator=torch.Generator().manual_seed(sel_seed),
             metrics=metrics,
         )
         entry = {k: hist.metric(k) for k in ("error5", "wrms", "chosen_rating")}
         entry["kinds"] = [r.query.kind for r in hist.records]
+        seconds = [0.0]
+        for kind in entry["kinds"]:
+            seconds.append(seconds[-1] + costs[kind])
+        entry["seconds"] = seconds
         entry["plan"] = None
         if name in plan:
             entry["plan"] = plan_for_model(scenario, model, bounds, keep, fresh, plan_settings)
@@ -304,6 +340,7 @@ def run_lake_experiment(
     plan_settings: dict[str, Any] | None = None,
     cache_dir: str | Path | None = None,
     progress: bool = True,
+    operator: str = "paper",
 ) -> dict[str, Any]:
     r"""Run the lake experiment and (if ``out`` is given) write its files (see the module docstring).
 
@@ -329,6 +366,8 @@ def run_lake_experiment(
         cache_dir: where scenarios are cached (default
             :func:`~torchpref.lake.scenario.default_cache_dir`).
         progress: show progress bars (scenarios, then trials).
+        operator: ``"paper"`` (the paper's deterministic operator) or ``"realistic"``
+            (:func:`operator_user`).
 
     Returns:
         The ``lake.json`` content with ``"summary"`` added.
@@ -336,6 +375,7 @@ def run_lake_experiment(
     if lakes < 1 or (scenario is not None and lakes != 1):
         raise ValueError(f"lakes must be a positive integer (1 with a given scenario), got {lakes}.")
     strategies = runner.check_run(queries, strategies, STRATEGIES)
+    operator_user(operator, None, 0)  # a known variant
     plan = runner.check_run(queries, ["UCBC"] if plan is None else plan, STRATEGIES)
     settings = {**PLAN_SETTINGS, **(plan_settings or {})}
     num_fresh = int(settings["fresh_weights"]) if plan and settings["num_fresh"] > 0 else 0
@@ -346,6 +386,7 @@ def run_lake_experiment(
     t_scenario = time.perf_counter() - t0
     plan_trials = trials if plan_trials is None else plan_trials
     args, lake_of = _trial_args(seeds, prepared, trials, queries, strategies, plan, plan_trials, settings)
+    args = [(*a, operator) for a in args]
     results = run_trials(run_trial, args, description="lake trials", **run_kw)
     wall = time.perf_counter() - t0
     summary = _summarise_run(results, strategies, seeds, lake_of)
@@ -365,6 +406,7 @@ def run_lake_experiment(
             "plan": settings,
             "plan_strategies": plan,
             "plan_trials": plan_trials,
+            "operator": operator,
             "test_paths_rated_5": [_rated_5(sc) for sc, _ in prepared],
         },
     )

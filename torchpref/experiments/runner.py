@@ -49,6 +49,7 @@ from torchpref.selection.strategies import (
     Selector,
     UCBRatings,
 )
+from torchpref.selection.per_second import ProfilePerSecond
 from torchpref.selection.top_profile import ProfileVariancePerEffort
 from torchpref.selection.variance_reduction import VariancePerEffort
 
@@ -170,6 +171,9 @@ _FACTORIES: dict[str, Callable[..., Selector]] = {
     ),
     "clipped profile": lambda m, rating_cost, ranking_cost, **_: ProfileVariancePerEffort(
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, clipped=True
+    ),
+    "profile per second": lambda m, rating_cost, ranking_cost, **_: ProfilePerSecond(
+        m=m, rating_seconds=rating_cost, ranking_seconds=ranking_cost
     ),
 }
 

@@ -39,7 +39,16 @@ from torchpref.selection.active import run_active_learning_batch
 from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.experiments import runner
 from torchpref.experiments.results import write_json
-from torchpref.experiments.families import FAMILIES, NUM_CANDIDATES, Family, model_settings, setup
+from torchpref.experiments.families import (
+    ALL_FAMILIES,
+    FAMILIES,
+    NUM_CANDIDATES,
+    REALISTIC_FAMILIES,
+    Family,
+    model_settings,
+    setup,
+)
+from torchpref.simulation.raters import EffortModel
 from torchpref.experiments.suite_report import summarise, write_suite_files
 from torchpref.models.kernels import FixedRBFKernel
 from torchpref.simulation.metrics import true_positives, wrms
@@ -51,6 +60,16 @@ GAMMA = 3.0
 TOP_K = 15
 RATING_COST = 1.0
 RANKING_COST = 1.0 + (M - 1) / 4
+#: the effort models a run can use: ``"units"`` (a rating 1, a best-of-5 2: the suite's first
+#: model), ``"plain"`` (seconds, FIRE's measurements: 3.4 s and 6.1 s) and ``"trajectories"``
+#: (seconds, plus 10 s of viewing per option shown: 13.4 s and 56.1 s)
+EFFORTS: dict[str, EffortModel | None] = {
+    "units": None,
+    "plain": EffortModel.plain(),
+    "trajectories": EffortModel.trajectories(),
+}
+#: family groups ``--families`` accepts besides names
+FAMILY_GROUPS = {"idealised": list(FAMILIES), "realistic": list(REALISTIC_FAMILIES), "all": list(ALL_FAMILIES)}
 CONDITIONS = ("fixed", "learned")
 #: verdicts after these many queries (and the last) and at these efforts
 CHECKPOINTS = (10, 20)
@@ -68,6 +87,17 @@ STRATEGIES = [
     "variance per effort",
     "profile per effort",
     "clipped profile",
+]
+#: the default strategies of a run on the realistic families: the paper's, the random baselines,
+#: the two profile selectors and the selector per second
+REALISTIC_STRATEGIES = [
+    "UCBC",
+    "random ratings",
+    "random rankings",
+    "UCB ratings",
+    "profile per effort",
+    "clipped profile",
+    "profile per second",
 ]
 METRICS = ("wrms", "tp", "regret")
 #: the learned condition refits after these many queries
@@ -115,6 +145,20 @@ def learn_kernel(model: BatchedPreferenceGP, dim: int) -> torch.Tensor:
     return best
 
 
+def effort_costs(effort: str) -> dict[str, float]:
+    """The loop's and the selectors' ``{"rating", "ranking"}`` costs of the effort model ``effort``."""
+    if effort not in EFFORTS:
+        raise ValueError(f"unknown effort model {effort!r}; choose from {list(EFFORTS)}.")
+    model = EFFORTS[effort]
+    return {"rating": RATING_COST, "ranking": RANKING_COST} if model is None else model.costs(M)
+
+
+def effort_budgets(effort: str) -> tuple[float, ...]:
+    """The efforts the verdicts are taken at: :data:`CHECKPOINTS` ratings' worth."""
+    rating = effort_costs(effort)["rating"]
+    return tuple(round(rating * q, 9) for q in CHECKPOINTS)
+
+
 def _start_model(family: Family, condition: str, x0s: list[torch.Tensor], firsts: list[int]) -> BatchedPreferenceGP:
     settings = model_settings(family)
     models = [runner.make_model(x0, torch.tensor([[f, 1 - f]]), settings) for x0, f in zip(x0s, firsts)]
@@ -136,7 +180,7 @@ def _start_model(family: Family, condition: str, x0s: list[torch.Tensor], firsts
 
 
 def run_batch(
-    trial_seeds: tuple[int, ...], family_name: str, condition: str, queries: int, strategy: str
+    trial_seeds: tuple[int, ...], family_name: str, condition: str, queries: int, strategy: str, effort: str = "units"
 ) -> list[dict[str, Any]]:
     r"""Trials of one family, condition and strategy at once (one batched model).
 
@@ -146,8 +190,9 @@ def run_batch(
     """
     runner.single_threaded()
     cpu0 = time.process_time()
-    family = FAMILIES[family_name]
-    setups = [setup(family, s) for s in trial_seeds]
+    family = ALL_FAMILIES[family_name]
+    costs = effort_costs(effort)
+    setups = [setup(family, s, EFFORTS[effort]) for s in trial_seeds]
     firsts = [s.user.choose(s.x0) for s in setups]
     eval_X = torch.stack([s.eval_X for s in setups])
     f_true = torch.stack([s.f_true for s in setups])
@@ -182,11 +227,11 @@ def run_batch(
             model,
             [s.user for s in setups],
             candidates,
-            make_selector(strategy),
+            make_selector(strategy, effort),
             queries,
             generators=gens,
             metrics=metrics,
-            costs={"rating": RATING_COST, "ranking": RANKING_COST},
+            costs=costs,
             refit=refit,
         )
     cpu = (time.process_time() - cpu0) / len(hists)
@@ -213,10 +258,11 @@ class _TrialPools:
         return self._by_generator[id(generator)].draw(generator)
 
 
-def make_selector(name: str):
+def make_selector(name: str, effort: str = "units"):
     """The suite's selector ``name`` (:func:`~torchpref.experiments.runner.make_selector` with
-    ``m``, ``gamma`` and the suite's effort model)."""
-    return runner.make_selector(name, m=M, gamma=GAMMA, rating_cost=RATING_COST, ranking_cost=RANKING_COST)
+    ``m``, ``gamma`` and the costs of the effort model ``effort``)."""
+    costs = effort_costs(effort)
+    return runner.make_selector(name, m=M, gamma=GAMMA, rating_cost=costs["rating"], ranking_cost=costs["ranking"])
 
 
 def run_suite(
@@ -232,12 +278,14 @@ def run_suite(
     conditions: Sequence[str] = CONDITIONS,
     batch_size: int = 50,
     progress: bool = True,
+    effort: str = "units",
 ) -> dict[str, Any]:
     r"""Run the suite and (if ``out`` is given) write ``suite.json``, ``suite.csv``,
     ``suite_summary.json`` and the figures ``suite_fixed.png`` / ``suite_learned.png``.
 
     Args:
-        families: names from :data:`~torchpref.experiments.families.FAMILIES` (default all).
+        families: names from :data:`~torchpref.experiments.families.ALL_FAMILIES` or groups of
+            :data:`FAMILY_GROUPS` (default: the idealised families, :data:`~torchpref.experiments.families.FAMILIES`).
         trials: paired trials per family and condition.
         queries: queries per trial.
         seed: the run's seed (per-trial seeds derive from it, one set per family).
@@ -249,18 +297,22 @@ def run_suite(
         conditions: ``"fixed"`` and/or ``"learned"``.
         batch_size: trials per executor call.
         progress: show a progress bar.
+        effort: the effort model (:data:`EFFORTS`): what a query costs the loop and the selectors
+            that weigh effort, and the efforts of the verdicts (:func:`effort_budgets`).
 
     Returns:
         ``{"families", "conditions", "strategies", "trials", "queries", "curves", "summary"}``.
     """
     families = _checked(FAMILIES if families is None else families, conditions)
-    strategies = runner.check_run(queries, strategies, STRATEGIES, batch_size)
-    seeds = {f: runner.trial_seeds(seed + 7919 * i, trials) for i, f in enumerate(FAMILIES) if f in families}
+    effort_costs(effort)  # a known effort model
+    default = REALISTIC_STRATEGIES if all(f in REALISTIC_FAMILIES for f in families) else STRATEGIES
+    strategies = runner.check_run(queries, strategies, default, batch_size)
+    seeds = {f: runner.trial_seeds(seed + 7919 * i, trials) for i, f in enumerate(ALL_FAMILIES) if f in families}
     keys = [
         (f, c, s, i) for f in families for c in conditions for s in strategies for i in range(0, trials, batch_size)
     ]
     keys.sort(key=lambda k: (k[1] != "learned", k[2] != "info per effort"))  # the costliest first
-    tasks = [(tuple(seeds[f][i : i + batch_size]), f, c, queries, s) for f, c, s, i in keys]
+    tasks = [(tuple(seeds[f][i : i + batch_size]), f, c, queries, s, effort) for f, c, s, i in keys]
     t0 = time.perf_counter()
     parts = runner.run_trials(
         run_batch,
@@ -278,7 +330,7 @@ def run_suite(
     for (f, c, s, i), part in zip(keys, parts):
         runner.place_records(results[f, c], i, s, part)
     checkpoints = sorted({q for q in CHECKPOINTS if q <= queries} | {queries})
-    summary = summarise(results, strategies, METRICS, budgets=CHECKPOINTS, checkpoints=checkpoints)
+    summary = summarise(results, strategies, METRICS, budgets=effort_budgets(effort), checkpoints=checkpoints)
     cpu = sum(r[s]["cpu_s"] for trials_ in results.values() for r in trials_ for s in strategies)
     summary.update(
         trials=trials,
@@ -287,7 +339,7 @@ def run_suite(
         wall_time_s=wall,
         cpu_time_s=cpu,
         workers=workers,
-        settings=_settings(families),
+        settings=_settings(families, effort),
     )
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
@@ -304,35 +356,43 @@ def run_suite(
 
 
 def _checked(families: Sequence[str], conditions: Sequence[str]) -> list[str]:
-    """``families`` as a list, each a known family and each condition a known one.
+    """``families`` as a list (groups of :data:`FAMILY_GROUPS` expanded), each a known family and
+    each condition a known one.
 
     Raises:
         ValueError: naming an unknown family or condition.
     """
+    families = list(dict.fromkeys(g for f in families for g in FAMILY_GROUPS.get(f, [f])))
     for f in families:
-        if f not in FAMILIES:
-            raise ValueError(f"unknown family {f!r}; choose from {list(FAMILIES)}.")
+        if f not in ALL_FAMILIES:
+            raise ValueError(
+                f"unknown family {f!r}; choose from {list(ALL_FAMILIES)} or a group {list(FAMILY_GROUPS)}."
+            )
     for c in conditions:
         if c not in CONDITIONS:
             raise ValueError(f"unknown condition {c!r}; choose from {list(CONDITIONS)}.")
     return list(families)
 
 
-def _settings(families: list[str]) -> dict[str, Any]:
+def _settings(families: list[str], effort: str = "units") -> dict[str, Any]:
     """The run's settings as the summary records them."""
+    fams = ALL_FAMILIES  # every family, realistic ones included
     return {
         "m": M,
         "gamma": GAMMA,
         "top_k": TOP_K,
         "refit_after": REFIT_AFTER,
-        "costs": {"rating": RATING_COST, "ranking": RANKING_COST},
+        "effort": effort,
+        "costs": effort_costs(effort),
+        "effort_budgets": effort_budgets(effort),
         "families": {
             f: {
-                "dim": FAMILIES[f].dim,
-                "description": FAMILIES[f].description,
-                "model": model_settings(FAMILIES[f]),
-                "pool": FAMILIES[f].pool,
-                "likert": FAMILIES[f].likert,
+                "dim": fams[f].dim,
+                "description": fams[f].description,
+                "model": model_settings(fams[f]),
+                "pool": fams[f].pool,
+                "likert": fams[f].likert,
+                "realistic": fams[f].realistic,
             }
             for f in families
         },
@@ -349,6 +409,7 @@ def run(args) -> int:
         out=args.out,
         workers=getattr(args, "workers", None),
         strategies=getattr(args, "strategies", None),
+        effort=getattr(args, "effort", "units"),
     )
     s = res["summary"]
     print(

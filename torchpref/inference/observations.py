@@ -225,7 +225,8 @@ class Observations:
             tie_mask = None if tie_mask is None else tie_mask[None]
         terms = []
         if comparisons.shape[-2]:
-            terms.append(pairwise_term(comparison_likelihood, comparisons, comparison_mask, log_concave=True))
+            log_concave = getattr(comparison_likelihood, "log_concave", True)  # lapses are not
+            terms.append(pairwise_term(comparison_likelihood, comparisons, comparison_mask, log_concave=log_concave))
         if ratings.shape[-1]:
             terms.append(
                 item_term(

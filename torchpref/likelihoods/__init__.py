@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
+from torchpref.likelihoods.person import LapseProbitLikelihood, PersonRatingLikelihood
 
 __all__ = [
     'BetaRatingLikelihood',
+    'LapseProbitLikelihood',
     'OrdinalRatingLikelihood',
     'PairwiseProbitLikelihood',
+    'PersonRatingLikelihood',
     'StrictPreferenceLikelihood',
     'TieLikelihood',
 ]

@@ -188,18 +188,27 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
 
     def mean_link(self, f: Tensor) -> Tensor:
         r"""``mu = Phi(f / (sqrt 2 sigma_B))``, eq. 7 (:func:`rating_link`)."""
-        return rating_link(f, self.rating_scale)
+        return torch.special.ndtr(self._link(f)[1])
 
     def forward(self, function_samples: Tensor) -> Beta:
         """The distribution of a rating given latent values ``function_samples`` (any shape)."""
-        t = function_samples / (SQRT2 * self.rating_scale)
+        _, t = self._link(function_samples)
         nu = self.rating_precision
         return Beta(nu * torch.special.ndtr(t), nu * torch.special.ndtr(-t))
 
+    def _link(self, eta: Tensor) -> tuple[Tensor, Tensor]:
+        """The link's scale ``c = d eta / d t`` (here ``sqrt 2 sigma_B``) and the standardised
+        predictor ``t`` (here ``eta / c``) with ``mu = Phi(t)``; a subclass may shift and scale it."""
+        c = SQRT2 * self.rating_scale
+        return c, eta / c
+
+    def _latent_at(self, u: Tensor) -> Tensor:
+        """The latent value whose mean rating is ``u`` (``Phi(t) = u``)."""
+        return SQRT2 * self.rating_scale.detach() * torch.special.ndtri(u)
+
     def _log_shape(self, eta: Tensor):
         """``c = sqrt 2 sigma_B``, ``t = eta / c``, ``nu``, ``log mu`` and ``log(1 - mu)``."""
-        c = SQRT2 * self.rating_scale
-        t = eta / c
+        c, t = self._link(eta)
         return c, t, self.rating_precision, log_ndtr(t), log_ndtr(-t)
 
     def _shape(self, eta: Tensor):
@@ -328,7 +337,7 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
 
         shape = u.shape
         u, m, v = (t.reshape(-1) for t in (u, m, v))
-        f_u = SQRT2 * self.rating_scale.detach() * torch.special.ndtri(u)  # where the Beta mean equals u
+        f_u = self._latent_at(u)  # where the Beta mean equals u
         P = self.fisher(f_u)
         d = v * P * (f_u - m) / (1 + v * P)
         cur = log_g(d, u, m, v)

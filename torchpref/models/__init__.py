@@ -12,6 +12,7 @@ from torchpref.models.checkpoint import CheckpointError, load_model, model_check
 from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.models.pairwise_interface import TrainDataMismatchError
 from torchpref.models.kernels import FixedRBFKernel, fixed_rbf_kernel
+from torchpref.models.calibration import calibrate_person, fit_person
 
 __all__ = [
     'BatchedPreferenceGP',
@@ -21,8 +22,10 @@ __all__ = [
     'PAPER_FIG4_SETTINGS',
     'PreferenceGP',
     'TrainDataMismatchError',
+    'calibrate_person',
     'default_covar_module',
     'fixed_rbf_kernel',
+    'fit_person',
     'load_model',
     'model_checkpoint',
     'save_model',

@@ -11,6 +11,7 @@ from torchpref.simulation.metrics import (
     expected_rating,
 )
 from torchpref.simulation.users import User, SimulatedUser, LikertUser, sample_beta, sample_log_gamma, RATING_CLAMP
+from torchpref.simulation.raters import EffortModel, RaterProfile, RealisticUser
 from torchpref.simulation.utility_functions import (
     WaveFunction,
     evaluation_grid,
@@ -20,10 +21,13 @@ from torchpref.simulation.utility_functions import (
 )
 
 __all__ = [
+    'EffortModel',
     'GaussianBumps',
     'LikertUser',
     'Plateau',
     'RATING_CLAMP',
+    'RaterProfile',
+    'RealisticUser',
     'RescaledUtility',
     'SimulatedUser',
     'User',
