@@ -120,7 +120,8 @@ def test_session_file_replays_to_the_same_model_and_checkpoint_loads(served, tmp
     copy.write_bytes(store.path(sid).read_bytes())
     with PreferenceSession.load(copy) as again:
         m2, s2 = again.predict(X)
-    assert torch.equal(m2, mean) and torch.equal(s2, std)
+    # a replay equals the live, incremental session to round-off (docs/sessions.md)
+    assert torch.allclose(m2, mean, atol=1e-9) and torch.allclose(s2, std, atol=1e-9)
 
 
 def test_repeat_is_acknowledged_once_stale_and_foreign_refused(served):
