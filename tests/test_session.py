@@ -193,7 +193,7 @@ def test_undo_rebuilds_the_model_and_is_logged(tmp_path):
     run(ref, 3)
     undone = s.undo()
     assert undone.step == 3 and s.step == 3
-    assert_same_posterior(s, ref, X, atol=0.0)  # replay is bitwise the live path
+    assert_same_posterior(s, ref, X, atol=1e-12)  # the model before answer 4, to round-off
     assert s.ask().items.tolist() == ref.ask().items.tolist()  # query 3 is asked again
     run(s, 1)
     s.close()
@@ -202,7 +202,7 @@ def test_undo_rebuilds_the_model_and_is_logged(tmp_path):
     assert records[4]["undoes"] == records[3]["seq"]
     resumed = PreferenceSession.load(path)
     assert [h.seq for h in resumed.history] == [1, 2, 3, 6]
-    assert_same_posterior(resumed, s, X, atol=0.0)
+    assert_same_posterior(resumed, s, X, atol=1e-12)
 
 
 def test_undo_everything_then_nothing_to_undo():
@@ -214,7 +214,7 @@ def test_undo_everything_then_nothing_to_undo():
     assert s.undo().kind == "rating"
     with pytest.raises(ValueError, match="nothing to undo"):
         s.undo()
-    assert_same_posterior(s, PreferenceSession(X), X, atol=0.0)
+    assert_same_posterior(s, PreferenceSession(X), X, atol=1e-12)
 
 
 def test_restart_continues_as_if_uninterrupted(tmp_path):
@@ -230,7 +230,7 @@ def test_restart_continues_as_if_uninterrupted(tmp_path):
     assert s.done and s.step == 12
     assert [h.items.tolist() for h in s.history] == [h.items.tolist() for h in ref.history]
     assert [h.answer for h in s.history] == [h.answer for h in ref.history]
-    assert_same_posterior(s, ref, X, atol=0.0)
+    assert_same_posterior(s, ref, X, atol=1e-12)
 
 
 def test_box_candidates_are_persisted(tmp_path):
@@ -241,7 +241,7 @@ def test_box_candidates_are_persisted(tmp_path):
     s.close()
     r = PreferenceSession.load(path)
     assert r.done
-    assert_same_posterior(r, s, torch.rand(10, 2, dtype=torch.float64), atol=0.0)
+    assert_same_posterior(r, s, torch.rand(10, 2, dtype=torch.float64), atol=1e-12)
     assert r.best_item()[0] is None
 
 
@@ -297,7 +297,7 @@ def test_repair_reports_keeps_the_partial_line_and_reasks(tmp_path):
     run(ref, 3)
     run(s, 1)  # answer 3 is asked again and re-answered
     assert [h.items.tolist() for h in s.history] == [h.items.tolist() for h in ref.history]
-    assert_same_posterior(s, ref, X, atol=0.0)
+    assert_same_posterior(s, ref, X, atol=1e-12)
 
 
 def test_invalid_last_line_with_newline_and_partial_header(tmp_path):
@@ -310,9 +310,9 @@ def test_invalid_last_line_with_newline_and_partial_header(tmp_path):
         s = PreferenceSession(X, session_file=path, seed=5, repair=True)
     assert s.step == 1 and path.read_bytes() == good
     s.close()
-    path.write_bytes(good[:10])  # crash while writing the header
-    with pytest.warns(SessionRepairWarning, match="line 1"):
-        s = PreferenceSession(X, session_file=path, seed=5, repair=True)
+    path.write_bytes(good[:10])  # crash (or a full disk) while writing the header: no answer can be lost
+    with pytest.warns(SessionRepairWarning, match="incomplete header"):
+        s = PreferenceSession(X, session_file=path, seed=5)  # repaired without being asked
     assert s.step == 0 and read_session_file(path)[0]["type"] == "header"
 
 
@@ -423,7 +423,7 @@ def test_a_query_told_twice_or_from_another_session_is_refused(tmp_path):
     size = (tmp_path / "b.jsonl").stat().st_size
     with pytest.raises(ValueError, match="not this session's pool rows"):
         b.tell(q, 0)  # before the model is touched: no warning, nothing rebuilt
-    assert b.step == 0 and (tmp_path / "b.jsonl").stat().st_size == size and b._model_seqs == ()
+    assert b.step == 0 and (tmp_path / "b.jsonl").stat().st_size == size and b._model_version == b._version
     a.tell(q, 0)
     with pytest.raises(ValueError, match="already answered"):
         a.tell(q, 1)  # a second click on the same question

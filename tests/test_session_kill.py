@@ -374,3 +374,19 @@ def test_sigkill_of_torchpref_elicit_loses_no_acknowledged_answer(tmp_path):
         child.close(force=True)
     final = answers_in_file(session)
     assert final[: len(acked)] == acked and len(final) <= len(acked) + 1 and len(final) >= 5
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
+def test_kills_mid_write_mid_rollback_and_mid_header_lose_nothing(tmp_path):
+    """The benchmark's kill harness (benchmarks/session_kills.py, 200 kills there) with 8 kills: two
+    at random moments, two mid-write, two mid-rollback of a failed write, two mid-header."""
+    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "session_kills.py")
+    spec = importlib.util.spec_from_file_location("session_kills", path)
+    kills = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(kills)
+    out = kills.run_all(8, 2, seed=3, workdir=tmp_path, progress=False)
+    assert out["by_mode"] == {"random": 2, "write": 2, "rollback": 2, "header": 2}
+    assert out["killed_at"].get("ROLLBACK") == 2 and out["killed_at"].get("HEADER") == 2
+    assert out["open_failures"] == [] and out["all_sequences_ok"] and out["files_checked"] == 4
+    assert out["lost"] == out["doubled"] == out["undos_lost"] == 0
+    assert out["acknowledged_answers"] > 0 and out["max_posterior_vs_replay"] < 1e-8

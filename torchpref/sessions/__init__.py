@@ -2,7 +2,17 @@
 
 from __future__ import annotations
 
-from torchpref.sessions.journal import Journal, read_session_file
+from torchpref.sessions.journal import (
+    MAX_FILE_BYTES,
+    Journal,
+    MemoryJournal,
+    SessionFileGone,
+    SessionForkError,
+    SessionReadOnlyError,
+    read_header,
+    read_session_file,
+)
+from torchpref.sessions.recorded import SessionSettingsError, describe_model, describe_selector
 from torchpref.sessions.records import (
     ANSWER_KINDS,
     FORMAT_VERSION,
@@ -32,20 +42,29 @@ __all__ = [
     'ANSWER_KINDS',
     'FORMAT_VERSION',
     'Journal',
+    'MAX_FILE_BYTES',
     'MAX_REDRAWS',
+    'MemoryJournal',
     'PreferenceSession',
     'SessionAnswer',
     'SessionFileCorrupt',
     'SessionFileError',
+    'SessionFileGone',
+    'SessionForkError',
     'SessionMismatchError',
+    'SessionReadOnlyError',
     'SessionRepairWarning',
     'SessionSettings',
+    'SessionSettingsError',
     'SessionVersionError',
     'as_items',
     'check_new_record',
     'default_ranking_size',
     'default_session_model',
+    'describe_model',
+    'describe_selector',
     'dumps_settings',
+    'read_header',
     'read_session_file',
     'records_in_force',
     'step_generator',

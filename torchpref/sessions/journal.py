@@ -23,9 +23,13 @@ record that is complete but lacks only its newline is kept (the newline is added
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import json
 import os
+import stat
+import threading
 import warnings
+import weakref
 from pathlib import Path
 from collections.abc import Callable
 
@@ -46,13 +50,33 @@ __all__ = [
     "ANSWER_KINDS",
     "FORMAT_VERSION",
     "Journal",
+    "MAX_FILE_BYTES",
     "SessionFileCorrupt",
     "SessionFileError",
+    "SessionFileGone",
+    "SessionForkError",
     "SessionMismatchError",
+    "SessionReadOnlyError",
     "SessionRepairWarning",
     "SessionVersionError",
     "read_session_file",
 ]
+
+MAX_FILE_BYTES = 1 << 30
+"""The largest session file opened (1 GiB, some three million answers): a larger one is refused by
+name before it is read (a file of that size is not a session's)."""
+
+
+class SessionFileGone(SessionFileError):
+    """The session file was deleted, moved away or replaced while the session had it open."""
+
+
+class SessionForkError(SessionFileError):
+    """A forked child process tried to write to its parent's session."""
+
+
+class SessionReadOnlyError(SessionFileError):
+    """The session file was opened read-only (the process may not write it): answers are refused."""
 
 
 def now() -> str:
@@ -70,6 +94,9 @@ def _write_all(fd: int, data: bytes) -> None:
 
 def _encode(record: dict) -> bytes:
     return (json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n").encode()
+
+
+_HEADER_START = b'{"type":"header",'
 
 
 def _reject_constant(name: str):
@@ -120,23 +147,82 @@ def read_session_file(path) -> tuple[dict | None, list[dict], int]:
         SessionFileCorrupt: a line is incomplete or not JSON (with its line number).
         SessionVersionError: a record is of a newer format version.
         SessionFileError: a record breaks the format (a missing or wrong field, sequence
-            numbers, undo targets), naming the file and the line.
+            numbers, undo targets), naming the file and the line; or the path is a directory, a
+            device, a FIFO or a file over :data:`MAX_FILE_BYTES`.
     """
     path = Path(path)
-    if path.is_dir():
-        raise SessionFileError(f"session file {path} is a directory; give a file name.")
-    data = path.read_bytes()
+    fd = _open(path, os.O_RDONLY)
+    try:
+        data = _read_fd(fd, _checked_size(fd, path))
+    finally:
+        os.close(fd)
     header, records, _ = _parse(path, data)
     return header, records, len(data)
 
 
-def _lock(fd: int, path) -> None:
+def _kind(mode: int) -> str | None:
+    """What a file that is not a regular file is (``None`` for a regular file)."""
+    for test, name in (
+        (stat.S_ISDIR, "a directory; give a file name"),
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return name
+    return None if stat.S_ISREG(mode) else "not a regular file"
+
+
+def _open(path: Path, flags: int) -> int:
+    """Open ``path`` (never blocking on a FIFO); a directory, device, FIFO or socket is refused by
+    name before anything is read, as is a name the file system refuses."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        st = None
+    except OSError as err:
+        raise _name_error(path, err) from None
+    if st is not None and _kind(st.st_mode):
+        raise SessionFileError(f"session file {path} is {_kind(st.st_mode)}; a session file is a regular file.")
+    try:
+        fd = os.open(path, flags | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0), 0o644)
+    except IsADirectoryError:
+        raise SessionFileError(f"session file {path} is a directory; give a file name.") from None
+    except (FileNotFoundError, PermissionError):
+        raise
+    except OSError as err:
+        raise _name_error(path, err) from None
+    kind = _kind(os.fstat(fd).st_mode)  # it may have changed between the stat and the open
+    if kind:
+        os.close(fd)
+        raise SessionFileError(f"session file {path} is {kind}; a session file is a regular file.")
+    return fd
+
+
+def _name_error(path: Path, err: OSError) -> SessionFileError:
+    if err.errno == errno.ENAMETOOLONG:
+        return SessionFileError(f"session file name {path} is too long for the file system ({err.strerror}).")
+    return SessionFileError(f"session file {path} cannot be opened: {err.strerror or err}.")
+
+
+def _checked_size(fd: int, path) -> int:
+    size = os.fstat(fd).st_size
+    if size > MAX_FILE_BYTES:
+        raise SessionFileError(
+            f"session file {path} is {size:,} bytes, more than a session file may be ({MAX_FILE_BYTES:,}); "
+            "it is not a session's file."
+        )
+    return size
+
+
+def _lock(fd: int, path, shared: bool = False) -> None:
     try:
         import fcntl
     except ImportError:  # not POSIX: no advisory lock
         return
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
     except BlockingIOError:
         raise SessionFileError(f"session file {path} is in use by another process.") from None
 
@@ -154,14 +240,36 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def _read_fd(fd: int) -> bytes:
+def _read_fd(fd: int, size: int) -> bytes:
+    """The file's bytes, read up to ``size`` (checked against :data:`MAX_FILE_BYTES` first)."""
     chunks, offset = [], 0
-    while True:
-        chunk = os.pread(fd, 1 << 20, offset)
+    while offset < size:
+        chunk = os.pread(fd, min(1 << 20, size - offset), offset)
         if not chunk:
-            return b"".join(chunks)
+            break
         chunks.append(chunk)
         offset += len(chunk)
+    return b"".join(chunks)
+
+
+def _dropped_path(path: Path) -> Path:
+    """``FILE.dropped`` beside the file, with the name shortened where that would be too long."""
+    name = os.fsencode(path.name) + b".dropped"
+    if len(name) > 255:
+        name = os.fsencode(path.name)[:200] + b"~" + str(abs(hash(path.name)) % 10**8).encode() + b".dropped"
+    return path.parent / os.fsdecode(name)
+
+
+_OPEN: weakref.WeakSet = weakref.WeakSet()  # journals open in this process (closed in a forked child)
+
+
+def _after_fork_in_child() -> None:
+    for journal in list(_OPEN):
+        journal._forked()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 class Journal:
@@ -174,89 +282,273 @@ class Journal:
         repair: if the file ends in a partial line, report it, move it to ``FILE.dropped`` and
             continue; by default that raises :class:`SessionFileCorrupt`.
 
+    Attributes:
+        header, records: the file's header and its records, in order.
+        in_force: the answer records not undone, by sequence number, oldest first (kept up to date).
+        last_seq: the last record's sequence number (0 for none).
+        read_only: the file could not be opened for writing; :meth:`append` raises
+            :class:`SessionReadOnlyError`.
+
     Raises:
-        SessionFileError: the path is a directory, the file is in use, or a record is invalid.
+        SessionFileError: the path is a directory, device, FIFO or socket, the file is too large or
+            in use, or a record is invalid.
         SessionFileCorrupt: a partial or invalid line (``repair=True`` fixes a bad last line).
         SessionVersionError: a newer format version.
     """
 
     def __init__(self, path, new_header: Callable[[], dict] | None, *, repair: bool = False):
         self.path = Path(path)
-        if self.path.is_dir():
-            raise SessionFileError(f"session file {self.path} is a directory; give a file name.")
-        self._fd: int | None = os.open(self.path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
+        self._fd: int | None = None
+        self._lock = threading.Lock()
+        self._pid = os.getpid()
+        self._broken: str | None = None  # why the file may be longer than its acknowledged records
+        self.read_only = False
         try:
-            _lock(self._fd, self.path)  # before reading: no other writer can slip in between
+            self._fd = _open(self.path, os.O_RDWR | os.O_APPEND | os.O_CREAT)
+        except PermissionError:
+            if not self.path.exists():
+                raise
+            self._fd, self.read_only = _open(self.path, os.O_RDONLY), True
+        try:
+            if self.read_only:  # a shared lock: no writer while we read
+                _lock(self._fd, self.path, True)
+            else:
+                _lock(self._fd, self.path)  # before reading: no writer slips in between
             self.header, self.records = self._read(repair)
             if self.header is None and new_header is not None:
-                self.header = new_header()
-                self._write(_encode(self.header))
+                if self.read_only:
+                    raise SessionReadOnlyError(f"session file {self.path} is empty and cannot be written.")
+                header = new_header()
+                self._write_or_undo(_encode(header), 0)
                 _fsync_dir(self.path)
+                self.header = header
+            st = os.fstat(self._fd)
+            self._ident, self._size = (st.st_dev, st.st_ino), st.st_size
         except BaseException:
             os.close(self._fd)
             self._fd = None
             raise
+        self.in_force: dict[int, dict] = {}
+        for rec in self.records:
+            _account(self.in_force, rec)
+        self.last_seq = self.records[-1]["seq"] if self.records else 0
+        _OPEN.add(self)
 
     def _read(self, repair: bool) -> tuple[dict | None, list[dict]]:
-        data = _read_fd(self._fd)
+        data = _read_fd(self._fd, _checked_size(self._fd, self.path))
         try:
             header, records, newline_missing = _parse(self.path, data)
         except SessionFileCorrupt as err:
-            if not (repair and err.repairable):
+            # a header whose write failed: only line, incomplete, and the start of a header as this
+            # module writes them (a file of anything else is never truncated without repair=True)
+            head = err.partial[: len(_HEADER_START)]
+            half_header = err.line_number == 1 and err.repairable and bool(head) and _HEADER_START.startswith(head)
+            if not ((repair or half_header) and err.repairable) or self.read_only:
                 raise
-            self._repair(err)
+            self._repair(err, half_header)
             header, records, newline_missing = _parse(self.path, data[: err.offset])
-        if newline_missing:  # a complete last record: keep it, end its line
+        if newline_missing and not self.read_only:  # a complete last record: keep it, end its line
             self._write(b"\n")
         return header, records
 
-    def _repair(self, err: SessionFileCorrupt) -> None:
+    def _repair(self, err: SessionFileCorrupt, half_header: bool) -> None:
         """Move a partial last line to ``path.dropped`` and truncate the file before it (reported)."""
-        dropped = Path(str(self.path) + ".dropped")
+        dropped = _dropped_path(self.path)
+        name = os.fsencode(self.path.name)
         with open(dropped, "ab") as f:
-            f.write(
-                f"# {now()} line {err.line_number} of {self.path.name}: {err.reason}\n".encode() + err.partial + b"\n"
-            )
+            f.write(f"# {now()} line {err.line_number} of ".encode() + name + f": {err.reason}\n".encode())
+            f.write(err.partial + b"\n")
             f.flush()
             os.fsync(f.fileno())
         os.ftruncate(self._fd, err.offset)
         os.fsync(self._fd)
+        what = (
+            "an incomplete header (the file was being created when its write failed; it holds no answer)"
+            if half_header
+            else f"the incomplete line {err.line_number} ({len(err.partial)} bytes; its answer, if any, was never "
+            "acknowledged and will be asked again)"
+        )
         warnings.warn(
-            f"session file {self.path}: removed the incomplete line {err.line_number} ({len(err.partial)} bytes, "
-            f"kept in {dropped}); its answer, if any, will be asked again.",
-            SessionRepairWarning,
-            stacklevel=4,
+            f"session file {self.path}: removed {what}; kept in {dropped}.", SessionRepairWarning, stacklevel=4
         )
 
     def _write(self, data: bytes) -> None:
         _write_all(self._fd, data)
         os.fsync(self._fd)
 
-    def append(self, record: dict) -> None:
-        """Append ``record`` (fsynced) and add it to :attr:`records`; on any failure,
-        ``BaseException`` included, the file is truncated back and :attr:`records` is as it was."""
-        if self._fd is None:
-            raise SessionFileError(f"session file {self.path} is closed.")
-        check_new_record(f"session file {self.path}, line {len(self.records) + 2}", self.header, self.records, record)
-        data = _encode(record)
-        size, count = os.fstat(self._fd).st_size, len(self.records)
+    def _write_or_undo(self, data: bytes, size: int) -> None:
+        """Write ``data`` after the file's first ``size`` bytes, fsynced; on any failure truncate back."""
         try:
             self._write(data)
-            self.records.append(record)
         except BaseException:
-            del self.records[count:]
-            os.ftruncate(self._fd, size)
-            os.fsync(self._fd)
+            self._truncate(size)
             raise
+
+    def _truncate(self, size: int) -> None:
+        """Truncate the file to ``size`` bytes, retried through interrupts; if it cannot be done,
+        the journal refuses further writes until it can (:meth:`_heal`)."""
+        for _ in range(100):
+            try:
+                os.ftruncate(self._fd, size)
+                os.fsync(self._fd)
+                self._broken = None
+                return
+            except KeyboardInterrupt:  # a second Ctrl-C mid-rollback: finish the rollback first
+                continue
+            except OSError as err:
+                self._broken = f"the rollback of a failed write failed ({err.strerror or err})"
+                return
+        self._broken = "the rollback of a failed write was interrupted"
+
+    def _heal(self) -> None:
+        """Bring the file back to its acknowledged size after a failed rollback, or refuse by name."""
+        self._truncate(self._size)
+        if self._broken is None and os.fstat(self._fd).st_size == self._size:
+            return
+        raise SessionFileError(
+            f"session file {self.path}: {self._broken or 'its size changed'}; no answer is written until it is "
+            "repaired: close the session and open the file again (repair=True drops the unacknowledged tail)."
+        )
+
+    def _check_same_file(self) -> None:
+        """The path still names the open file (not deleted, moved away or replaced)."""
+        try:
+            st = os.stat(self.path)
+            same = (st.st_dev, st.st_ino) == self._ident and os.fstat(self._fd).st_nlink > 0
+        except OSError:
+            same = False
+        if not same:
+            raise SessionFileGone(
+                f"session file {self.path} was deleted, moved or replaced while the session had it open: this answer "
+                "was not saved. Restore the file (or open a new session) before answering again."
+            )
+
+    def check_writable(self) -> None:
+        """Raise by name where :meth:`append` could not write (a forked child, read-only, closed, gone)."""
+        if os.getpid() != self._pid:
+            raise SessionForkError(
+                f"session file {self.path} was opened by process {self._pid}; this process ({os.getpid()}) is a "
+                "fork of it and may not write to it: open the session in the child once the parent has closed it."
+            )
+        if self._fd is None:
+            raise SessionFileError(f"session file {self.path} is closed.")
+        if self.read_only:
+            raise SessionReadOnlyError(
+                f"session file {self.path} was opened read-only (this process may not write it): "
+                "answers cannot be saved; copy the file somewhere writable to go on."
+            )
+
+    def append(self, record: dict) -> None:
+        """Append ``record`` (fsynced) and add it to :attr:`records`; on any failure,
+        ``BaseException`` included, the file is truncated back and :attr:`records` is as it was.
+
+        Raises:
+            SessionForkError, SessionReadOnlyError, SessionFileGone, SessionFileError: see the class.
+        """
+        self.check_writable()
+        with self._lock:
+            self.check_writable()
+            if self._broken is not None or os.fstat(self._fd).st_size != self._size:
+                self._heal()
+            self._check_same_file()
+            check_new_record(
+                f"session file {self.path}, line {len(self.records) + 2}",
+                self.header,
+                None,
+                record,
+                last_seq=self.last_seq,
+                in_force=self.in_force,
+            )
+            data = _encode(record)
+            self._write_or_undo(data, self._size)
+            try:
+                self._check_same_file()  # deleted while writing: not acknowledged
+            except BaseException:
+                self._truncate(self._size)
+                raise
+            self._size += len(data)
+            self.records.append(record)
+            self.last_seq = record["seq"]
+            _account(self.in_force, record)
+
+    def _forked(self) -> None:
+        """In a forked child: let go of the parent's descriptor (the lock stays the parent's)."""
+        fd, self._fd = self._fd, None
+        self._lock = threading.Lock()
+        if fd is not None:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
 
     def close(self) -> None:
         """Release the file (every record is already on disk)."""
-        if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
+        if os.getpid() == self._pid:
+            with self._lock:
+                if self._fd is not None:
+                    os.close(self._fd)
+                    self._fd = None
+        _OPEN.discard(self)
 
     def __enter__(self) -> Journal:
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _account(in_force: dict[int, dict], rec: dict) -> None:
+    """Update the answers in force by one record (an answer joins, an undo removes its target)."""
+    if rec["type"] == "answer":
+        in_force[rec["seq"]] = rec
+    else:
+        in_force.pop(rec["undoes"], None)
+
+
+class MemoryJournal:
+    """The records of a session without a file, with :class:`Journal`'s interface (every record
+    is checked as a file's would be; nothing is written)."""
+
+    read_only = False
+
+    def __init__(self, header: dict):
+        self.path, self.header, self.records = None, header, []
+        self.in_force: dict[int, dict] = {}
+        self.last_seq = 0
+
+    def check_writable(self) -> None:
+        """Always writable (a forked child has its own copy of the records)."""
+
+    def append(self, record: dict) -> None:
+        """Check ``record`` and add it."""
+        check_new_record("session (no file)", self.header, None, record, last_seq=self.last_seq, in_force=self.in_force)
+        self.records.append(record)
+        self.last_seq = record["seq"]
+        _account(self.in_force, record)
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def read_header(path) -> dict | None:
+    """The validated header of the session file ``path``, reading only its first line (``None`` if
+    the file is empty or its first line is not complete: open it with :class:`Journal` to learn why).
+
+    Raises:
+        SessionFileError: the path is not a regular file, or the header breaks the format.
+    """
+    path = Path(path)
+    fd = _open(path, os.O_RDONLY)
+    try:
+        size, data = _checked_size(fd, path), b""
+        while b"\n" not in data and len(data) < size:
+            chunk = os.pread(fd, 1 << 16, len(data))
+            if not chunk:
+                break
+            data += chunk
+    finally:
+        os.close(fd)
+    if b"\n" not in data:
+        return None
+    header, _, _ = _parse(path, data[: data.index(b"\n") + 1])
+    return header

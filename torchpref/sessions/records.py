@@ -164,6 +164,9 @@ def validate_header(path, h: dict) -> None:
         c.fail(f"names must be null or {dim} strings, got {names!r:.120}")
     if not isinstance(h.get("metadata", {}), dict):
         c.fail(f"metadata must be a JSON object, got {h.get('metadata')!r:.80}")
+    for key in ("model", "selector"):  # what the session started with (absent before torchpref 0.2)
+        if h.get(key) is not None and not isinstance(h[key], dict):
+            c.fail(f"{key} must be a JSON object, got {h[key]!r:.80}")
     spec = c.get("candidates")
     if not isinstance(spec, dict) or spec.get("kind") not in ("pool", "box"):
         c.fail(f"candidates must be {{'kind': 'pool' or 'box', ...}}, got {spec!r:.120}")
@@ -240,9 +243,10 @@ def validate_records(path, header: dict, records: list[dict], first_line: int = 
         last_seq = _check_record(_Line(f"session file {path}, line {i}", rec), header, last_seq, active)
 
 
-def _check_record(c: _Line, header: dict, last_seq: int, active: set[int]) -> int:
+def _check_record(c: _Line, header: dict, last_seq: int, active, update: bool = True) -> int:
     """Check one record after those with sequence numbers up to ``last_seq`` and answers
-    ``active`` in force (updated); returns its sequence number."""
+    ``active`` in force (a set, updated; or, with ``update=False``, any container, read only);
+    returns its sequence number."""
     rec = c.rec
     v = rec.get("v", 1)
     if not isinstance(v, int) or isinstance(v, bool) or v < 1:
@@ -257,34 +261,48 @@ def _check_record(c: _Line, header: dict, last_seq: int, active: set[int]) -> in
         c.fail(f"sequence number {seq} does not follow {last_seq}")
     if rec["type"] == "answer":
         _check_answer(c, rec, header)
-        active.add(seq)
+        if update:
+            active.add(seq)
     elif rec["type"] == "undo":
         if not isinstance(rec.get("time"), str):
             c.fail(f"'time' must be a string, got {rec.get('time')!r:.80}")
-        if rec.get("undoes") not in active or isinstance(rec.get("undoes"), bool):
-            c.fail(f"undo of {rec.get('undoes')!r:.80}, not an answer in force")
-        active.discard(rec["undoes"])
+        undoes = rec.get("undoes")
+        if not isinstance(undoes, int) or isinstance(undoes, bool) or undoes not in active:
+            c.fail(f"undo of {undoes!r:.80}, not an answer in force")
+        if update:
+            active.discard(undoes)
     else:
         c.fail(f"unknown record type {rec['type']!r:.80}")
     return seq
 
 
-def check_new_record(where: str, header: dict, records: list[dict], record: dict) -> None:
+def check_new_record(
+    where: str,
+    header: dict,
+    records: list[dict] | None,
+    record: dict,
+    *,
+    last_seq: int | None = None,
+    in_force=None,
+) -> None:
     """Check ``record`` as the next one after ``records`` (before it is written: the file never
-    gets a record it could not read back)."""
-    active = {r["seq"] for r in records_in_force(records)}
-    _check_record(_Line(where, record), header, records[-1]["seq"] if records else 0, active)
+    gets a record it could not read back). ``last_seq`` and ``in_force`` (the sequence numbers of
+    the answers in force, any container) given instead of ``records`` make it constant-time."""
+    if in_force is None:
+        in_force = {r["seq"] for r in records_in_force(records)}
+        last_seq = records[-1]["seq"] if records else 0
+    _check_record(_Line(where, record), header, last_seq, in_force, update=False)
 
 
 def records_in_force(records: list[dict]) -> list[dict]:
     """The answer records not undone, oldest first."""
-    active: list[dict] = []
+    active: dict[int, dict] = {}
     for rec in records:
         if rec["type"] == "answer":
-            active.append(rec)
+            active[rec["seq"]] = rec
         else:
-            active = [r for r in active if r["seq"] != rec["undoes"]]
-    return active
+            active.pop(rec["undoes"], None)
+    return list(active.values())
 
 
 def dumps_settings(value: Any) -> str:

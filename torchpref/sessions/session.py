@@ -7,30 +7,37 @@ It also takes answers given out of turn (:meth:`~PreferenceSession.tell_rating`,
 undoes the last answer (:meth:`~PreferenceSession.undo`).
 
 With a ``session_file`` every answer is appended to a :class:`~torchpref.sessions.journal.Journal` (one
-JSON line, fsynced) before ``tell`` returns. The model is a pure function of the answers in the
-file: each goes through :func:`~torchpref.data.queries.record_answer`, live and on replay, so a
-session restarted from its file has bitwise the posterior of the interrupted process, and asks
-the query it would have asked (the selector's random numbers for query ``k`` come from
-``(seed, k)``, not from a stream that a restart would lose).
+JSON line, fsynced) before ``tell`` returns. The model is a function of the answers in the file:
+a live answer goes through :func:`~torchpref.data.queries.record_answer` (a warm-started update,
+no replay); an undo takes the model back to its data before that answer
+(:func:`~torchpref.sessions.model_state.truncate`); a resume builds the data of every answer in
+force in one pass (:func:`~torchpref.sessions.model_state.build_data`) and solves the mode once.
+All three give the posterior of replaying the answers one by one to Newton's tolerance, and the
+same next query (the selector's random numbers for query ``k`` come from ``(seed, k)``, not from
+a stream that a restart would lose).
 
-The session's state is the journal's records; the model is a cache of them, rebuilt by replay
-whenever it may not match (after an interrupted or failed update), so a ``KeyboardInterrupt``
-anywhere in :meth:`~PreferenceSession.tell` leaves the model, the file and the history agreeing.
+One lock (an ``RLock``) covers each call: taking the next sequence number, the model's update, the
+append and its ``fsync`` happen as one, so a session may be shared by threads. A forked child
+cannot write to its parent's file (:class:`~torchpref.sessions.journal.SessionForkError`).
+
+The model is a cache of the file's answers in force: an interrupted or failed update is undone
+exactly (:class:`~torchpref.sessions.model_state.Saved`), and a model that may not match is rebuilt,
+so a ``KeyboardInterrupt`` anywhere in :meth:`~PreferenceSession.tell` leaves the model, the file
+and the history agreeing.
 """
 
 from __future__ import annotations
 
-import math
+import contextlib
 import os
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
-from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
 
-from torchpref.sessions.journal import Journal, now, read_session_file
-from torchpref.models.preference_gp import PreferenceGP
 from torchpref.data.queries import (
     Candidates,
     FinitePool,
@@ -40,6 +47,20 @@ from torchpref.data.queries import (
     first_unique_rows,
     record_answer,
 )
+from torchpref.models.preference_gp import PreferenceGP
+from torchpref.selection.strategies import UCBC, Selector
+from torchpref.sessions.journal import (
+    Journal,
+    MemoryJournal,
+    SessionFileGone,
+    SessionForkError,
+    SessionReadOnlyError,
+    now,
+    read_header,
+    read_session_file,
+)
+from torchpref.sessions.model_state import ModelCache, Saved, Sizes, header_digest, mode, sizes, truncate
+from torchpref.sessions.recorded import SessionSettingsError, describe_model, describe_selector, resume_settings
 from torchpref.sessions.records import (
     FORMAT_VERSION,
     SessionFileCorrupt,
@@ -47,20 +68,18 @@ from torchpref.sessions.records import (
     SessionMismatchError,
     SessionRepairWarning,
     SessionVersionError,
-    check_new_record,
-    records_in_force,
 )
 from torchpref.sessions.settings import (
     MAX_REDRAWS,
     SessionAnswer,
     SessionSettings,
     as_items,
+    as_seconds,
     candidates_from_header,
     default_ranking_size,
     default_session_model,
     step_generator,
 )
-from torchpref.selection.strategies import UCBC, Selector
 
 __all__ = [
     "FORMAT_VERSION",
@@ -68,8 +87,12 @@ __all__ = [
     "SessionAnswer",
     "SessionFileCorrupt",
     "SessionFileError",
+    "SessionFileGone",
+    "SessionForkError",
     "SessionMismatchError",
+    "SessionReadOnlyError",
     "SessionRepairWarning",
+    "SessionSettingsError",
     "SessionVersionError",
     "default_ranking_size",
     "default_session_model",
@@ -78,16 +101,18 @@ __all__ = [
 ]
 
 
-class PreferenceSession:
+class PreferenceSession(ModelCache):
     r"""Ask queries, take answers, keep the model current; optionally persisted to a file.
 
     Args:
         candidates: the items queries are built from: an ``N x d`` tensor (a finite pool), a
             :class:`~torchpref.FinitePool` or a :class:`~torchpref.BoxCandidates`.
-        selector: picks each query (default :class:`~torchpref.UCBC` with ``m = min(5, N)``).
+        selector: picks each query (default :class:`~torchpref.UCBC` with ``m = min(5, N)``; a
+            resumed file's recorded selector).
         model_factory: ``train_X -> PreferenceGP``, called with one ``1 x d`` unobserved anchor
-            item (normalised); default :func:`default_session_model`. Its hyperparameters stay as
-            built (refitting would make the model depend on more than the answers).
+            item (normalised); default :func:`default_session_model` (a resumed file's recorded
+            model). Its hyperparameters stay as built (refitting would make the model depend on
+            more than the answers).
         session_file: a JSON Lines file; created if missing or empty, resumed otherwise.
         seed: seeds query ``k``'s random choices through :func:`step_generator`.
         num_queries: the planned number of queries (``T`` of the selector; see :attr:`done`).
@@ -99,9 +124,13 @@ class PreferenceSession:
         repair: if the file ends in a partial line, report it, move it to ``FILE.dropped`` and
             continue; by default that raises :class:`SessionFileCorrupt`.
         metadata: JSON-serialisable extra settings stored in a new file's header.
+        migrate: resume a file under a model or selector other than the one its header records
+            (given, or this version's default where the recorded one cannot be rebuilt); by
+            default that raises :class:`SessionSettingsError`.
 
     Raises:
-        SessionFileCorrupt, SessionVersionError, SessionMismatchError: see :meth:`load`.
+        SessionFileCorrupt, SessionVersionError, SessionMismatchError, SessionSettingsError: see
+            :meth:`load`.
 
     Example:
         >>> s = PreferenceSession(X_pool, session_file="me.jsonl")
@@ -123,36 +152,67 @@ class PreferenceSession:
         names: Sequence[str] | None = None,
         repair: bool = False,
         metadata: dict | None = None,
+        migrate: bool = False,
     ) -> None:
         settings = SessionSettings.validated(candidates, bounds, seed, num_queries, num_levels, names)
         self._settings, self._candidates = settings, settings.candidates
         self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
         self.num_queries, self.num_levels, self.names = settings.num_queries, settings.num_levels, settings.names
-        n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
+        self._n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
         if selector is not None and not callable(getattr(selector, "select", None)):
             raise TypeError(f"selector must be a Selector (with select(model, candidates, ...)), got {selector!r:.80}.")
         if model_factory is not None and not callable(model_factory):
             raise TypeError(f"model_factory must be callable(X) -> PreferenceGP, got {model_factory!r:.80}.")
-        self.selector = selector if selector is not None else UCBC(m=default_ranking_size(n_pool) if n_pool else 5)
-        self.model_factory = model_factory if model_factory is not None else default_session_model
+        self._lock, self._pid = threading.RLock(), os.getpid()
         self._anchor = self.transform(self._pool[:1] if self._pool is not None else self.bounds.mean(0, keepdim=True))
         self._pending: tuple[int, Query] | None = None  # (step, query) until answered
         self._answered: tuple[int, Query] | None = None  # (seq, query) of the last query told
-        self._journal: Journal | None = None
-        self._memory: list[dict] = []  # the records when there is no file
-        self._memory_header = settings.header(metadata)
         self._model: PreferenceGP | None = None
-        self._model_seqs: tuple[int, ...] | None = None  # the answers the model holds
+        self._model_version, self._version = -1, 0  # the model holds the answers iff the two are equal
+        # an answer in force -> the model's data sizes before it, and its mode then (kept for the
+        # latest answers, MODE_MEMORY floats in all): what undo takes the model back to
+        self._sizes: dict[int, Sizes] = {}
+        self._modes: dict[int, Tensor] = {}
+        self._mode_floats = 0
+        self.selector = selector if selector is not None else UCBC(m=default_ranking_size(self._n_pool or 6))
+        self.model_factory = model_factory if model_factory is not None else default_session_model
+        self._journal: Journal | MemoryJournal | None = None
         self.path = None if session_file is None else Path(session_file)
-        if self.path is not None:
-            self._journal = Journal(self.path, lambda: self._memory_header, repair=repair)
+        header = self._new_header(metadata)  # before the file is made: bad metadata leaves no file
+        created: list[dict] = []
+
+        def new_header() -> dict:
+            created.append(header)
+            return header
+
         try:
-            if self._journal is not None:
-                settings.check_header(self._journal.header, self.path)
-            self.model  # noqa: B018  (replays the file's answers now: errors surface at opening)
+            if self.path is None:
+                self._journal = MemoryJournal(header)
+            else:
+                self._journal = Journal(self.path, new_header, repair=repair)
+                self._digest = header_digest(self._journal.header)
+                if not created:  # resumed: the file's settings must be this session's
+                    settings.check_header(self._journal.header, self.path)
+                    self.selector, self.model_factory = resume_settings(
+                        self, self._journal.header, selector, model_factory, migrate
+                    )
+            self.model  # noqa: B018  (builds the model of the file's answers now: errors surface at opening)
         except BaseException:
             self.close()
             raise
+
+    def _new_header(self, metadata: dict | None) -> dict:
+        """A new file's header: the settings, and the model and selector the session starts with."""
+        header = self._settings.header(metadata)
+        header["model"] = describe_model(self._new_model())
+        header["selector"] = describe_selector(self.selector)
+        return header
+
+    def _new_model(self) -> PreferenceGP:
+        model = self.model_factory(self._anchor.clone())
+        if not isinstance(model, PreferenceGP):
+            raise TypeError(f"model_factory must return a PreferenceGP, got {type(model).__name__}.")
+        return model
 
     # ------------------------------------------------------------------ file
     @property
@@ -164,20 +224,26 @@ class PreferenceSession:
         cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Any
     ) -> PreferenceSession:
         """Resume the session in ``path`` with the settings in its header (seed, levels, bounds,
-        candidates, names); ``selector``, ``model_factory``, ``repair`` and ``num_queries`` may be given.
+        candidates, names, and the recorded model and selector); ``selector``, ``model_factory``,
+        ``repair``, ``migrate`` and ``num_queries`` may be given.
 
         Raises:
             FileNotFoundError: no such file.
             SessionFileCorrupt: a line is incomplete or invalid (``repair=True`` fixes a bad last line).
             SessionVersionError: the file is of a newer format version.
-            SessionFileError: a record breaks the format (naming the file and line).
+            SessionFileError: a record breaks the format (naming the file and line); the path is a
+                directory, device or FIFO, or the file is too large.
             SessionMismatchError: ``candidates`` given that differ from the file's.
+            SessionSettingsError: the recorded model or selector is not the one given, or cannot be
+                built by this version (``migrate=True`` resumes anyway).
         """
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"no session file {path}")
-        with Journal(path, lambda: None, repair=bool(kwargs.get("repair"))) as journal:
-            header = journal.header
+        header = read_header(path)  # the first line only
+        if header is None:  # empty, or no complete first line: the journal explains (or repairs)
+            with Journal(path, lambda: None, repair=bool(kwargs.get("repair"))) as journal:
+                header = journal.header
         if header is None:
             raise SessionFileError(f"session file {path} is empty: create the session with PreferenceSession(...).")
         if candidates is None:
@@ -194,9 +260,11 @@ class PreferenceSession:
         )
 
     def close(self) -> None:
-        """Release the file (every answer is already on disk)."""
-        if self._journal is not None:
-            self._journal.close()
+        """Release the file (every answer is already on disk); waits for a call in another thread."""
+        journal = getattr(self, "_journal", None)
+        if journal is not None:
+            with self._guarded():
+                journal.close()
 
     def __enter__(self) -> PreferenceSession:
         return self
@@ -210,25 +278,30 @@ class PreferenceSession:
         except Exception:
             pass
 
+    @contextlib.contextmanager
+    def _guarded(self) -> Iterator[None]:
+        """Hold the session's lock (a fresh one in a forked child: the parent's may have been held
+        by one of its threads at the fork)."""
+        if os.getpid() != self._pid:
+            self._lock, self._pid = threading.RLock(), os.getpid()
+        with self._lock:
+            yield
+
     @property
     def _records(self) -> list[dict]:
-        return self._journal.records if self._journal is not None else self._memory
+        return self._journal.records
 
-    def _append(self, record: dict) -> None:
-        """Check ``record`` and append it to the file (or memory): all of it or, on any failure, nothing."""
-        if self._journal is not None:
-            self._journal.append(record)
-        else:
-            check_new_record("session (no file)", self._memory_header, self._memory, record)
-            self._memory.append(record)
+    @property
+    def _in_force(self) -> dict[int, dict]:
+        return self._journal.in_force
 
     @property
     def _active(self) -> list[dict]:
-        return records_in_force(self._records)
+        return list(self._journal.in_force.values())
 
-    @property
-    def _next_seq(self) -> int:
-        return self._records[-1]["seq"] + 1 if self._records else 1
+    def _last_in_force(self) -> dict | None:
+        force = self._journal.in_force
+        return force[next(reversed(force))] if force else None
 
     # ----------------------------------------------------------------- model
     def transform(self, X: Tensor) -> Tensor:
@@ -236,63 +309,51 @@ class PreferenceSession:
         lo, hi = self.bounds
         return (X.to(torch.float64) - lo) / (hi - lo)
 
-    def _model_query(self, kind: str, items: Tensor) -> Query:
-        """A query of ``kind`` (``"rating"`` or not) on ``items`` (``m x d``), in the model's coordinates."""
-        Z = self.transform(items)
-        return RatingQuery(Z[0]) if kind == "rating" else RankingQuery(Z)
-
-    def _replay(self, records: list[dict]) -> PreferenceGP:
-        model = self.model_factory(self._anchor.clone())
-        if not isinstance(model, PreferenceGP):
-            raise TypeError(f"model_factory must return a PreferenceGP, got {type(model).__name__}.")
-        for rec in records:
-            query = self._model_query(rec["kind"], torch.tensor(rec["items"], dtype=torch.float64))
-            record_answer(model, query, rec["answer"], num_levels=self.num_levels)
-        return model
-
     @property
     def model(self) -> PreferenceGP:
         """The current model (inputs normalised: use :meth:`transform`, or :meth:`predict`),
         rebuilt from the answers in force if an update was interrupted."""
-        active = self._active
-        seqs = tuple(r["seq"] for r in active)
-        if self._model is None or self._model_seqs != seqs:
-            self._model_seqs = None
-            self._model = self._replay(active)
-            self._model_seqs = seqs
-        return self._model
+        with self._guarded():
+            if self._model is None or self._model_version != self._version:
+                self._model_version = -1
+                self._model = self._build()
+                self._model_version = self._version
+            return self._model
 
     def predict(self, X: Tensor) -> tuple[Tensor, Tensor]:
         """Posterior mean and standard deviation of the utility at the rows of ``X`` (``N x d``)."""
         X = as_items(X, self.dim, "X")
-        with torch.no_grad():
+        with self._guarded(), torch.no_grad():
             post = self.model.posterior(self.transform(X).unsqueeze(-2))
         return post.mean.reshape(-1), post.variance.reshape(-1).clamp_min(0).sqrt()
 
     def expected_rating(self, X: Tensor) -> Tensor:
         """Expected rating in ``[0, 1]`` at the rows of ``X`` (``N x d``) (eq. 11)."""
         X = as_items(X, self.dim, "X")
-        with torch.no_grad():
+        with self._guarded(), torch.no_grad():
             return self.model.expected_rating(self.transform(X))
 
     def best_item(self) -> tuple[int | None, Tensor]:
         """The item of largest posterior mean: ``(pool index, item)`` over the pool, or
         ``(None, item)`` over the items answered about when candidates are a box."""
-        if self._pool is not None:
-            X = self._pool
-        else:
-            seen = [torch.tensor(r["items"], dtype=torch.float64) for r in self._active if r["kind"] != "no_preference"]
-            if not seen:
-                raise ValueError("no items rated or compared yet: best_item needs a pool or some answers.")
-            X = torch.cat(seen).unique(dim=0)
-        i = int(self.predict(X)[0].argmax())
+        with self._guarded():
+            if self._pool is not None:
+                X = self._pool
+            else:
+                seen = [
+                    torch.tensor(r["items"], dtype=torch.float64) for r in self._active if r["kind"] != "no_preference"
+                ]
+                if not seen:
+                    raise ValueError("no items rated or compared yet: best_item needs a pool or some answers.")
+                X = torch.cat(seen).unique(dim=0)
+            i = int(self.predict(X)[0].argmax())
         return (i if self._pool is not None else None), X[i]
 
     # ---------------------------------------------------------------- ask/tell
     @property
     def step(self) -> int:
         """The number of answers in force: the next query's number."""
-        return len(self._active)
+        return len(self._journal.in_force)
 
     @property
     def done(self) -> bool:
@@ -302,26 +363,35 @@ class PreferenceSession:
     @property
     def history(self) -> list[SessionAnswer]:
         """The answers in force, oldest first."""
-        return [SessionAnswer.from_record(r) for r in self._active]
+        with self._guarded():
+            return [SessionAnswer.from_record(r) for r in self._active]
 
     @property
     def records(self) -> list[dict]:
         """Every record written (answers, including undone ones, and undos), as in the file."""
-        return list(self._records)
+        with self._guarded():
+            return list(self._records)
+
+    @property
+    def read_only(self) -> bool:
+        """Whether the file was opened read-only (answers raise :class:`SessionReadOnlyError`)."""
+        return self._journal.read_only
 
     def ask(self) -> Query:
         """The next query (the same one until it is answered or the session changes). Its items
         are in the caller's coordinates; ``index`` / ``indices`` are pool rows (or ``None``)."""
-        step = self.step
-        if self._pending is not None and self._pending[0] == step:
-            return self._pending[1]
-        last = sorted(self._active[-1]["items"]) if self._active else None
-        for attempt in range(MAX_REDRAWS + 1):  # not the items just answered about again (small pools)
-            query = self._select(step, attempt)
-            if sorted(query.items.tolist()) != last:
-                break
-        self._pending = (step, query)
-        return query
+        with self._guarded():
+            step = self.step
+            if self._pending is not None and self._pending[0] == step:
+                return self._pending[1]
+            last_rec = self._last_in_force()
+            last = sorted(last_rec["items"]) if last_rec is not None else None
+            for attempt in range(MAX_REDRAWS + 1):  # not the items just answered about again (small pools)
+                query = self._select(step, attempt)
+                if sorted(query.items.tolist()) != last:
+                    break
+            self._pending = (step, query)
+            return query
 
     def _select(self, step: int, attempt: int) -> Query:
         """The selector's query ``step`` (its ``attempt``-th draw), in the caller's coordinates."""
@@ -347,26 +417,29 @@ class PreferenceSession:
                 a ``response_time`` that is not a finite number of seconds >= 0,
                 or one whose pool rows are not this session's (another session's query); the
                 session and the file are unchanged.
+            SessionForkError, SessionReadOnlyError, SessionFileGone: the answer cannot be saved
+                (a forked child, a read-only file, a file deleted or replaced); nothing changes.
         """
         if not isinstance(query, (RatingQuery, RankingQuery)):
             raise TypeError(f"query must be a RatingQuery or RankingQuery, got {type(query).__name__}.")
-        last = self._answered
-        if last is not None and last[1] is query and any(r["seq"] == last[0] for r in self._active):
-            raise ValueError(
-                f"this query is already answered (answer {last[0]}); ask() gives the next one. Another "
-                "answer about the same items: tell_rating, tell_choice or tell_no_preference."
-            )
-        pending = self._pending is not None and self._pending[1] is query and self._pending[0] == self.step
-        rows = [query.index] if isinstance(query, RatingQuery) else query.indices
-        info = {
-            "kind": query.kind,
-            "step": self.step if pending else None,
-            "pool_indices": None if rows is None or rows[0] is None else [int(i) for i in rows],
-        }
-        if info["pool_indices"] is not None:
-            self._check_pool_rows(query, info["pool_indices"])
-        self._tell(query, answer, info, response_time)
-        self._answered = (self._records[-1]["seq"], query)
+        with self._guarded():
+            last = self._answered
+            if last is not None and last[1] is query and last[0] in self._journal.in_force:
+                raise ValueError(
+                    f"this query is already answered (answer {last[0]}); ask() gives the next one. Another "
+                    "answer about the same items: tell_rating, tell_choice or tell_no_preference."
+                )
+            pending = self._pending is not None and self._pending[1] is query and self._pending[0] == self.step
+            rows = [query.index] if isinstance(query, RatingQuery) else query.indices
+            info = {
+                "kind": query.kind,
+                "step": self.step if pending else None,
+                "pool_indices": None if rows is None or rows[0] is None else [int(i) for i in rows],
+            }
+            if info["pool_indices"] is not None:
+                self._check_pool_rows(query, info["pool_indices"])
+            seq = self._tell(query, answer, info, response_time)
+            self._answered = (seq, query)
 
     def _check_pool_rows(self, query: Query, rows: list[int]) -> None:
         """The query's items are this session's pool rows ``rows`` (checked before the model is
@@ -389,80 +462,104 @@ class PreferenceSession:
         x = as_items(x, self.dim, "x")
         if x.shape[0] != 1:
             raise ValueError(f"a rating is of one item, got {x.shape[0]}.")
-        self._tell(RatingQuery(x[0]), rating, None, response_time)
+        with self._guarded():
+            self._tell(RatingQuery(x[0]), rating, None, response_time)
 
     def tell_choice(self, X_shown: Tensor, chosen: int, *, response_time: float | None = None) -> None:
         """A choice of row ``chosen`` among any shown items ``X_shown`` (``m x d``, ``m >= 2``);
         ``response_time`` as in :meth:`tell`."""
         X = as_items(X_shown, self.dim, "X_shown")
         RankingQuery(X).validate_answer(chosen)  # None is not a choice here
-        self._tell(RankingQuery(X), chosen, None, response_time)
+        with self._guarded():
+            self._tell(RankingQuery(X), chosen, None, response_time)
 
     def tell_no_preference(self, X_shown: Tensor, *, response_time: float | None = None) -> None:
         """The person saw ``X_shown`` (``m x d``) and had no preference: a tie between every two of
         the items shown (:func:`~torchpref.data.queries.no_preference_observations`);
         ``response_time`` as in :meth:`tell`."""
-        self._tell(RankingQuery(as_items(X_shown, self.dim, "X_shown")), None, None, response_time)
+        X = as_items(X_shown, self.dim, "X_shown")
+        with self._guarded():
+            self._tell(RankingQuery(X), None, None, response_time)
 
-    def _tell(self, query: Query, answer, info: dict | None, response_time=None) -> None:
-        """Validate and add the answer to the model (:func:`~torchpref.data.queries.record_answer`),
-        then append its record; the model is trusted again only once the record is in."""
+    def _tell(self, query: Query, answer, info: dict | None, response_time=None) -> int:
+        """Validate and add the answer to the model (:func:`~torchpref.data.queries.record_answer`,
+        a warm-started update), then append its record; on any failure the model is put back
+        exactly. Called under the lock; returns the record's sequence number."""
+        self._journal.check_writable()  # a forked child or a read-only file: refused before anything changes
         items = as_items(query.items, self.dim, "the query's items")
-        response_time = _seconds(response_time)
+        response_time = as_seconds(response_time)
         if isinstance(query, RankingQuery) and items.shape[0] < 2:
             raise ValueError(f"a choice needs at least 2 items shown, got {items.shape[0]}.")
-        model, seqs = self.model, self._model_seqs
-        self._model_seqs = None  # in flux: rebuilt from the file if this does not complete
+        model = self.model
+        saved, before, f_before = Saved(model), sizes(model.data), mode(model)
+        self._model_version = -1  # in flux: rebuilt from the file if this neither completes nor rolls back
         try:
             value = record_answer(model, self._model_query(query.kind, items), answer, num_levels=self.num_levels)
-        except Exception:
-            self._model_seqs = seqs  # the model rolls back on error (PreferenceGP.add_observations)
+            rec = {
+                "type": "answer",
+                "v": FORMAT_VERSION,
+                "seq": self._journal.last_seq + 1,
+                "time": now(),
+                "kind": "rating" if query.kind == "rating" else ("choice" if value is not None else "no_preference"),
+                "items": items.tolist(),
+            }
+            if query.kind == "rating":
+                rec.update(answer=int(answer) if self.num_levels is not None else value, value=value)
+            else:
+                rec["answer"] = value
+            rec["query"] = info
+            rec["response_time"] = response_time
+            self._journal.append(rec)
+        except BaseException:
+            saved.restore()
+            self._model_version = self._version
             raise
-        rec = {
-            "type": "answer",
-            "v": FORMAT_VERSION,
-            "seq": self._next_seq,
-            "time": now(),
-            "kind": "rating" if query.kind == "rating" else ("choice" if value is not None else "no_preference"),
-            "items": items.tolist(),
-        }
-        if query.kind == "rating":
-            rec.update(answer=int(answer) if self.num_levels is not None else value, value=value)
-        else:
-            rec["answer"] = value
-        rec["query"] = info
-        rec["response_time"] = response_time
-        self._append(rec)
-        self._model_seqs = seqs + (rec["seq"],)
+        self._sizes[rec["seq"]] = before
+        self._keep_mode(rec["seq"], f_before)
+        self._version += 1
+        self._model_version = self._version
+        self._snapshot()
+        return rec["seq"]
 
     def undo(self) -> SessionAnswer:
-        """Withdraw the last answer in force (an ``undo`` record is appended; the model is rebuilt
-        from the remaining answers) and return it.
+        """Withdraw the last answer in force (an ``undo`` record is appended; the model goes back
+        to its data before that answer, no replay) and return it.
 
         Raises:
             ValueError: nothing to undo.
+            SessionForkError, SessionReadOnlyError, SessionFileGone: the undo cannot be saved.
         """
-        active = self._active
-        if not active:
-            raise ValueError("nothing to undo: no answers in force.")
-        undone = self.history[-1]
-        model = self._replay(active[:-1])
-        self._append({"type": "undo", "v": FORMAT_VERSION, "seq": self._next_seq, "time": now(), "undoes": undone.seq})
-        self._model, self._model_seqs = model, tuple(r["seq"] for r in active[:-1])
-        return undone
-
-
-def _seconds(value) -> float | None:
-    """A response time as float seconds (``None`` stays ``None``).
-
-    Raises:
-        ValueError: not a finite real number >= 0 (a bool or text included), naming it.
-    """
-    if value is None:
-        return None
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-    if not ok and isinstance(value, Tensor) and value.numel() == 1 and not value.dtype.is_complex:
-        value, ok = value.item(), value.dtype != torch.bool
-    if not ok or not math.isfinite(float(value)) or float(value) < 0:
-        raise ValueError(f"response_time must be None or a finite number of seconds >= 0, got {value!r:.80}.")
-    return float(value)
+        with self._guarded():
+            self._journal.check_writable()
+            last = self._last_in_force()
+            if last is None:
+                raise ValueError("nothing to undo: no answers in force.")
+            undone = SessionAnswer.from_record(last)
+            model = self.model
+            before = self._sizes.get(last["seq"])
+            saved = Saved(model)
+            self._model_version = -1
+            try:
+                if before is not None:
+                    truncate(model, before, self._modes.get(last["seq"]))
+                self._journal.append(
+                    {
+                        "type": "undo",
+                        "v": FORMAT_VERSION,
+                        "seq": self._journal.last_seq + 1,
+                        "time": now(),
+                        "undoes": undone.seq,
+                    }
+                )
+            except BaseException:
+                saved.restore()
+                self._model_version = self._version
+                raise
+            self._sizes.pop(last["seq"], None)
+            f = self._modes.pop(last["seq"], None)
+            self._mode_floats -= 0 if f is None else f.numel()
+            self._version += 1
+            if before is not None:
+                self._model_version = self._version  # else rebuilt at its next use
+                self._snapshot()
+            return undone

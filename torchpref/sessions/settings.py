@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 from typing import Any
 from collections.abc import Sequence
@@ -29,6 +30,7 @@ __all__ = [
     "SessionAnswer",
     "SessionSettings",
     "as_items",
+    "as_seconds",
     "default_ranking_size",
     "default_session_model",
     "step_generator",
@@ -293,3 +295,19 @@ class SessionSettings:
                     str(theirs),
                     str(mine),
                 )
+
+
+def as_seconds(value) -> float | None:
+    """A response time as float seconds (``None`` stays ``None``).
+
+    Raises:
+        ValueError: not a finite real number >= 0 (a bool or text included), naming it.
+    """
+    if value is None:
+        return None
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not ok and isinstance(value, Tensor) and value.numel() == 1 and not value.dtype.is_complex:
+        value, ok = value.item(), value.dtype != torch.bool
+    if not ok or not math.isfinite(float(value)) or float(value) < 0:
+        raise ValueError(f"response_time must be None or a finite number of seconds >= 0, got {value!r:.80}.")
+    return float(value)

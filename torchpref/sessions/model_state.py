@@ -1,0 +1,314 @@
+r"""A session's model as a cache of its answers, kept at constant cost per answer.
+
+* :func:`build_data`: the :class:`~torchpref.data.preference_data.PreferenceData` of the answers in
+  force in one vectorised pass, equal (``torch.equal``, every field) to what feeding them one by
+  one through :func:`~torchpref.data.queries.record_answer` builds, with the data's sizes before
+  each answer (so that it can be undone later without a replay).
+* :func:`truncate`: the model taken back to its data before an answer (the data are appended in
+  order, so the earlier model's data are a prefix), its mode warm-started from the current one.
+* :class:`Saved`: the model's data and posterior cache before an update, put back exactly if the
+  update or the record's write fails.
+* :func:`write_snapshot` / :func:`read_snapshot`: the posterior mode after the latest record, kept
+  beside the file (``FILE.mode``): a resume starts Newton there and replays only the answers
+  after it, so that it is the interrupted process's posterior (to round-off) at constant cost.
+
+Replay through ``record_answer`` stays the reference (``tests/test_session_scale.py`` checks the
+two agree to Newton's tolerance, and give the same next query).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchpref.data.preference_data import PreferenceData, unit_to_likert
+from torchpref.data.queries import RankingQuery, RatingQuery, record_answer
+from torchpref.models.preference_gp import PreferenceGP
+
+__all__ = [
+    "MODE_MEMORY",
+    "ModelCache",
+    "REPLAY_LIMIT",
+    "Saved",
+    "Sizes",
+    "build_data",
+    "header_digest",
+    "mode",
+    "read_snapshot",
+    "sizes",
+    "snapshot_path",
+    "truncate",
+    "write_snapshot",
+]
+
+
+class Sizes(NamedTuple):
+    """The numbers of items, comparisons, ratings and ties of a model's data."""
+
+    items: int
+    comparisons: int
+    ratings: int
+    ties: int
+
+
+def sizes(data: PreferenceData) -> Sizes:
+    """The sizes of ``data``."""
+    return Sizes(data.n, data.comparisons.shape[0], data.ratings.shape[0], data.ties.shape[0])
+
+
+def _unique_in_order(Z: Tensor) -> tuple[Tensor, Tensor]:
+    """``(first, index)``: the row of each distinct item's first occurrence in ``Z``, in order of
+    first occurrence, and each row's item number (rows with equal coordinates share one)."""
+    u, inverse = torch.unique(Z, dim=0, return_inverse=True)
+    rows = torch.arange(Z.shape[0])
+    first = torch.full((u.shape[0],), Z.shape[0], dtype=torch.long).scatter_reduce(0, inverse, rows, "amin")
+    order = first.argsort()
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(order.numel())
+    return first[order], rank[inverse]
+
+
+def build_data(
+    anchor: Tensor, records: list[dict], transform, rating_eps: float, rating_levels: int | None
+) -> tuple[PreferenceData, list[Sizes]]:
+    """The data of a model built on ``anchor`` (``1 x d``) that was told the answer ``records``
+    (in force, oldest first; items mapped by ``transform``), and its sizes before each.
+
+    Items are numbered in order of first appearance (an item seen before reuses its number, as
+    :meth:`~torchpref.data.preference_data.PreferenceData.add` does); a choice of row ``j`` of
+    ``m`` is the comparisons ``[j, i]`` for ``i != j`` in order; no preference the ties of every
+    two rows in order; a rating the record's value (its level, for an ordinal model).
+    """
+    rows: list[list[float]] = []
+    comparisons: list[list[int]] = []
+    ties: list[list[int]] = []
+    values: list[float] = []
+    rated: list[int] = []
+    ends: list[tuple[int, int, int, int]] = []  # after each record: rows, comparisons, ratings, ties
+    pos = 1  # row 0 is the anchor
+    for rec in records:
+        items = rec["items"]
+        m = len(items)
+        rows.extend(items)
+        kind = rec["kind"]
+        if kind == "rating":
+            values.append(rec["value"])
+            rated.append(pos)
+        elif kind == "choice":
+            j = rec["answer"]
+            comparisons.extend([pos + j, pos + i] for i in range(m) if i != j)
+        else:
+            ties.extend([pos + a, pos + b] for a in range(m) for b in range(a + 1, m))
+        pos += m
+        ends.append((pos, len(comparisons), len(values), len(ties)))
+    new = transform(torch.tensor(rows, dtype=torch.float64)) if rows else anchor[:0]
+    Z = torch.cat([anchor, new.to(anchor)])
+    first, index = _unique_in_order(Z)
+    C = index[torch.tensor(comparisons, dtype=torch.long).reshape(-1, 2)]
+    T = index[torch.tensor(ties, dtype=torch.long).reshape(-1, 2)]
+    R = torch.tensor(values, dtype=torch.float64)
+    data = PreferenceData.create(
+        Z[first],
+        C,
+        R if rating_levels is None else unit_to_likert(R, rating_levels),
+        index[torch.tensor(rated, dtype=torch.long)],
+        rating_eps=rating_eps,
+        ties=T,
+        rating_levels=rating_levels,
+    )
+    # items before each record: the distinct items first seen in the rows before it
+    if not records:
+        return data, []
+    starts = torch.tensor([1] + [e[0] for e in ends[:-1]], dtype=torch.long)
+    n_before = torch.searchsorted(first, starts).tolist()
+    before = [(0, 0, 0)] + [e[1:] for e in ends[:-1]]
+    return data, [Sizes(n, c, r, t) for n, (c, r, t) in zip(n_before, before, strict=True)]
+
+
+def mode(model: PreferenceGP) -> Tensor:
+    """The model's current posterior mode ``f`` (``n``), solving it if need be."""
+    return model._state().mode.f[0].detach()
+
+
+def truncate(model: PreferenceGP, before: Sizes, f: Tensor | None = None) -> None:
+    """Take ``model`` back to its data of sizes ``before`` (a prefix of its data), the mode
+    started from ``f`` (the mode it had then: Newton stops at once, and the model is bitwise the
+    earlier one) or else from the current mode's first entries; on failure the model is as it was."""
+    d = model.data
+    n, p, r, t = before
+    prefix = PreferenceData(
+        d.train_X[:n], d.comparisons[:p], d.ratings[:r], d.rating_index[:r], d.ties[:t], d.rating_levels
+    )
+    model._set_data(prefix, mode(model)[:n] if f is None else f)
+
+
+class Saved:
+    """A model's data and posterior cache, to put back exactly after a failed update."""
+
+    def __init__(self, model: PreferenceGP):
+        self.model = model
+        self.state = (model._data, model._cache, model._warm_f)
+
+    def restore(self) -> None:
+        """Put the saved data and cache back (no computation)."""
+        m = self.model
+        m._data, m._cache, m._warm_f = self.state
+        m._fit_input_transform()
+
+
+SNAPSHOT_FORMAT = "torchpref-session-mode"
+
+
+def snapshot_path(path: Path) -> Path:
+    """``FILE.mode`` beside the session file (shortened where the name would be too long)."""
+    name = os.fsencode(path.name) + b".mode"
+    if len(name) > 255:
+        name = (
+            os.fsencode(path.name)[:200]
+            + b"~"
+            + hashlib.sha256(os.fsencode(path.name)).hexdigest()[:8].encode()
+            + b".mode"
+        )
+    return path.parent / os.fsdecode(name)
+
+
+def header_digest(header: dict) -> str:
+    """A short fingerprint of a session file's header (which file a snapshot belongs to)."""
+    return hashlib.sha256(json.dumps(header, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def write_snapshot(path: Path, meta: dict, f: Tensor) -> None:
+    """Write the model's mode after the record ``meta["seq"]`` beside the session file: a JSON line
+    and the mode's float64 bytes, replaced atomically, not fsynced (it only speeds up a resume;
+    a missing, stale or damaged snapshot is ignored). Errors are ignored for the same reason."""
+    target = snapshot_path(path)
+    tmp = target.with_name(target.name + ".tmp")
+    meta = dict(meta, format=SNAPSHOT_FORMAT, version=1, n=int(f.numel()))
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(json.dumps(meta).encode() + b"\n")
+            fh.write(f.detach().to(torch.float64).contiguous().numpy().astype("<f8").tobytes())
+        os.replace(tmp, target)
+    except (OSError, ValueError):
+        pass
+
+
+def read_snapshot(path: Path) -> tuple[dict, Tensor] | None:
+    """The snapshot beside the session file ``path``, or ``None`` if there is none usable."""
+    try:
+        with open(snapshot_path(path), "rb") as fh:
+            line = fh.readline(4096)
+            meta = json.loads(line)
+            n = int(meta["n"])
+            if meta.get("format") != SNAPSHOT_FORMAT or not 0 < n <= 10**8:
+                return None
+            raw = fh.read(8 * n + 1)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if len(raw) != 8 * n:
+        return None
+    f = torch.frombuffer(bytearray(raw), dtype=torch.float64).clone()
+    if not torch.isfinite(f).all():
+        return None
+    return meta, f
+
+
+REPLAY_LIMIT = 16
+"""At most this many answers after the file's mode snapshot are replayed on resuming; more (a
+snapshot left behind by a crash long ago) and the data are built in one pass instead."""
+
+MODE_MEMORY = 4_000_000
+"""How many floats of earlier posterior modes a session keeps for exact undos (32 MB in float64:
+some 40,000 answers' worth on a pool of 100 items); an older answer's undo starts Newton from the
+current mode instead (the posterior then agrees to Newton's tolerance)."""
+
+
+class ModelCache:
+    """The model side of :class:`~torchpref.sessions.session.PreferenceSession`: building the model
+    of the answers in force (from the mode snapshot where there is one), the reference replay, and
+    the earlier modes kept for exact undos. Relies on the session's ``_journal``, ``_anchor``,
+    ``transform``, ``_new_model``, ``num_levels``, ``path`` and ``_digest``."""
+
+    def _model_query(self, kind: str, items: Tensor):
+        """A query of ``kind`` (``"rating"`` or not) on ``items`` (``m x d``), in the model's coordinates."""
+        Z = self.transform(items)
+        return RatingQuery(Z[0]) if kind == "rating" else RankingQuery(Z)
+
+    def _replay(self, records: list[dict]) -> PreferenceGP:
+        """The reference: a new model told ``records`` one by one through ``record_answer``."""
+        model = self._new_model()
+        for rec in records:
+            query = self._model_query(rec["kind"], torch.tensor(rec["items"], dtype=torch.float64))
+            record_answer(model, query, rec["answer"], num_levels=self.num_levels)
+        return model
+
+    def _build(self) -> PreferenceGP:
+        """A new model of the answers in force: the data of those the file's mode snapshot covers
+        built in one pass, Newton started from the snapshot's mode, and the few answers after it
+        replayed through the live path; without a usable snapshot, every answer's data in one pass
+        and the mode solved once (the same data as :meth:`_replay`'s; the mode to Newton's tolerance)."""
+        model = self._new_model()
+        records = self._active
+        d = model.data
+        self._sizes, self._modes, self._mode_floats = {}, {}, 0
+        if not records or not (d.n == 1 and d.num_observations == 0 and model.batch_shape == torch.Size([])):
+            return self._replay(records) if records else model
+        k, f = self._snapshot_start(records)
+        data, before = build_data(self._anchor, records[:k], self.transform, model.rating_eps, model.rating_levels)
+        model._set_data(data, f if f is not None and f.numel() == data.n else None)
+        self._sizes = {r["seq"]: b for r, b in zip(records[:k], before, strict=True)}
+        for rec in records[k:]:  # after the snapshot: through the live path, as they were told
+            b, fb = sizes(model.data), mode(model)
+            query = self._model_query(rec["kind"], torch.tensor(rec["items"], dtype=torch.float64))
+            record_answer(model, query, rec["answer"], num_levels=self.num_levels)
+            self._sizes[rec["seq"]] = b
+            self._keep_mode(rec["seq"], fb)
+        return model
+
+    def _snapshot_start(self, records: list[dict]) -> tuple[int, Tensor | None]:
+        """``(k, f)``: the file's mode snapshot covers the first ``k`` answers in force, with mode
+        ``f``; ``(len(records), None)`` where there is no usable snapshot."""
+        none = (len(records), None)
+        snap = read_snapshot(self.path) if self.path is not None else None
+        if snap is None or snap[0].get("header") != self._digest:
+            return none
+        meta, f = snap
+        later, all_records = 0, self._journal.records
+        for rec in reversed(all_records):  # the records after the snapshot: answers only, a few
+            if rec["seq"] <= meta.get("seq", -1):
+                break
+            if rec["type"] != "answer" or later == REPLAY_LIMIT:
+                return none
+            later += 1
+        at = len(all_records) - later - 1
+        stamp = all_records[at]["time"] if at >= 0 else None
+        k = len(records) - later
+        if meta.get("in_force") != k or meta.get("time") != stamp or (at < 0 and meta.get("seq") != 0):
+            return none
+        return k, f
+
+    def _snapshot(self) -> None:
+        """Keep the current mode beside the file (a resume starts there)."""
+        if self.path is not None and not self._journal.read_only and self._model is not None:
+            last = self._journal.records[-1] if self._journal.records else None
+            meta = {
+                "seq": last["seq"] if last else 0,
+                "time": last["time"] if last else None,
+                "in_force": len(self._journal.in_force),
+                "header": self._digest,
+            }
+            write_snapshot(self.path, meta, mode(self._model))
+
+    def _keep_mode(self, seq: int, f: Tensor) -> None:
+        """Keep the mode before answer ``seq`` for its undo, forgetting the oldest beyond MODE_MEMORY floats."""
+        self._modes[seq] = f
+        self._mode_floats += f.numel()
+        while self._mode_floats > MODE_MEMORY and len(self._modes) > 1:
+            oldest = next(iter(self._modes))
+            self._mode_floats -= self._modes.pop(oldest).numel()
