@@ -16,6 +16,7 @@ from torchpref.version import __version__
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.acquisition.functions import QueryInformation, QueryUCB, latent_ucb
+    from torchpref.frontends.serve import serve
     from torchpref.selection.active import (
         History,
         QueryRecord,
@@ -34,7 +35,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         prepare_ratings,
         unit_to_likert,
     )
-    from torchpref.models.pairwise_interface import TrainDataMismatchError
+    from torchpref.models.pairwise_interface import TrainDataMismatchError, UnsupportedLikelihoodError
     from torchpref.inference.laplace import LaplaceConvergenceWarning
     from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
     from torchpref.likelihoods.person import LapseProbitLikelihood, PersonRatingLikelihood
@@ -107,6 +108,7 @@ _EXPORTS = {
     "OrdinalRatingLikelihood": "likelihoods.ordinal",
     "PAPER_FIG4_SETTINGS": "models.preference_gp",
     "TrainDataMismatchError": "models.pairwise_interface",
+    "UnsupportedLikelihoodError": "models.pairwise_interface",
     "PairwiseProbitLikelihood": "likelihoods.pairwise_beta",
     "PreferenceData": "data.preference_data",
     "PreferenceGP": "models.preference_gp",
@@ -125,6 +127,7 @@ _EXPORTS = {
     "RatingQuery": "data.queries",
     "run_active_learning": "selection.active",
     "run_active_learning_batch": "selection.active",
+    "serve": "frontends.serve",
     "SimulatedUser": "simulation.users",
     "StrictPreferenceLikelihood": "likelihoods.ordinal",
     "TieLikelihood": "likelihoods.ordinal",

@@ -222,7 +222,7 @@ def load_model(
         )
     _check_fits(model, ck["state_dict"], where)
     try:
-        model.load_state_dict(ck["state_dict"])
+        model.load_state_dict(ck["state_dict"], strict=True)
     except RuntimeError as err:  # a shape that does not fit
         raise CheckpointError(
             f"{where}: the saved hyperparameters do not fit this kernel / input transform: {' '.join(str(err).split())}"
