@@ -24,7 +24,37 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m pytest benchmarks/ --benchmark-only -q
 
-clean:
-	rm -rf $(VENV)
+# Issue 21: the dependency floors and the Ax / BoFire integrations, each in a venv of its own
+# (Ax and BoFire pin their own botorch; neither is installed in .venv).
+# `make test-floor`: the oldest supported botorch / gpytorch / linear_operator / numpy / scipy /
+# tqdm (requirements-floor.txt) with torch 2.13.0; the model and BoTorch tests.
+test-floor:
+	$(PY) -m venv .venv-floor
+	.venv-floor/bin/pip install --quiet "torch==2.13.0"
+	.venv-floor/bin/pip install --quiet -e . pytest scipy -c requirements-floor.txt
+	.venv-floor/bin/python -m pytest -q tests/test_pairwise_contract.py tests/test_models.py tests/test_botorch_port_model.py tests/test_botorch_port_acquisition.py tests/test_botorch_fit.py tests/test_laplace.py
 
-.PHONY: venv demo test bench clean
+# `make upstream-tests`: BoFire's own tests, from its sdist (Ax ships its tests in its wheel).
+upstream-tests:
+	mkdir -p .cache/upstream
+	test -f .cache/upstream/bofire-0.5.0/tests/bofire/surrogates/test_pairwise_gp.py || ( \
+	  .venv-bofire/bin/pip download --quiet --no-deps --no-binary :all: bofire==0.5.0 -d .cache/upstream && \
+	  tar xzf .cache/upstream/bofire-0.5.0.tar.gz -C .cache/upstream bofire-0.5.0/tests )
+
+# `make test-integrations`: torchpref[ax] and torchpref[bofire], each with the library's own tests
+# of its preference path run with PreferenceGP (tests/test_upstream_suites.py).
+test-integrations:
+	$(PY) -m venv .venv-ax
+	.venv-ax/bin/pip install --quiet "torch==2.13.0"
+	.venv-ax/bin/pip install --quiet -e ".[ax]" pytest scipy pyfakefs
+	.venv-ax/bin/python -m pytest -q -rs tests/test_ax_integration.py tests/test_upstream_suites.py -k "not bofire"
+	$(PY) -m venv .venv-bofire
+	.venv-bofire/bin/pip install --quiet "torch==2.13.0"
+	.venv-bofire/bin/pip install --quiet -e ".[bofire]" pytest scipy
+	$(MAKE) upstream-tests
+	.venv-bofire/bin/python -m pytest -q -rs tests/test_bofire_integration.py tests/test_upstream_suites.py -k "not ax_"
+
+clean:
+	rm -rf $(VENV) .venv-floor .venv-ax .venv-bofire .cache/upstream
+
+.PHONY: venv demo test bench clean test-floor upstream-tests test-integrations

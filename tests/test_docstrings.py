@@ -27,7 +27,18 @@ def _public_modules() -> list:
         for m in pkgutil.walk_packages(torchpref.__path__, "torchpref.")
         if not any(part.startswith("_") for part in m.name.split("."))
     ]
-    return [importlib.import_module(n) for n in sorted(names) if n not in SKIP_MODULES]
+    return [m for n in sorted(names) if n not in SKIP_MODULES and (m := _import(n)) is not None]
+
+
+def _import(name: str):
+    """The module, or ``None`` for an integration whose optional extra is not installed (its
+    ImportError names the extra, ``pip install 'torchpref[...]'``)."""
+    try:
+        return importlib.import_module(name)
+    except ImportError as err:
+        if name.startswith("torchpref.integrations.") and "torchpref[" in str(err):
+            return None
+        raise
 
 
 def _public_objects(module) -> list[tuple[str, object]]:

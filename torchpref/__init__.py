@@ -34,7 +34,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         prepare_ratings,
         unit_to_likert,
     )
-    from torchpref.models.pairwise_interface import TrainDataMismatchError
+    from torchpref.models.pairwise_interface import TrainDataMismatchError, UnsupportedLikelihoodError
     from torchpref.inference.laplace import LaplaceConvergenceWarning
     from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
     from torchpref.likelihoods.person import LapseProbitLikelihood, PersonRatingLikelihood
@@ -106,6 +106,7 @@ _EXPORTS = {
     "OrdinalRatingLikelihood": "likelihoods.ordinal",
     "PAPER_FIG4_SETTINGS": "models.preference_gp",
     "TrainDataMismatchError": "models.pairwise_interface",
+    "UnsupportedLikelihoodError": "models.pairwise_interface",
     "PairwiseProbitLikelihood": "likelihoods.pairwise_beta",
     "PreferenceData": "data.preference_data",
     "PreferenceGP": "models.preference_gp",

@@ -70,7 +70,7 @@ def summarise(
         }
         queries = len(trials[0][strategies[0]]["wrms"]) - 1
         points = [("queries", float(q)) for q in checkpoints if q <= queries]
-        points += [("effort", b) for b in budgets if b <= max_budget]
+        points += [("effort", b) for b in budgets if b <= max_budget + 1e-9]  # as at_budgets: sums of seconds round
         out["verdicts"][key] = {
             f"{axis} {x:g}": {m: verdicts(trials, strategies, m, axis, x) for m in metrics} for axis, x in points
         }

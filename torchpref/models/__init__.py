@@ -10,7 +10,7 @@ from torchpref.models.preference_gp import (
 )
 from torchpref.models.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
 from torchpref.models.batch import BatchedPreferenceGP
-from torchpref.models.pairwise_interface import TrainDataMismatchError
+from torchpref.models.pairwise_interface import TrainDataMismatchError, UnsupportedLikelihoodError
 from torchpref.models.kernels import FixedRBFKernel, fixed_rbf_kernel
 from torchpref.models.calibration import calibrate_person, fit_person
 
@@ -22,6 +22,7 @@ __all__ = [
     'PAPER_FIG4_SETTINGS',
     'PreferenceGP',
     'TrainDataMismatchError',
+    'UnsupportedLikelihoodError',
     'calibrate_person',
     'default_covar_module',
     'fixed_rbf_kernel',

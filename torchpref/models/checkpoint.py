@@ -150,7 +150,7 @@ def load_model(
             f"unexpected {unexpected}; pass covar_module / input_transform like the saved ones."
         )
     try:
-        model.load_state_dict(ck["state_dict"])
+        model.load_state_dict(ck["state_dict"], strict=True)
     except RuntimeError as err:  # a shape that does not fit
         raise CheckpointError(
             f"{where}: the saved hyperparameters do not fit this kernel / input transform: {' '.join(str(err).split())}"

@@ -133,7 +133,7 @@ class ModelData:
 
     def _transformed_train_X(self) -> Tensor:
         tf = getattr(self, "input_transform", None)
-        if tf is None:
+        if tf is None or self.train_X.shape[-1] == 0:  # a prior-only model's 0 x 0 items: d not known yet
             return self.train_X
         was_training = tf.training
         tf.eval()  # bounds were learned from train_X when the data was set

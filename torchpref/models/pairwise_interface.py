@@ -34,6 +34,67 @@ class TrainDataMismatchError(ValueError, RuntimeError):
     """
 
 
+class UnsupportedLikelihoodError(ValueError, UnsupportedError):
+    """A ``likelihood=`` that :class:`~torchpref.models.preference_gp.PreferenceGP` cannot score
+    comparisons with (BoTorch's ``PairwiseLogitLikelihood``, say): a ``ValueError`` that is also
+    BoTorch's ``UnsupportedError``."""
+
+
+def pairwise_alias(train_X: Tensor | None, datapoints: Tensor | None) -> Tensor | None:
+    """The items, given as ``train_X`` (first argument) or as ``datapoints=`` (``PairwiseGP``'s name)."""
+    if datapoints is None:
+        return train_X
+    if train_X is not None:
+        raise ValueError(
+            "give the items once: train_X (the first argument) and datapoints= (PairwiseGP's name for it) "
+            "are the same argument; got both."
+        )
+    return datapoints
+
+
+def pairwise_likelihood_noise(likelihood: Any, comparison_noise: float | None) -> float:
+    r"""``comparison_noise`` (``sigma_R``) for ``PairwiseGP``'s ``likelihood=``.
+
+    BoTorch's ``PairwiseProbitLikelihood`` is ``Phi((f_i - f_j) / sqrt 2)``: eq. 3 with
+    ``sigma_R = 1``; torchpref's :class:`~torchpref.likelihoods.pairwise_beta.PairwiseProbitLikelihood`
+    gives its own ``sigma_R``. ``None`` leaves ``comparison_noise`` (default 1.0).
+
+    Raises:
+        UnsupportedLikelihoodError: any other likelihood (``PairwiseLogitLikelihood`` among them:
+            the logistic link is not implemented).
+        ValueError: a likelihood together with a different ``comparison_noise``.
+    """
+    from botorch.models.likelihoods.pairwise import PairwiseProbitLikelihood as BoTorchProbit
+
+    from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
+
+    if likelihood is None:
+        return 1.0 if comparison_noise is None else comparison_noise
+    if isinstance(likelihood, BoTorchProbit):
+        implied = 1.0
+    elif isinstance(likelihood, PairwiseProbitLikelihood):
+        implied = float(likelihood.comparison_noise.detach().reshape(-1)[0])
+    else:
+        raise UnsupportedLikelihoodError(
+            f"likelihood={type(likelihood).__name__} is not supported by PreferenceGP: comparisons are scored "
+            "with the probit of eq. 3 (BoTorch's PairwiseProbitLikelihood, or torchpref.PairwiseProbitLikelihood "
+            "for another comparison_noise); a logistic link is not implemented."
+        )
+    if comparison_noise is not None and float(comparison_noise) != implied:
+        raise ValueError(
+            f"likelihood={type(likelihood).__name__} means comparison_noise={implied:g}, but comparison_noise="
+            f"{comparison_noise!r} was given too: give one of them."
+        )
+    return implied
+
+
+def check_jitter(jitter: float | None) -> None:
+    """``PairwiseGP``'s ``jitter=``, accepted and not used: a kernel matrix is jittered only when
+    its Cholesky factorisation fails, by an amount relative to its diagonal and dtype."""
+    if jitter is not None and not (isinstance(jitter, (int, float)) and not isinstance(jitter, bool) and jitter >= 0):
+        raise ValueError(f"jitter must be a number >= 0 (it is accepted for PairwiseGP's signature), got {jitter!r}.")
+
+
 def prior_only_data(dtype: torch.dtype = torch.float64, device: torch.device | None = None) -> PreferenceData:
     """No items, no observations and no known input dimension: BoTorch's prior-only model."""
     empty = torch.zeros(0, dtype=torch.long, device=device)
@@ -115,6 +176,22 @@ class PairwiseGPInterface:
         if [int(i) for i in idcs] not in ([0], [-1]):
             raise ValueError(f"PreferenceGP has one output (index 0); got output indices {list(idcs)}.")
         return copy.deepcopy(self)
+
+    def load_state_dict(self, state_dict: dict[str, Any], strict: bool = False, assign: bool = False):
+        r"""Load hyperparameters; **non-strict by default**, as ``PairwiseGP.load_state_dict``.
+
+        A state dict holds hyperparameters (kernel, likelihoods, input transform), never the data.
+        With ``strict=False`` a key the model does not have is ignored (listed in the result's
+        ``unexpected_keys``) and a parameter the dict lacks keeps its current value (listed in
+        ``missing_keys``): an empty dict, as BoTorch's and Ax's cross-validation load, changes
+        nothing. A value of the wrong shape raises, as in PyTorch. ``strict=True`` (which
+        ``PairwiseGP`` refuses) requires exactly the model's keys. The posterior follows the new
+        values at the next call (its cache is keyed on every parameter).
+
+        Returns:
+            PyTorch's ``_IncompatibleKeys`` (``missing_keys``, ``unexpected_keys``).
+        """
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     # ------------------------------------------------------------------ data
     def set_train_data(

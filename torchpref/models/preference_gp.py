@@ -23,7 +23,14 @@ from gpytorch.module import Module as GModule
 from linear_operator.operators import DenseLinearOperator, LinearOperator
 from torch import Tensor
 
-from torchpref.models.pairwise_interface import PairwiseGPInterface, TrainDataMismatchError, prior_only_data
+from torchpref.models.pairwise_interface import (
+    PairwiseGPInterface,
+    TrainDataMismatchError,
+    check_jitter,
+    pairwise_alias,
+    pairwise_likelihood_noise,
+    prior_only_data,
+)
 from torchpref.data.preference_data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.models.fantasy import fantasize
 from torchpref.inference.laplace import ModeResult, laplace_evidence
@@ -98,7 +105,18 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         ratings: ``q`` values in ``[0, 1]``; exact 0 and 1 are moved in to ``rating_eps``.
         rating_index: ``q`` long indices into ``train_X``: the item each rating rates.
         covar_module: the kernel; default :func:`default_covar_module`.
-        comparison_noise: ``sigma_R`` of eq. 3 (default 1.0: BoTorch's ``PairwiseGP`` probit
+        input_transform: a BoTorch input transform (e.g. ``Normalize``), applied to ``train_X``
+            and to every input of :meth:`posterior` (positional here as in ``PairwiseGP``). A
+            prior-only model takes one too; its bounds are learned from the first data.
+        datapoints: ``PairwiseGP``'s name for ``train_X`` (give one of them).
+        likelihood: ``PairwiseGP``'s argument: BoTorch's ``PairwiseProbitLikelihood`` (eq. 3 with
+            ``sigma_R = 1``, the default) or torchpref's
+            :class:`~torchpref.likelihoods.pairwise_beta.PairwiseProbitLikelihood` (its ``sigma_R``);
+            any other (``PairwiseLogitLikelihood``) raises
+            :class:`~torchpref.models.pairwise_interface.UnsupportedLikelihoodError`.
+        jitter: ``PairwiseGP``'s argument, accepted and not used: a kernel matrix is jittered only
+            when its Cholesky factorisation fails, relative to its diagonal and dtype.
+        comparison_noise: ``sigma_R`` of eq. 3 (default 1.0, or ``likelihood``'s: BoTorch's ``PairwiseGP`` probit
             ``Phi((f_i - f_j) / sqrt 2)``, which keeps EUBO-style loops from re-asking compared
             pairs; the paper's Fig. 4 used 0.1, see :data:`PAPER_FIG4_SETTINGS`).
         rating_scale: ``sigma_B`` of eq. 7 (default 1.0, as Fig. 4).
@@ -106,8 +124,6 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         learn_likelihood: make the three likelihood parameters trainable (default: fixed, as in
             the paper; with comparisons only, ``comparison_noise`` and the outputscale are not
             separately identifiable).
-        input_transform: a BoTorch input transform (e.g. ``Normalize``), applied to ``train_X``
-            and to every input of :meth:`posterior`.
         rating_eps: where exact 0 / 1 ratings are moved to.
         max_newton_iter: iteration budget of the mode finder (at least 1).
         ties: ``t x 2`` long, rows ``[i, j]``: "no preference" between items ``i`` and ``j``
@@ -142,17 +158,20 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
 
     def __init__(
         self,
-        train_X: Tensor | None,
+        train_X: Tensor | None = None,
         comparisons: Tensor | None = None,
         ratings: Tensor | None = None,
         rating_index: Tensor | None = None,
         covar_module: Kernel | None = None,
+        input_transform: InputTransform | None = None,
         *,
-        comparison_noise: float = 1.0,
+        datapoints: Tensor | None = None,
+        likelihood: Any = None,
+        jitter: float | None = None,
+        comparison_noise: float | None = None,
         rating_scale: float = 1.0,
         rating_precision: float = 80.0,
         learn_likelihood: bool = False,
-        input_transform: InputTransform | None = None,
         rating_eps: float = DEFAULT_RATING_EPS,
         max_newton_iter: int = 100,
         ties: Tensor | None = None,
@@ -165,6 +184,9 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
     ) -> None:
         super().__init__()
         weak_load_hook(self)
+        train_X = pairwise_alias(train_X, datapoints)
+        comparison_noise = pairwise_likelihood_noise(likelihood, comparison_noise)
+        check_jitter(jitter)
         data = _initial_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
         X = data.train_X if isinstance(data, PreferenceData) else data.X
         _warn_dtype(X.dtype)
@@ -425,9 +447,32 @@ def _priors(root: torch.nn.Module):
 
 class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
     r"""Laplace evidence of a :class:`PreferenceGP` plus the log densities of its hyperparameter
-    priors; works with ``botorch.fit.fit_gpytorch_mll``."""
+    priors; works with ``botorch.fit.fit_gpytorch_mll``.
 
-    def __init__(self, model: PreferenceGP):
+    Built as ``LaplaceMarginalLogLikelihood(model)``, or as GPyTorch's MLLs are,
+    ``LaplaceMarginalLogLikelihood(likelihood, model)`` (also by keyword, as Ax and BoFire build
+    ``PairwiseLaplaceMarginalLogLikelihood``): the likelihood must then be ``model.likelihood``
+    (or ``None``), since the evidence is that of the model's own likelihoods.
+
+    Raises:
+        ValueError: no model, a model that is not a :class:`PreferenceGP`, or a likelihood other
+            than the model's.
+    """
+
+    def __init__(self, likelihood: Any = None, model: PreferenceGP | None = None):
+        if model is None and isinstance(likelihood, PreferenceGP):  # the one-argument form
+            likelihood, model = None, likelihood
+        if not isinstance(model, PreferenceGP):
+            raise ValueError(
+                f"LaplaceMarginalLogLikelihood needs a PreferenceGP, as LaplaceMarginalLogLikelihood(model) or "
+                f"(likelihood, model); got model={type(model).__name__}."
+            )
+        if likelihood is not None and likelihood is not model.likelihood:
+            raise ValueError(
+                f"the likelihood must be the model's own (model.likelihood) or None, got a "
+                f"{type(likelihood).__name__}: the evidence is of the likelihoods the model was built with "
+                "(pass likelihood= or comparison_noise= to PreferenceGP)."
+            )
         super().__init__(model.likelihood, model)
         weak_load_hook(self)
 

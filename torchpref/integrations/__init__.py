@@ -1,0 +1,10 @@
+"""Integrations with other libraries' optimisation loops (the top stage: nothing imports it).
+
+Each is an optional extra and is imported only by name, never by ``import torchpref``:
+
+* :mod:`torchpref.integrations.ax`: ``PreferenceGP`` inside Ax (``pip install 'torchpref[ax]'``);
+* :mod:`torchpref.integrations.bofire`: a ``PreferenceGP`` surrogate for BoFire
+  (``pip install 'torchpref[bofire]'``).
+
+See docs/ax.md.
+"""
