@@ -16,6 +16,7 @@ from torchpref.version import __version__
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.acquisition.functions import QueryInformation, QueryUCB, latent_ucb
+    from torchpref.frontends.serve import serve
     from torchpref.selection.active import (
         History,
         QueryRecord,
@@ -125,6 +126,7 @@ _EXPORTS = {
     "RatingQuery": "data.queries",
     "run_active_learning": "selection.active",
     "run_active_learning_batch": "selection.active",
+    "serve": "frontends.serve",
     "SimulatedUser": "simulation.users",
     "StrictPreferenceLikelihood": "likelihoods.ordinal",
     "TieLikelihood": "likelihoods.ordinal",
