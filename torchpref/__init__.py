@@ -16,6 +16,7 @@ from torchpref.version import __version__
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.acquisition.functions import QueryInformation, QueryUCB, latent_ucb
+    from torchpref.frontends.serve import serve
     from torchpref.selection.active import (
         History,
         QueryRecord,
@@ -54,7 +55,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         PreferenceGP,
         default_covar_module,
     )
-    from torchpref.inference.numerics import JitterWarning, NotPSDError
+    from torchpref.inference.numerics import JitterWarning, LaplaceNumericalError, NotPSDError
     from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
     from torchpref.data.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
     from torchpref.sessions.session import PreferenceSession
@@ -103,6 +104,7 @@ _EXPORTS = {
     "latent_ucb": "acquisition.functions",
     "likert_to_unit": "data.preference_data",
     "NotPSDError": "inference.numerics",
+    "LaplaceNumericalError": "inference.numerics",
     "OrdinalRatingLikelihood": "likelihoods.ordinal",
     "PAPER_FIG4_SETTINGS": "models.preference_gp",
     "TrainDataMismatchError": "models.pairwise_interface",
@@ -125,6 +127,7 @@ _EXPORTS = {
     "RatingQuery": "data.queries",
     "run_active_learning": "selection.active",
     "run_active_learning_batch": "selection.active",
+    "serve": "frontends.serve",
     "SimulatedUser": "simulation.users",
     "StrictPreferenceLikelihood": "likelihoods.ordinal",
     "TieLikelihood": "likelihoods.ordinal",

@@ -35,9 +35,11 @@ REPRODUCE = {
     "suite": "torchpref.experiments.suite",
 }
 ELICIT = "torchpref.frontends.elicit"
+SERVE = "torchpref.frontends.serve"
 NEEDS = {
     "reproduce": ("matplotlib",),  # every experiment writes figures
     "elicit lake": ("matplotlib",),  # each query shows the paths on the lake's map
+    "serve": ("starlette", "uvicorn", "jinja2", "matplotlib"),  # the web page and its plots
 }
 """Command (``"reproduce"``, or ``"elicit WORLD"``) -> the optional modules it needs, checked
 before any work starts (a missing one: one line naming the extra, exit status 3)."""
@@ -144,7 +146,27 @@ def build_parser() -> argparse.ArgumentParser:
         "--seed", type=int, default=None, help="seed of a new session (default 0; a resumed session keeps its own)"
     )
     el.add_argument("--out", default=".", help="where to write figures (default: current folder)")
+    _serve_parser(sub)
     return parser
+
+
+def _serve_parser(sub) -> None:
+    """``torchpref serve``'s arguments (docs/serve.md)."""
+    sv = sub.add_parser("serve", help="the answering page in a browser, one session per participant")
+    sv.add_argument("world", nargs="?", choices=["lake"], help="a built-in world to serve")
+    sv.add_argument("--features", help="CSV of items' objective values (as for elicit)")
+    sv.add_argument("--id", dest="id_column", metavar="COLUMN", help="the CSV column that names the items")
+    sv.add_argument("--image-column", metavar="COLUMN", help="the CSV column naming each item's image file")
+    sv.add_argument("--image-dir", metavar="DIR", help="the folder of the images (default: the CSV's folder)")
+    sv.add_argument("--sessions", default="torchpref-sessions", help="folder of the session files")
+    sv.add_argument("--queries", type=positive_int, default=14, help="questions per session (default 14)")
+    sv.add_argument("--levels", type=positive_int, default=5, help="rating levels 1..K (default 5)")
+    sv.add_argument("--no-ties", action="store_true", help="no 'no preference' button")
+    sv.add_argument("--seed", type=int, default=0, help="seed of new sessions (and of the lake; default 0)")
+    sv.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1 only)")
+    sv.add_argument("--port", type=int, default=8000, help="port (default 8000; 0: a free one)")
+    sv.add_argument("--allow-remote", action="store_true", help="allow --host other than this machine (needs a token)")
+    sv.add_argument("--token", help="the token a browser must give (made and printed for --allow-remote if not given)")
 
 
 def seconds_since_start() -> float:
@@ -256,6 +278,19 @@ def _elicit(args) -> int:
     return int(_import(ELICIT).run(args) or 0)
 
 
+def _serve(args) -> int:
+    if (args.world is None) == (args.features is None):
+        raise UsageError("give either a world (lake) or --features FILE")
+    if args.features is None and (args.image_column or args.image_dir or args.id_column):
+        raise UsageError("--id, --image-column and --image-dir are about the --features CSV")
+    if args.image_dir and not args.image_column:
+        raise UsageError("--image-dir needs --image-column")
+    if args.levels < 2:
+        raise UsageError(f"--levels must be at least 2, got {args.levels}")
+    writable_folder(args.sessions, "--sessions")
+    return int(_import(SERVE).run(args) or 0)
+
+
 def _missing_extra(args: argparse.Namespace) -> str | None:
     """The one-line message for an optional module the command needs and does not find, or ``None``."""
     from torchpref.extras import missing
@@ -288,6 +323,8 @@ def _main(argv: list[str] | None) -> int:
         if (line := _missing_extra(args)) is not None:
             print(line, file=sys.stderr)
             return MISSING_EXTRA
+        if args.command == "serve":
+            return _serve(args)
         return _reproduce(args) if args.command == "reproduce" else _elicit(args)
     except KeyboardInterrupt:
         print(f"\n{command}: interrupted", file=sys.stderr)

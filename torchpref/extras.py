@@ -20,6 +20,9 @@ from types import ModuleType
 EXTRAS: dict[str, str] = {
     "matplotlib": "plot",
     "ipywidgets": "widgets",
+    "starlette": "serve",
+    "uvicorn": "serve",
+    "jinja2": "serve",
 }
 """Importable module -> the extra of ``pyproject.toml`` that installs it."""
 

@@ -62,6 +62,11 @@ def _check_finite(name: str, t: Tensor) -> None:
         raise ValueError(f"{name} must be finite, got non-finite values such as {bad}.")
 
 
+def _check_num_levels(num_levels: object) -> None:
+    if isinstance(num_levels, bool) or not hasattr(num_levels, "__index__") or num_levels < 2:
+        raise ValueError(f"num_levels must be an integer of at least 2, got {num_levels!r}.")
+
+
 def likert_to_unit(levels: TensorLike, num_levels: int = 5, mode: str = "centre") -> Tensor:
     r"""Map Likert levels ``1..K`` to ratings in ``[0, 1]``.
 
@@ -77,8 +82,7 @@ def likert_to_unit(levels: TensorLike, num_levels: int = 5, mode: str = "centre"
     Returns:
         A float64 tensor of the shape of ``levels``.
     """
-    if isinstance(num_levels, bool) or not hasattr(num_levels, "__index__") or num_levels < 2:
-        raise ValueError(f"num_levels must be an integer of at least 2, got {num_levels!r}.")
+    _check_num_levels(num_levels)
     lv = _as_tensor(levels, dtype=torch.float64, name="levels")
     _check_finite("levels", lv)
     if (lv != lv.round()).any() or (lv < 1).any() or (lv > num_levels).any():
@@ -94,8 +98,10 @@ def unit_to_likert(values: TensorLike, num_levels: int = 5) -> Tensor:
     """Inverse of :func:`likert_to_unit` in ``"centre"`` mode: the bin each value falls in.
 
     Raises:
-        ValueError: a value outside ``[0, 1]`` or not finite.
+        ValueError: a value outside ``[0, 1]`` or not finite; ``num_levels`` not an integer of at
+            least 2.
     """
+    _check_num_levels(num_levels)
     v = _as_tensor(values, dtype=torch.float64, name="values")
     _check_finite("values", v)
     if ((v < 0) | (v > 1)).any():

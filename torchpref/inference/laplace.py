@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from torchpref.inference.newton import NewtonOptions, newton_mode
-from torchpref.inference.numerics import NotPSDError, default_tolerance
+from torchpref.inference.numerics import LaplaceNumericalError, NotPSDError, default_tolerance
 from torchpref.inference.observations import Observations, Term, item_term, pairwise_term  # noqa: F401  (re-exported)
 
 
@@ -111,6 +111,11 @@ def find_mode(
             factorisation fails or its step does not increase ``Psi``.
         chord_min_size: chord steps only from this ``n`` on (for small ``n`` a factorisation
             costs about as much as the gradient a chord step needs).
+
+    Raises:
+        NotPSDError: the Fisher-scoring ``B`` is not positive definite.
+        LaplaceNumericalError: (a ``NotPSDError``) a non-finite Newton step or another
+            arithmetic failure of the iteration; no bare ``FloatingPointError`` escapes.
     """
     single = L.dim() == 2
     if single:
@@ -131,7 +136,12 @@ def find_mode(
             if f0 is None
             else tuple(f.detach().to(L).reshape(L.shape[:-1]) for f in (f0 if isinstance(f0, tuple) else (f0,)))
         )
-        out = newton_mode(L.detach(), obs, starts, opts)
+        try:
+            out = newton_mode(L.detach(), obs, starts, opts)
+        except NotPSDError:
+            raise
+        except (ArithmeticError, torch.linalg.LinAlgError) as err:  # FloatingPointError: a non-finite step
+            raise LaplaceNumericalError(f"the Laplace mode could not be found: {err}") from err
     mode = ModeResult(
         out.point.a.clone(),
         out.point.f.clone(),

@@ -30,6 +30,16 @@ class NotPSDError(_LinearOperatorNotPSDError):
     """
 
 
+class LaplaceNumericalError(NotPSDError, FloatingPointError):
+    """The Laplace solve met numbers it cannot go on from: a non-finite Newton step, a
+    factorisation that failed, a non-finite evidence at the hyperparameters asked for.
+
+    A :class:`NotPSDError` (so BoTorch's ``fit_gpytorch_mll`` retries the fit from resampled
+    hyperparameters, as for GPyTorch's own numerical failures) and a ``FloatingPointError``
+    (what the Newton solver raised before it had a name of its own).
+    """
+
+
 class JitterWarning(UserWarning):
     """Diagonal jitter was added to a matrix to make its Cholesky factorisation succeed."""
 

@@ -16,11 +16,26 @@ from torch import Tensor
 from torch.func import functional_call
 
 
+#: The dtypes a model and its Laplace solve may be in. float16 and bfloat16 are refused: their
+#: 3 and 2 significant digits cannot resolve a Newton decrement, and the kernel's squared
+#: distances overflow float16 beyond |x| of about 0.003 times its lengthscale floor.
+SUPPORTED_DTYPES = (torch.float32, torch.float64)
+
+
+def check_dtype(dtype: torch.dtype, what: str = "train_X") -> None:
+    """A ``ValueError`` naming ``dtype`` unless it is one of :data:`SUPPORTED_DTYPES`."""
+    if dtype not in SUPPORTED_DTYPES:
+        raise ValueError(
+            f"{what} is {dtype}; PreferenceGP supports float32 and float64 (float64 recommended): "
+            f"convert it, e.g. .to(torch.float64)."
+        )
+
+
 def check_laplace_dtype(value: object) -> torch.dtype | None:
-    """``value`` if it is ``None`` or a floating-point ``torch.dtype``, else a ``ValueError``."""
-    if value is None or (isinstance(value, torch.dtype) and value.is_floating_point):
+    """``value`` if it is ``None``, ``torch.float32`` or ``torch.float64``, else a ``ValueError``."""
+    if value is None or value in SUPPORTED_DTYPES:
         return value
-    raise ValueError(f"laplace_dtype must be None or a floating-point torch.dtype, got {value!r}.")
+    raise ValueError(f"laplace_dtype must be None, torch.float32 or torch.float64, got {value!r}.")
 
 
 def solve_dtype(model_dtype: torch.dtype, asked: torch.dtype | None) -> torch.dtype:

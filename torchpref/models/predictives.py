@@ -21,6 +21,9 @@ class Predictives:
         gives, without building a batch of ``1 x 1`` covariances and distribution objects. For a
         batched model, ``X`` is ``... x batch_shape x m x d``."""
         Xt = self._prediction_inputs(X)
+        if X.shape[:-1].numel() == 0:  # an empty batch: empty results
+            empty = Xt.new_zeros(X.shape[:-1])
+            return empty, empty.clone()
         if not self.batch_shape:  # one problem: all rows as one block
             Xt = Xt.reshape(-1, X.shape[-1])
         mean, var = self._predict(Xt, diag=True)

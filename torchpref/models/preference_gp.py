@@ -36,6 +36,7 @@ from torchpref.models.fantasy import fantasize
 from torchpref.inference.laplace import ModeResult, laplace_evidence
 from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.likelihoods.scalar_params import weak_load_hook
+from torchpref.models.arguments import check_model_arguments
 from torchpref.models.model_data import ModelData, create_data
 from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS: re-exported)
     MIN_LENGTHSCALE,
@@ -43,11 +44,11 @@ from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_F
     PreferenceLikelihood,
     default_covar_module,
 )
-from torchpref.inference.numerics import pin_coincident
+from torchpref.inference.numerics import LaplaceNumericalError, pin_coincident
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, TieLikelihood
 from torchpref.inference.padding import PaddedData
-from torchpref.models.posterior_state import PosteriorState, carries_gradients, fingerprint, submodules
-from torchpref.inference.precision import call_in_dtype, check_laplace_dtype, solve_dtype
+from torchpref.models.posterior_state import PosteriorState, cache_key, carries_gradients, submodules
+from torchpref.inference.precision import call_in_dtype, check_dtype, check_laplace_dtype, solve_dtype
 from torchpref.models.predictives import Predictives
 
 
@@ -83,6 +84,17 @@ def _follows(module: torch.nn.Module, device: torch.device, dtype: torch.dtype) 
         t.device == device and (t.dtype == dtype or not (t.is_floating_point() or t.is_complex()))
         for t in chain(module.parameters(), module.buffers())
     )
+
+
+def _check_evidence(value: Tensor) -> None:
+    """A non-finite Laplace evidence raised by name rather than handed to an optimiser."""
+    finite = torch.isfinite(value.detach())
+    if not bool(finite.all()):
+        bad = torch.nonzero(~finite).flatten()[:5].tolist()
+        raise LaplaceNumericalError(
+            f"the Laplace evidence is not finite ({value.detach()[~finite][:3].tolist()}, problems {bad}) at "
+            "these hyperparameters; they are outside what the model can evaluate."
+        )
 
 
 class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
@@ -187,8 +199,22 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         train_X = pairwise_alias(train_X, datapoints)
         comparison_noise = pairwise_likelihood_noise(likelihood, comparison_noise)
         check_jitter(jitter)
+        check_model_arguments(
+            covar_module,
+            input_transform,
+            reals=dict(
+                comparison_noise=comparison_noise,
+                rating_scale=rating_scale,
+                rating_precision=rating_precision,
+                tie_threshold=tie_threshold,
+                level_noise=level_noise,
+            ),
+            flags=dict(learn_likelihood=learn_likelihood, ties_offered=ties_offered),
+            rating_eps=rating_eps,
+        )
         data = _initial_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
         X = data.train_X if isinstance(data, PreferenceData) else data.X
+        check_dtype(X.dtype)
         _warn_dtype(X.dtype)
         self.covar_module = covar_module if covar_module is not None else default_covar_module(X.shape[-1])
         self.likelihood = PreferenceLikelihood.create(
@@ -213,6 +239,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
             self.to(device=X.device, dtype=X.dtype)
         self._data: PreferenceData | PaddedData = data
         self._cache: PosteriorState | None = None
+        self._transitions = 0  # train / eval switches: part of the cache's key
         self._warm_f: Tensor | None = None
         self._fit_input_transform()
         self._check_scaling()
@@ -303,10 +330,18 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
     def _state(self, prior: tuple[PaddedData, Tensor] | None = None) -> PosteriorState:
         """The mode and prediction cache for the current hyperparameters and data (cached);
         ``prior``: :meth:`_prior`'s result if already computed (then the kernel is not evaluated again)."""
-        fp = fingerprint(self)
-        if self._cache is None or not self._cache.is_current(self._data, fp):
-            self._cache = PosteriorState.build(self, fp, self._cache, prior)
+        fp, key = cache_key(self)
+        if self._cache is None or not self._cache.is_current(self._data, fp, key):
+            self._cache = PosteriorState.build(self, fp, key, self._cache, prior)
         return self._cache
+
+    def train(self, mode: bool = True) -> PreferenceGP:
+        """Train or eval mode, as for any module; a switch between them makes the posterior cache
+        stale (as GPyTorch resets an exact GP's ``prediction_strategy``): the next prediction
+        re-solves the mode, warm-started from the cached one."""
+        if mode != self.training:
+            self._transitions = getattr(self, "_transitions", 0) + 1
+        return super().train(mode)
 
     @property
     def mode(self) -> ModeResult:
@@ -330,6 +365,9 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
 
         Raises:
             ValueError: the model has no items (prior-only or empty): there is nothing to fit.
+            NotPSDError: a matrix of the solve is not positive definite at these hyperparameters.
+            LaplaceNumericalError: (a ``NotPSDError``) the mode or the evidence is not finite at
+                these hyperparameters. ``fit_gpytorch_mll`` retries both from resampled ones.
         """
         if self.train_X.shape[-2] == 0:
             raise ValueError(
@@ -340,6 +378,7 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         state = self._state((padded, K))
         N = padded.num_items
         value = laplace_evidence(K.reshape(-1, N, N), state.obs, state.mode, L=state.pred.L, jitter=state.jitter)
+        _check_evidence(value)
         return value.reshape(self.batch_shape).to(padded.X.dtype)
 
     def _predict(self, X: Tensor, diag: bool = False) -> tuple[Tensor, Tensor]:
@@ -395,11 +434,15 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         return post
 
     def _prediction_inputs(self, X: Tensor) -> Tensor:
-        """``X`` checked (``... x d``, finite; a lower floating precision is converted to the
-        model's, as BoTorch's models do), the model in eval mode, the input transform applied."""
+        """``X`` checked (``... x d``, real and finite, not boolean; a lower floating precision is
+        converted to the model's, as BoTorch's models do), the model in eval mode, the input
+        transform applied."""
         if self._data.dim and X.shape[-1] != self._data.dim:  # dim 0: a prior-only model takes any d
             raise ValueError(f"X must have {self._data.dim} columns (last dim), got shape {tuple(X.shape)}.")
         dtype = self.train_X.dtype
+        check_dtype(dtype, "this model")
+        if X.is_complex() or X.dtype == torch.bool:
+            raise ValueError(f"X must hold real numbers, got {X.dtype}.")
         if X.dtype != dtype and X.is_floating_point():
             if torch.finfo(X.dtype).eps < torch.finfo(dtype).eps:  # would lose precision: say so
                 raise ValueError(

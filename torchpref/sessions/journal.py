@@ -103,6 +103,11 @@ def _reject_constant(name: str):
     raise ValueError(f"{name} is not a number JSON allows")
 
 
+_DECODER = json.JSONDecoder(
+    parse_constant=_reject_constant
+)  # one decoder for every line (json.loads makes one per call)
+
+
 def _parse(path, data: bytes) -> tuple[dict | None, list[dict], bool]:
     """``(header, records, newline_missing)`` from a file's bytes, every record validated."""
     if not data:
@@ -115,7 +120,7 @@ def _parse(path, data: bytes) -> tuple[dict | None, list[dict], bool]:
     for i, line in enumerate(lines):
         last = i == len(lines) - 1
         try:
-            rec = json.loads(line.decode(), parse_constant=_reject_constant)
+            rec = _DECODER.decode(line.decode())
             if not isinstance(rec, dict) or "type" not in rec:
                 raise ValueError("not a JSON object with a 'type'")
         except RecursionError:

@@ -64,14 +64,19 @@ def sizes(data: PreferenceData) -> Sizes:
 
 def _unique_in_order(Z: Tensor) -> tuple[Tensor, Tensor]:
     """``(first, index)``: the row of each distinct item's first occurrence in ``Z``, in order of
-    first occurrence, and each row's item number (rows with equal coordinates share one)."""
-    u, inverse = torch.unique(Z, dim=0, return_inverse=True)
-    rows = torch.arange(Z.shape[0])
-    first = torch.full((u.shape[0],), Z.shape[0], dtype=torch.long).scatter_reduce(0, inverse, rows, "amin")
-    order = first.argsort()
-    rank = torch.empty_like(order)
-    rank[order] = torch.arange(order.numel())
-    return first[order], rank[inverse]
+    first occurrence, and each row's item number (rows with equal coordinates share one, as
+    :meth:`~torchpref.data.preference_data.PreferenceData.index_items` compares them: ``-0.0`` and
+    ``0.0`` are one coordinate)."""
+    seen: dict[tuple[float, ...], int] = {}
+    first: list[int] = []
+    index: list[int] = []
+    for row, key in enumerate(map(tuple, Z.tolist())):
+        i = seen.get(key)
+        if i is None:
+            i = seen[key] = len(first)
+            first.append(row)
+        index.append(i)
+    return torch.tensor(first, dtype=torch.long), torch.tensor(index, dtype=torch.long)
 
 
 def build_data(

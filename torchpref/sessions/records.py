@@ -10,9 +10,12 @@ names the file, the line and the field. See ``docs/sessions.md`` for the format.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from typing import Any
+
+import torch
 
 from torchpref.data.preference_data import likert_to_unit
 from torchpref.version import __version__
@@ -136,6 +139,12 @@ class _Line:
         return b
 
 
+@functools.lru_cache(maxsize=64)
+def _level_values(levels: int) -> tuple[float, ...]:
+    """The rating of each Likert level ``1..levels`` (:func:`~torchpref.likert_to_unit`), computed once."""
+    return tuple(likert_to_unit(torch.arange(1, levels + 1), levels).tolist())
+
+
 def _is_number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
@@ -194,7 +203,7 @@ def _check_answer(c: _Line, rec: dict, header: dict) -> None:
         value = c.get("value")
         if levels is not None:
             level = c.integer("answer", lo=1, hi=levels)
-            expected = float(likert_to_unit(level, levels))
+            expected = _level_values(levels)[level - 1]
         else:
             if not (_is_number(answer) and 0.0 <= answer <= 1.0):
                 c.fail(f"a rating must be a number in [0, 1], got {answer!r:.80}")

@@ -1,0 +1,451 @@
+r"""``torchpref serve``: the browser page a person answers in, with their response times.
+
+    torchpref serve --features items.csv [--image-column COL [--image-dir DIR]] [--sessions DIR]
+    torchpref serve lake [--sessions DIR]
+    torchpref.serve(items_or_session, render=..., ...)          # from Python
+
+A small Starlette application (run by uvicorn; Jinja2 templates, plain JavaScript, no build
+step; the ``serve`` extra). Each visitor of ``/`` starts a session of their own, a link
+``/s/SID/`` whose file is ``SESSIONS/SID.session.jsonl``; the page asks one question at a time
+(a rating with buttons and keys ``1..K``, or the best of ``m`` side by side, keys ``A..`` or
+``1..m``, ``0`` or ``=`` for "no preference"), undoes (``U``), shows the progress and the item
+the model recommends now, and ends on a summary (the learned utility over two objectives, the
+best items, downloads of the session file, the answers as CSV and the model checkpoint).
+
+An answer is acknowledged only once it is in the session file (fsynced:
+:class:`~torchpref.PreferenceSession`); the page measures the seconds from showing a question to
+its answer and the journal keeps them (``response_time``). Stale, repeated and foreign answers
+are refused by :class:`~torchpref.frontends.serve_store.SessionStore`.
+
+Safe by default: it binds 127.0.0.1 and answers only requests whose ``Host`` is this machine's
+loopback name (no DNS rebinding); another interface needs ``allow_remote=True`` and a token
+(the link's ``?token=`` sets a cookie); requests that change a session must be same-origin JSON;
+pictures are served by item number only. See ``docs/serve.md``.
+"""
+
+from __future__ import annotations
+
+import hmac
+import inspect
+import ipaddress
+import json
+import secrets
+import sys
+import time
+from pathlib import Path
+from typing import Any
+from collections.abc import Callable
+
+from torch import Tensor
+
+from torchpref.frontends.serve_items import PLOT_LOCK, ServeItems, items_from_csv, lake_items
+from torchpref.frontends.serve_store import AnswerRefused, SessionStore
+from torchpref.sessions.session import PreferenceSession
+
+__all__ = ["ServeError", "create_app", "run", "serve"]
+
+HERE = Path(__file__).parent
+MAX_BODY = 4096
+TOKEN_COOKIE = "torchpref_token"
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
+HEADERS = {
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",  # the session id is in the link
+    "X-Frame-Options": "DENY",
+    "Content-Security-Policy": "default-src 'self'; img-src 'self'; object-src 'none'; frame-ancestors 'none'",
+    "Cache-Control": "no-store",
+}
+
+
+class ServeError(ValueError):
+    """Settings ``serve`` cannot run with (another interface without a token, a bad port)."""
+
+
+def _require() -> None:
+    """Import the ``serve`` extra's modules, or raise :class:`~torchpref.extras.MissingExtraError`
+    (an ``ImportError``) naming ``torchpref[serve]``."""
+    from torchpref.extras import require
+
+    for module in ("starlette", "uvicorn", "jinja2"):
+        require(module, "torchpref serve", extra="serve")
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def create_app(store: SessionStore, *, token: str | None = None, allowed_hosts: list[str] | None = None):
+    """The ASGI application over ``store`` (Starlette, wrapped in the Host / token / headers guard).
+
+    Args:
+        store: the sessions (:class:`~torchpref.frontends.serve_store.SessionStore`).
+        token: if given, every request must carry it (``?token=`` once, then a cookie).
+        allowed_hosts: the host names a request's ``Host`` may name (default: the loopback names);
+            ``["*"]`` for any (only with a token).
+    """
+    _require()
+    from starlette.applications import Starlette
+    from starlette.responses import RedirectResponse
+    from starlette.routing import Mount, Route
+    from starlette.staticfiles import StaticFiles
+
+    h = _Handlers(store)
+    routes = [
+        Route("/", h.wrap(h.index)),
+        Route("/api/new", h.wrap(h.new), methods=["POST"]),
+        Route("/picture/{index}", h.wrap(h.picture)),
+        Route("/s/{sid}", lambda r: RedirectResponse(f"{r.path_params['sid']}/", 307)),
+        Route("/s/{sid}/", h.wrap(h.question_page)),
+        Route("/s/{sid}/state", h.wrap(h.state)),
+        Route("/s/{sid}/answer", h.wrap(h.answer), methods=["POST"]),
+        Route("/s/{sid}/undo", h.wrap(h.undo), methods=["POST"]),
+        Route("/s/{sid}/summary", h.wrap(h.summary)),
+        Route("/s/{sid}/utility.png", h.wrap(h.utility_png)),
+        Route("/s/{sid}/download/{what}", h.wrap(h.download)),
+        Mount("/static", StaticFiles(directory=HERE / "serve_static"), name="static"),
+    ]
+    app = Starlette(routes=routes)
+    app.state.store = store
+    hosts = list(LOOPBACK_NAMES) if allowed_hosts is None else list(allowed_hosts)
+    return _Guard(app, token, hosts)
+
+
+class _Handlers:
+    """The routes' handlers over one store. Blocking work (the model, the file) runs in
+    Starlette's thread pool; a refused request becomes a JSON error (or an HTML page for a
+    browser's GET) with its status."""
+
+    def __init__(self, store: SessionStore):
+        import jinja2
+
+        self.store = store
+        self.env = jinja2.Environment(loader=jinja2.FileSystemLoader(HERE / "serve_templates"), autoescape=True)
+
+    def page(self, name: str, status: int = 200, **ctx):
+        from starlette.responses import HTMLResponse
+
+        return HTMLResponse(self.env.get_template(name).render(**ctx), status_code=status)
+
+    def wrap(self, fn):
+        from starlette.concurrency import run_in_threadpool
+        from starlette.responses import JSONResponse
+
+        async def wrapped(request):
+            try:
+                if inspect.iscoroutinefunction(fn):
+                    return await fn(request)
+                return await run_in_threadpool(fn, request)
+            except AnswerRefused as err:
+                if request.method == "GET" and "text/html" in request.headers.get("accept", ""):
+                    return self.page("error.html", err.status, message=str(err))
+                return JSONResponse({"error": str(err), "state": err.state}, status_code=err.status)
+
+        return wrapped
+
+    async def json_body(self, request) -> Any:
+        """The request's JSON, if it is same-origin JSON of at most ``MAX_BODY`` bytes."""
+        if request.headers.get("content-type", "").split(";")[0].strip() != "application/json":
+            raise AnswerRefused("send the answer as application/json.", 415)
+        origin = request.headers.get("origin")
+        if origin is not None and origin != f"{request.url.scheme}://{request.headers.get('host')}":
+            raise AnswerRefused(f"a request from another site ({origin[:80]}) is refused.", 403)
+        data = b""
+        async for chunk in request.stream():
+            data += chunk
+            if len(data) > MAX_BODY:
+                raise AnswerRefused(f"the request is over {MAX_BODY} bytes.", 413)
+        try:
+            return json.loads(data.decode(), parse_constant=_no_constant)
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise AnswerRefused(f"the request is not JSON ({str(exc)[:80]}).", 400) from None
+
+    def index(self, request):
+        store = self.store
+        return self.page("index.html", fixed=store.sids if store.fixed else None, noun=store.items.noun)
+
+    async def new(self, request):
+        from starlette.concurrency import run_in_threadpool
+        from starlette.responses import JSONResponse
+
+        await self.json_body(request)
+        sid = await run_in_threadpool(self.store.create)
+        return JSONResponse({"sid": sid, "url": f"s/{sid}/"})
+
+    def question_page(self, request):
+        sid = request.path_params["sid"]
+        self.store.entry(sid)
+        return self.page("question.html", sid=sid, noun=self.store.items.noun)
+
+    def state(self, request):
+        from starlette.responses import JSONResponse
+
+        entry = self.store.entry(request.path_params["sid"])
+        with entry.lock:
+            return JSONResponse(self.store.state(entry))
+
+    async def answer(self, request):
+        from starlette.concurrency import run_in_threadpool
+        from starlette.responses import JSONResponse
+
+        body = await self.json_body(request)
+        start = time.perf_counter()
+        result = await run_in_threadpool(self.store.answer, request.path_params["sid"], body)
+        ms = 1000 * (time.perf_counter() - start)
+        return JSONResponse(result, headers={"Server-Timing": f"answer;dur={ms:.2f}"})
+
+    async def undo(self, request):
+        from starlette.concurrency import run_in_threadpool
+        from starlette.responses import JSONResponse
+
+        body = await self.json_body(request)
+        return JSONResponse(await run_in_threadpool(self.store.undo, request.path_params["sid"], body))
+
+    def summary(self, request):
+        from torchpref.frontends.serve_summary import summary_context
+
+        entry = self.store.entry(request.path_params["sid"])
+        with entry.lock:
+            ctx = summary_context(self.store, entry, request.query_params)
+        return self.page("summary.html", **ctx)
+
+    def utility_png(self, request):
+        from starlette.responses import Response
+
+        from torchpref.frontends.serve_summary import axes_from_query, utility_plot
+
+        entry = self.store.entry(request.path_params["sid"])
+        x, y = axes_from_query(self.store.items, request.query_params)
+        with entry.lock, PLOT_LOCK:
+            png = utility_plot(self.store.items, entry.session, x, y)
+        return Response(png, media_type="image/png")
+
+    def download(self, request):
+        from starlette.responses import Response
+
+        store = self.store
+        sid, what = request.path_params["sid"], request.path_params["what"]
+        makers: dict[str, tuple[Callable[[str], Any], str]] = {
+            "session.jsonl": (store.session_file, "application/x-ndjson"),
+            "answers.csv": (store.answers_csv, "text/csv; charset=utf-8"),
+            "model.pt": (store.checkpoint, "application/octet-stream"),
+        }
+        if what not in makers:
+            raise AnswerRefused("no such download.", 404)
+        make, media = makers[what]
+        disposition = f'attachment; filename="{sid}.{what}"'
+        return Response(make(sid), media_type=media, headers={"Content-Disposition": disposition})
+
+    def picture(self, request):
+        from starlette.responses import Response
+
+        try:
+            pic = self.store.items.picture(int(request.path_params["index"]))
+        except (ValueError, IndexError):
+            raise AnswerRefused("no such picture.", 404) from None
+        except OSError:
+            raise AnswerRefused("that picture cannot be read.", 404) from None
+        if pic is None:
+            raise AnswerRefused("no such picture.", 404)
+        data, media = pic
+        return Response(data, media_type=media, headers={"Cache-Control": "private, max-age=3600"})
+
+
+def _host_name(host: str) -> str:
+    """The name in a ``Host`` header, without the port (``[::1]:80`` -> ``[::1]``)."""
+    if host.startswith("["):
+        return host[: host.find("]") + 1]
+    return host.rsplit(":", 1)[0]
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a number")
+
+
+class _Guard:
+    """ASGI middleware: the ``Host`` check, the token (query parameter once, then a cookie) and
+    the security headers on every response."""
+
+    def __init__(self, app, token: str | None, hosts: list[str]):
+        self.app, self.token, self.hosts = app, token, hosts
+        self.state = app.state
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        from starlette.datastructures import URL, Headers, QueryParams
+        from starlette.requests import cookie_parser
+        from starlette.responses import PlainTextResponse, RedirectResponse
+
+        headers = Headers(scope=scope)
+        host = _host_name(headers.get("host", ""))
+        if "*" not in self.hosts and host not in self.hosts:
+            return await PlainTextResponse("unknown host", 421)(scope, receive, send)
+        if self.token is not None:
+            url = URL(scope=scope)
+            given = QueryParams(scope.get("query_string", b"")).get("token")
+            if given is not None and hmac.compare_digest(given, self.token):
+                target = url.remove_query_params("token")
+                response = RedirectResponse(target.path + (f"?{target.query}" if target.query else ""), 303)
+                response.set_cookie(TOKEN_COOKIE, self.token, httponly=True, samesite="strict")
+                return await response(scope, receive, send)
+            cookie = cookie_parser(headers.get("cookie", "")).get(TOKEN_COOKIE, "")
+            if not hmac.compare_digest(cookie, self.token):
+                return await PlainTextResponse("a token is needed: open the link with ?token=...", 403)(
+                    scope, receive, send
+                )
+
+        async def send_with_headers(message):
+            if message["type"] == "http.response.start":
+                message.setdefault("headers", [])
+                have = {k.lower() for k, _ in message["headers"]}
+                for k, v in HEADERS.items():
+                    if k.lower().encode() not in have:
+                        message["headers"].append((k.lower().encode(), v.encode()))
+            await send(message)
+
+        return await self.app(scope, receive, send_with_headers)
+
+
+def _check_network(host: str, port: int, allow_remote: bool, token: str | None) -> str | None:
+    """The token to require (``None``: none), or :class:`ServeError` for unsafe settings."""
+    if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
+        raise ServeError(f"port must be 0..65535, got {port!r:.40}.")
+    if _is_loopback(host):
+        return token
+    if not allow_remote:
+        raise ServeError(
+            f"serving on {host} lets other machines reach the page: pass allow_remote=True "
+            "(--allow-remote) to do so; a token is then required."
+        )
+    if token is None:
+        token = secrets.token_urlsafe(18)
+    elif len(token) < 16:
+        raise ServeError("a token must be at least 16 characters long.")
+    return token
+
+
+def serve(
+    source: PreferenceSession | Tensor | ServeItems,
+    *,
+    render: Callable | None = None,
+    names: list[str] | None = None,
+    labels: list[str] | None = None,
+    sessions: str | Path = "torchpref-sessions",
+    num_queries: int = 14,
+    seed: int = 0,
+    num_levels: int | None = 5,
+    ties: bool = True,
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    allow_remote: bool = False,
+    token: str | None = None,
+    noun: str = "item",
+    ready: Callable[[str], None] | None = None,
+    threads: int | None = 1,
+) -> None:
+    """Serve the answering page until interrupted (Ctrl-C).
+
+    Args:
+        source: a :class:`~torchpref.PreferenceSession` over a pool (served as the one session:
+            its settings and file are used; no new sessions), an ``N x d`` tensor of items (each
+            visitor a new session in ``sessions``), or a
+            :class:`~torchpref.frontends.serve_items.ServeItems`.
+        render: ``render(item, index) -> picture`` (PNG/JPEG/GIF bytes, a matplotlib Figure, a
+            Path or None) for each item's picture.
+        names, labels, noun: the objectives' and items' names, and what an item is called.
+        sessions: the folder of the session files.
+        num_queries, seed, num_levels, ties: each new session's settings.
+        host, port: where to listen (``port=0``: a free one); another host than the loopback
+            needs ``allow_remote=True`` and a token (one is made and printed if not given).
+        ready: called with the page's URL once the server listens.
+        threads: torch's intra-op threads while serving (:func:`torch.set_num_threads`, restored
+            after; ``None``: left as they are). One is fastest for a session's small matrices, and
+            sessions of different people run in parallel threads (5-10x faster answers than
+            torch's default on a loaded 2-core machine, docs/serve.md).
+
+    Raises:
+        ServeError: unsafe or impossible network settings. ImportError: the ``serve`` extra is missing.
+    """
+    _require()
+    token = _check_network(host, port, allow_remote, token)
+    store = _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun)
+    hosts = ["*"] if not _is_loopback(host) else None
+    app = create_app(store, token=token, allowed_hosts=hosts)
+    import torch
+
+    before = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        _run_uvicorn(app, host, port, token, ready, f"s/{store.sids[0]}/" if store.fixed else "")
+    finally:
+        store.close()
+        torch.set_num_threads(before)
+
+
+def _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun) -> SessionStore:
+    from torchpref.data.queries import FinitePool
+
+    if isinstance(source, PreferenceSession):
+        pool = source._candidates  # the session's own candidates: queries name their rows
+        if not isinstance(pool, FinitePool):
+            raise ServeError("a served session's candidates must be a pool of items (N x d), not a box.")
+        items = ServeItems(pool.X, names or source.names, labels, render=render, noun=noun)
+        return SessionStore(items, session=source, ties=ties)
+    if isinstance(source, ServeItems):
+        items = source
+    elif isinstance(source, Tensor):
+        items = ServeItems(source, names, labels, render=render, noun=noun)
+    else:
+        raise TypeError(
+            f"serve() takes a PreferenceSession, an N x d tensor or ServeItems, got {type(source).__name__}."
+        )
+    return SessionStore(items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties)
+
+
+def _run_uvicorn(app, host: str, port: int, token: str | None, ready, path: str = "") -> None:
+    import socket
+
+    import uvicorn
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind((host, port))  # bound here, so port 0 is known before the server starts
+    bound = sock.getsockname()[1]
+    shown = f"[{host}]" if ":" in host else host
+    url = f"http://{shown}:{bound}/{path}" + (f"?token={token}" if token else "")
+    config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="off")
+    server = uvicorn.Server(config)
+    print(f"torchpref serve: open {url}  (Ctrl-C stops; every answer is already saved)", flush=True)
+    if ready is not None:
+        ready(url)
+    server.run(sockets=[sock])
+
+
+def run(args) -> int:
+    """``torchpref serve`` (``args`` from :mod:`torchpref.cli`); returns the exit code."""
+    _require()
+    if args.features is not None:
+        items = items_from_csv(args.features, args.id_column, args.image_column, args.image_dir)
+    else:
+        print(f"Building the lake scenario (seed {args.seed}; cached after the first time) ...", file=sys.stderr)
+        items = lake_items(args.seed)
+    serve(
+        items,
+        sessions=args.sessions,
+        num_queries=args.queries,
+        seed=args.seed,
+        num_levels=args.levels,
+        ties=not args.no_ties,
+        host=args.host,
+        port=args.port,
+        allow_remote=args.allow_remote,
+        token=args.token,
+    )
+    return 0

@@ -1,0 +1,234 @@
+r"""The items a ``torchpref serve`` page shows: objective values, labels and one picture per item.
+
+:class:`ServeItems` holds the pool (``N x d`` objective values, their names, the items' labels)
+and how an item's picture is made: from an image file named in a features CSV (read only from
+one directory, checked when the CSV is read), from the lake world's map (each path drawn with
+:func:`torchpref.frontends.elicit.plot_paths`), or from a render function written in Python.
+Pictures are made once per item and kept (a bounded cache); making them is serialised, as
+matplotlib's state is shared by threads.
+"""
+
+from __future__ import annotations
+
+import io
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from torchpref.data.features import FeaturesError, printable, read_features_csv
+
+__all__ = ["IMAGE_TYPES", "PLOT_LOCK", "ServeItems", "items_from_csv", "lake_items", "picture_bytes"]
+
+IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".gif": "image/gif"}
+"""The image files a features CSV may name (no SVG: it can hold scripts), by suffix."""
+
+_MAGIC = ((b"\x89PNG\r\n\x1a\n", "image/png"), (b"\xff\xd8\xff", "image/jpeg"), (b"GIF8", "image/gif"))
+CACHE_SIZE = 512
+PLOT_LOCK = threading.RLock()
+"""Held while a picture or plot is made: matplotlib's state is shared by the server's threads."""
+
+
+def picture_bytes(picture: Any) -> tuple[bytes, str] | None:
+    """``(bytes, media type)`` of what a render function returned: PNG/JPEG/GIF ``bytes``, a
+    matplotlib ``Figure`` (drawn to PNG and closed), a :class:`~pathlib.Path` to such a file, or
+    ``None`` (no picture).
+
+    Raises:
+        TypeError: anything else, or bytes that are not a PNG, JPEG or GIF image (naming it).
+    """
+    if picture is None:
+        return None
+    if hasattr(picture, "savefig"):
+        buf = io.BytesIO()
+        picture.savefig(buf, format="png", dpi=getattr(picture, "dpi", 100))
+        import sys
+
+        if "matplotlib.pyplot" in sys.modules:
+            sys.modules["matplotlib.pyplot"].close(picture)
+        return buf.getvalue(), "image/png"
+    if isinstance(picture, Path):
+        picture = picture.read_bytes()
+    if isinstance(picture, (bytes, bytearray)):
+        kind = next((t for magic, t in _MAGIC if bytes(picture[:8]).startswith(magic)), None)
+        if kind is None:
+            raise TypeError(f"a picture's bytes must be a PNG, JPEG or GIF image, got {bytes(picture[:8])!r}.")
+        return bytes(picture), kind
+    raise TypeError(
+        f"a render function must return PNG/JPEG/GIF bytes, a matplotlib Figure, a Path or None, "
+        f"got {type(picture).__name__}."
+    )
+
+
+@dataclass
+class ServeItems:
+    """A pool of items and their pictures.
+
+    Args:
+        X: ``N x d`` objective values.
+        names: the ``d`` objectives' names.
+        labels: the ``N`` items' labels (default ``#1 .. #N``).
+        render: ``render(item, index) -> picture`` (see :func:`picture_bytes`), or ``None``.
+        noun: what an item is called on the page ("item", "path").
+        metadata: stored in each new session file's header.
+    """
+
+    X: Tensor
+    names: list[str]
+    labels: list[str] | None = None
+    render: Callable[[Tensor, int], Any] | None = None
+    noun: str = "item"
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        X = torch.as_tensor(self.X, dtype=torch.float64)
+        if X.dim() != 2 or X.shape[0] < 2 or not torch.isfinite(X).all():
+            raise ValueError(f"items must be an N x d tensor of finite values with N >= 2, got shape {tuple(X.shape)}.")
+        if torch.unique(X, dim=0).shape[0] < 2:
+            raise ValueError("need at least two distinct items to elicit preferences.")
+        self.X = X
+        self.names = [printable(n) for n in (self.names or [f"x{k + 1}" for k in range(X.shape[1])])]
+        if len(self.names) != X.shape[1]:
+            raise ValueError(f"{len(self.names)} names for {X.shape[1]} objectives.")
+        if self.labels is not None and len(self.labels) != X.shape[0]:
+            raise ValueError(f"{len(self.labels)} labels for {X.shape[0]} items.")
+        self._cache: OrderedDict[int, tuple[bytes, str] | None] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return self.X.shape[0]
+
+    def label(self, i: int) -> str:
+        """Item ``i``'s label."""
+        return self.labels[i] if self.labels is not None else f"#{i + 1}"
+
+    @property
+    def has_pictures(self) -> bool:
+        """Whether items have pictures (a render function or image files)."""
+        return self.render is not None
+
+    def picture(self, i: int) -> tuple[bytes, str] | None:
+        """Item ``i``'s picture as ``(bytes, media type)``, or ``None``; made once and kept."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"no item {i} (items 0..{len(self) - 1}).")
+        if self.render is None:
+            return None
+        with self._lock, PLOT_LOCK:
+            if i in self._cache:
+                self._cache.move_to_end(i)
+                return self._cache[i]
+            value = picture_bytes(self.render(self.X[i], i))
+            self._cache[i] = value
+            while len(self._cache) > CACHE_SIZE:
+                self._cache.popitem(last=False)
+            return value
+
+
+def _image_files(path: Path, header: list[str], rows: list[dict], column: str, image_dir: Path) -> list[Path]:
+    """The image file of every row, each checked to be a file of a known type inside ``image_dir``."""
+    root = image_dir.resolve()
+    if not root.is_dir():
+        raise FeaturesError(f"--image-dir {image_dir}: not a folder.")
+    files = []
+    for i, row in enumerate(rows, start=2):
+        name = row[column].strip()
+        target = (root / name).resolve()
+        where = f"{path}, row {i}, column {printable(column)!r}"
+        if not name or not target.is_relative_to(root):
+            raise FeaturesError(f"{where}: {printable(name)!r} is not a file inside the image folder {image_dir}.")
+        if target.suffix.lower() not in IMAGE_TYPES:
+            raise FeaturesError(
+                f"{where}: {printable(name)!r} is not a {', '.join(IMAGE_TYPES)} image (by its name's ending)."
+            )
+        if not target.is_file():
+            raise FeaturesError(f"{where}: no image file {printable(name)!r} in {image_dir}.")
+        files.append(target)
+    return files
+
+
+def items_from_csv(path, id_column: str | None = None, image_column: str | None = None, image_dir=None) -> ServeItems:
+    """Items from a features CSV as ``torchpref elicit`` reads it
+    (:func:`~torchpref.data.features.read_features_csv`), optionally with a column naming each
+    item's image file (a name relative to ``image_dir``, by default the CSV's folder).
+
+    Every named file must lie inside ``image_dir`` (after resolving links), exist and be a PNG,
+    JPEG or GIF by its name; only those files are ever served, by item number.
+
+    Raises:
+        FeaturesError: as :func:`~torchpref.data.features.read_features_csv`, or a missing image
+            column, a file outside the folder, missing or of another type (naming the row).
+    """
+    import csv
+
+    path = Path(path)
+    if image_column is None:
+        X, names, labels = read_features_csv(path, id_column)
+        return ServeItems(X, names, labels, metadata={"features": str(path)})
+    text = path.read_text(encoding="utf-8-sig")
+    # the image column is not an objective: read the CSV without it
+    from torchpref.data.features import _separator
+
+    sep = _separator(text)
+    table = [r for r in csv.reader(text.splitlines(), delimiter=sep) if any(c.strip() for c in r)]
+    header = [c.strip() for c in table[0]] if table else []
+    if image_column not in header:
+        raise FeaturesError(
+            f"{path}: no column {printable(image_column)!r} for --image-column; the columns are "
+            f"{', '.join(repr(printable(h)) for h in header)}."
+        )
+    j = header.index(image_column)
+    rows = [dict(zip(header, r, strict=False)) for r in table[1:]]
+    folder = Path(image_dir) if image_dir is not None else path.parent
+    files, root = _image_files(path, header, rows, image_column, folder), folder.resolve()
+    stripped = io.StringIO()
+    writer = csv.writer(stripped, delimiter=sep)
+    for r in table:
+        writer.writerow(r[:j] + r[j + 1 :])
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        copy = Path(tmp) / path.name
+        copy.write_text(stripped.getvalue(), encoding="utf-8")
+        try:
+            X, names, labels = read_features_csv(copy, id_column)
+        except FeaturesError as err:
+            raise FeaturesError(str(err).replace(str(copy), str(path))) from None
+
+    def render(item: Tensor, index: int) -> Path:
+        target = files[index].resolve()  # checked again: the folder may have changed since
+        if not target.is_relative_to(root) or not target.is_file():
+            raise FileNotFoundError(f"image of item {index} is gone")
+        return target
+
+    return ServeItems(X, names, labels, render=render, metadata={"features": str(path), "images": image_column})
+
+
+def lake_items(seed: int = 0) -> ServeItems:
+    """The lake scenario's training paths (objectives ``[distance, information]``), each drawn on
+    its map (:func:`torchpref.frontends.elicit.plot_paths`); the scenario is cached on disk."""
+    from torchpref.frontends.elicit import plot_paths
+    from torchpref.lake.scenario import cached_scenario
+
+    scenario = cached_scenario(seed, progress=True)
+
+    def render(item: Tensor, index: int) -> bytes:
+        import tempfile
+
+        title = f"path {index}: distance {float(item[0]):.0f}, information {float(item[1]):.0f}"
+        with tempfile.TemporaryDirectory() as tmp:
+            return plot_paths(scenario, [int(index)], [""], title, Path(tmp) / "path.png").read_bytes()
+
+    labels = [f"path {i}" for i in range(scenario.train_X.shape[0])]
+    return ServeItems(
+        scenario.train_X,
+        ["distance", "information"],
+        labels,
+        render=render,
+        noun="path",
+        metadata={"world": "lake", "lake_seed": seed},
+    )

@@ -1,0 +1,408 @@
+r"""The sessions behind a ``torchpref serve`` page: one :class:`~torchpref.PreferenceSession` per
+participant, each in its own file of one directory, and every browser request checked against it.
+
+A participant's session id (``sid``) names the file ``DIR/SID.session.jsonl``; it is random
+(:func:`secrets.token_urlsafe`), so the link is the key to the session. Each question shown has a
+question id ``qid = "P.H"``: ``P`` the number of records in the file when it was asked and ``H`` a
+hash of the session id, ``P`` and the items, so an answer names the question it answers:
+
+* to the current question: validated (:meth:`SessionStore.answer`), told to the session with its
+  response time, fsynced, and only then acknowledged (the reply holds the next question);
+* to the question just answered, with the same answer (a retry after a lost reply, a server
+  killed after the fsync): acknowledged again, nothing recorded twice;
+* to an older question, one answered differently, or another session's question: refused
+  (HTTP 409) with the current question.
+
+Every request to a session holds that session's lock, so two tabs of one participant cannot
+interleave; sessions of different participants run in parallel.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import math
+import re
+import secrets
+import threading
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from torchpref.data.queries import Query, RankingQuery
+from torchpref.frontends.serve_items import ServeItems
+from torchpref.sessions.session import PreferenceSession, SessionFileError, default_ranking_size
+from torchpref.selection.strategies import UCBC
+
+__all__ = ["AnswerRefused", "MAX_RESPONSE_TIME", "SID_PATTERN", "SessionStore", "make_qid"]
+
+SID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,64}")
+"""What a session id may be (it names a file: no dots, no slashes)."""
+
+MAX_RESPONSE_TIME = 7 * 24 * 3600.0
+"""The longest response time accepted, in seconds (a week: a page left open and come back to)."""
+
+LEVEL_WORDS = {1: "unacceptable", 2: "poor", 3: "fair", 4: "good", 5: "excellent"}
+
+
+class AnswerRefused(ValueError):
+    """A request that is not recorded; ``status`` is the HTTP status (400 invalid, 404 no such
+    session, 409 stale or foreign question) and ``state`` the session's current state, if any."""
+
+    def __init__(self, message: str, status: int = 400, state: dict | None = None):
+        super().__init__(message)
+        self.status, self.state = status, state
+
+
+def make_qid(sid: str, position: int, items: list | None) -> str:
+    """The id of the question asked in session ``sid`` after ``position`` records, on ``items``."""
+    digest = hashlib.sha256(json.dumps([sid, position, items]).encode()).hexdigest()[:16]
+    return f"{position}.{digest}"
+
+
+@dataclass
+class _Entry:
+    sid: str
+    session: PreferenceSession
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class SessionStore:
+    """The participants' sessions over one pool of items.
+
+    Args:
+        items: the pool and its pictures (:class:`~torchpref.frontends.serve_items.ServeItems`).
+        directory: where the session files are (created if missing); ``None`` with ``session``.
+        session: serve only this session (built in Python), under the id ``sid``; no new ones.
+        sid: the id of ``session`` (default: its file's name before ``.session.jsonl``, or ``session``).
+        num_queries, seed, num_levels, ties: settings of each new session (``ties``: offer "no preference").
+    """
+
+    def __init__(
+        self,
+        items: ServeItems,
+        directory=None,
+        *,
+        session: PreferenceSession | None = None,
+        sid: str | None = None,
+        num_queries: int = 14,
+        seed: int = 0,
+        num_levels: int | None = 5,
+        ties: bool = True,
+    ) -> None:
+        self.items, self.ties = items, bool(ties)
+        self._entries: dict[str, _Entry] = {}
+        self._lock = threading.Lock()
+        self.fixed = session is not None
+        if session is not None:
+            if sid is None:
+                sid = session.path.name.split(".")[0] if session.path is not None else "session"
+            if not SID_PATTERN.fullmatch(sid):
+                raise ValueError(f"session id {sid!r:.80} must be 1-64 letters, digits, '-' or '_'.")
+            self._entries[sid] = _Entry(sid, session)
+            self.directory = None if session.path is None else session.path.parent
+            self.num_levels = session.num_levels
+        else:
+            if directory is None:
+                raise ValueError("give a directory for the session files (or one session).")
+            self.directory = Path(directory)
+            self.directory.mkdir(parents=True, exist_ok=True)
+            self.num_levels = num_levels
+        n = torch.unique(items.X, dim=0).shape[0]
+        self._kwargs = dict(
+            seed=seed,
+            num_queries=num_queries,
+            num_levels=num_levels,
+            names=items.names,
+            metadata={**items.metadata, "front_end": "serve"},
+        )
+        self._ranking_size = default_ranking_size(n)
+
+    # ------------------------------------------------------------ sessions
+    def path(self, sid: str) -> Path:
+        """The session file of ``sid``."""
+        return self.directory / f"{sid}.session.jsonl"
+
+    def create(self) -> str:
+        """A new participant's session (its file written now); returns its id."""
+        if self.fixed:
+            raise AnswerRefused("this server serves one session only; no new sessions.", 403)
+        with self._lock:
+            for _ in range(100):
+                sid = secrets.token_urlsafe(12)
+                if sid[0] != "-" and not self.path(sid).exists():
+                    break
+            else:  # pragma: no cover - 2^-96 per try
+                raise RuntimeError("could not draw a new session id")
+            self._entries[sid] = _Entry(sid, self._open(sid))
+        return sid
+
+    def _open(self, sid: str) -> PreferenceSession:
+        kwargs = dict(self._kwargs, selector=UCBC(m=self._ranking_size), session_file=self.path(sid), repair=True)
+        with warnings.catch_warnings(record=True) as caught:  # a partial last line: never acknowledged
+            warnings.simplefilter("always")
+            session = PreferenceSession(self.items.X, **kwargs)
+        for w in caught:
+            print(f"torchpref serve: {w.category.__name__}: {w.message}", flush=True)
+        return session
+
+    def entry(self, sid: str) -> _Entry:
+        """The open session ``sid`` (opened from its file on first use).
+
+        Raises:
+            AnswerRefused: (404) no such session; (409) its file does not fit these items.
+        """
+        if not isinstance(sid, str) or not SID_PATTERN.fullmatch(sid):
+            raise AnswerRefused("no such session.", 404)
+        with self._lock:
+            found = self._entries.get(sid)
+            if found is not None:
+                return found
+            if self.fixed or not self.path(sid).is_file():
+                raise AnswerRefused("no such session.", 404)
+            try:
+                found = self._entries[sid] = _Entry(sid, self._open(sid))
+            except SessionFileError as err:
+                raise AnswerRefused(f"session {sid} cannot be opened: {err}", 409) from None
+            return found
+
+    @property
+    def sids(self) -> list[str]:
+        """The ids of the sessions open now."""
+        return list(self._entries)
+
+    def close(self) -> None:
+        """Release the session files this store opened (a session given to it stays open)."""
+        with self._lock:
+            for e in self._entries.values():
+                if not self.fixed:
+                    e.session.close()
+
+    # --------------------------------------------------------------- state
+    def _option(self, i: int | None, x) -> dict:
+        feats = [[n, f"{float(v):.4g}"] for n, v in zip(self.items.names, x.tolist(), strict=False)]
+        has = i is not None and self.items.has_pictures
+        return {
+            "index": i,
+            "label": self.items.label(i) if i is not None else "-",
+            "features": feats,
+            "picture": f"../../picture/{i}" if has else None,
+        }
+
+    def _current(self, entry: _Entry) -> tuple[str, Query | None]:
+        s = entry.session
+        position = len(s.records)
+        if s.done:
+            return make_qid(entry.sid, position, None), None
+        q = s.ask()
+        return make_qid(entry.sid, position, q.items.tolist()), q
+
+    def state(self, entry: _Entry) -> dict:
+        """What the page shows now: the question (or that all are answered), progress and the
+        currently recommended item. Call with ``entry.lock`` held."""
+        s = entry.session
+        qid, q = self._current(entry)
+        out: dict[str, Any] = {
+            "sid": entry.sid,
+            "qid": qid,
+            "answered": s.step,
+            "total": s.num_queries,
+            "done": q is None,
+            "can_undo": s.step > 0,
+            "noun": self.items.noun,
+            "question": None,
+            "recommended": None,
+        }
+        if q is not None:
+            rows = [q.index] if q.kind == "rating" else list(q.indices)
+            question = {"kind": q.kind, "options": [self._option(i, x) for i, x in zip(rows, q.items, strict=False)]}
+            if q.kind == "rating":
+                k = s.num_levels
+                question["levels"] = k
+                question["words"] = {str(j): LEVEL_WORDS.get(j, "") for j in (1, k)} if k else None
+            else:
+                question["ties"] = self.ties
+            out["question"] = question
+        if s.step > 0:
+            i, x = s.best_item()
+            out["recommended"] = self._option(i, x)
+        return out
+
+    # ------------------------------------------------------------- answers
+    def answer(self, sid: str, body: Any) -> dict:
+        """Record a browser's answer ``body = {"qid", "answer", "response_time"}`` (see the
+        module); returns the next state (``"duplicate": true`` for a repeated answer).
+
+        Raises:
+            AnswerRefused: nothing recorded: a malformed body or answer (400), no such session
+                (404), a stale, differently answered or foreign question (409).
+        """
+        entry = self.entry(sid)
+        body = _object(body, {"qid", "answer", "response_time"})
+        with entry.lock:
+            qid, q = self._current(entry)
+            if body.get("qid") == qid and q is None:
+                n = entry.session.num_queries
+                raise AnswerRefused(
+                    f"all {n} questions are answered; undo to change an answer.", 409, self.state(entry)
+                )
+            if body.get("qid") != qid:
+                return self._not_current(entry, body)
+            answer = self._checked_answer(entry, q, body.get("answer"))
+            rt = _response_time(body.get("response_time"))
+            try:
+                entry.session.tell(q, answer, response_time=rt)
+            except ValueError as exc:
+                raise AnswerRefused(f"answer not recorded: {exc}", 400, self.state(entry)) from None
+            return self.state(entry)
+
+    def _checked_answer(self, entry: _Entry, q: Query, answer: Any):
+        if isinstance(q, RankingQuery):
+            if answer is None:
+                if not self.ties:
+                    raise AnswerRefused("'no preference' is not offered here: pick one option.", 400)
+                return None
+            if not _is_int(answer) or not 0 <= answer < q.m:
+                raise AnswerRefused(f"a choice must be an option number 0..{q.m - 1}, got {answer!r:.40}.", 400)
+            return answer
+        k = entry.session.num_levels
+        if k is not None:
+            if not _is_int(answer) or not 1 <= answer <= k:
+                raise AnswerRefused(f"a rating must be a whole level 1..{k}, got {answer!r:.40}.", 400)
+            return answer
+        if isinstance(answer, bool) or not isinstance(answer, (int, float)) or not 0.0 <= answer <= 1.0:
+            raise AnswerRefused(f"a rating must be a number in [0, 1], got {answer!r:.40}.", 400)
+        return float(answer)
+
+    def _not_current(self, entry: _Entry, body: dict) -> dict:
+        """The answer names another question than the current one: a repeat of the last answer
+        (acknowledged again), or refused."""
+        qid = body.get("qid")
+        records = entry.session.records
+        try:
+            position = int(str(qid).split(".")[0])
+        except ValueError:
+            position = -1
+        if 0 <= position < len(records):
+            rec = records[position]
+            asked = rec.get("type") == "answer" and (rec.get("query") or {}).get("step") is not None
+            if asked and qid == make_qid(entry.sid, position, rec["items"]):
+                in_force = any(r["seq"] == rec["seq"] for r in _in_force(entry.session))
+                if in_force and position == len(records) - 1 and body.get("answer") == rec["answer"]:
+                    return dict(self.state(entry), duplicate=True)
+                raise AnswerRefused("this question was already answered.", 409, self.state(entry))
+        raise AnswerRefused("not the current question of this session (stale, or another's).", 409, self.state(entry))
+
+    def undo(self, sid: str, body: Any) -> dict:
+        """Withdraw the last answer; ``body = {"qid"}`` names the question on screen (a second
+        click on a stale page is refused). Returns the new state."""
+        entry = self.entry(sid)
+        body = _object(body, {"qid"})
+        with entry.lock:
+            qid, _ = self._current(entry)
+            if body.get("qid") != qid:
+                raise AnswerRefused(
+                    "the page is not showing the current question: nothing undone.", 409, self.state(entry)
+                )
+            if entry.session.step == 0:
+                raise AnswerRefused("nothing to undo yet.", 400, self.state(entry))
+            entry.session.undo()
+            return self.state(entry)
+
+    # ------------------------------------------------------------- exports
+    def answers_csv(self, sid: str) -> str:
+        """Every answer record as CSV: seq, time, kind, step, items' labels, answer, chosen label,
+        rating value, response time (seconds), whether it is in force."""
+        entry = self.entry(sid)
+        with entry.lock:
+            records, active = entry.session.records, {r["seq"] for r in _in_force(entry.session)}
+        buf = io.StringIO()
+        w = csv.writer(buf)
+        w.writerow(["seq", "time", "kind", "step", "items", "answer", "chosen", "value", "response_time", "in_force"])
+        for r in records:
+            if r["type"] != "answer":
+                continue
+            q = r.get("query") or {}
+            rows = q.get("pool_indices")
+            labels = [self.items.label(i) for i in rows] if rows else [json.dumps(x) for x in r["items"]]
+            chosen = labels[r["answer"]] if r["kind"] == "choice" else ""
+            rt = r.get("response_time")
+            w.writerow(
+                [
+                    r["seq"],
+                    r["time"],
+                    r["kind"],
+                    "" if q.get("step") is None else q["step"],
+                    ";".join(_csv_safe(lab) for lab in labels),
+                    "" if r["answer"] is None else r["answer"],
+                    _csv_safe(chosen),
+                    r.get("value", ""),
+                    "" if rt is None else f"{rt:.3f}",
+                    int(r["seq"] in active),
+                ]
+            )
+        return buf.getvalue()
+
+    def checkpoint(self, sid: str) -> bytes:
+        """The session's model as a :func:`~torchpref.save_model` file (inputs normalised by the
+        session's bounds, as :meth:`~torchpref.PreferenceSession.transform` maps them)."""
+        import tempfile
+
+        from torchpref.models.checkpoint import save_model
+
+        entry = self.entry(sid)
+        with entry.lock, tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "model.pt"
+            save_model(entry.session.model, path)
+            return path.read_bytes()
+
+    def session_file(self, sid: str) -> bytes:
+        """The session file's bytes (or, for a session without a file, its records as JSON Lines)."""
+        entry = self.entry(sid)
+        with entry.lock:
+            s = entry.session
+            if s.path is not None:
+                return s.path.read_bytes()
+            return "".join(json.dumps(r) + "\n" for r in s.records).encode()
+
+
+def _in_force(session: PreferenceSession) -> list[dict]:
+    from torchpref.sessions.records import records_in_force
+
+    return records_in_force(session.records)
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _object(body: Any, allowed: set[str]) -> dict:
+    if not isinstance(body, dict):
+        raise AnswerRefused(f"the request must be a JSON object, got {type(body).__name__}.", 400)
+    extra = set(body) - allowed
+    if extra:
+        raise AnswerRefused(f"unknown field(s) {', '.join(sorted(map(repr, extra)))[:80]}.", 400)
+    if not isinstance(body.get("qid"), str):
+        raise AnswerRefused("the request names no question ('qid').", 400)
+    return body
+
+
+def _response_time(value: Any) -> float | None:
+    if value is None:
+        return None
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or not 0.0 <= value <= MAX_RESPONSE_TIME:
+        raise AnswerRefused(
+            f"response_time must be a number of seconds in 0..{MAX_RESPONSE_TIME:.0f}, got {value!r:.40}.", 400
+        )
+    return float(value)
+
+
+def _csv_safe(text: str) -> str:
+    """A label that a spreadsheet will not run as a formula."""
+    return "'" + text if text[:1] in ("=", "+", "-", "@", "\t", "\r") else text

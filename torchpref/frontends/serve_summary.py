@@ -1,0 +1,128 @@
+r"""The summary page of ``torchpref serve``: the learned utility over two objectives, the best
+items, and the downloads.
+
+The plot shows every pool item at its values of the two chosen objectives, coloured by the
+posterior mean of the utility (the model's prediction at that item, all its objectives), with
+the items answered about ringed and the recommended item starred. With one objective it is the
+posterior mean and a two-standard-deviation band against that objective.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Any
+from collections.abc import Mapping
+
+import torch
+
+from torchpref.frontends.serve_items import ServeItems
+
+__all__ = ["axes_from_query", "summary_context", "utility_plot"]
+
+TOP = 5
+
+
+def axes_from_query(items: ServeItems, query: Mapping[str, str]) -> tuple[int, int]:
+    """The two objectives to plot: ``?x=I&y=J`` (column numbers), by default the first two.
+
+    Raises:
+        AnswerRefused: (400) a number that is not an objective's column.
+    """
+    from torchpref.frontends.serve_store import AnswerRefused
+
+    d = items.X.shape[1]
+    out = []
+    for key, default in (("x", 0), ("y", min(1, d - 1))):
+        text = query.get(key)
+        if text is None:
+            out.append(default)
+            continue
+        if not (text.isascii() and text.isdigit()) or not 0 <= int(text) < d:
+            raise AnswerRefused(f"{key} must be an objective's column 0..{d - 1}, got {text[:20]!r}.", 400)
+        out.append(int(text))
+    return out[0], out[1]
+
+
+def summary_context(store, entry, query: Mapping[str, str]) -> dict[str, Any]:
+    """What ``summary.html`` shows for a session (call with ``entry.lock`` held)."""
+    from torchpref.data.queries import first_unique_rows
+
+    items, s = store.items, entry.session
+    x, y = axes_from_query(items, query)
+    ctx: dict[str, Any] = {
+        "sid": entry.sid,
+        "answered": s.step,
+        "total": s.num_queries,
+        "names": list(enumerate(items.names)),
+        "x": x,
+        "y": y,
+        "noun": items.noun,
+        "top": [],
+        "levels": s.num_levels,
+        "median_seconds": None,
+    }
+    if s.step == 0:
+        return ctx
+    seconds = sorted(a.response_time for a in s.history if a.response_time is not None)
+    if seconds:
+        ctx["median_seconds"] = f"{seconds[len(seconds) // 2]:.1f}"
+    X = items.X
+    distinct = first_unique_rows(X)
+    mean, std = s.predict(X)
+    rating = s.expected_rating(X)
+    order = distinct[mean[distinct].argsort(descending=True)[:TOP]].tolist()
+    k = s.num_levels
+    for rank, i in enumerate(order, start=1):
+        expected = float(k * rating[i] + 0.5).__round__(1) if k else float(rating[i]).__round__(2)
+        ctx["top"].append(
+            {
+                "rank": rank,
+                "label": items.label(i),
+                "features": [f"{float(v):.4g}" for v in X[i]],
+                "mean": f"{float(mean[i]):+.2f}",
+                "std": f"{float(std[i]):.2f}",
+                "expected": f"{min(max(expected, 1), k):.1f} / {k}" if k else f"{expected:.2f}",
+            }
+        )
+    return ctx
+
+
+def utility_plot(items: ServeItems, session, x: int, y: int) -> bytes:
+    """A PNG of the learned utility over objectives ``x`` and ``y`` (see the module)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    X = items.X
+    fig = Figure(figsize=(6.4, 4.6), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    if session.step == 0:
+        ax.text(0.5, 0.5, "no answers yet", ha="center", va="center", transform=ax.transAxes)
+        ax.set_axis_off()
+    else:
+        mean, std = session.predict(X)
+        seen = {i for r in session.history for i in (r.pool_indices or ())}
+        best = int(mean.argmax())
+        if x == y:
+            o = X[:, x].argsort()
+            xs, m, sd = X[o, x].numpy(), mean[o].numpy(), std[o].numpy()
+            ax.fill_between(xs, m - 2 * sd, m + 2 * sd, color="#9ecae1", alpha=0.5, label="± 2 sd")
+            ax.plot(xs, m, color="#08519c", marker=".", label="posterior mean")
+            ax.set_ylabel("utility")
+        else:
+            pts = ax.scatter(X[:, x], X[:, y], c=mean, cmap="viridis", s=36, edgecolors="none")
+            fig.colorbar(pts, ax=ax, label="utility (posterior mean)")
+            if seen:
+                rows = torch.tensor(sorted(seen))
+                ax.scatter(
+                    X[rows, x], X[rows, y], s=90, facecolors="none", edgecolors="#d62728", label="answered about"
+                )
+            ax.scatter(X[best, x], X[best, y], marker="*", s=320, c="#ff7f0e", edgecolors="k", label="recommended")
+            ax.set_ylabel(items.names[y])
+        ax.set_xlabel(items.names[x])
+        ax.legend(loc="best", fontsize=8)
+        ax.set_title(f"Learned utility from {session.step} answers")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()
