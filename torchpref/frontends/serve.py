@@ -79,7 +79,7 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-def create_app(store: SessionStore, *, token: str | None = None, allowed_hosts: list[str] | None = None):
+def create_app(store: SessionStore, *, token: str | None = None, allowed_hosts: list[str] | None = None) -> Any:
     """The ASGI application over ``store`` (Starlette, wrapped in the Host / token / headers guard).
 
     Args:
@@ -428,7 +428,7 @@ def _run_uvicorn(app, host: str, port: int, token: str | None, ready, path: str 
     server.run(sockets=[sock])
 
 
-def run(args) -> int:
+def run(args: Any) -> int:
     """``torchpref serve`` (``args`` from :mod:`torchpref.cli`); returns the exit code."""
     _require()
     if args.features is not None:

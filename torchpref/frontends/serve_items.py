@@ -151,7 +151,9 @@ def _image_files(path: Path, header: list[str], rows: list[dict], column: str, i
     return files
 
 
-def items_from_csv(path, id_column: str | None = None, image_column: str | None = None, image_dir=None) -> ServeItems:
+def items_from_csv(
+    path: str | Path, id_column: str | None = None, image_column: str | None = None, image_dir: str | Path | None = None
+) -> ServeItems:
     """Items from a features CSV as ``torchpref elicit`` reads it
     (:func:`~torchpref.data.features.read_features_csv`), optionally with a column naming each
     item's image file (a name relative to ``image_dir``, by default the CSV's folder).

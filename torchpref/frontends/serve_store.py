@@ -86,7 +86,7 @@ class SessionStore:
     def __init__(
         self,
         items: ServeItems,
-        directory=None,
+        directory: str | Path | None = None,
         *,
         session: PreferenceSession | None = None,
         sid: str | None = None,

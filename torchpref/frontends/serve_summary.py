@@ -43,7 +43,7 @@ def axes_from_query(items: ServeItems, query: Mapping[str, str]) -> tuple[int, i
     return out[0], out[1]
 
 
-def summary_context(store, entry, query: Mapping[str, str]) -> dict[str, Any]:
+def summary_context(store: Any, entry: Any, query: Mapping[str, str]) -> dict[str, Any]:
     """What ``summary.html`` shows for a session (call with ``entry.lock`` held)."""
     from torchpref.data.queries import first_unique_rows
 
@@ -87,7 +87,7 @@ def summary_context(store, entry, query: Mapping[str, str]) -> dict[str, Any]:
     return ctx
 
 
-def utility_plot(items: ServeItems, session, x: int, y: int) -> bytes:
+def utility_plot(items: ServeItems, session: Any, x: int, y: int) -> bytes:
     """A PNG of the learned utility over objectives ``x`` and ``y`` (see the module)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
