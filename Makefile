@@ -33,7 +33,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 ifeq ($(CI),true)
-	$(MAKE) lint types docs wheel-check
+	$(MAKE) lint types docs wheel-check test-floor
 endif
 
 bench: $(STAMP)
