@@ -18,7 +18,7 @@ from torch.func import functional_call
 
 #: The dtypes a model and its Laplace solve may be in. float16 and bfloat16 are refused: their
 #: 3 and 2 significant digits cannot resolve a Newton decrement, and the kernel's squared
-#: distances overflow float16 beyond |x| of about 0.003 times its lengthscale floor.
+#: distances overflow float16 beyond ``|x|`` of about 0.003 times its lengthscale floor.
 SUPPORTED_DTYPES = (torch.float32, torch.float64)
 
 
