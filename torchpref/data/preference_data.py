@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeAlias
 from collections.abc import Sequence
 
 import torch
@@ -26,7 +26,7 @@ from torch import Tensor
 
 DEFAULT_RATING_EPS = 1e-3
 
-TensorLike = Tensor | Sequence[Any] | float
+TensorLike: TypeAlias = "Tensor | Sequence[Any] | float"
 """What ``torch.as_tensor`` takes: a tensor, a (nested) sequence or array of numbers, or a number."""
 
 

@@ -218,7 +218,7 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
         if learn and cut_points_prior is None:
             from gpytorch.priors import NormalPrior
 
-            cut_points_prior = NormalPrior(self.cut_points.detach().clone(), 0.5)
+            cut_points_prior = NormalPrior(torch.as_tensor(self.cut_points).detach().clone(), 0.5)
         if cut_points_prior is not None:
             self.register_prior(
                 "cut_points_prior", cut_points_prior, lambda m: m.cut_points, lambda m, v: setattr(m, "cut_points", v)
