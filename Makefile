@@ -75,7 +75,7 @@ test-floor:
 	$(PY) -m venv .venv-floor
 	.venv-floor/bin/pip install --quiet "torch==2.13.0"
 	.venv-floor/bin/pip install --quiet -e . pytest scipy -c requirements-floor.txt
-	.venv-floor/bin/python -m pytest -q tests/test_pairwise_contract.py tests/test_models.py tests/test_botorch_port_model.py tests/test_botorch_port_acquisition.py tests/test_botorch_fit.py tests/test_laplace.py
+	.venv-floor/bin/python -m pytest -q tests/parity/test_pairwise_contract.py tests/models/test_models.py tests/parity/test_botorch_port_model.py tests/parity/test_botorch_port_acquisition.py tests/parity/test_botorch_fit.py tests/inference/test_laplace.py
 
 # `make upstream-tests`: BoFire's own tests, from its sdist (Ax ships its tests in its wheel).
 upstream-tests:
@@ -85,17 +85,17 @@ upstream-tests:
 	  tar xzf .cache/upstream/bofire-0.5.0.tar.gz -C .cache/upstream bofire-0.5.0/tests )
 
 # `make test-integrations`: torchpref[ax] and torchpref[bofire], each with the library's own tests
-# of its preference path run with PreferenceGP (tests/test_upstream_suites.py).
+# of its preference path run with PreferenceGP (tests/parity/test_upstream_suites.py).
 test-integrations:
 	$(PY) -m venv .venv-ax
 	.venv-ax/bin/pip install --quiet "torch==2.13.0"
 	.venv-ax/bin/pip install --quiet -e ".[ax]" pytest scipy pyfakefs
-	.venv-ax/bin/python -m pytest -q -rs tests/test_ax_integration.py tests/test_upstream_suites.py -k "not bofire"
+	.venv-ax/bin/python -m pytest -q -rs tests/integrations/test_ax_integration.py tests/parity/test_upstream_suites.py -k "not bofire"
 	$(PY) -m venv .venv-bofire
 	.venv-bofire/bin/pip install --quiet "torch==2.13.0"
 	.venv-bofire/bin/pip install --quiet -e ".[bofire]" pytest scipy
 	$(MAKE) upstream-tests
-	.venv-bofire/bin/python -m pytest -q -rs tests/test_bofire_integration.py tests/test_upstream_suites.py -k "not ax_"
+	.venv-bofire/bin/python -m pytest -q -rs tests/integrations/test_bofire_integration.py tests/parity/test_upstream_suites.py -k "not ax_"
 
 clean:
 	rm -rf $(VENV) .venv-floor .venv-ax .venv-bofire .cache/upstream dist build docs/_build docs/_generated docs/jupyter_execute

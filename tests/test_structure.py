@@ -36,6 +36,7 @@ LAYERS = [
     "experiments",
     "frontends",
     "integrations",
+    "testing",
 ]
 TOP = {"__init__", "cli", "demo", "serve"}
 

@@ -11,7 +11,7 @@ its own validated :class:`~torchpref.data.preference_data.PreferenceData`, so ad
 exactly as on a :class:`~torchpref.PreferenceGP`.
 
 The per-trial results equal those of ``T`` separate :class:`~torchpref.PreferenceGP` models
-(same Newton iterates, same predictions); ``tests/test_batch.py`` checks this.
+(same Newton iterates, same predictions); ``tests/models/test_batch.py`` checks this.
 Hyperparameters are fixed (no fitting): use a :class:`~torchpref.PreferenceGP` to fit them.
 """
 

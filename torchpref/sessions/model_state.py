@@ -12,7 +12,7 @@ r"""A session's model as a cache of its answers, kept at constant cost per answe
   beside the file (``FILE.mode``): a resume starts Newton there and replays only the answers
   after it, so that it is the interrupted process's posterior (to round-off) at constant cost.
 
-Replay through ``record_answer`` stays the reference (``tests/test_session_scale.py`` checks the
+Replay through ``record_answer`` stays the reference (``tests/sessions/test_session_scale.py`` checks the
 two agree to Newton's tolerance, and give the same next query).
 """
 

@@ -1,0 +1,171 @@
+"""PreferenceGP inside Ax (``torchpref.integrations.ax``; docs/ax.md).
+
+Skipped, with the reason, where Ax (``pip install 'torchpref[ax]'``) is not installed. Ax's own
+test files for its preference path, run with the model swapped, are checked in
+``tests/parity/test_upstream_suites.py``.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+import torch
+
+
+def test_import_torchpref_imports_no_ax():
+    code = "import sys, torchpref, torchpref.models; print(sorted(m for m in sys.modules if m.split('.')[0] in ('ax', 'bofire')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+ax = pytest.importorskip(
+    "ax", reason="Ax is not installed (pip install 'torchpref[ax]'): the Ax integration is untested here"
+)
+
+import torchpref.integrations.ax as tax  # noqa: E402
+from ax.adapter.torch import TorchAdapter  # noqa: E402
+from ax.core import Arm, GeneratorRun  # noqa: E402
+from ax.core.metric import Metric  # noqa: E402
+from ax.core.objective import Objective  # noqa: E402
+from ax.core.optimization_config import OptimizationConfig  # noqa: E402
+from ax.generators.torch.botorch_modular.generator import BoTorchGenerator  # noqa: E402
+from ax.generators.torch.botorch_modular.surrogate import ModelConfig, SurrogateSpec  # noqa: E402
+from ax.utils.testing.preference_stubs import get_pbo_experiment  # noqa: E402
+from botorch.models.pairwise_gp import PairwiseGP  # noqa: E402
+from botorch.models.transforms.input import Normalize  # noqa: E402
+
+from torchpref import LaplaceMarginalLogLikelihood, PreferenceGP  # noqa: E402
+
+PREF = "pairwise_pref_query"
+
+
+def _experiment(ratings: dict | None = None):
+    """Ax's PBO test experiment (2 parameters in [10, 30], 4 compared pairs); with ``ratings``,
+    a tracking metric "rating" and one single-arm trial per rated arm."""
+    exp = get_pbo_experiment(
+        num_parameters=2,
+        num_experimental_metrics=1 if ratings else 0,
+        tracking_metric_names=["rating"] if ratings else None,
+        num_experimental_trials=0,
+        num_preference_trials=4,
+        num_preference_trials_w_repeated_arm=0,
+        include_sq=False,
+    )
+    for params, value in (ratings or {}).items():
+        trial = exp.new_batch_trial(generator_run=GeneratorRun([Arm(parameters=dict(params))]))
+        trial.attach_batch_trial_data(raw_data={trial.arms[0].name: {"rating": (value, 0.0)}})
+        trial.mark_running(no_runner_required=True)
+        trial.mark_completed()
+    return exp
+
+
+def _adapter(exp, spec, fit_tracking_metrics=False):
+    return TorchAdapter(
+        experiment=exp,
+        generator=BoTorchGenerator(surrogate_spec=spec),
+        optimization_config=OptimizationConfig(Objective(metric=Metric(PREF), minimize=False)),
+        fit_tracking_metrics=fit_tracking_metrics,
+        transforms=[],
+    )
+
+
+def _preference_model(adapter):
+    return adapter.generator.surrogate._submodels[(PREF,)]
+
+
+def _config(**kw):
+    return ModelConfig(
+        botorch_model_class=PreferenceGP,
+        input_transform_classes=[Normalize],
+        input_transform_options={"Normalize": {"d": 2}},
+        **kw,
+    )
+
+
+def test_metric_to_model_configs_fits_preference_gp():
+    exp = _experiment()
+    model = _preference_model(_adapter(exp, SurrogateSpec(metric_to_model_configs={PREF: [_config()]})))
+    assert isinstance(model, PreferenceGP)
+    assert isinstance(model.input_transform, Normalize)
+    assert model.comparisons.shape == (4, 2)
+    # fitted: the Laplace evidence went up from the default hyperparameters'
+    fresh = PreferenceGP(model.train_X, model.comparisons, input_transform=Normalize(2))
+    assert float(LaplaceMarginalLogLikelihood(model)()) > float(LaplaceMarginalLogLikelihood(fresh)()) - 1e-9
+
+
+def test_model_configs_form_is_not_silently_replaced():
+    """Ax sends a preference metric that metric_to_model_configs does not name to ModelConfig(),
+    i.e. PairwiseGP; with the integration a PreferenceGP config in model_configs is used."""
+    exp = _experiment()
+    model = _preference_model(_adapter(exp, SurrogateSpec(model_configs=[_config()])))
+    assert isinstance(model, PreferenceGP)
+    # a spec naming no PreferenceGP keeps Ax's own choice
+    assert isinstance(_preference_model(_adapter(exp, SurrogateSpec())), PairwiseGP)
+
+
+def test_mll_classes():
+    from botorch.models.pairwise_gp import PairwiseLaplaceMarginalLogLikelihood
+    from gpytorch.mlls import ExactMarginalLogLikelihood, LeaveOneOutPseudoLikelihood
+
+    for given in (None, ExactMarginalLogLikelihood, PairwiseLaplaceMarginalLogLikelihood, LaplaceMarginalLogLikelihood):
+        assert tax.laplace_mll_class(given) is LaplaceMarginalLogLikelihood
+    with pytest.raises(ValueError, match="LeaveOneOutPseudoLikelihood"):
+        tax.laplace_mll_class(LeaveOneOutPseudoLikelihood)
+    exp = _experiment()
+    model = _preference_model(
+        _adapter(
+            exp,
+            SurrogateSpec(metric_to_model_configs={PREF: [_config(mll_class=PairwiseLaplaceMarginalLogLikelihood)]}),
+        )
+    )
+    assert isinstance(model, PreferenceGP)
+
+
+def test_rating_metric_reaches_the_model():
+    rated = {(("x1", 12.0), ("x2", 12.0)): 0.9, (("x1", 28.0), ("x2", 13.0)): 0.1, (("x1", 20.0), ("x2", 27.0)): 0.6}
+    exp = _experiment(rated)
+    configs = {PREF: [_config(model_options={tax.RATING_METRICS_OPTION: ["rating"]})]}
+    with_ratings = _preference_model(_adapter(exp, SurrogateSpec(metric_to_model_configs=configs), True))
+    without = _preference_model(_adapter(exp, SurrogateSpec(metric_to_model_configs={PREF: [_config()]}), True))
+    assert isinstance(with_ratings, PreferenceGP) and without.ratings.numel() == 0
+    # each rated arm is an item, and its rating is at its row
+    got = {
+        tuple(with_ratings.train_X[i].tolist()): float(r)
+        for r, i in zip(with_ratings.ratings, with_ratings.rating_index, strict=True)
+    }
+    want = {tuple(v for _, v in k): r for k, r in rated.items()}
+    assert got.keys() == want.keys()
+    for k in want:
+        assert got[k] == pytest.approx(want[k])
+    X = torch.tensor(list(want), dtype=with_ratings.train_X.dtype)
+    with torch.no_grad():
+        m_with = with_ratings.posterior(X).mean.reshape(-1)
+        m_without = without.posterior(X).mean.reshape(-1)
+    assert not torch.allclose(m_with, m_without, atol=1e-3)
+    assert m_with[0] > m_with[1]  # the arm rated 0.9 above the arm rated 0.1
+
+
+def test_bad_ratings_are_named():
+    exp = _experiment({(("x1", 12.0), ("x2", 12.0)): 3.0})
+    configs = {PREF: [_config(model_options={tax.RATING_METRICS_OPTION: ["rating"]})]}
+    with pytest.raises(ValueError, match="rating"):
+        _adapter(exp, SurrogateSpec(metric_to_model_configs=configs), True)
+    with pytest.raises(ValueError, match="no data"):
+        _adapter(exp, SurrogateSpec(metric_to_model_configs=configs), False)
+
+
+def test_rating_inputs_reuse_rows():
+    from botorch.utils.datasets import SupervisedDataset
+
+    X = torch.tensor([[0.0, 0.0], [1.0, 1.0]], dtype=torch.float64)
+    ds = SupervisedDataset(
+        X=torch.tensor([[1.0, 1.0], [0.5, 0.5]], dtype=torch.float64),
+        Y=torch.tensor([[0.2], [0.7]], dtype=torch.float64),
+        feature_names=["a", "b"],
+        outcome_names=["rating"],
+    )
+    items, ratings, index = tax.rating_inputs(X, [ds])
+    assert items.shape == (3, 2) and torch.equal(items[2], ds.X[1])
+    assert index.tolist() == [1, 2] and torch.allclose(ratings, torch.tensor([0.2, 0.7], dtype=torch.float64))
