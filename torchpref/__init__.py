@@ -16,16 +16,6 @@ from torchpref.version import __version__
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.acquisition.functions import QueryInformation, QueryUCB, latent_ucb
-    from torchpref.frontends.serve import serve
-    from torchpref.selection.active import (
-        History,
-        QueryRecord,
-        fit_model,
-        run_active_learning,
-        run_active_learning_batch,
-    )
-    from torchpref.models.batch import BatchedPreferenceGP
-    from torchpref.models.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
     from torchpref.data.preference_data import (
         PreferenceData,
         RatingBoundaryWarning,
@@ -35,30 +25,30 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         prepare_ratings,
         unit_to_likert,
     )
-    from torchpref.models.pairwise_interface import TrainDataMismatchError, UnsupportedLikelihoodError
+    from torchpref.data.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
+    from torchpref.frontends.serve import serve
     from torchpref.inference.laplace import LaplaceConvergenceWarning
+    from torchpref.inference.numerics import JitterWarning, LaplaceNumericalError, NotPSDError
+    from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
     from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
     from torchpref.likelihoods.person import LapseProbitLikelihood, PersonRatingLikelihood
+    from torchpref.models.batch import BatchedPreferenceGP
     from torchpref.models.calibration import calibrate_person, fit_person
-    from torchpref.simulation.raters import EffortModel, RaterProfile, RealisticUser
-    from torchpref.simulation.metrics import (
-        error_on_best,
-        expected_rating,
-        rating_from_latent,
-        true_positives,
-        wrms,
-        wrms_authors,
-    )
+    from torchpref.models.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
+    from torchpref.models.pairwise_interface import TrainDataMismatchError, UnsupportedLikelihoodError
     from torchpref.models.preference_gp import (
         PAPER_FIG4_SETTINGS,
         LaplaceMarginalLogLikelihood,
         PreferenceGP,
         default_covar_module,
     )
-    from torchpref.inference.numerics import JitterWarning, LaplaceNumericalError, NotPSDError
-    from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
-    from torchpref.data.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
-    from torchpref.sessions.session import PreferenceSession
+    from torchpref.selection.active import (
+        History,
+        QueryRecord,
+        fit_model,
+        run_active_learning,
+        run_active_learning_batch,
+    )
     from torchpref.selection.strategies import (
         UCBC,
         InformationPerEffort,
@@ -68,9 +58,19 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         UCBRatings,
     )
     from torchpref.selection.top_profile import ProfileVariancePerEffort
-    from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
     from torchpref.selection.variance_reduction import VariancePerEffort
+    from torchpref.sessions.session import PreferenceSession
+    from torchpref.simulation.metrics import (
+        error_on_best,
+        expected_rating,
+        rating_from_latent,
+        true_positives,
+        wrms,
+        wrms_authors,
+    )
+    from torchpref.simulation.raters import EffortModel, RaterProfile, RealisticUser
     from torchpref.simulation.users import SimulatedUser, User
+    from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
 
 # public name -> the torchpref module that defines it
 _EXPORTS = {

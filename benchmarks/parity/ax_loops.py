@@ -50,9 +50,11 @@ def _model_config(model: str, d: int):
 
     if model == "PreferenceGP":
         import torchpref.integrations.ax  # noqa: F401  (registers PreferenceGP with Ax)
-        from torchpref import LaplaceMarginalLogLikelihood as mll, PreferenceGP as cls
+        from torchpref import LaplaceMarginalLogLikelihood as mll
+        from torchpref import PreferenceGP as cls
     else:
-        from botorch.models.pairwise_gp import PairwiseGP as cls, PairwiseLaplaceMarginalLogLikelihood as mll
+        from botorch.models.pairwise_gp import PairwiseGP as cls
+        from botorch.models.pairwise_gp import PairwiseLaplaceMarginalLogLikelihood as mll
     return ModelConfig(
         botorch_model_class=cls,
         mll_class=mll,

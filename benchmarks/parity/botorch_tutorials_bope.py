@@ -38,9 +38,6 @@ from botorch.optim.optimize import optimize_acqf
 from botorch.sampling import SobolQMCNormalSampler
 from botorch.test_functions.multi_objective import DTLZ2
 from botorch.utils.sampling import draw_sobol_samples
-from gpytorch.mlls import ExactMarginalLogLikelihood
-from tqdm import tqdm
-
 from botorch_tutorials_common import (
     MODELS,
     RESULTS,
@@ -53,6 +50,8 @@ from botorch_tutorials_common import (
     seed_all,
     timed,
 )
+from gpytorch.mlls import ExactMarginalLogLikelihood
+from tqdm import tqdm
 
 X_DIM, Y_DIM = 5, 4
 NUM_RESTARTS, NUM_OUTCOME_SAMPLES, RAW_SAMPLES, BATCH_LIMIT = 8, 32, 64, 4

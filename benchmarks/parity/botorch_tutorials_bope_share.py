@@ -22,13 +22,12 @@ import json
 import time
 import warnings
 
+import botorch_tutorials_bope as bp
 import torch
 from botorch.acquisition import LearnedObjective
 from botorch.acquisition.preference import AnalyticExpectedUtilityOfBestOption
 from botorch.models.deterministic import FixedSingleSampleModel
 from botorch.optim.optimize import optimize_acqf
-
-import botorch_tutorials_bope as bp
 from botorch_tutorials_common import MODELS, RESULTS, fit_preference_model, seed_all
 
 

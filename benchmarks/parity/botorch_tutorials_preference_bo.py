@@ -28,8 +28,6 @@ import numpy as np
 import torch
 from botorch.acquisition.preference import AnalyticExpectedUtilityOfBestOption
 from botorch.optim import optimize_acqf
-from tqdm import tqdm
-
 from botorch_tutorials_common import (
     MODELS,
     RESULTS,
@@ -42,6 +40,7 @@ from botorch_tutorials_common import (
     seed_all,
     timed,
 )
+from tqdm import tqdm
 
 DIM, NOISE, Q, Q_COMP = 4, 0.1, 2, 1
 NUM_RESTARTS, RAW_SAMPLES = 3, 512

@@ -36,15 +36,15 @@ import warnings
 from pathlib import Path
 
 import torch
+from botorch.fit import fit_gpytorch_mll
 from tqdm import tqdm
 
-from botorch.fit import fit_gpytorch_mll
 from torchpref.data.preference_data import best_of_m, likert_to_unit, unit_to_likert
 from torchpref.experiments.results import paired_tests, write_json
 from torchpref.experiments.runner import make_model as fixed_model
 from torchpref.experiments.runner import single_threaded, trial_seeds
-from torchpref.simulation.metrics import true_positives, wrms
 from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood
+from torchpref.simulation.metrics import true_positives, wrms
 from torchpref.simulation.users import SimulatedUser
 from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
 

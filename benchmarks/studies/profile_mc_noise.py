@@ -25,10 +25,10 @@ from pathlib import Path
 import torch
 
 from torchpref.acquisition.functions import choice_probabilities, rating_bin_probabilities
-from torchpref.selection.active import run_active_learning
+from torchpref.data.queries import BoxCandidates
 from torchpref.experiments import runner
 from torchpref.experiments.families import FAMILIES, model_settings, setup
-from torchpref.data.queries import BoxCandidates
+from torchpref.selection.active import run_active_learning
 from torchpref.selection.strategies import joint_posterior, joint_samples
 from torchpref.selection.top_profile import ProfileVariancePerEffort, profile_variance_reduction, top_profile
 

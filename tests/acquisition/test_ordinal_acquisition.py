@@ -7,10 +7,10 @@ import numpy as np
 import torch
 from scipy import stats
 
-from torchpref.testing import rand
 from torchpref.acquisition.functions import QueryInformation, rating_bin_probabilities
-from torchpref.models.preference_gp import PreferenceGP
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood
+from torchpref.models.preference_gp import PreferenceGP
+from torchpref.testing import rand
 
 
 def level_model(seed: int = 0) -> PreferenceGP:
@@ -51,8 +51,8 @@ def test_bins_of_an_ordinal_rating_are_its_levels():
 
 def test_active_learning_with_levels_and_information_per_effort():
     """The loop runs with an ordinal model and a rating answer in [0, 1] becomes its level."""
-    from torchpref.selection.active import run_active_learning
     from torchpref.data.queries import BoxCandidates
+    from torchpref.selection.active import run_active_learning
     from torchpref.selection.strategies import InformationPerEffort, RandomRatings
     from torchpref.simulation.users import SimulatedUser
 

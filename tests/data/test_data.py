@@ -6,7 +6,6 @@ import pytest
 import torch
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
-from torchpref.testing import rand
 from torchpref.data.preference_data import (
     PreferenceData,
     RatingBoundaryWarning,
@@ -16,6 +15,7 @@ from torchpref.data.preference_data import (
     unit_to_likert,
 )
 from torchpref.models.preference_gp import PreferenceGP
+from torchpref.testing import rand
 
 F64 = torch.float64
 

@@ -88,7 +88,8 @@ def test_registry_and_fixed_kernel():
     import torch
     from gpytorch.kernels import RBFKernel, ScaleKernel
 
-    from torchpref.experiments.runner import STRATEGIES as ALL, make_model, make_selector
+    from torchpref.experiments.runner import STRATEGIES as ALL
+    from torchpref.experiments.runner import make_model, make_selector
     from torchpref.models.kernels import fixed_rbf_kernel
 
     for name in ALL:

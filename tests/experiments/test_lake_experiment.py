@@ -5,11 +5,10 @@ import json
 import pytest
 import torch
 
-from torchpref.lake import LakeOperator, LakeScenario, path_objectives
 from torchpref.experiments.lake import STRATEGIES, make_model, normalise, pool_bounds, run_lake_experiment
 from torchpref.experiments.lake_plan import model_utility
+from torchpref.lake import LakeOperator, LakeScenario, path_objectives
 from torchpref.lake.plan import plan_with_utility
-
 from torchpref.testing.lake_worlds import bent_paths, lake_and_field
 
 

@@ -175,8 +175,8 @@ def test_read_features_csv_labels_and_errors(tmp_path):
 def test_answer_parsing_reasks_until_valid():
     import torch
 
-    from torchpref.frontends.elicit import _ask_answer
     from torchpref.data.queries import RankingQuery, RatingQuery
+    from torchpref.frontends.elicit import _ask_answer
 
     rq = RatingQuery(torch.zeros(2, dtype=torch.float64))
     out = io.StringIO()

@@ -10,9 +10,9 @@ import torch
 widgets = pytest.importorskip("ipywidgets")
 pytest.importorskip("matplotlib")
 
-from torchpref.sessions.session import PreferenceSession  # noqa: E402
-from torchpref.selection.strategies import RandomRankings, RandomRatings  # noqa: E402
 from torchpref.frontends.widgets import PreferenceWidget, as_picture, table_picture  # noqa: E402
+from torchpref.selection.strategies import RandomRankings, RandomRatings  # noqa: E402
+from torchpref.sessions.session import PreferenceSession  # noqa: E402
 
 PNG = b"\x89PNG\r\n\x1a\n" + b"\0" * 16
 

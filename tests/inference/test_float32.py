@@ -7,9 +7,9 @@ import torch
 from botorch.exceptions.warnings import InputDataWarning
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
-from torchpref.testing import rand, random_comparisons
-from torchpref.models.preference_gp import PreferenceGP
 from torchpref.inference import numerics
+from torchpref.models.preference_gp import PreferenceGP
+from torchpref.testing import rand, random_comparisons
 
 F32, F64 = torch.float32, torch.float64
 

@@ -6,7 +6,6 @@ float32 model solving natively."""
 
 import pytest
 
-
 from torchpref.testing import problems as fp
 
 SEEDS = range(40)

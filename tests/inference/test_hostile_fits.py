@@ -11,8 +11,6 @@ import torch
 import torchpref
 from torchpref.inference import laplace
 from torchpref.inference.numerics import LaplaceNumericalError, NotPSDError
-
-
 from torchpref.testing import problems as hf
 
 F64 = torch.float64

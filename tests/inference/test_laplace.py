@@ -9,11 +9,10 @@ import torch
 from gpytorch.kernels import RBFKernel, ScaleKernel
 from scipy import linalg, optimize, special
 
-from torchpref.testing import rand, randn, random_comparisons
-from torchpref.testing import assert_evidence_gradient
 from torchpref.inference.laplace import Observations
 from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.models.preference_gp import PreferenceGP
+from torchpref.testing import assert_evidence_gradient, rand, randn, random_comparisons
 
 SQRT2 = math.sqrt(2.0)
 

@@ -9,8 +9,6 @@ import torch
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from torchpref.models.preference_gp import PreferenceGP
-
-
 from torchpref.testing import problems as fp
 
 F64 = torch.float64
@@ -268,8 +266,9 @@ def test_condition_on_observations_takes_lists_as_the_rest_of_the_api_does():
 
 
 def test_a_saved_prior_only_model_loads(tmp_path):
-    import torchpref
     from gpytorch.kernels import RBFKernel, ScaleKernel
+
+    import torchpref
 
     prior = PreferenceGP(None, None)
     prior.covar_module.outputscale = 2.5

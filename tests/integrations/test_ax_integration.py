@@ -24,7 +24,6 @@ ax = pytest.importorskip(
     "ax", reason="Ax is not installed (pip install 'torchpref[ax]'): the Ax integration is untested here"
 )
 
-import torchpref.integrations.ax as tax  # noqa: E402
 from ax.adapter.torch import TorchAdapter  # noqa: E402
 from ax.core import Arm, GeneratorRun  # noqa: E402
 from ax.core.metric import Metric  # noqa: E402
@@ -36,6 +35,7 @@ from ax.utils.testing.preference_stubs import get_pbo_experiment  # noqa: E402
 from botorch.models.pairwise_gp import PairwiseGP  # noqa: E402
 from botorch.models.transforms.input import Normalize  # noqa: E402
 
+import torchpref.integrations.ax as tax  # noqa: E402
 from torchpref import LaplaceMarginalLogLikelihood, PreferenceGP  # noqa: E402
 
 PREF = "pairwise_pref_query"

@@ -11,8 +11,8 @@ import pytest
 
 pytest.importorskip("bofire", reason="BoFire is not installed (pip install 'torchpref[bofire]'): untested here")
 
-import pandas as pd
 import bofire.surrogates.api as surrogates
+import pandas as pd
 from bofire.data_models.domain.api import Inputs, Outputs
 from bofire.data_models.features.api import ContinuousInput, ContinuousOutput
 from bofire.data_models.surrogates.api import PairwiseGPSurrogate

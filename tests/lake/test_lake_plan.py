@@ -10,7 +10,6 @@ from torchpref.lake import LakeOperator, LakeScenario, path_objectives
 from torchpref.lake import scenario as scenario_module
 from torchpref.lake.plan import plan_with_utility
 from torchpref.lake.scenario import cached_scenario, load_scenario, save_scenario, scenario_cache_path
-
 from torchpref.testing.lake_worlds import bent_paths, lake_and_field
 
 

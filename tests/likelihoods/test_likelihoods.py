@@ -7,8 +7,8 @@ import pytest
 import torch
 from scipy import integrate, special, stats
 
-from torchpref.testing import rand, randn
 from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.testing import rand, randn
 
 SQRT2 = math.sqrt(2.0)
 

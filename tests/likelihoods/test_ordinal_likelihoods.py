@@ -10,9 +10,9 @@ import torch
 from gpytorch.distributions import MultivariateNormal
 from scipy import integrate, stats
 
-from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
 from torchpref.inference.numerics import normal_interval
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, TieLikelihood, default_cut_points
+from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
 
 SQRT2 = math.sqrt(2.0)
 T = dict(dtype=torch.float64)

@@ -9,11 +9,11 @@ import pytest
 import torch
 from scipy import stats
 
-from torchpref.testing import assert_evidence_gradient
 from torchpref import PreferenceGP
 from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.likelihoods.person import LapseProbitLikelihood, PersonRatingLikelihood
 from torchpref.models.calibration import calibrate_person, fit_person, person_parameters
+from torchpref.testing import assert_evidence_gradient
 
 SQRT2 = math.sqrt(2.0)
 

@@ -3,14 +3,14 @@
 import pytest
 import torch
 
-from torchpref.selection.active import run_active_learning, run_active_learning_batch
-from torchpref.models.batch import BatchedPreferenceGP
+from torchpref.data.queries import BoxCandidates, FinitePool
 from torchpref.experiments import wave
 from torchpref.inference.numerics import NotPSDError, batched_cholesky
-from torchpref.data.queries import BoxCandidates, FinitePool
+from torchpref.models.batch import BatchedPreferenceGP
+from torchpref.selection.active import run_active_learning, run_active_learning_batch
 from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomMixed, Selector
-from torchpref.simulation.utility_functions import WaveFunction
 from torchpref.simulation.users import SimulatedUser
+from torchpref.simulation.utility_functions import WaveFunction
 
 
 def _random_trials(T: int, steps: int, seed: int):

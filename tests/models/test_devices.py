@@ -9,12 +9,12 @@ from botorch.fit import fit_gpytorch_mll
 from botorch.sampling.normal import SobolQMCNormalSampler
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
-from torchpref.testing import random_comparisons
 from torchpref import BatchedPreferenceGP, PreferenceGP
 from torchpref.acquisition.functions import QueryInformation, QueryUCB, latent_ucb
 from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood
 from torchpref.selection.strategies import UCBC, InformationPerEffort
 from torchpref.selection.top_profile import ProfileVariancePerEffort
+from torchpref.testing import random_comparisons
 
 
 def build(device, seed=0, n=9):

@@ -8,8 +8,8 @@ from botorch.sampling.normal import SobolQMCNormalSampler
 from botorch.sampling.pairwise_samplers import PairwiseSobolQMCNormalSampler
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
-from torchpref.testing import random_comparisons
 from torchpref import PreferenceGP
+from torchpref.testing import random_comparisons
 
 
 def kernel(device):

@@ -7,8 +7,8 @@ import pytest
 import torch
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
-from torchpref.testing import rand, random_comparisons
 from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
+from torchpref.testing import rand, random_comparisons
 
 SQRT2 = math.sqrt(2.0)
 

@@ -11,9 +11,8 @@ from botorch.fit import fit_gpytorch_mll
 from gpytorch.kernels import RBFKernel, ScaleKernel
 from scipy import optimize, special, stats
 
-from torchpref.testing import rand, random_comparisons
-from torchpref.testing import assert_evidence_gradient
 from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
+from torchpref.testing import assert_evidence_gradient, rand, random_comparisons
 
 SQRT2 = math.sqrt(2.0)
 

@@ -10,8 +10,8 @@ from botorch.fit import fit_gpytorch_mll
 from botorch.models.transforms.input import Normalize
 from linear_operator.utils.errors import NotPSDError as LinearOperatorNotPSDError
 
-from torchpref.models.preference_gp import MIN_LENGTHSCALE, LaplaceMarginalLogLikelihood, PreferenceGP
 from torchpref.inference.numerics import NotPSDError, cholesky_jittered
+from torchpref.models.preference_gp import MIN_LENGTHSCALE, LaplaceMarginalLogLikelihood, PreferenceGP
 
 
 def loop_data(seed: int, n: int = 54, d: int = 4, repeats: int = 11):

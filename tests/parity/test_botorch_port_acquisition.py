@@ -32,7 +32,6 @@ from botorch.models.deterministic import FixedSingleSampleModel, PosteriorMeanMo
 from botorch.models.transforms.input import Normalize
 from botorch.optim import optimize_acqf
 from botorch.sampling.pairwise_samplers import PairwiseSobolQMCNormalSampler
-
 from botorch_port import _seeded, impl, make_model, model_class, small_problem  # noqa: F401
 
 F64 = {"dtype": torch.float64}

@@ -14,10 +14,9 @@ from botorch.posteriors import GPyTorchPosterior
 from botorch.sampling.pairwise_samplers import PairwiseSobolQMCNormalSampler
 from botorch.utils.containers import SliceContainer
 from botorch.utils.datasets import RankingDataset, SupervisedDataset
+from botorch_port import _seeded, impl, make_mll, make_model, mini_data, model_class, small_problem  # noqa: F401
 from gpytorch.kernels import Kernel, LinearKernel, RBFKernel, ScaleKernel
 from linear_operator.utils.errors import NotPSDError
-
-from botorch_port import _seeded, impl, make_mll, make_model, mini_data, model_class, small_problem  # noqa: F401
 
 BATCHES = [(), (2,)]
 DTYPES = [torch.float64, torch.float32]

@@ -4,12 +4,12 @@ import pytest
 import torch
 
 import torchpref.selection.active as active
-from torchpref.selection.active import run_active_learning
-from torchpref.experiments.wave import make_model
 from torchpref.data.queries import BoxCandidates, RankingQuery, RatingQuery
+from torchpref.experiments.wave import make_model
+from torchpref.selection.active import run_active_learning
 from torchpref.selection.strategies import RandomMixed
-from torchpref.simulation.utility_functions import WaveFunction
 from torchpref.simulation.users import SimulatedUser
+from torchpref.simulation.utility_functions import WaveFunction
 
 BOUNDS = torch.tensor([[0.0], [1.0]], dtype=torch.float64)
 

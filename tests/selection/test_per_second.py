@@ -3,14 +3,13 @@ the profile selector's, and the person's lapse rate lowering what a ranking is w
 
 import pytest
 import torch
+from test_variance_reduction import _model
 
 from torchpref.data.queries import RankingQuery, RatingQuery
 from torchpref.models.calibration import calibrate_person
 from torchpref.selection.per_second import ProfilePerSecond
 from torchpref.selection.top_profile import ProfileVariancePerEffort
 from torchpref.simulation.raters import EffortModel
-
-from test_variance_reduction import _model
 
 D = torch.float64
 

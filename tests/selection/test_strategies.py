@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from torchpref.experiments.wave import make_model
 from torchpref.data.queries import RankingQuery, RatingQuery
+from torchpref.experiments.wave import make_model
 from torchpref.selection.strategies import (
     UCBC,
     InformationPerEffort,

@@ -6,14 +6,13 @@ import math
 
 import pytest
 import torch
+from test_variance_reduction import _line, _model  # the same hand-checked cases
 
 from torchpref import BatchedPreferenceGP, PreferenceGP
 from torchpref.acquisition.functions import rating_bin_probabilities
-from torchpref.models.kernels import fixed_rbf_kernel
 from torchpref.data.queries import RankingQuery, RatingQuery
+from torchpref.models.kernels import fixed_rbf_kernel
 from torchpref.selection.top_profile import ProfileVariancePerEffort, profile_variance_reduction, top_profile
-
-from test_variance_reduction import _line, _model  # the same hand-checked cases
 
 D = torch.float64
 MEAN = torch.tensor([0.3, 0.0], dtype=D)

@@ -10,17 +10,17 @@ from scipy.optimize import minimize
 from scipy.stats import beta
 
 from torchpref import BatchedPreferenceGP, PreferenceGP
+from torchpref.data.queries import RankingQuery, RatingQuery
+from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
 from torchpref.models.fantasy import condition_batch
 from torchpref.models.kernels import fixed_rbf_kernel
-from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
-from torchpref.data.queries import RankingQuery, RatingQuery
 from torchpref.selection.strategies import joint_samples
 from torchpref.selection.top_profile import ProfileVariancePerEffort
 from torchpref.selection.variance_reduction import (
     VariancePerEffort,
     choice_answer_probabilities,
-    rating_hessian,
     ranking_mode_hessians,
+    rating_hessian,
     variance_reduction,
 )
 

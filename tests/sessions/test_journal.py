@@ -234,8 +234,8 @@ def consistent(s: PreferenceSession, path, X) -> None:
 
 @pytest.mark.parametrize("where", ["model", "write", "after_write"])
 def test_keyboard_interrupt_in_tell_keeps_model_file_and_history_together(tmp_path, monkeypatch, where):
-    import torchpref.sessions.journal as journal
     import torchpref.models.preference_gp as models
+    import torchpref.sessions.journal as journal
 
     X, path, _ = written(tmp_path)
     s = PreferenceSession(X, session_file=path, seed=5)

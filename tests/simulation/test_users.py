@@ -7,8 +7,8 @@ import pytest
 import torch
 from scipy import stats
 
-from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
 from torchpref.simulation.users import RATING_CLAMP, SimulatedUser, User, sample_beta, sample_log_gamma
+from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
 
 
 @pytest.fixture

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from torchpref.acquisition.choice_sets import greedy_choice_set
 from torchpref.acquisition.functions import (
     QueryInformation,
     QueryUCB,
@@ -11,7 +12,6 @@ from torchpref.acquisition.functions import (
     rating_bin_probabilities,
 )
 from torchpref.acquisition.information import entropy, membership_information, sample_information, top_set_membership
-from torchpref.acquisition.choice_sets import greedy_choice_set
 
 __all__ = [
     'QueryInformation',

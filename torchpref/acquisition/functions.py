@@ -24,8 +24,8 @@ ranking query. So one acquisition function values both query types and a selecto
 
 from __future__ import annotations
 
-from typing import Any
 import math
+from typing import Any
 
 import torch
 from botorch.acquisition import AcquisitionFunction, UpperConfidenceBound
@@ -34,12 +34,12 @@ from botorch.utils.transforms import t_batch_mode_transform
 from torch import Tensor
 from torch.distributions import Beta
 
-from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.acquisition.choice_sets import greedy_choice_set
 from torchpref.acquisition.information import entropy, membership_information, sample_information, top_set_membership
-from torchpref.models.preference_gp import PreferenceGP
 from torchpref.inference.numerics import gauss_hermite, log_ndtr
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood
+from torchpref.models.batch import BatchedPreferenceGP
+from torchpref.models.preference_gp import PreferenceGP
 
 __all__ = [
     "QueryInformation",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from torchpref.data.features import ID_NAMES, FeaturesError, printable, read_features_csv
 from torchpref.data.preference_data import (
     PreferenceData,
     RatingBoundaryWarning,
@@ -12,7 +13,6 @@ from torchpref.data.preference_data import (
     unit_to_likert,
 )
 from torchpref.data.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
-from torchpref.data.features import FeaturesError, ID_NAMES, printable, read_features_csv
 
 __all__ = [
     'BoxCandidates',

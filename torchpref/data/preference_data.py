@@ -17,9 +17,9 @@ update never leaves a half-updated model behind.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, TypeAlias
-from collections.abc import Sequence
 
 import torch
 from torch import Tensor

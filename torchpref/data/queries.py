@@ -11,9 +11,9 @@ query).
 
 from __future__ import annotations
 
-from typing import Any
 import operator
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch import Tensor

@@ -15,8 +15,8 @@ condition learns the kernel's from the answers (:mod:`~torchpref.experiments.sui
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import torch
 from botorch.test_functions import Branin, Hartmann, Levy

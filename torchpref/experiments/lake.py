@@ -48,13 +48,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import Tensor
-
-from torchpref.selection.active import run_active_learning
-from torchpref.data.preference_data import likert_to_unit
 from botorch.utils.transforms import normalize as normalise
 from botorch.utils.transforms import unnormalize as unnormalise
+from torch import Tensor
 
+from torchpref.data.preference_data import likert_to_unit
+from torchpref.data.queries import FinitePool, first_unique_rows
 from torchpref.experiments import runner
 from torchpref.experiments.lake_plan import (
     PLAN_SETTINGS,
@@ -74,11 +73,11 @@ from torchpref.experiments.results import (
 )
 from torchpref.experiments.runner import run_trials, single_threaded
 from torchpref.lake.operator import LakeOperator, RealisticLakeOperator
-from torchpref.simulation.raters import EffortModel
 from torchpref.lake.plotting import plot_field, plot_objectives
 from torchpref.lake.scenario import SCENARIO_VERSION, LakeScenario, cached_scenario, scenario_cache_path
+from torchpref.selection.active import run_active_learning
 from torchpref.simulation.metrics import wrms
-from torchpref.data.queries import FinitePool, first_unique_rows
+from torchpref.simulation.raters import EffortModel
 
 #: fixed model hyperparameters (see the module docstring)
 MODEL_SETTINGS = {

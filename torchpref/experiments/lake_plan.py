@@ -37,9 +37,9 @@ from botorch.models.model import Model
 from botorch.utils.transforms import normalize as normalise
 from torch import Tensor
 
-from torchpref.lake.operator import LakeOperator
-from torchpref.lake.objectives import path_objectives
 from torchpref.experiments.results import paired_tests
+from torchpref.lake.objectives import path_objectives
+from torchpref.lake.operator import LakeOperator
 from torchpref.lake.plan import SOURCES, plan_with_utility
 from torchpref.lake.planners import pad_paths, rrt_star, stomp
 

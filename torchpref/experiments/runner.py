@@ -32,15 +32,16 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from typing import Any
-from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
 
 from torchpref.models.kernels import fixed_rbf_kernel
 from torchpref.models.preference_gp import PreferenceGP
+from torchpref.selection.per_second import ProfilePerSecond
 from torchpref.selection.strategies import (
     UCBC,
     InformationPerEffort,
@@ -50,7 +51,6 @@ from torchpref.selection.strategies import (
     Selector,
     UCBRatings,
 )
-from torchpref.selection.per_second import ProfilePerSecond
 from torchpref.selection.top_profile import ProfileVariancePerEffort
 from torchpref.selection.variance_reduction import VariancePerEffort
 

@@ -29,17 +29,15 @@ import argparse
 import copy
 import math
 import time
+from collections.abc import Sequence
 from concurrent.futures import Executor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
-from collections.abc import Sequence
 
 import torch
 
-from torchpref.selection.active import run_active_learning_batch
-from torchpref.models.batch import BatchedPreferenceGP
+from torchpref.data.queries import BoxCandidates, FinitePool
 from torchpref.experiments import runner
-from torchpref.experiments.results import write_json
 from torchpref.experiments.families import (
     ALL_FAMILIES,
     FAMILIES,
@@ -49,12 +47,14 @@ from torchpref.experiments.families import (
     model_settings,
     setup,
 )
-from torchpref.simulation.raters import EffortModel
+from torchpref.experiments.results import write_json
 from torchpref.experiments.suite_report import summarise, write_suite_files
+from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.models.kernels import FixedRBFKernel
-from torchpref.simulation.metrics import true_positives, wrms
 from torchpref.models.preference_gp import PreferenceGP
-from torchpref.data.queries import BoxCandidates, FinitePool
+from torchpref.selection.active import run_active_learning_batch
+from torchpref.simulation.metrics import true_positives, wrms
+from torchpref.simulation.raters import EffortModel
 
 if TYPE_CHECKING:
     from torchpref.selection.strategies import Selector

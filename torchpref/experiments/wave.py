@@ -32,22 +32,22 @@ from typing import Any
 
 import torch
 
-from torchpref.selection.active import run_active_learning, run_active_learning_batch
-from torchpref.models.batch import BatchedPreferenceGP
+from torchpref.data.queries import BoxCandidates
 from torchpref.experiments import runner
 from torchpref.experiments.results import (
+    at_budgets,
     curves,
     effort_budgets,
     final_values,
     fraction_ratings,
     metric_panels,
     paired_tests,
-    at_budgets,
     write_experiment_files,
 )
-from torchpref.simulation.metrics import rating_from_latent, true_positives, wrms
+from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.models.preference_gp import PreferenceGP
-from torchpref.data.queries import BoxCandidates
+from torchpref.selection.active import run_active_learning, run_active_learning_batch
+from torchpref.simulation.metrics import rating_from_latent, true_positives, wrms
 from torchpref.simulation.users import SimulatedUser
 from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
 

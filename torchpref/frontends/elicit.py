@@ -21,8 +21,8 @@ The model works on the objectives normalised to the unit cube by the items' rang
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
@@ -31,6 +31,7 @@ from torch import Tensor
 
 from torchpref.data.features import FeaturesError, printable, read_features_csv
 from torchpref.data.queries import Query, RankingQuery, first_unique_rows
+from torchpref.selection.strategies import UCBC
 from torchpref.sessions.session import (
     PreferenceSession,
     SessionFileCorrupt,
@@ -39,7 +40,6 @@ from torchpref.sessions.session import (
     default_ranking_size,
     read_session_file,
 )
-from torchpref.selection.strategies import UCBC
 
 if TYPE_CHECKING:
     from torchpref.lake.scenario import LakeScenario

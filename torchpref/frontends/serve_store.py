@@ -36,8 +36,8 @@ import torch
 
 from torchpref.data.queries import Query, RankingQuery
 from torchpref.frontends.serve_items import ServeItems
-from torchpref.sessions.session import PreferenceSession, SessionFileError, default_ranking_size
 from torchpref.selection.strategies import UCBC
+from torchpref.sessions.session import PreferenceSession, SessionFileError, default_ranking_size
 
 __all__ = ["AnswerRefused", "MAX_RESPONSE_TIME", "SID_PATTERN", "SessionStore", "make_qid"]
 

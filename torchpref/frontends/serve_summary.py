@@ -10,8 +10,8 @@ posterior mean and a two-standard-deviation band against that objective.
 from __future__ import annotations
 
 import io
-from typing import Any
 from collections.abc import Mapping
+from typing import Any
 
 import torch
 

@@ -28,14 +28,14 @@ import io
 import os
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-from collections.abc import Callable
 
 from torch import Tensor
 
-from torchpref.lake.scenario import LakeScenario
 from torchpref.data.queries import Query, RankingQuery
+from torchpref.lake.scenario import LakeScenario
 from torchpref.sessions.session import PreferenceSession
 
 __all__ = ["PreferenceWidget", "as_picture", "lake_renderer", "table_picture"]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from torchpref.inference.numerics import JitterWarning, LaplaceNumericalError, NotPSDError
 from torchpref.inference.laplace import LaplaceConvergenceWarning
+from torchpref.inference.numerics import JitterWarning, LaplaceNumericalError, NotPSDError
 
 __all__ = ['JitterWarning', 'LaplaceConvergenceWarning', 'LaplaceNumericalError', 'NotPSDError']

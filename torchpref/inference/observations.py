@@ -19,9 +19,9 @@ gradient and weight). Its index and target must still be values the likelihood c
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Protocol
-from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor

@@ -13,9 +13,9 @@ mask false and holds index 0 (and rating 0.5, or level 1), values every likeliho
 
 from __future__ import annotations
 
-from typing import Any
-from dataclasses import dataclass, fields, replace
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import torch
 from torch import Tensor

@@ -8,13 +8,12 @@ solves natively instead. Why, and what each costs: docs/precision.md.
 
 from __future__ import annotations
 
-from itertools import chain
 from collections.abc import Callable
+from itertools import chain
 
 import torch
 from torch import Tensor
 from torch.func import functional_call
-
 
 #: The dtypes a model and its Laplace solve may be in. float16 and bfloat16 are refused: their
 #: 3 and 2 significant digits cannot resolve a Newton decrement, and the kernel's squared

@@ -24,9 +24,9 @@ is wrapped by its user (see :mod:`torchpref.experiments.lake`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor

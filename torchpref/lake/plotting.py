@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Any
 from collections.abc import Sequence
-from torch import Tensor
-
 from pathlib import Path
+from typing import Any
 
 import torch
+from torch import Tensor
 
 from .operator import LakeOperator
 from .scenario import LakeScenario

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
+from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.likelihoods.person import LapseProbitLikelihood, PersonRatingLikelihood
 
 __all__ = [

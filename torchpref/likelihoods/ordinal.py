@@ -15,15 +15,15 @@ from collections.abc import Sequence
 
 import torch
 from gpytorch.constraints import Interval
-from gpytorch.priors import Prior
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.likelihoods import Likelihood
+from gpytorch.priors import Prior
 from torch import Tensor
 from torch.distributions import Bernoulli, Categorical
 
+from torchpref.inference.numerics import normal_interval
 from torchpref.likelihoods.pairwise_beta import SQRT2, PairwiseProbitLikelihood
 from torchpref.likelihoods.scalar_params import _ScalarParamsMixin, scalar_parameter, weak_load_hook
-from torchpref.inference.numerics import normal_interval
 
 
 class TieLikelihood(_ScalarParamsMixin, Likelihood):

@@ -25,9 +25,9 @@ import math
 
 import torch
 from gpytorch.constraints import Interval
-from gpytorch.priors import Prior
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.likelihoods import Likelihood
+from gpytorch.priors import Prior
 from torch import Tensor
 from torch.distributions import Bernoulli, Beta
 

@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
+from torchpref.models.batch import BatchedPreferenceGP
+from torchpref.models.calibration import calibrate_person, fit_person
+from torchpref.models.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
+from torchpref.models.kernels import FixedRBFKernel, fixed_rbf_kernel
+from torchpref.models.pairwise_interface import TrainDataMismatchError, UnsupportedLikelihoodError
 from torchpref.models.preference_gp import (
-    LaplaceMarginalLogLikelihood,
     PAPER_FIG4_SETTINGS,
+    LaplaceMarginalLogLikelihood,
     PreferenceGP,
     default_covar_module,
 )
-from torchpref.models.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
-from torchpref.models.batch import BatchedPreferenceGP
-from torchpref.models.pairwise_interface import TrainDataMismatchError, UnsupportedLikelihoodError
-from torchpref.models.kernels import FixedRBFKernel, fixed_rbf_kernel
-from torchpref.models.calibration import calibrate_person, fit_person
 
 __all__ = [
     'BatchedPreferenceGP',

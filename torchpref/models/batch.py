@@ -24,8 +24,8 @@ import torch
 from torch import Tensor
 
 from torchpref.data.preference_data import PreferenceData
-from torchpref.models.preference_gp import PreferenceGP
 from torchpref.inference.padding import PaddedData
+from torchpref.models.preference_gp import PreferenceGP
 
 
 class BatchedPreferenceGP:

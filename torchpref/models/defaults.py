@@ -11,14 +11,14 @@ from gpytorch.module import Module
 from gpytorch.priors import GammaPrior, LogNormalPrior
 from torch import Tensor
 
-from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
-from torchpref.likelihoods.scalar_params import shared_constraint, weak_load_hook
 from torchpref.likelihoods.ordinal import (
     OrdinalRatingLikelihood,
     StrictPreferenceLikelihood,
     TieLikelihood,
     default_cut_points,
 )
+from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.likelihoods.scalar_params import shared_constraint, weak_load_hook
 
 #: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
 #: reproduce the paper: ``PreferenceGP(X, ..., **PAPER_FIG4_SETTINGS)`` (docs/botorch.md).

@@ -14,9 +14,9 @@ state's modes.
 from __future__ import annotations
 
 import types
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
-from collections.abc import Callable
 
 import torch
 from gpytorch.module import Module

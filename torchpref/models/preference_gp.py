@@ -23,6 +23,23 @@ from gpytorch.module import Module as GModule
 from linear_operator.operators import DenseLinearOperator, LinearOperator
 from torch import Tensor
 
+from torchpref.data.preference_data import DEFAULT_RATING_EPS, PreferenceData
+from torchpref.inference.laplace import ModeResult, laplace_evidence
+from torchpref.inference.numerics import LaplaceNumericalError, pin_coincident
+from torchpref.inference.padding import PaddedData
+from torchpref.inference.precision import call_in_dtype, check_dtype, check_laplace_dtype, solve_dtype
+from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, TieLikelihood
+from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
+from torchpref.likelihoods.scalar_params import weak_load_hook
+from torchpref.models.arguments import check_model_arguments
+from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS: re-exported)
+    MIN_LENGTHSCALE,
+    PAPER_FIG4_SETTINGS,
+    PreferenceLikelihood,
+    default_covar_module,
+)
+from torchpref.models.fantasy import fantasize
+from torchpref.models.model_data import ModelData, create_data
 from torchpref.models.pairwise_interface import (
     PairwiseGPInterface,
     TrainDataMismatchError,
@@ -31,24 +48,7 @@ from torchpref.models.pairwise_interface import (
     pairwise_likelihood_noise,
     prior_only_data,
 )
-from torchpref.data.preference_data import DEFAULT_RATING_EPS, PreferenceData
-from torchpref.models.fantasy import fantasize
-from torchpref.inference.laplace import ModeResult, laplace_evidence
-from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
-from torchpref.likelihoods.scalar_params import weak_load_hook
-from torchpref.models.arguments import check_model_arguments
-from torchpref.models.model_data import ModelData, create_data
-from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS: re-exported)
-    MIN_LENGTHSCALE,
-    PAPER_FIG4_SETTINGS,
-    PreferenceLikelihood,
-    default_covar_module,
-)
-from torchpref.inference.numerics import LaplaceNumericalError, pin_coincident
-from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, TieLikelihood
-from torchpref.inference.padding import PaddedData
 from torchpref.models.posterior_state import PosteriorState, cache_key, carries_gradients, submodules
-from torchpref.inference.precision import call_in_dtype, check_dtype, check_laplace_dtype, solve_dtype
 from torchpref.models.predictives import Predictives
 
 

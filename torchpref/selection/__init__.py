@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
+from torchpref.selection.active import History, QueryRecord, fit_model, run_active_learning, run_active_learning_batch
 from torchpref.selection.strategies import (
+    UCBC,
     InformationPerEffort,
     RandomMixed,
     RandomRankings,
     RandomRatings,
-    UCBC,
     UCBRatings,
 )
-from torchpref.selection.variance_reduction import VariancePerEffort
 from torchpref.selection.top_profile import ProfileVariancePerEffort, profile_variance_reduction, top_profile
-from torchpref.selection.active import History, QueryRecord, fit_model, run_active_learning, run_active_learning_batch
+from torchpref.selection.variance_reduction import VariancePerEffort
 
 __all__ = [
     'History',

@@ -2,17 +2,17 @@ r"""The active-learning loop: ask, record, update, measure (paper Sec. III.C, IV
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
-from collections.abc import Callable, Sequence
 
 import torch
 from botorch.fit import fit_gpytorch_mll
 from torch import Tensor
 
+from torchpref.data.queries import Candidates, Query, ask_user, record_answer
 from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
-from torchpref.data.queries import Candidates, Query, ask_user, record_answer
 from torchpref.selection.strategies import Selector
 from torchpref.simulation.users import User
 

@@ -24,9 +24,9 @@ from torchpref.acquisition.functions import (
     sample_information,
     top_set_membership,
 )
+from torchpref.data.queries import Query, ranking_query, rating_query
 from torchpref.inference.numerics import cholesky_batch
 from torchpref.models.batch import BatchedPreferenceGP
-from torchpref.data.queries import Query, ranking_query, rating_query
 
 
 def _ranking_size(m: int) -> int:

@@ -37,16 +37,16 @@ noisy than each value.
 
 from __future__ import annotations
 
-from typing import NamedTuple
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 from botorch.models.model import Model
 from gpytorch.likelihoods import Likelihood
 from torch import Tensor
 
-from torchpref.acquisition.functions import rating_bin_probabilities
 from torchpref.acquisition.choice_sets import greedy_choice_set
+from torchpref.acquisition.functions import rating_bin_probabilities
 from torchpref.acquisition.information import top_set_membership
 from torchpref.selection.strategies import PerEffortSelector, effort_model, joint_posterior, joint_samples
 

@@ -30,8 +30,8 @@ import stat
 import threading
 import warnings
 import weakref
-from pathlib import Path
 from collections.abc import Callable
+from pathlib import Path
 
 from torchpref.sessions.records import (
     ANSWER_KINDS,

@@ -12,16 +12,16 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
-from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-from torchpref.sessions.journal import now
-from torchpref.models.preference_gp import PreferenceGP, default_covar_module
 from torchpref.data.queries import BoxCandidates, Candidates, FinitePool, as_integer
+from torchpref.models.preference_gp import PreferenceGP, default_covar_module
+from torchpref.sessions.journal import now
 from torchpref.sessions.records import FORMAT_VERSION, SessionMismatchError, dumps_settings
 from torchpref.version import __version__
 

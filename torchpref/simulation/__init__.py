@@ -3,21 +3,21 @@
 from __future__ import annotations
 
 from torchpref.simulation.metrics import (
+    error_on_best,
+    expected_rating,
+    rating_from_latent,
+    true_positives,
     wrms,
     wrms_authors,
-    true_positives,
-    error_on_best,
-    rating_from_latent,
-    expected_rating,
 )
-from torchpref.simulation.users import User, SimulatedUser, LikertUser, sample_beta, sample_log_gamma, RATING_CLAMP
 from torchpref.simulation.raters import EffortModel, RaterProfile, RealisticUser
+from torchpref.simulation.users import RATING_CLAMP, LikertUser, SimulatedUser, User, sample_beta, sample_log_gamma
 from torchpref.simulation.utility_functions import (
-    WaveFunction,
-    evaluation_grid,
     GaussianBumps,
     Plateau,
     RescaledUtility,
+    WaveFunction,
+    evaluation_grid,
 )
 
 __all__ = [

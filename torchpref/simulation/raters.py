@@ -23,8 +23,8 @@ With ``g = 1``, ``b = 0``, no drift, the whole scale, no lapses, this is the pap
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
 from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
 
 import torch
 from torch import Tensor

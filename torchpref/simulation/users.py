@@ -25,8 +25,8 @@ generator's normal and uniform streams, since ``torch._standard_gamma`` takes no
 from __future__ import annotations
 
 import math
-from typing import Protocol, runtime_checkable
 from collections.abc import Callable
+from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
