@@ -113,8 +113,8 @@ def read_features_csv(path: str | Path, id_column: str | None = None) -> tuple[T
     lab = _label_column(path, header, body, id_column)
     labels = None if lab is None else [printable(r[lab]) for r in body]
     cols = [j for j in range(len(header)) if j != lab]
-    if not cols:
-        raise FeaturesError(f"{path}: no objective columns besides the labels {printable(header[lab])!r}.")
+    if not cols:  # the one column is the labels' (lab is not None)
+        raise FeaturesError(f"{path}: no objective columns besides the labels {printable(header[lab or 0])!r}.")
     values = []
     for i, r in enumerate(body, start=2):
         row = []

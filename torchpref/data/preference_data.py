@@ -63,7 +63,7 @@ def _check_finite(name: str, t: Tensor) -> None:
 
 
 def _check_num_levels(num_levels: object) -> None:
-    if isinstance(num_levels, bool) or not hasattr(num_levels, "__index__") or num_levels < 2:
+    if isinstance(num_levels, bool) or not hasattr(num_levels, "__index__") or num_levels < 2:  # type: ignore[operator]
         raise ValueError(f"num_levels must be an integer of at least 2, got {num_levels!r}.")
 
 
@@ -218,7 +218,7 @@ class PreferenceData:
     comparisons: Tensor
     ratings: Tensor
     rating_index: Tensor
-    ties: Tensor | None = None
+    ties: Tensor = None  # type: ignore[assignment]  # None: no ties (__post_init__ makes it t x 2)
     rating_levels: int | None = None
 
     def __post_init__(self) -> None:
@@ -302,7 +302,7 @@ class PreferenceData:
         _check_finite("items", X)
         allX = self.train_X
         idx = []
-        new_rows = []
+        new_rows: list[Tensor] = []
         for row in X:
             pool = torch.cat([allX] + new_rows, dim=0) if new_rows else allX
             hit = ((pool - row).abs() <= atol).all(dim=-1).nonzero()

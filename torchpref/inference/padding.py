@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields, replace
-from typing import Any, cast
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -111,7 +111,7 @@ class PaddedData:
             None if min(n) == N else _lengths_mask(n, N, dev),
             None if min(p) == P else _lengths_mask(p, P, dev),
             None if min(q) == Q else _lengths_mask(q, Q, dev),
-            _pad([cast(Tensor, d.ties) for d in data], T, 0),  # PreferenceData's ties are never None
+            _pad([d.ties for d in data], T, 0),
             None if min(t) == T else _lengths_mask(t, T, dev),
         )
 
@@ -183,7 +183,7 @@ class PaddedData:
     def map(self, fn: Callable[[Tensor], Tensor]) -> PaddedData:
         """The same problems with ``fn`` applied to every tensor (e.g. a device move)."""
         values = {f.name: getattr(self, f.name) for f in fields(self)}
-        return PaddedData(**{k: None if v is None else fn(v) for k, v in values.items()})  # type: ignore[arg-type]
+        return PaddedData(**{k: None if v is None else fn(v) for k, v in values.items()})
 
     def with_items(self, X: Tensor) -> PaddedData:
         """The same problems with items ``X`` (e.g. transformed by an input transform)."""

@@ -82,7 +82,8 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
         interval probability (:func:`torchpref.inference.numerics.normal_interval` with bounds
         ``+-tau - eta`` and scale ``s``); the second derivative is never positive."""
         tau = self.tie_threshold
-        return normal_interval(tau - eta, -tau - eta, self.comparison._scale())
+        lp, d1, d2 = normal_interval(tau - eta, -tau - eta, self.comparison._scale())
+        return lp, d1, d2
 
     def third_derivative(self, eta: Tensor) -> Tensor:
         """``d^3 log p / d eta^3``, elementwise (for the evidence's gradient)."""
@@ -146,7 +147,8 @@ class StrictPreferenceLikelihood(Likelihood):
 
     def derivatives(self, eta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(log p, d log p / d eta, d^2 log p / d eta^2)``, elementwise."""
-        return normal_interval(*self._bounds(eta), self.tie.comparison._scale())
+        lp, d1, d2 = normal_interval(*self._bounds(eta), self.tie.comparison._scale())
+        return lp, d1, d2
 
     def third_derivative(self, eta: Tensor) -> Tensor:
         """``d^3 log p / d eta^3``, elementwise (for the evidence's gradient)."""
@@ -277,7 +279,8 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
         r"""``(log p, d log p / d eta, d^2 log p / d eta^2)``, elementwise: those of a Gaussian
         interval probability (:func:`torchpref.inference.numerics.normal_interval` with bounds
         ``c_k - eta``, ``c_{k-1} - eta`` and scale ``sigma``)."""
-        return normal_interval(*self._bounds(eta, levels), self.level_noise)
+        lp, d1, d2 = normal_interval(*self._bounds(eta, levels), self.level_noise)
+        return lp, d1, d2
 
     def third_derivative(self, eta: Tensor, levels: Tensor) -> Tensor:
         """``d^3 log p / d eta^3``, elementwise (for the evidence's gradient)."""

@@ -74,6 +74,12 @@ class WaveFunction(SyntheticTestFunction):
         >>> f = problem(X, noise=False)          # ``101``
     """
 
+    frequencies: Tensor  # buffers
+    amplitudes: Tensor
+    offsets: Tensor
+    dampings: Tensor
+    noise_std: float | None
+
     dim = 1
     continuous_inds = [0]
     _is_minimization_by_default = False
