@@ -150,10 +150,18 @@ def final_values(
 
 
 # ---------------------------------------------------------------------------------- files
-def write_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON (creating the folder); returns the path."""
+def write_json(
+    path: str | os.PathLike, obj: Any, *, measured: str = "user", sources: Sequence[str | os.PathLike] = ()
+) -> Path:
+    """Write ``obj`` as indented JSON (creating the folder); returns the path. A dictionary is
+    stamped (:func:`~torchpref.experiments.stamp.make_stamp`: commit, source hashes, versions,
+    load, times, and ``measured``: ``"user"`` or ``"harness: <name>"``) under ``"stamp"``."""
+    from torchpref.experiments.stamp import stamped
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(obj, dict):
+        obj = stamped(obj, measured, sources=sources)
     path.write_text(json.dumps(obj, indent=2) + "\n")
     return path
 
