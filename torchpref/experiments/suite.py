@@ -347,7 +347,8 @@ def run_suite(
     )
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
-        write_json(Path(out) / "suite_trials.json", {f"{f}/{c}": v for (f, c), v in results.items()})
+        trials_by_cell = {f"{f}/{c}": v for (f, c), v in results.items()}
+        write_json(Path(out) / "suite_trials.json", trials_by_cell, stamp=False)  # keyed by cell
         write_suite_files(Path(out), summary, families, conditions, strategies, METRICS)
     return {
         "families": families,
