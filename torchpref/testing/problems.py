@@ -173,7 +173,7 @@ def _run(problem: Problem, run: str, Xq: Tensor) -> dict:
         model = build(problem, dtype, laplace_dtype)
         mode = model.mode
         out["converged"], out["iterations"] = bool(mode.converged), int(mode.iterations)
-        out["jitter"] = float(model._state().jitter) / problem.outputscale  # the diagonal jitter of L
+        out["jitter"] = float(model.jitter) / problem.outputscale  # the diagonal jitter of L
         out["moments"] = {grad: posterior_moments(model, Xq.to(dtype), grad) for grad in (False, True)}
         out["nan"] = not bool(torch.isfinite(mode.f).all()) or any(
             not (torch.isfinite(m).all() and torch.isfinite(S).all()) for m, S in out["moments"].values()
