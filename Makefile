@@ -36,6 +36,10 @@ ifeq ($(CI),true)
 	$(MAKE) lint types docs wheel-check test-floor
 endif
 
+# every results file under benchmarks/results: fresh, stale (its measured code changed) or unstamped
+results-status: $(STAMP)
+	$(BIN)/python benchmarks/results_status.py
+
 bench: $(STAMP)
 	$(BIN)/python -m pytest benchmarks/ --benchmark-only -q
 
@@ -100,4 +104,4 @@ test-integrations:
 clean:
 	rm -rf $(VENV) .venv-floor .venv-ax .venv-bofire .cache/upstream dist build docs/_build docs/_generated docs/jupyter_execute
 
-.PHONY: venv demo test bench lint format types docs wheel wheel-check clean test-floor upstream-tests test-integrations
+.PHONY: venv demo test results-status bench lint format types docs wheel wheel-check clean test-floor upstream-tests test-integrations

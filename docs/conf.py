@@ -56,7 +56,22 @@ napoleon_use_rtype = False
 intersphinx_mapping = {}  # the site is built offline; references to torch / BoTorch stay plain text
 
 # --- Markdown and notebooks
-myst_enable_extensions = ["dollarmath", "colon_fence"]
+myst_enable_extensions = ["dollarmath", "colon_fence", "substitution"]
+
+
+def _figure_substitutions() -> dict[str, str]:
+    """Every measured figure (docs/figures.py), read from its results file: ``{{ name }}`` in a page."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("docs_figures", Path(__file__).parent / "figures.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["docs_figures"] = module
+    spec.loader.exec_module(module)
+    return module.substitutions()
+
+
+myst_substitutions = _figure_substitutions()
 myst_heading_anchors = 3
 nb_execution_mode = os.environ.get("TORCHPREF_DOCS_EXECUTE", "force")  # "off" for a quick build
 nb_execution_timeout = 1800

@@ -150,10 +150,25 @@ def final_values(
 
 
 # ---------------------------------------------------------------------------------- files
-def write_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON (creating the folder); returns the path."""
+def write_json(
+    path: str | os.PathLike,
+    obj: Any,
+    *,
+    measured: str = "user",
+    sources: Sequence[str | os.PathLike] = (),
+    stamp: bool = True,
+) -> Path:
+    """Write ``obj`` as indented JSON (creating the folder); returns the path. A dictionary is
+    stamped (:func:`~torchpref.experiments.stamp.make_stamp`: commit, source hashes, versions,
+    load, times, and ``measured``: ``"user"`` or ``"harness: <name>"``) under ``"stamp"``, unless
+    ``stamp=False`` (a dictionary keyed by data, e.g. by family, whose readers take every key; the
+    summary beside it carries the stamp)."""
+    from torchpref.experiments.stamp import stamped
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if stamp and isinstance(obj, dict):
+        obj = stamped(obj, measured, sources=sources)
     path.write_text(json.dumps(obj, indent=2) + "\n")
     return path
 

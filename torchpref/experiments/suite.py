@@ -348,7 +348,8 @@ def run_suite(
     summary["settings"] = _settings(families, effort)
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
-        write_json(Path(out) / "suite_trials.json", {f"{f}/{c}": v for (f, c), v in results.items()})
+        trials_by_cell = {f"{f}/{c}": v for (f, c), v in results.items()}
+        write_json(Path(out) / "suite_trials.json", trials_by_cell, stamp=False)  # keyed by cell
         write_suite_files(Path(out), summary, families, conditions, strategies, METRICS)
     result = {"families": families, "conditions": list(conditions), "strategies": strategies, "trials": trials}
     return {**result, "queries": queries, "summary": summary}

@@ -172,7 +172,7 @@ def write_suite_files(
     """``suite.json`` (the curves), ``suite.csv`` (long format), ``suite_summary.json`` (the
     verdicts and settings) and ``suite_<condition>.png`` per condition, in ``out``."""
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "suite.json", summary["curves"])
+    write_json(out / "suite.json", summary["curves"], stamp=False)  # keyed by family: suite_summary.json is stamped
     _write_csv(out / "suite.csv", summary, metrics)
     write_json(out / "suite_summary.json", {k: v for k, v in summary.items() if k != "curves"})
     for c in conditions:

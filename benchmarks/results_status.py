@@ -1,0 +1,51 @@
+"""Every results file under ``benchmarks/results/``: fresh, stale or unstamped (``make results-status``).
+
+A file is *fresh* when every source file its stamp hashed (the script that wrote it and the
+``torchpref`` modules it ran) is unchanged, *stale* when one changed or is gone (the reason names
+them), *unstamped* when it has no stamp (written before stamps, or not JSON: CSV and PNG files
+are judged by the JSON beside them). ``--fail-on-stale`` exits 1 when a file is stale and not
+listed in ``benchmarks/results/KEPT_STALE.txt`` (one ``path: reason`` a line).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from torchpref.experiments.stamp import ROOT, status
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def kept_stale(folder: Path) -> dict[str, str]:
+    """``{path: reason}`` of the stale files kept on purpose (``KEPT_STALE.txt``)."""
+    f = folder / "KEPT_STALE.txt"
+    if not f.is_file():
+        return {}
+    rows = [line.split(":", 1) for line in f.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    return {k.strip(): v.strip() for k, v in rows if v}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folder", nargs="?", type=Path, default=RESULTS)
+    ap.add_argument("--fail-on-stale", action="store_true")
+    args = ap.parse_args(argv)
+    kept = kept_stale(args.folder)
+    counts = {"fresh": 0, "stale": 0, "unstamped": 0}
+    unexplained = []
+    for f in sorted(args.folder.rglob("*.json")):
+        state, reason = status(f, ROOT)
+        rel = f.relative_to(args.folder).as_posix()
+        counts[state] += 1
+        note = f"  [kept: {kept[rel]}]" if rel in kept else ""
+        if state != "fresh" and rel not in kept:
+            unexplained.append(rel)
+        print(f"{state:9s} {rel}: {reason}{note}")
+    print(f"{counts['fresh']} fresh, {counts['stale']} stale, {counts['unstamped']} unstamped")
+    return 1 if args.fail_on_stale and unexplained else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

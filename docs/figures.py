@@ -1,0 +1,111 @@
+"""Every measured figure the README and the docs quote, read from its results file (issue 36).
+
+A figure is a file under ``benchmarks/results/``, a key in it and a format. JSON keys are dotted
+paths (``final.UCBC.wrms.0.0``: dictionary keys and list indices); CSV keys are
+``column@key=value,key=value`` (the column of the one row whose other columns match).
+
+* The docs site reads them at build time: ``docs/conf.py`` makes each a MyST substitution, so a
+  page writes ``{{ wave_wrms_info }}`` and never types the number. A figure whose file is stale
+  (``make results-status``) is shown with a visible "(measured on an older version)" note.
+* The README, which GitHub and PyPI show as it is, writes each figure between markers,
+  ``<!-- fig:NAME -->0.0496<!-- /fig -->``; ``tests/test_figures.py`` fails when the text between
+  them differs from the file, when a page names a figure that is not here, or when a figure's key
+  is not in its file.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+STALE_NOTE = " (measured on an older version)"
+
+
+@dataclass(frozen=True)
+class Figure:
+    file: str  # under benchmarks/results/
+    key: str
+    fmt: str = "{}"  # a str.format pattern, or one of "percent", "sci"
+
+    def raw(self) -> float | int | str:
+        path = ROOT / "benchmarks" / "results" / self.file
+        if path.suffix == ".csv":
+            column, _, where = self.key.partition("@")
+            wanted = dict(kv.split("=", 1) for kv in where.split(",") if kv)
+            with path.open(newline="") as fh:
+                rows = [r for r in csv.DictReader(fh) if all(r.get(k) == v for k, v in wanted.items())]
+            if len(rows) != 1:
+                raise KeyError(f"{self.file}: {len(rows)} rows match {where!r}, expected 1")
+            return float(rows[0][column])
+        value = json.loads(path.read_text())
+        for part in self.key.split("."):
+            value = value[int(part)] if isinstance(value, list) else value[part]
+        return value
+
+    def text(self) -> str:
+        value = self.raw()
+        if self.fmt == "percent":
+            return f"{100 * float(value):g} %"
+        if self.fmt == "sci":  # 4e-8 style, one significant digit
+            mantissa, exponent = f"{float(value):.0e}".split("e")
+            return f"{mantissa}e{int(exponent)}"
+        return self.fmt.format(value)
+
+
+_WAVE = "wave_summary.json"
+_SPEED = "speed_pairwise.csv"
+_PAIR = "paired_tests.queries.info per effort vs UCBC"
+
+FIGURES: dict[str, Figure] = {
+    # BoTorch parity (benchmarks/parity/botorch_api_counts.py)
+    "api_checks_passed": Figure("botorch_api_counts.json", "summary.PreferenceGP.passed"),
+    "api_checks_total": Figure("botorch_api_counts.json", "summary.PreferenceGP.total"),
+    "api_checks_pairwisegp": Figure("botorch_api_counts.json", "summary.PairwiseGP.passed"),
+    # speed against PairwiseGP and botorch-rust at n = 500 (benchmarks/speed/speed_pairwise.py)
+    "speed_fit_500_pairwisegp": Figure(_SPEED, "ratio_pairwisegp@task=fit,n=500", "{:.1f}×"),
+    "speed_fit_500_rust": Figure(_SPEED, "ratio_botorch_rust@task=fit,n=500", "{:.1f}×"),
+    "speed_posterior_500_pairwisegp": Figure(_SPEED, "ratio_pairwisegp@task=posterior,n=500", "{:,.0f}×"),
+    "speed_posterior_500_rust": Figure(_SPEED, "ratio_botorch_rust@task=posterior,n=500", "{:,.0f}×"),
+    "speed_eubo_500_pairwisegp": Figure(_SPEED, "ratio_pairwisegp@task=eubo,n=500", "{:.1f}×"),
+    "speed_eubo_500_rust": Figure(_SPEED, "ratio_botorch_rust@task=eubo,n=500", "{:.0f}×"),
+    # the paper's Fig. 6 (torchpref reproduce wave)
+    "wave_wrms_info": Figure(_WAVE, "final.info per effort.wrms.0.0", "{:.4f}"),
+    "wave_wrms_ucbc": Figure(_WAVE, "final.UCBC.wrms.0.0", "{:.4f}"),
+    "wave_tp_info": Figure(_WAVE, "final.info per effort.tp.0.0", "{:.2f}"),
+    "wave_tp_ucbc": Figure(_WAVE, "final.UCBC.tp.0.0", "{:.2f}"),
+    "wave_p_wrms": Figure(_WAVE, f"{_PAIR}.wrms.p_wilcoxon", "sci"),
+    "wave_p_tp": Figure(_WAVE, f"{_PAIR}.tp.p_wilcoxon", "sci"),
+    # lake monitoring, 10 lakes x 20 trials (torchpref reproduce lake)
+    "lake_rated5_ucbc": Figure("lakes10_selector/lake_summary.json", "share_rated_5.UCBC", "percent"),
+    "lake_rated5_clipped": Figure(
+        "lakes10_selector_clipped/lake_summary.json", "share_rated_5.clipped profile", "percent"
+    ),
+    "lake_rated5_random": Figure("lakes10_selector/lake_summary.json", "share_rated_5.random ratings", "percent"),
+    # robustness (benchmarks/robustness/fuzz.py)
+    "fuzz_problems": Figure("fuzz.json", "problems", "{:,}"),
+    "fuzz_f64_exceptions": Figure("fuzz.json", "f64.exceptions"),
+    "fuzz_f32_exceptions": Figure("fuzz.json", "f32.exceptions"),
+}
+
+MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
+SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
+
+
+def is_stale(name: str) -> bool:
+    """Whether the figure's results file is stale (its measured code changed since its stamp);
+    an unstamped file counts as not stale here: ``make results-status`` lists those."""
+    from torchpref.experiments.stamp import status
+
+    path = ROOT / "benchmarks" / "results" / FIGURES[name].file
+    if path.suffix != ".json":  # a CSV is judged by the JSON of the same name beside it
+        path = path.with_suffix(".json")
+    return path.is_file() and status(path, ROOT)[0] == "stale"
+
+
+def substitutions() -> dict[str, str]:
+    """``{name: text}`` for MyST, a stale figure with :data:`STALE_NOTE`."""
+    return {name: fig.text() + (STALE_NOTE if is_stale(name) else "") for name, fig in FIGURES.items()}

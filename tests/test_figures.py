@@ -1,0 +1,56 @@
+"""Published figures read from their results files (issue 36): the README's figures between markers
+equal the files, every figure a page names exists and resolves, and every stale figure is marked."""
+
+import importlib.util
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+_spec = importlib.util.spec_from_file_location("docs_figures", ROOT / "docs" / "figures.py")
+figures = importlib.util.module_from_spec(_spec)
+sys.modules["docs_figures"] = figures  # dataclasses look their module up
+_spec.loader.exec_module(figures)
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+@pytest.mark.parametrize("name", sorted(figures.FIGURES))
+def test_every_figure_resolves_in_its_file(name):
+    text = figures.FIGURES[name].text()
+    assert text and "nan" not in text.lower()
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_the_figures_a_page_quotes_equal_their_files(page):
+    text = page.read_text()
+    wrong = [
+        f"{m['name']}: the page says {m['text']!r}, the file {figures.FIGURES[m['name']].text()!r}"
+        for m in figures.MARKER.finditer(text)
+        if m["name"] in figures.FIGURES and m["text"] != figures.FIGURES[m["name"]].text()
+    ]
+    unknown = [m["name"] for m in [*figures.MARKER.finditer(text), *figures.SUBSTITUTION.finditer(text)]]
+    unknown = [n for n in unknown if n not in figures.FIGURES]
+    assert not wrong and not unknown, "\n".join(wrong + [f"no such figure: {n}" for n in unknown])
+
+
+def test_a_figure_that_disagrees_with_its_file_is_caught(tmp_path):
+    name = "wave_wrms_info"
+    page = f"WRMS <!-- fig:{name} -->0.9999<!-- /fig -->"
+    found = [(m["name"], m["text"]) for m in figures.MARKER.finditer(page)]
+    assert found == [(name, "0.9999")] and figures.FIGURES[name].text() != "0.9999"
+
+
+def test_the_readme_quotes_its_headline_figures_from_files():
+    names = {m["name"] for m in figures.MARKER.finditer((ROOT / "README.md").read_text())}
+    assert len(names) >= 15, sorted(names)
+
+
+def test_a_stale_file_marks_its_figures(monkeypatch):
+    monkeypatch.setattr(figures, "is_stale", lambda name: name == "fuzz_problems")
+    subs = figures.substitutions()
+    assert subs["fuzz_problems"].endswith(figures.STALE_NOTE) and not subs["wave_wrms_info"].endswith(
+        figures.STALE_NOTE
+    )
+    assert re.fullmatch(r"[\d,]+", subs["fuzz_problems"].removesuffix(figures.STALE_NOTE))
