@@ -159,15 +159,5 @@ class ProfilePerSecond(ProfileVariancePerEffort):
         rating_row = cand.gather(1, best.unsqueeze(-1)).squeeze(-1)
         if K < max(self.m, 2):
             return rating_row, rating_value / cost["rating"], None, torch.full_like(rating_value, -torch.inf)
-        eps = getattr(lik.comparison, "lapse_rate", None)
-        if eps is not None:
-            eps = eps.detach().to(F)
-
-            def lapsing(P: Tensor) -> Tensor:  # a lapse picks one of the q shown uniformly
-                return value(eps / P.shape[-1] + (1 - eps) * P)
-
-            ranking_value_fn = lapsing
-        else:
-            ranking_value_fn = value
-        chosen, ranking_value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, ranking_value_fn)
+        chosen, ranking_value = greedy_choice_set(Fc, lik.comparison, self.m, value)  # lapses: the likelihood's
         return rating_row, rating_value / cost["rating"], cand.gather(1, chosen), ranking_value / cost["ranking"]

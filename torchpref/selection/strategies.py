@@ -445,7 +445,7 @@ class InformationPerEffort(Selector):
             rating_value = rating_info.max(-1).values / self.rating_cost
             if cand.shape[1] < self.m or self.m < 2:
                 return [rating_query(X[b], indices[b], best_rating[b]) for b in range(T)]
-            chosen, value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, info, start=0)
+            chosen, value = greedy_choice_set(Fc, lik.comparison, self.m, info, start=0)
             ranking = (value / self.ranking_cost > rating_value).tolist()
             rows = cand.gather(1, chosen)  # T x m
         return [

@@ -201,5 +201,5 @@ class ProfileVariancePerEffort(PerEffortSelector):
         rating_row = cand.gather(1, best.unsqueeze(-1)).squeeze(-1)
         if K < max(self.m, 2):
             return rating_row, rating_value / self.rating_cost, None, torch.full_like(rating_value, -torch.inf)
-        chosen, ranking_value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, value)
+        chosen, ranking_value = greedy_choice_set(Fc, lik.comparison, self.m, value)
         return rating_row, rating_value / self.rating_cost, cand.gather(1, chosen), ranking_value / self.ranking_cost

@@ -45,8 +45,6 @@ from torchpref.acquisition.functions import choice_probabilities
 from torchpref.acquisition.information import top_set_membership
 from torchpref.selection.strategies import PerEffortSelector, effort_model, joint_posterior, joint_samples
 
-SQRT2 = 2.0**0.5
-
 
 def rating_hessian(F: Tensor, rating_likelihood: Likelihood) -> Tensor:
     r"""Expected Hessian of one rating of each item: ``E_f[I(f_i)]`` over samples.
@@ -61,13 +59,14 @@ def rating_hessian(F: Tensor, rating_likelihood: Likelihood) -> Tensor:
     return rating_likelihood.fisher(F).mean(-2)
 
 
-def choice_answer_probabilities(F: Tensor, comparison_noise: Tensor, num_quadrature: int = 6) -> Tensor:
+def choice_answer_probabilities(F: Tensor, comparison: Likelihood | Tensor, num_quadrature: int = 6) -> Tensor:
     r"""Predictive probability that each of ``q`` items is chosen as the best, ``... x q``, the
-    mean over ``S`` posterior samples ``F`` (``... x S x q``) of eq. 3's choice probabilities."""
-    if F.shape[-1] == 2:  # P(first is best) = Phi((f_1 - f_2) / (sqrt 2 sigma_R))
-        p = torch.special.ndtr((F[..., 0] - F[..., 1]) / (SQRT2 * comparison_noise))
-        return torch.stack([p, 1 - p], -1).mean(-2)
-    return choice_probabilities(F, comparison_noise, num_quadrature).mean(-2)
+    mean over ``S`` posterior samples ``F`` (``... x S x q``) of the comparison likelihood's
+    :meth:`~torchpref.likelihoods.pairwise_beta.PairwiseProbitLikelihood.choice_probabilities`
+    (lapses included); a bare ``sigma_R`` tensor gives eq. 3's Thurstone choice without lapses."""
+    if isinstance(comparison, Tensor):
+        return choice_probabilities(F, comparison, num_quadrature).mean(-2)
+    return comparison.choice_probabilities(F, num_quadrature).mean(-2)
 
 
 def ranking_mode_hessians(mean: Tensor, cov: Tensor, comparison_likelihood: Likelihood, num_iter: int = 12) -> Tensor:
@@ -251,7 +250,7 @@ class VariancePerEffort(PerEffortSelector):
         while True:
             q = sets.shape[-1]
             Fs = Fc.gather(2, sets.reshape(T, 1, -1).expand(T, S, -1)).reshape(T, S, -1, q).transpose(1, 2)
-            P = choice_answer_probabilities(Fs, comparison.comparison_noise.to(Fs))  # T x R x q
+            P = choice_answer_probabilities(Fs, comparison)  # T x R x q, the likelihood's (lapses included)
             rows = cand.gather(1, sets.reshape(T, -1)).reshape(sets.shape)  # T x R x q
             block = cov.gather(1, rows.reshape(T, -1, 1).expand(T, rows.shape[1] * q, cov.shape[-1]))
             block = block.reshape(T, -1, q, cov.shape[-1]).gather(3, rows.unsqueeze(-2).expand(T, -1, q, q))
