@@ -143,6 +143,12 @@ def build_parser() -> argparse.ArgumentParser:
     el.add_argument("--no-session", action="store_true", help="keep nothing: answers are lost when it ends")
     el.add_argument("--queries", type=positive_int, default=14, help="number of queries (default 14)")
     el.add_argument(
+        "--question-list",
+        metavar="FILE",
+        help="ask only these questions: one per line, the items' row numbers (0-based, comma-separated; "
+        "one row: rate it, several: pick the best of them); the selector chooses among them",
+    )
+    el.add_argument(
         "--seed", type=int, default=None, help="seed of a new session (default 0; a resumed session keeps its own)"
     )
     el.add_argument("--out", default=".", help="where to write figures (default: current folder)")
