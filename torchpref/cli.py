@@ -136,6 +136,14 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--seed", type=int, default=0, help="seed of the people, splits and selectors (default 0)")
     rp.add_argument("--data", default=None, help="folder of the data (default: benchmarks/studies/data of a clone)")
     rp.add_argument("--out", default=None, help=f"output folder (default: a new folder in ./{RESULTS}/)")
+    rp.add_argument(
+        "--selectors",
+        nargs="+",
+        default=["random", "UCBC", "information", "per second", "information + 0.5 random"],
+        metavar="SELECTOR",
+        help="selectors to compare with random (torchpref.experiments.replay.SELECTORS; default: random, UCBC, "
+        "information, per second, information + 0.5 random)",
+    )
     rp.set_defaults(trials=None)
     el = sub.add_parser("elicit", help="learn your preferences in the terminal")
     el.add_argument("world", nargs="?", choices=["lake"], help="a built-in world to elicit over")

@@ -44,6 +44,7 @@ from torchpref.selection.defaults import default_selector
 from torchpref.selection.per_second import ProfilePerSecond
 from torchpref.selection.robust import EpsilonExplore
 from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomRankings, Selector
+from torchpref.selection.top_profile import ProfileVariancePerEffort
 
 __all__ = ["Person", "load", "replay_person", "run_replay", "SELECTORS"]
 
@@ -111,7 +112,11 @@ SELECTORS: dict[str, Callable[[int], Selector]] = {
     "information": lambda m: InformationPerEffort(m=m, target="utility"),
     "per second": lambda m: ProfilePerSecond(m=m),
     "information + 0.5 random": lambda m: EpsilonExplore(InformationPerEffort(m=m, target="utility"), 0.5),
+    "clipped profile": lambda m: ProfileVariancePerEffort(m=m, clipped=True),
+    "clipped profile + 0.5 random": lambda m: EpsilonExplore(ProfileVariancePerEffort(m=m, clipped=True), 0.5),
 }
+#: the selectors a run compares by default
+DEFAULT_SELECTORS = ("random", "UCBC", "information", "per second", "information + 0.5 random")
 
 
 def _model(X: Tensor, comparisons: list[list[int]]) -> PreferenceGP:
@@ -185,7 +190,7 @@ def run_replay(
     data set, ``splits`` splits each: one row per (data set, person, split, selector) with its curves."""
     from tqdm.auto import tqdm
 
-    selectors = SELECTORS if selectors is None else selectors
+    selectors = {k: SELECTORS[k] for k in DEFAULT_SELECTORS} if selectors is None else selectors
     rows: list[dict] = []
     jobs = []
     for ds in datasets:
@@ -301,7 +306,8 @@ def run(args) -> int:
             f.write(json.dumps(row) + "\n")
             f.flush()
 
-        rows = run_replay(data, tuple(args.datasets), args.people, args.splits, args.seed, on_row=keep)
+        chosen = {k: SELECTORS[k] for k in dict.fromkeys(["random", *args.selectors])}
+        rows = run_replay(data, tuple(args.datasets), args.people, args.splits, args.seed, chosen, on_row=keep)
     table = curves(rows)
     with open(out / "replay.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(table[0]))
