@@ -49,6 +49,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         run_active_learning,
         run_active_learning_batch,
     )
+    from torchpref.selection.defaults import default_selector
     from torchpref.selection.strategies import (
         UCBC,
         InformationPerEffort,
@@ -133,6 +134,7 @@ _EXPORTS = {
     "TieLikelihood": "likelihoods.ordinal",
     "true_positives": "simulation.metrics",
     "UCBC": "selection.strategies",
+    "default_selector": "selection.defaults",
     "UCBRatings": "selection.strategies",
     "unit_to_likert": "data.preference_data",
     "User": "simulation.users",

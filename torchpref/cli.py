@@ -2,6 +2,7 @@ r"""The ``torchpref`` command line.
 
     torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
     torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
+    torchpref reproduce replay [--people N] [--splits S] [--datasets D ...] [--seed S] [--data DIR] [--out DIR]
     torchpref reproduce suite [--families F ...] [--strategies S ...] [--effort E] [--trials N] [--queries Q] [--seed S] [--out DIR]
     torchpref elicit lake [--session FILE]
     torchpref elicit --features items.csv [--id COLUMN] [--session FILE]
@@ -33,6 +34,7 @@ REPRODUCE = {
     "wave": "torchpref.experiments.wave",
     "lake": "torchpref.experiments.lake",
     "suite": "torchpref.experiments.suite",
+    "replay": "torchpref.experiments.replay",
 }
 ELICIT = "torchpref.frontends.elicit"
 SERVE = "torchpref.frontends.serve"
@@ -54,6 +56,8 @@ LEGEND = {
     "lake": "mean ± standard error over the trials; error5: mean |expected - true rating| on the test paths "
     "rated 5 (lower is better); WRMS: lower is better; chosen: the operator's level (1-5) of the path "
     "the model ranks best; share 5: fraction of trials whose chosen path is rated 5",
+    "replay": "area: mean held-out comparison accuracy / top-1 over 1..n answers revealed; p: paired Wilcoxon "
+    "against random over (person, split); see docs/suite.md",
     "suite": "mean ± standard error over the trials; WRMS and regret: lower is better; TP: true positives "
     "among the 15 best items (higher is better); see docs/suite.md",
 }
@@ -125,6 +129,22 @@ def build_parser() -> argparse.ArgumentParser:
         help="strategies to compare, e.g. 'UCBC' 'profile per effort' (default: the suite's eight; "
         "any of torchpref.experiments.runner.STRATEGIES)",
     )
+    rp = rep_sub.add_parser("replay", help="selectors replaying real people's recorded choices (docs/suite.md)")
+    rp.add_argument("--people", type=positive_int, default=80, help="people per data set (default 80)")
+    rp.add_argument("--splits", type=positive_int, default=3, help="train / held-out splits per person (default 3)")
+    rp.add_argument("--datasets", nargs="+", choices=["electricity", "rail"], default=["electricity", "rail"])
+    rp.add_argument("--seed", type=int, default=0, help="seed of the people, splits and selectors (default 0)")
+    rp.add_argument("--data", default=None, help="folder of the data (default: benchmarks/studies/data of a clone)")
+    rp.add_argument("--out", default=None, help=f"output folder (default: a new folder in ./{RESULTS}/)")
+    rp.add_argument(
+        "--selectors",
+        nargs="+",
+        default=["random", "UCBC", "information", "per second", "information + 0.5 random"],
+        metavar="SELECTOR",
+        help="selectors to compare with random (torchpref.experiments.replay.SELECTORS; default: random, UCBC, "
+        "information, per second, information + 0.5 random)",
+    )
+    rp.set_defaults(trials=None)
     el = sub.add_parser("elicit", help="learn your preferences in the terminal")
     el.add_argument("world", nargs="?", choices=["lake"], help="a built-in world to elicit over")
     el.add_argument("--features", help="CSV of items' objective values (a header row, one row per item)")
@@ -142,6 +162,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     el.add_argument("--no-session", action="store_true", help="keep nothing: answers are lost when it ends")
     el.add_argument("--queries", type=positive_int, default=14, help="number of queries (default 14)")
+    el.add_argument(
+        "--question-list",
+        metavar="FILE",
+        help="ask only these questions: one per line, the items' row numbers (0-based, comma-separated; "
+        "one row: rate it, several: pick the best of them); the selector chooses among them",
+    )
     el.add_argument(
         "--seed", type=int, default=None, help="seed of a new session (default 0; a resumed session keeps its own)"
     )

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -25,7 +26,7 @@ _GREEDY_CHUNK = 2**19
 
 def greedy_choice_set(
     F: Tensor,
-    comparison_noise: float | Tensor,
+    comparison_noise: float | Tensor | Any,
     m: int,
     value: Callable[[Tensor], Tensor],
     start: int | Tensor | None = None,
@@ -53,7 +54,9 @@ def greedy_choice_set(
     Args:
         F: ``S x K`` joint samples of the items' utilities, or ``T x S x K``.
         comparison_noise: ``sigma_R`` (eq. 3), a float or a 0-d tensor; with a 3-D ``F`` also a
-            ``T`` tensor, one per trial.
+            ``T`` tensor, one per trial. Or the model's comparison likelihood: its ``sigma_R``,
+            and ``value`` sees its answer probabilities (``with_lapses``: a lapsing person's
+            choices tell less), as its ``choice_probabilities`` gives them.
         m: items in the query, ``2 <= m <= K``.
         value: maps ``R x S x q`` probabilities of ``R`` candidate sets of ``q`` items to ``R``
             values; with a 3-D ``F``, ``T x R x S x q`` to ``T x R``.
@@ -66,6 +69,10 @@ def greedy_choice_set(
         final set (a float). 3-D ``F``: a ``T x m`` long tensor of the chosen columns and the
         ``T`` values of the final sets.
     """
+    if hasattr(comparison_noise, "with_lapses"):  # a comparison likelihood: its own answer probabilities
+        likelihood = comparison_noise
+        comparison_noise = likelihood.comparison_noise.detach().to(F)
+        value = _through(likelihood, value)
     if F.dim() == 2:
         if isinstance(start, Tensor):
             start = int(start)
@@ -76,6 +83,15 @@ def greedy_choice_set(
     if F.dim() != 3:
         raise ValueError(f"F must be S x K or T x S x K, got shape {tuple(F.shape)}.")
     return _greedy_choice_set(F, comparison_noise, m, value, start, num_quadrature)
+
+
+def _through(likelihood: Any, value: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:
+    """``value`` of the likelihood's answer probabilities (its ``with_lapses`` of the Thurstone ones)."""
+
+    def lapsing(P: Tensor) -> Tensor:
+        return value(likelihood.with_lapses(P))
+
+    return lapsing
 
 
 class _ChoiceTerms:

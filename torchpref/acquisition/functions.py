@@ -36,8 +36,9 @@ from torch.distributions import Beta
 
 from torchpref.acquisition.choice_sets import greedy_choice_set
 from torchpref.acquisition.information import entropy, membership_information, sample_information, top_set_membership
-from torchpref.inference.numerics import gauss_hermite, log_ndtr
+from torchpref.inference.numerics import gauss_hermite
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood
+from torchpref.likelihoods.pairwise_beta import thurstone_choice_probabilities
 from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.models.preference_gp import PreferenceGP
 
@@ -101,8 +102,10 @@ class QueryInformation(AcquisitionFunction):
     ``u`` for the predictive entropy. For a model with ordinal ratings (``rating_levels``), the
     level ``k``: ``H[E_f P(k | f)] - E_f H[P(k | f)]`` by the same quadrature over ``f``.
 
-    ``q >= 2``: the index of the best item when each utility is seen with ``N(0, sigma_R^2)``
-    noise; ``P(j | f) = E_eps prod_{k != j} Phi((f_j + eps - f_k) / sigma_R)`` by Gauss-Hermite,
+    ``q >= 2``: the index of the best item, with the probabilities of the model's comparison
+    likelihood (:meth:`~torchpref.likelihoods.pairwise_beta.PairwiseProbitLikelihood.choice_probabilities`:
+    each utility seen with ``N(0, sigma_R^2)`` noise, ``P(j | f) = E_eps prod_{k != j} Phi((f_j +
+    eps - f_k) / sigma_R)`` by Gauss-Hermite, and a lapsing person's lapses mixed in),
     and ``I = H[mean_s P(. | f_s)] - mean_s H[P(. | f_s)]`` over ``num_samples`` joint posterior
     samples (common random numbers from ``generator``, so values are comparable across queries).
 
@@ -160,21 +163,17 @@ class QueryInformation(AcquisitionFunction):
         jitter = 1e-9 * torch.eye(q, dtype=mean.dtype, device=mean.device)
         L = torch.linalg.cholesky_ex(cov + jitter)[0]
         f = mean.unsqueeze(-2) + z @ L.mT  # b x S x q
-        p = choice_probabilities(f, self.model.likelihood.comparison.comparison_noise, self.num_quadrature)
+        p = self.model.likelihood.comparison.choice_probabilities(f, self.num_quadrature)  # lapses included
         return sample_information(p)
 
 
 def choice_probabilities(f: Tensor, comparison_noise: float | Tensor, num_quadrature: int = 6) -> Tensor:
     r"""``... x q`` utilities -> ``... x q`` probabilities that each item is chosen as the best when
-    each utility is seen with ``N(0, sigma_R^2)`` noise (eq. 3):
-    ``P(j | f) = E_eps prod_{k != j} Phi((f_j + eps - f_k) / sigma_R)``, Gauss-Hermite over eps."""
-    x, w = gauss_hermite(num_quadrature, f)
-    diff = (f.unsqueeze(-1) - f.unsqueeze(-2)) / comparison_noise  # ... x j x k
-    lp = log_ndtr(diff.unsqueeze(-1) + math.sqrt(2) * x)  # ... x j x k x H
-    q = f.shape[-1]
-    eye = torch.eye(q, dtype=torch.bool, device=f.device).unsqueeze(-1)
-    p = (torch.exp(lp.masked_fill(eye, 0.0).sum(-2)) * w).sum(-1)
-    return p / p.sum(-1, keepdim=True)
+    each utility is seen with ``N(0, sigma_R^2)`` noise (eq. 3), without lapses:
+    :func:`~torchpref.likelihoods.pairwise_beta.thurstone_choice_probabilities`. The model's own
+    answer probabilities (lapses included) are its comparison likelihood's
+    :meth:`~torchpref.likelihoods.pairwise_beta.PairwiseProbitLikelihood.choice_probabilities`."""
+    return thurstone_choice_probabilities(f, comparison_noise, num_quadrature)
 
 
 def rating_bin_probabilities(f: Tensor, rating_likelihood: Any, num_bins: int = 32) -> Tensor:

@@ -42,6 +42,7 @@ from torch import Tensor
 from torchpref.models.kernels import fixed_rbf_kernel
 from torchpref.models.preference_gp import PreferenceGP
 from torchpref.selection.per_second import ProfilePerSecond
+from torchpref.selection.robust import EpsilonExplore
 from torchpref.selection.strategies import (
     UCBC,
     InformationPerEffort,
@@ -164,6 +165,9 @@ _FACTORIES: dict[str, Callable[..., Selector]] = {
     "top & level info": lambda m, gamma, rating_cost, ranking_cost: InformationPerEffort(
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma, target="top+levels"
     ),
+    "utility info": lambda m, gamma, rating_cost, ranking_cost: InformationPerEffort(
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma, target="utility"
+    ),
     "variance per effort": lambda m, rating_cost, ranking_cost, **_: VariancePerEffort(
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost
     ),
@@ -172,6 +176,9 @@ _FACTORIES: dict[str, Callable[..., Selector]] = {
     ),
     "clipped profile": lambda m, rating_cost, ranking_cost, **_: ProfileVariancePerEffort(
         m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, clipped=True
+    ),
+    "clipped profile + 0.5 random": lambda m, rating_cost, ranking_cost, **_: EpsilonExplore(
+        ProfileVariancePerEffort(m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, clipped=True), 0.5
     ),
     "profile per second": lambda m, rating_cost, ranking_cost, **_: ProfilePerSecond(
         m=m, rating_seconds=rating_cost, ranking_seconds=ranking_cost

@@ -30,14 +30,13 @@ import torch
 from torch import Tensor
 
 from torchpref.data.features import FeaturesError, printable, read_features_csv
-from torchpref.data.queries import Query, RankingQuery, first_unique_rows
-from torchpref.selection.strategies import UCBC
+from torchpref.data.queries import Query, RankingQuery, RatingQuery, first_unique_rows
+from torchpref.selection.defaults import default_selector
 from torchpref.sessions.session import (
     PreferenceSession,
     SessionFileCorrupt,
     SessionFileError,
     SessionMismatchError,
-    default_ranking_size,
     read_session_file,
 )
 
@@ -305,7 +304,8 @@ def _open_session(
     if n < 2:
         raise SessionFileError("need at least two distinct items to elicit preferences.")
     kwargs = dict(
-        selector=UCBC(m=default_ranking_size(n)),
+        selector=default_selector(n),
+        queries=question_list(getattr(args, "question_list", None), world.X),
         seed=seed,
         num_queries=args.queries,
         num_levels=NUM_LEVELS,
@@ -330,6 +330,33 @@ def _open_session(
         if (answer or "").lower() not in ("y", "yes"):
             return None
         return PreferenceSession(world.X, repair=True, **kwargs)
+
+
+def question_list(path: str | None, X: torch.Tensor) -> list[Query] | None:
+    """The questions of ``--question-list``: per line, comma-separated 0-based rows of ``X`` (one:
+    a rating, several: a best-of). ``None`` without a file.
+
+    Raises:
+        SessionFileError: a line that is not row numbers of ``X`` (naming it).
+    """
+    if path is None:
+        return None
+    out: list[Query] = []
+    for n, line in enumerate(Path(path).read_text().splitlines(), start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        try:
+            rows = [int(t) for t in line.replace(";", ",").split(",") if t.strip()]
+            if not rows or not all(0 <= r < X.shape[0] for r in rows) or len(set(rows)) != len(rows):
+                raise ValueError
+        except ValueError:
+            raise SessionFileError(
+                f"{path} line {n}: {line.strip()!r:.60} is not distinct row numbers 0..{X.shape[0] - 1}."
+            ) from None
+        out.append(RatingQuery(X[rows[0]]) if len(rows) == 1 else RankingQuery(X[rows]))
+    if not out:
+        raise SessionFileError(f"{path} lists no questions.")
+    return out
 
 
 def _file_seed(path: Path | None) -> int | None:

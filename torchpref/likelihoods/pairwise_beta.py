@@ -43,6 +43,25 @@ def rating_link(f: Tensor, rating_scale: float | Tensor) -> Tensor:
     return torch.special.ndtr(f / (SQRT2 * rating_scale))
 
 
+def thurstone_choice_probabilities(f: Tensor, comparison_noise: float | Tensor, num_quadrature: int = 6) -> Tensor:
+    r"""``... x q`` utilities -> ``... x q``: the probability that each item is chosen as the best
+    when each utility is seen with ``N(0, sigma_R^2)`` noise (Thurstone; eq. 3 for ``q = 2``),
+    ``P(j | f) = E_eps prod_{k != j} Phi((f_j + eps - f_k) / sigma_R)``, ``eps ~ N(0, sigma_R^2)``
+    by Gauss-Hermite (``q = 2`` in closed form: ``Phi((f_1 - f_2) / (sqrt 2 sigma_R))``).
+    ``comparison_noise`` broadcasts against ``f``'s leading dims."""
+    noise = torch.as_tensor(comparison_noise, dtype=f.dtype, device=f.device)
+    noise = noise.reshape(*noise.shape, *(1,) * (f.dim() - noise.dim()))  # leading dims, then 1s
+    if f.shape[-1] == 2:
+        p = torch.special.ndtr((f[..., :1] - f[..., 1:]) / (SQRT2 * noise))
+        return torch.cat([p, 1 - p], -1)
+    x, w = gauss_hermite(num_quadrature, f)
+    diff = (f.unsqueeze(-1) - f.unsqueeze(-2)) / noise.unsqueeze(-1)  # ... x j x k
+    lp = log_ndtr(diff.unsqueeze(-1) + SQRT2 * x)  # ... x j x k x H
+    eye = torch.eye(f.shape[-1], dtype=torch.bool, device=f.device).unsqueeze(-1)
+    p = (torch.exp(lp.masked_fill(eye, 0.0).sum(-2)) * w).sum(-1)
+    return p / p.sum(-1, keepdim=True)
+
+
 def predictive_rating(mean: Tensor, var: Tensor, rating_scale: float | Tensor) -> Tensor:
     r"""Predictive mean rating under ``f ~ N(mean, var)`` (eq. 11 for the Beta mean):
     ``E[Phi(f / (sqrt 2 sigma_B))] = Phi(m / sqrt(2 sigma_B^2 + v))`` (negative ``var`` counts as 0)."""
@@ -121,6 +140,20 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
     def fisher(self, eta: Tensor) -> Tensor:
         """Negative second derivative; already non-negative for the probit."""
         return -self.derivatives(eta)[2]
+
+    def with_lapses(self, P: Tensor) -> Tensor:
+        r"""The answer probabilities of a best-of-``q`` choice (``... x q``) as this person gives
+        them: unchanged here; :class:`~torchpref.likelihoods.person.LapseProbitLikelihood` mixes in
+        its lapses."""
+        return P
+
+    def choice_probabilities(self, f: Tensor, num_quadrature: int = 6) -> Tensor:
+        r"""The probability of each answer to a best-of-``q`` query given latent values ``f``
+        (``... x q`` -> ``... x q``; ``q = 2`` is a comparison, eq. 3): the one home of an
+        answer's probability, which acquisition and selection call. Thurstone's choice with this
+        likelihood's ``sigma_R`` (:func:`thurstone_choice_probabilities`), then
+        :meth:`with_lapses`."""
+        return self.with_lapses(thurstone_choice_probabilities(f, self.comparison_noise, num_quadrature))
 
     def preference_probability(self, mean_diff: Tensor, var_diff: Tensor) -> Tensor:
         r"""Predictive ``P(a > b)`` (eq. 11): ``Phi((m_a - m_b) / sqrt(2 sigma_R^2 + v_a + v_b - 2 c_ab))``.

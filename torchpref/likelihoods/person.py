@@ -234,6 +234,13 @@ class LapseProbitLikelihood(PairwiseProbitLikelihood):
         log_1mp = torch.logaddexp(torch.log(eps / 2), log_keep + log_ndtr(-z))
         return (q / s) ** 2 * torch.exp(log_p - log_1mp)
 
+    def with_lapses(self, P: Tensor) -> Tensor:
+        r"""A best-of-``q`` choice's probabilities ``P`` (``... x q``) with lapses: ``eps / q + (1 -
+        eps) P`` (a lapse picks one of the ``q`` shown uniformly; ``q = 2`` is :meth:`forward`'s
+        ``eps / 2 + (1 - eps) Phi``)."""
+        eps = self.lapse_rate.to(P)
+        return eps / P.shape[-1] + (1 - eps) * P
+
     def preference_probability(self, mean_diff: Tensor, var_diff: Tensor) -> Tensor:
         r"""Predictive ``P(a > b) = eps / 2 + (1 - eps) Phi((m_a - m_b) / sqrt(2 sigma_R^2 + v))``."""
         eps = self.lapse_rate

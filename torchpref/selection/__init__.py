@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from torchpref.selection.active import History, QueryRecord, fit_model, run_active_learning, run_active_learning_batch
+from torchpref.selection.defaults import default_selector
 from torchpref.selection.strategies import (
     UCBC,
     InformationPerEffort,
@@ -25,6 +26,7 @@ __all__ = [
     'UCBC',
     'UCBRatings',
     'VariancePerEffort',
+    'default_selector',
     'fit_model',
     'profile_variance_reduction',
     'run_active_learning',

@@ -25,13 +25,12 @@ reweighted by each answer's likelihood) with three changes:
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from botorch.models.model import Model
 from torch import Tensor
 
-from torchpref.acquisition.choice_sets import greedy_choice_set
-from torchpref.acquisition.functions import rating_bin_probabilities
 from torchpref.selection.strategies import joint_posterior, joint_samples
 from torchpref.selection.top_profile import ProfileVariancePerEffort, _Moments, _reduction, top_profile
 from torchpref.simulation.raters import EffortModel
@@ -131,43 +130,28 @@ class ProfilePerSecond(ProfileVariancePerEffort):
         V = torch.cat([top_profile(F, k, rating_likelihood, False), top_profile(F, k, rating_likelihood, True)], -1)
         return V, items.repeat(2)
 
-    def values(
-        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
-    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
-        r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
-        T x m or None, ranking values T)``, values per second."""
-        cost = self.seconds()
+    def query_cost(self, q: int) -> float:
+        """The seconds of a rating (``q = 1``) or of a best-of-``q`` (:meth:`seconds`; another size
+        than ``m`` by the effort model's ratio)."""
+        sec = self.seconds()
+        if q == 1:
+            return sec["rating"]
+        return sec["ranking"] * (1.0 if q == self.m else self.effort.ranking(q) / self.effort.ranking(self.m))
+
+    def _prepare(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Tensor, Tensor, Any]:
+        """As :meth:`ProfileVariancePerEffort._prepare`, on this selector's profile (``target``);
+        the candidates by the summed variance of their columns."""
         mean, cov = joint_posterior(model, X)
         F, _ = joint_samples(mean, cov, generators, self.num_samples)
         T, S, N = F.shape
-        lik = model.likelihood
-        V, item_of = self._profile(F, max(1, min(N, round(self.top_fraction * N))), lik.rating)
+        V, item_of = self._profile(F, max(1, min(N, round(self.top_fraction * N))), model.likelihood.rating)
         var = V.var(-2)  # T x C
         cols = var.argsort(-1, descending=True)
         n = max(1, int((var > 0).sum(-1).max()))  # the columns that matter (zero columns add nothing)
         mom = _Moments.of(V.gather(2, cols[:, :n].unsqueeze(1).expand(T, S, n)))
         item_var = var.new_zeros(T, N).index_add_(1, item_of, var)
-        K = min(self.num_plausible, N)
-        cand = item_var.argsort(-1, descending=True)[:, :K]  # T x K
-        Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))  # T x S x K
 
         def value(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
             return _reduction(P, mom, True)
 
-        rating = value(rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # the person's rating likelihood
-        rating_value, best = rating.max(-1)
-        rating_row = cand.gather(1, best.unsqueeze(-1)).squeeze(-1)
-        if K < max(self.m, 2):
-            return rating_row, rating_value / cost["rating"], None, torch.full_like(rating_value, -torch.inf)
-        eps = getattr(lik.comparison, "lapse_rate", None)
-        if eps is not None:
-            eps = eps.detach().to(F)
-
-            def lapsing(P: Tensor) -> Tensor:  # a lapse picks one of the q shown uniformly
-                return value(eps / P.shape[-1] + (1 - eps) * P)
-
-            ranking_value_fn = lapsing
-        else:
-            ranking_value_fn = value
-        chosen, ranking_value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, ranking_value_fn)
-        return rating_row, rating_value / cost["rating"], cand.gather(1, chosen), ranking_value / cost["ranking"]
+        return F, item_var.argsort(-1, descending=True), value

@@ -10,7 +10,8 @@ random rankings, UCB ratings, random mixed. The paper's combined strategy is :cl
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from botorch.models.model import Model
@@ -27,6 +28,7 @@ from torchpref.acquisition.functions import (
 from torchpref.data.queries import Query, ranking_query, rating_query
 from torchpref.inference.numerics import cholesky_batch
 from torchpref.models.batch import BatchedPreferenceGP
+from torchpref.selection.choosing import QueryRows, choose_by_scores, query_items, ranking_cost, uniform_among
 
 
 def _ranking_size(m: int) -> int:
@@ -84,6 +86,20 @@ class Selector:
         """One query per trial: ``X`` is ``T x N x d``, ``indices`` and ``generators`` one per trial."""
         raise NotImplementedError(f"{type(self).__name__} implements no select_batch: it runs one trial at a time.")
 
+    def choose(
+        self,
+        model: Model,
+        queries: Sequence[Query],
+        *,
+        step: int = 0,
+        num_steps: int = 1,
+        generator: torch.Generator,
+    ) -> int:
+        """The index of the query to ask next among ``queries`` (:class:`~torchpref.RatingQuery` /
+        :class:`~torchpref.RankingQuery`, items in the model's coordinates), valued as this
+        selector values the queries it builds (:mod:`torchpref.selection.choosing`)."""
+        raise NotImplementedError(f"{type(self).__name__} implements no choose.")
+
 
 class PerEffortSelector(Selector):
     r"""A selector that values each trial's best rating and best ranking per unit of effort
@@ -95,6 +111,33 @@ class PerEffortSelector(Selector):
         r"""``(rating rows T, rating values T, ranking rows T x m or None, ranking values T)``,
         values per unit of effort."""
         raise NotImplementedError
+
+    def scorers(
+        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
+        r"""The value (not per effort) of a rating of each of the rows ``T x R`` and of a ranking of
+        each ``T x R x q`` set of rows of the candidates ``X`` (``T x N x d``): two functions to
+        ``T x R``, on the samples and target that :meth:`values` uses."""
+        raise NotImplementedError
+
+    def query_cost(self, q: int) -> float:
+        """The effort of a rating (``q = 1``) or of a best-of-``q``."""
+        rating, ranking = self.rating_cost, self.ranking_cost
+        return rating if q == 1 else ranking_cost(rating, ranking, self.m, q)
+
+    def choose(
+        self,
+        model: Model,
+        queries: Sequence[Query],
+        *,
+        step: int = 0,
+        num_steps: int = 1,
+        generator: torch.Generator,
+    ) -> int:
+        qr = query_items(queries)
+        with torch.no_grad():
+            rating_fn, ranking_fn = self.scorers(model, qr.X.unsqueeze(0), [generator])
+            return choose_by_scores(qr, rating_fn, ranking_fn, self.query_cost)
 
     def select_batch(
         self,
@@ -134,6 +177,12 @@ class RandomRatings(Selector):
             for b, g in enumerate(generators)
         ]
 
+    def choose(
+        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+    ) -> int:
+        """A uniformly random rating query (any query if there is none)."""
+        return uniform_among(query_items(queries), "rating", generator)
+
 
 class RandomRankings(Selector):
     """Best of ``m`` uniformly random distinct candidates."""
@@ -157,6 +206,12 @@ class RandomRankings(Selector):
             ranking_query(X[b], indices[b], torch.randperm(X.shape[1], generator=g)[: self.m])
             for b, g in enumerate(generators)
         ]
+
+    def choose(
+        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+    ) -> int:
+        """A uniformly random ranking query (any query if there is none)."""
+        return uniform_among(query_items(queries), "ranking", generator)
 
 
 class RandomMixed(Selector):
@@ -182,6 +237,15 @@ class RandomMixed(Selector):
             sel = RandomRankings(self.m) if coin < self.p_ranking else RandomRatings()
             out += sel.select_batch(model, X[b : b + 1], indices[b : b + 1], step, num_steps, [g])
         return out
+
+    def choose(
+        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+    ) -> int:
+        """A ranking with probability ``p_ranking``, else a rating, uniformly among the queries of
+        that kind (any query if there is none)."""
+        qr = query_items(queries)
+        coin = float(torch.rand((), generator=generator, dtype=torch.float64))
+        return uniform_among(qr, "ranking" if coin < self.p_ranking else "rating", generator)
 
 
 def _ucb(model, X: Tensor, gamma: float) -> Tensor:
@@ -239,6 +303,14 @@ class UCBRatings(Selector):
         best = _ucb(model, X, self.gamma).argmax(-1).tolist()
         return [rating_query(X[b], indices[b], i) for b, i in enumerate(best)]
 
+    def choose(
+        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+    ) -> int:
+        """The rating query of largest UCB (without one: the ranking of largest item UCB)."""
+        qr = query_items(queries)
+        ucb = _ucb(model, qr.X.unsqueeze(0), self.gamma)[0]
+        return _best_by_ucb(qr, ucb, "rating" if qr.of_kind("rating") else "ranking")
+
 
 class UCBC(Selector):
     r"""The paper's combined strategy (Sec. III.C), as the authors' code ran it.
@@ -293,6 +365,37 @@ class UCBC(Selector):
                 logits[r] = -math.inf
             out.append(ranking_query(X[b], indices[b], torch.tensor(rows)))
         return out
+
+    def choose(
+        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+    ) -> int:
+        r"""The coin of :meth:`select`, then, for a rating, the rating query of largest UCB; for a
+        ranking, a ranking query drawn with probability proportional to ``exp(max UCB / T_0 + sum
+        of the other items' UCB / T_1)`` (the softmax draw of :meth:`select`, first item at
+        ``T_0``, the rest at ``T_1``, as weights of whole sets). Without queries of the coin's
+        kind, the other kind's rule."""
+        qr = query_items(queries)
+        ucb = _ucb(model, qr.X.unsqueeze(0), self.gamma)[0]
+        coin = float(torch.rand((), generator=generator, dtype=torch.float64))
+        ranking = coin < self.ranking_probability(step, num_steps)
+        if not qr.of_kind("rating" if not ranking else "ranking"):
+            ranking = not ranking
+        if not ranking:
+            return _best_by_ucb(qr, ucb, "rating")
+        idx = qr.of_kind("ranking")
+        logits = []
+        for i in idx:
+            u = ucb[qr.rows[i]]
+            logits.append(u.max() / self.temperatures[0] + (u.sum() - u.max()) / self.temperatures[1])
+        z = torch.stack(logits)
+        return idx[int(torch.multinomial(torch.softmax(z - z.max(), 0), 1, generator=generator))]
+
+
+def _best_by_ucb(qr: QueryRows, ucb: Tensor, kind: str) -> int:
+    """The query of ``kind`` whose largest item UCB is largest (ties to the first)."""
+    idx = qr.of_kind(kind)
+    vals = torch.stack([ucb[qr.rows[i]].max() for i in idx])
+    return idx[int(vals.argmax())]
 
 
 class InformationPerEffort(Selector):
@@ -393,6 +496,57 @@ class InformationPerEffort(Selector):
         c = math.sqrt(2) * rating_likelihood.rating_scale.to(F) * torch.special.ndtri(edges)
         return F.unsqueeze(-2) > c.reshape(-1, 1)
 
+    def _prepare(
+        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Tensor, Tensor, Callable[[Tensor], Tensor], Any]:
+        """Joint samples ``F`` (``T x S x N``), the candidates by uncertainty of the target (``T x
+        N``), the information function of answer probabilities and the model's likelihood."""
+        mean, cov = joint_posterior(model, X)
+        F, std = joint_samples(mean, cov, generators, self.num_samples)  # T x S x N
+        T, S, N = F.shape
+        lik = model.likelihood
+        ucb = mean + self.gamma * std
+        tie = 1e-9 * torch.sigmoid(ucb - ucb.max(-1, keepdim=True).values)
+        if self.target in ("top", "top+levels"):
+            Z = top_set_membership(F, max(1, min(N, round(self.top_fraction * N))))
+            if self.target == "top+levels":  # and each item's rating level: N x L more labels
+                Z = torch.cat([Z, self._levels(F, lik.rating).flatten(-2)], dim=-1)
+            p = Z.to(F).mean(-2)
+            order = torch.argsort((p * (1 - p)).reshape(T, -1, N).sum(1) + tie, dim=-1, descending=True)
+
+            def info(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
+                return membership_information(P, Z, self.min_count, self.bias_correction)
+
+            return F, order, info, lik
+        argmax = F.argmax(-1)  # T x S
+        p_max = torch.zeros_like(mean).scatter_add_(1, argmax, torch.ones_like(F[..., 0])) / S
+        order = torch.argsort(p_max + tie, dim=-1, descending=True)
+        if self.target == "maximizer":
+            # which plausible candidate is the maximiser (K + 1 labels: K for "another one"), few
+            # enough that every label has many samples (a plug-in estimate is biased upwards when
+            # labels have few samples each)
+            K = min(self.num_plausible, N)
+            rank = torch.full((T, N), K, dtype=torch.long, device=F.device)
+            rank.scatter_(1, order[:, :K], torch.arange(K, device=F.device).expand(T, K))
+            labels = rank.gather(1, argmax)  # T x S
+
+            def info(P: Tensor) -> Tensor:
+                return torch.stack([sample_information(P[b], labels[b], K + 1) for b in range(T)])
+
+            return F, order, info, lik
+        return F, order, sample_information, lik
+
+    def scorers(
+        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
+        """The information of a rating of rows ``T x R`` and of a ranking of rows ``T x R x q`` (not
+        per effort; :meth:`PerEffortSelector.scorers`)."""
+        F, _, info, lik = self._prepare(model, X, generators)
+        return sample_scorers(F, info, lik, self.num_bins)
+
+    query_cost = PerEffortSelector.query_cost
+    choose = PerEffortSelector.choose
+
     def select_batch(
         self,
         model: Model,
@@ -403,41 +557,8 @@ class InformationPerEffort(Selector):
         generators: Sequence[torch.Generator],
     ) -> list[Query]:
         with torch.no_grad():
-            mean, cov = joint_posterior(model, X)
-            F, std = joint_samples(mean, cov, generators, self.num_samples)  # T x S x N
+            F, order, info, lik = self._prepare(model, X, generators)
             T, S, N = F.shape
-            lik = model.likelihood
-            ucb = mean + self.gamma * std
-            tie = 1e-9 * torch.sigmoid(ucb - ucb.max(-1, keepdim=True).values)
-            if self.target in ("top", "top+levels"):
-                Z = top_set_membership(F, max(1, min(N, round(self.top_fraction * N))))
-                if self.target == "top+levels":  # and each item's rating level: N x L more labels
-                    Z = torch.cat([Z, self._levels(F, lik.rating).flatten(-2)], dim=-1)
-                p = Z.to(F).mean(-2)
-                order = torch.argsort((p * (1 - p)).reshape(T, -1, N).sum(1) + tie, dim=-1, descending=True)
-
-                def info(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
-                    return membership_information(P, Z, self.min_count, self.bias_correction)
-            else:
-                argmax = F.argmax(-1)  # T x S
-                p_max = torch.zeros_like(mean).scatter_add_(1, argmax, torch.ones_like(F[..., 0])) / S
-                order = torch.argsort(p_max + tie, dim=-1, descending=True)
-                if self.target == "maximizer":
-                    # which plausible candidate is the maximiser (K + 1 labels: K for "another
-                    # one"), few enough that every label has many samples (a plug-in estimate is
-                    # biased upwards when labels have few samples each)
-                    K = min(self.num_plausible, N)
-                    rank = torch.full((T, N), K, dtype=torch.long, device=F.device)
-                    rank.scatter_(1, order[:, :K], torch.arange(K, device=F.device).expand(T, K))
-                    labels = rank.gather(1, argmax)  # T x S
-
-                    def info(P: Tensor) -> Tensor:
-                        return torch.stack([sample_information(P[b], labels[b], K + 1) for b in range(T)])
-                else:
-
-                    def info(P: Tensor) -> Tensor:
-                        return sample_information(P)
-
             cand = order[:, : min(self.num_plausible, N)]  # T x K
             Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, cand.shape[1]))  # T x S x K
             rating_info = info(rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # T x K x S x G -> T x K
@@ -445,10 +566,31 @@ class InformationPerEffort(Selector):
             rating_value = rating_info.max(-1).values / self.rating_cost
             if cand.shape[1] < self.m or self.m < 2:
                 return [rating_query(X[b], indices[b], best_rating[b]) for b in range(T)]
-            chosen, value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, info, start=0)
+            chosen, value = greedy_choice_set(Fc, lik.comparison, self.m, info, start=0)
             ranking = (value / self.ranking_cost > rating_value).tolist()
             rows = cand.gather(1, chosen)  # T x m
         return [
             ranking_query(X[b], indices[b], rows[b]) if ranking[b] else rating_query(X[b], indices[b], best_rating[b])
             for b in range(T)
         ]
+
+
+def sample_scorers(
+    F: Tensor, value: Callable[[Tensor], Tensor], likelihood: Any, num_bins: int
+) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
+    """:meth:`PerEffortSelector.scorers` of a value of answer probabilities (``T x R x S x Y -> T
+    x R``) under joint samples ``F`` (``T x S x N``): a rating's binned answer
+    (:func:`rating_bin_probabilities`), a ranking's choice (the comparison likelihood's
+    ``choice_probabilities``, lapses included)."""
+    T, S, _ = F.shape
+
+    def rating_fn(rows: Tensor) -> Tensor:  # T x R
+        Fr = F.gather(2, rows.unsqueeze(1).expand(T, S, rows.shape[1]))  # T x S x R
+        return value(rating_bin_probabilities(Fr.mT, likelihood.rating, num_bins))
+
+    def ranking_fn(rows: Tensor) -> Tensor:  # T x R x q
+        R, q = rows.shape[1:]
+        Fr = F.gather(2, rows.reshape(T, 1, R * q).expand(T, S, R * q)).reshape(T, S, R, q).transpose(1, 2)
+        return value(likelihood.comparison.choice_probabilities(Fr))
+
+    return rating_fn, ranking_fn

@@ -38,7 +38,7 @@ noisy than each value.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from botorch.models.model import Model
@@ -48,7 +48,13 @@ from torch import Tensor
 from torchpref.acquisition.choice_sets import greedy_choice_set
 from torchpref.acquisition.functions import rating_bin_probabilities
 from torchpref.acquisition.information import top_set_membership
-from torchpref.selection.strategies import PerEffortSelector, effort_model, joint_posterior, joint_samples
+from torchpref.selection.strategies import (
+    PerEffortSelector,
+    effort_model,
+    joint_posterior,
+    joint_samples,
+    sample_scorers,
+)
 
 __all__ = ["ProfileVariancePerEffort", "profile_variance_reduction", "top_profile"]
 
@@ -175,31 +181,45 @@ class ProfileVariancePerEffort(PerEffortSelector):
         self.num_samples, self.top_fraction = num_samples, top_fraction
         self.num_plausible, self.num_bins, self.clipped = num_plausible, num_bins, clipped
 
-    def values(
-        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
-    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
-        r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
-        T x m or None, ranking values T)``, values per unit of effort."""
+    def _prepare(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Tensor, Tensor, Any]:
+        """Joint samples ``F`` (``T x S x N``), the candidates by profile variance (``T x N``) and the
+        value of answer probabilities (``T x R x S x Y -> T x R``)."""
         mean, cov = joint_posterior(model, X)
         F, _ = joint_samples(mean, cov, generators, self.num_samples)
         T, S, N = F.shape
-        lik = model.likelihood
-        V = top_profile(F, max(1, min(N, round(self.top_fraction * N))), lik.rating, self.clipped)
+        V = top_profile(F, max(1, min(N, round(self.top_fraction * N))), model.likelihood.rating, self.clipped)
         var = V.var(-2)  # T x N
         order = var.argsort(-1, descending=True)
         n = max(1, int((var > 0).sum(-1).max()))  # the items that matter (zero columns add nothing)
         mom = _Moments.of(V.gather(2, order[:, :n].unsqueeze(1).expand(T, S, n)))
-        K = min(self.num_plausible, N)
-        cand = order[:, :K]  # T x K
-        Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))  # T x S x K
 
         def value(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
             return _reduction(P, mom, True)
 
+        return F, order, value
+
+    def scorers(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Any, Any]:
+        """The expected reduction of a rating of rows ``T x R`` and of a ranking of rows ``T x R x
+        q`` (not per effort; :meth:`~torchpref.selection.strategies.PerEffortSelector.scorers`)."""
+        F, _, value = self._prepare(model, X, generators)
+        return sample_scorers(F, value, model.likelihood, self.num_bins)
+
+    def values(
+        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
+        r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
+        T x m or None, ranking values T)``, values per unit of effort (:meth:`query_cost`)."""
+        F, order, value = self._prepare(model, X, generators)
+        T, S, N = F.shape
+        lik = model.likelihood
+        K = min(self.num_plausible, N)
+        cand = order[:, :K]  # T x K
+        Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))  # T x S x K
         rating = value(rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # T x K
         rating_value, best = rating.max(-1)
         rating_row = cand.gather(1, best.unsqueeze(-1)).squeeze(-1)
+        rating_cost, ranking_cost = self.query_cost(1), self.query_cost(self.m)
         if K < max(self.m, 2):
-            return rating_row, rating_value / self.rating_cost, None, torch.full_like(rating_value, -torch.inf)
-        chosen, ranking_value = greedy_choice_set(Fc, lik.comparison.comparison_noise, self.m, value)
-        return rating_row, rating_value / self.rating_cost, cand.gather(1, chosen), ranking_value / self.ranking_cost
+            return rating_row, rating_value / rating_cost, None, torch.full_like(rating_value, -torch.inf)
+        chosen, ranking_value = greedy_choice_set(Fc, lik.comparison, self.m, value)
+        return rating_row, rating_value / rating_cost, cand.gather(1, chosen), ranking_value / ranking_cost

@@ -35,6 +35,7 @@ so a rating (the level) and a ranking (the order) are valued on one scale.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from botorch.models.model import Model
@@ -44,8 +45,6 @@ from torch import Tensor
 from torchpref.acquisition.functions import choice_probabilities
 from torchpref.acquisition.information import top_set_membership
 from torchpref.selection.strategies import PerEffortSelector, effort_model, joint_posterior, joint_samples
-
-SQRT2 = 2.0**0.5
 
 
 def rating_hessian(F: Tensor, rating_likelihood: Likelihood) -> Tensor:
@@ -61,13 +60,14 @@ def rating_hessian(F: Tensor, rating_likelihood: Likelihood) -> Tensor:
     return rating_likelihood.fisher(F).mean(-2)
 
 
-def choice_answer_probabilities(F: Tensor, comparison_noise: Tensor, num_quadrature: int = 6) -> Tensor:
+def choice_answer_probabilities(F: Tensor, comparison: Likelihood | Tensor, num_quadrature: int = 6) -> Tensor:
     r"""Predictive probability that each of ``q`` items is chosen as the best, ``... x q``, the
-    mean over ``S`` posterior samples ``F`` (``... x S x q``) of eq. 3's choice probabilities."""
-    if F.shape[-1] == 2:  # P(first is best) = Phi((f_1 - f_2) / (sqrt 2 sigma_R))
-        p = torch.special.ndtr((F[..., 0] - F[..., 1]) / (SQRT2 * comparison_noise))
-        return torch.stack([p, 1 - p], -1).mean(-2)
-    return choice_probabilities(F, comparison_noise, num_quadrature).mean(-2)
+    mean over ``S`` posterior samples ``F`` (``... x S x q``) of the comparison likelihood's
+    :meth:`~torchpref.likelihoods.pairwise_beta.PairwiseProbitLikelihood.choice_probabilities`
+    (lapses included); a bare ``sigma_R`` tensor gives eq. 3's Thurstone choice without lapses."""
+    if isinstance(comparison, Tensor):
+        return choice_probabilities(F, comparison, num_quadrature).mean(-2)
+    return comparison.choice_probabilities(F, num_quadrature).mean(-2)
 
 
 def ranking_mode_hessians(mean: Tensor, cov: Tensor, comparison_likelihood: Likelihood, num_iter: int = 12) -> Tensor:
@@ -212,60 +212,68 @@ class VariancePerEffort(PerEffortSelector):
         g = (up - down) / (2 * h)
         return w, g
 
-    def values(
-        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
-    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
-        r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
-        T x m, ranking values T)``, values per unit of effort."""
+    def _prepare(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Any, ...]:
+        """``(F, w, g, var, rating_fn, ranking_fn)``: samples, weights, slopes, marginal variances
+        and the expected reductions of a rating of rows ``T x R`` and of a ranking of rows ``T x R
+        x q`` (not per effort)."""
         mean, cov = joint_posterior(model, X)
         F, _ = joint_samples(mean, cov, generators, self.num_samples)
         T, S, N = F.shape
         lik = model.likelihood
         var = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0)
         w, g = self.weights(F, mean, var, lik.rating)
-        all_rows = torch.arange(N, device=F.device).reshape(1, N, 1).expand(T, N, 1)
-        h = rating_hessian(F[:, : self.num_hessian_samples], lik.rating)
-        rating = variance_reduction(cov, w, all_rows, h.reshape(T, N, 1, 1), g)
+        Fh = F[:, : self.num_hessian_samples]
+        h = rating_hessian(Fh, lik.rating)  # T x N
+
+        def rating_fn(rows: Tensor) -> Tensor:  # T x R
+            return variance_reduction(cov, w, rows.unsqueeze(-1), h.gather(1, rows).unsqueeze(-1).unsqueeze(-1), g)
+
+        def ranking_fn(rows: Tensor) -> Tensor:  # T x R x q
+            R, q = rows.shape[1:]
+            Fs = Fh.gather(2, rows.reshape(T, 1, R * q).expand(T, Fh.shape[1], R * q))
+            P = choice_answer_probabilities(Fs.reshape(T, -1, R, q).transpose(1, 2), lik.comparison)  # T x R x q
+            block = cov.gather(1, rows.reshape(T, -1, 1).expand(T, R * q, N))
+            block = block.reshape(T, R, q, N).gather(3, rows.unsqueeze(-2).expand(T, R, q, q))
+            mean_q = mean.gather(1, rows.reshape(T, -1)).reshape(rows.shape)
+            H = ranking_mode_hessians(mean_q, block, lik.comparison)  # T x R x J x q x q
+            red = variance_reduction(cov, w, rows.repeat_interleave(q, 1), H.reshape(T, R * q, q, q), g)
+            return (red.reshape(T, R, q) * P).sum(-1)
+
+        return F, w, g, var, rating_fn, ranking_fn
+
+    def scorers(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Any, Any]:
+        """:meth:`~torchpref.selection.strategies.PerEffortSelector.scorers`: expected reductions."""
+        return self._prepare(model, X, generators)[4:]
+
+    def values(
+        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
+        r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
+        T x m, ranking values T)``, values per unit of effort."""
+        F, w, g, var, rating_fn, ranking_fn = self._prepare(model, X, generators)
+        T, S, N = F.shape
+        rating = rating_fn(torch.arange(N, device=F.device).expand(T, N))
         rating_value, rating_row = rating.max(-1)
         K = min(self.num_plausible, N)
         if K < self.m:
             return rating_row, rating_value / self.rating_cost, None, torch.full_like(rating_value, -1.0)
         cand = torch.argsort(w * g * g * var, dim=-1, descending=True)[:, :K]  # T x K
-        Fc = F[:, : self.num_hessian_samples].gather(2, cand.unsqueeze(1).expand(T, self.num_hessian_samples, K))
-        chosen, value = self._greedy(Fc, mean, cov, (w, g), cand, lik.comparison)
+        chosen, value = self._greedy(cand, ranking_fn)
         return rating_row, rating_value / self.rating_cost, cand.gather(1, chosen), value / self.ranking_cost
 
-    def _greedy(
-        self,
-        Fc: Tensor,
-        mean: Tensor,
-        cov: Tensor,
-        weights: tuple[Tensor, Tensor],
-        cand: Tensor,
-        comparison: Likelihood,
-    ) -> tuple[Tensor, Tensor]:
-        """Greedy best-of-``m`` set among the ``K`` plausible items: ``T x m`` columns, ``T`` values."""
-        T, S, K = Fc.shape
-        j, k = torch.triu_indices(K, K, 1, device=Fc.device)
+    def _greedy(self, cand: Tensor, ranking_fn: Any) -> tuple[Tensor, Tensor]:
+        """Greedy best-of-``m`` set among the ``K`` plausible items ``cand`` (``T x K``): ``T x m``
+        columns, ``T`` values."""
+        T, K = cand.shape
+        j, k = torch.triu_indices(K, K, 1, device=cand.device)
         sets = torch.stack([j, k], -1).expand(T, -1, 2)  # T x R x 2
         while True:
             q = sets.shape[-1]
-            Fs = Fc.gather(2, sets.reshape(T, 1, -1).expand(T, S, -1)).reshape(T, S, -1, q).transpose(1, 2)
-            P = choice_answer_probabilities(Fs, comparison.comparison_noise.to(Fs))  # T x R x q
-            rows = cand.gather(1, sets.reshape(T, -1)).reshape(sets.shape)  # T x R x q
-            block = cov.gather(1, rows.reshape(T, -1, 1).expand(T, rows.shape[1] * q, cov.shape[-1]))
-            block = block.reshape(T, -1, q, cov.shape[-1]).gather(3, rows.unsqueeze(-2).expand(T, -1, q, q))
-            mean_q = mean.gather(1, rows.reshape(T, -1)).reshape(rows.shape)
-            H = ranking_mode_hessians(mean_q, block, comparison)  # T x R x J x q x q
-            R = rows.shape[1]
-            red = variance_reduction(
-                cov, weights[0], rows.repeat_interleave(q, 1), H.reshape(T, R * q, q, q), weights[1]
-            )
-            vals = (red.reshape(T, R, q) * P).sum(-1)
+            vals = ranking_fn(cand.gather(1, sets.reshape(T, -1)).reshape(sets.shape))  # T x R
             b = vals.argmax(-1)
             best = sets[torch.arange(T), b]  # T x q
             if q == self.m:
                 return best, vals[torch.arange(T), b]
-            taken = torch.zeros(T, K, dtype=torch.bool, device=Fc.device).scatter_(1, best, True)
+            taken = torch.zeros(T, K, dtype=torch.bool, device=cand.device).scatter_(1, best, True)
             rest = (~taken).nonzero()[:, 1].reshape(T, K - q)
             sets = torch.cat([best.unsqueeze(1).expand(T, K - q, q), rest.unsqueeze(-1)], -1)

@@ -48,7 +48,9 @@ from torchpref.data.queries import (
     record_answer,
 )
 from torchpref.models.preference_gp import PreferenceGP
-from torchpref.selection.strategies import UCBC, Selector
+from torchpref.selection.choosing import query_items
+from torchpref.selection.defaults import default_selector
+from torchpref.selection.strategies import Selector
 from torchpref.sessions.journal import (
     Journal,
     MemoryJournal,
@@ -60,6 +62,7 @@ from torchpref.sessions.journal import (
     read_session_file,
 )
 from torchpref.sessions.model_state import ModelCache, Sizes, header_digest, mode, sizes, truncate
+from torchpref.sessions.query_list import choose_query, pool_rows_of, resumed_queries
 from torchpref.sessions.recorded import SessionSettingsError, describe_model, describe_selector, resume_settings
 from torchpref.sessions.records import (
     FORMAT_VERSION,
@@ -140,8 +143,9 @@ class PreferenceSession(ModelCache):
 
     def __init__(
         self,
-        candidates: Tensor | Candidates,
+        candidates: Tensor | Candidates | None = None,
         *,
+        queries: Sequence[Query] | None = None,
         selector: Selector | None = None,
         model_factory: Callable[[Tensor], PreferenceGP] | None = None,
         session_file: str | os.PathLike | None = None,
@@ -154,6 +158,10 @@ class PreferenceSession(ModelCache):
         metadata: dict | None = None,
         migrate: bool = False,
     ) -> None:
+        if candidates is None:
+            if queries is None:
+                raise ValueError("give the candidates (items), the queries, or both.")
+            candidates = query_items(queries).X  # the queries' distinct items are the pool
         settings = SessionSettings.validated(candidates, bounds, seed, num_queries, num_levels, names)
         self._settings, self._candidates = settings, settings.candidates
         self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
@@ -174,7 +182,8 @@ class PreferenceSession(ModelCache):
         self._sizes: dict[int, Sizes] = {}
         self._modes: dict[int, Tensor] = {}
         self._mode_floats = 0
-        self.selector = selector if selector is not None else UCBC(m=default_ranking_size(self._n_pool or 6))
+        self.selector = selector if selector is not None else default_selector(self._n_pool)
+        self._queries = self._query_list(queries, selector)
         self.model_factory = model_factory if model_factory is not None else default_session_model
         self._journal: Journal | MemoryJournal | None = None
         self.path = None if session_file is None else Path(session_file)
@@ -193,6 +202,7 @@ class PreferenceSession(ModelCache):
                 self._digest = header_digest(self._journal.header)
                 if not created:  # resumed: the file's settings must be this session's
                     settings.check_header(self._journal.header, self.path)
+                    self._queries = resumed_queries(self._journal.header, queries is not None, self._queries, self.path)
                     self.selector, self.model_factory = resume_settings(
                         self, self._journal.header, selector, model_factory, migrate
                     )
@@ -206,7 +216,19 @@ class PreferenceSession(ModelCache):
         header = self._settings.header(metadata)
         header["model"] = describe_model(self._new_model())
         header["selector"] = describe_selector(self.selector)
+        if self._queries is not None:
+            header["queries"] = self._queries
         return header
+
+    def _query_list(self, queries: Sequence[Query] | None, selector: Selector | None) -> list | None:
+        """The queries as ``[kind, pool rows...]`` (:mod:`torchpref.sessions.query_list`), checked."""
+        if queries is None:
+            return None
+        if self._pool is None:
+            raise ValueError("queries need a finite pool of candidates (an N x d tensor or a FinitePool), not a box.")
+        if not callable(getattr(self.selector, "choose", None)):
+            raise TypeError(f"with queries, the selector needs choose(model, queries, ...): {self.selector!r:.80}.")
+        return pool_rows_of(queries, self._pool)
 
     def _new_model(self) -> PreferenceGP:
         model = self.model_factory(self._anchor.clone())
@@ -396,6 +418,8 @@ class PreferenceSession(ModelCache):
     def _select(self, step: int, attempt: int) -> Query:
         """The selector's query ``step`` (its ``attempt``-th draw), in the caller's coordinates."""
         gen = step_generator(self.seed, step, attempt)
+        if self._queries is not None:
+            return choose_query(self, self._queries, step, gen)
         X, idx = self._candidates.draw(gen)
         rows = torch.arange(X.shape[0])  # a pool draws each distinct item once (FinitePool)
         q = self.selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)

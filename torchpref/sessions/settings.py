@@ -21,6 +21,7 @@ from torch import Tensor
 
 from torchpref.data.queries import BoxCandidates, Candidates, FinitePool, as_integer
 from torchpref.models.preference_gp import PreferenceGP, default_covar_module
+from torchpref.selection import defaults as selection_defaults
 from torchpref.sessions.journal import now
 from torchpref.sessions.records import FORMAT_VERSION, SessionMismatchError, dumps_settings
 from torchpref.version import __version__
@@ -99,8 +100,9 @@ MAX_REDRAWS = 10
 
 def default_ranking_size(num_items: int) -> int:
     """Items per ranking query for a pool of ``num_items`` distinct items: 5, or fewer than the
-    pool (``num_items - 1``, at least 2), so that a small pool's rankings are not all the same set."""
-    return max(2, min(5, num_items - 1))
+    pool (``num_items - 1``, at least 2), so that a small pool's rankings are not all the same set
+    (:func:`torchpref.selection.defaults.default_ranking_size`)."""
+    return selection_defaults.default_ranking_size(num_items)
 
 
 def default_session_model(train_X: Tensor) -> PreferenceGP:

@@ -1,0 +1,103 @@
+r"""A session's fixed list of candidate queries (``PreferenceSession(queries=...)``).
+
+A study may have its questions already (pre-planned trajectories, a stimulus set's pairs): the
+session then asks, at each step, the query its selector chooses among those not yet answered
+(:meth:`~torchpref.selection.strategies.Selector.choose`; all of them again once every one is
+answered). The queries' items are rows of the session's pool; the header records each query as
+its kind and pool rows (``"queries"``), so a resumed session asks from the same list.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchpref.data.queries import Query, RankingQuery, RatingQuery
+from torchpref.sessions.records import SessionMismatchError
+
+__all__ = ["choose_query", "pool_rows_of", "queries_of_spec", "resumed_queries"]
+
+QuerySpec = list[list]  # [[kind, row, row, ...], ...]
+
+
+def pool_rows_of(queries: Sequence[Query], pool: Tensor) -> QuerySpec:
+    """Each query as ``[kind, pool rows...]``: its items found among the rows of ``pool`` (``N x d``,
+    the first equal row).
+
+    Raises:
+        ValueError: an empty list, something not a query, or an item that is not a pool row (naming
+            the query).
+    """
+    if isinstance(queries, (RatingQuery, RankingQuery)) or len(queries) == 0:
+        raise ValueError(f"queries must be a non-empty list of RatingQuery / RankingQuery, got {queries!r:.80}.")
+    spec: QuerySpec = []
+    for i, q in enumerate(queries):
+        if not isinstance(q, (RatingQuery, RankingQuery)):
+            raise ValueError(f"queries[{i}] is not a RatingQuery or RankingQuery: {q!r:.80}.")
+        items = torch.as_tensor(q.items).to(pool)
+        if items.dim() != 2 or items.shape[-1] != pool.shape[-1]:
+            raise ValueError(f"queries[{i}] has items of shape {tuple(items.shape)}, not m x {pool.shape[-1]}.")
+        match = (items.unsqueeze(1) == pool.unsqueeze(0)).all(-1)  # m x N
+        if not bool(match.any(-1).all()):
+            raise ValueError(f"queries[{i}] shows an item that is not one of the session's candidates.")
+        rows = [int(r) for r in match.to(torch.int8).argmax(-1)]
+        if len(set(rows)) != len(rows):
+            raise ValueError(f"queries[{i}] shows one item twice.")
+        spec.append([q.kind, *rows])
+    return spec
+
+
+def queries_of_spec(spec: QuerySpec, pool: Tensor) -> list[Query]:
+    """The queries of a header's ``"queries"`` (``[kind, rows...]`` each), items from ``pool``, with
+    their pool rows as ``index`` / ``indices``."""
+    out: list[Query] = []
+    for kind, *rows in spec:
+        if kind == "rating" and len(rows) == 1:
+            out.append(RatingQuery(pool[rows[0]], int(rows[0])))
+        elif kind == "ranking" and len(rows) >= 2:
+            out.append(RankingQuery(pool[rows], tuple(int(r) for r in rows)))
+        else:
+            raise ValueError(
+                f"a recorded query must be ['rating', row] or ['ranking', row, row, ...], got {spec!r:.80}."
+            )
+    return out
+
+
+def resumed_queries(header: dict, given: bool, mine: QuerySpec | None, path: Any) -> QuerySpec | None:
+    """A resumed file's query list: the header's; queries given (``mine``) must be the same.
+
+    Raises:
+        SessionMismatchError: queries given that are not the file's.
+    """
+    theirs = header.get("queries")
+    if given and theirs != mine:
+        raise SessionMismatchError(
+            f"session file {path} was written with {'other' if theirs else 'no'} candidate queries; "
+            f"open it with PreferenceSession.load({str(path)!r}) to use the file's.",
+            "queries",
+            str(theirs)[:80],
+            str(mine)[:80],
+        )
+    return theirs
+
+
+def choose_query(session: Any, spec: QuerySpec, step: int, gen: torch.Generator) -> Query:
+    """The session's selector's choice among the queries of ``spec`` not yet answered (all of them
+    once every one is), in the caller's coordinates with pool rows."""
+    asked = {
+        (q["kind"], tuple(sorted(q["pool_indices"])))
+        for r in session._active
+        if (q := r.get("query")) is not None and q.get("pool_indices") is not None
+    }
+    offered = queries_of_spec([q for q in spec if (q[0], tuple(sorted(q[1:]))) not in asked] or spec, session._pool)
+    mine: list[Query] = [
+        RatingQuery(session.transform(q.items)[0])
+        if isinstance(q, RatingQuery)
+        else RankingQuery(session.transform(q.items))
+        for q in offered
+    ]
+    i = session.selector.choose(session.model, mine, step=step, num_steps=session.num_queries, generator=gen)
+    return offered[i]
