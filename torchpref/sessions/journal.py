@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import errno
+import hashlib
 import json
 import os
 import stat
@@ -52,6 +53,7 @@ __all__ = [
     "Journal",
     "MAX_FILE_BYTES",
     "SessionFileCorrupt",
+    "SessionFileChanged",
     "SessionFileError",
     "SessionFileGone",
     "SessionForkError",
@@ -69,6 +71,12 @@ name before it is read (a file of that size is not a session's)."""
 
 class SessionFileGone(SessionFileError):
     """The session file was deleted, moved away or replaced while the session had it open."""
+
+
+class SessionFileChanged(SessionFileError):
+    """Another program shortened, extended or rewrote the open session file in place (an editor,
+    ``rsync --inplace``): its bytes are no longer the records this session acknowledged, so
+    nothing more is written after them."""
 
 
 class SessionForkError(SessionFileError):
@@ -229,6 +237,13 @@ def _lock(fd: int, path, shared: bool = False) -> None:
     try:
         fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
     except BlockingIOError:
+        st = os.fstat(fd)
+        if any(j._fd is not None and j._ident == (st.st_dev, st.st_ino) for j in list(_OPEN)):
+            raise SessionFileError(
+                f"session file {path} is in use: it is already open in this process (a session opened before, e.g. by a "
+                "notebook cell run again): close that one first (session.close()), or open sessions with "
+                "'with PreferenceSession(...) as session:' so that they close themselves."
+            ) from None
         raise SessionFileError(f"session file {path} is in use by another process.") from None
 
 
@@ -263,6 +278,23 @@ def _dropped_path(path: Path) -> Path:
     if len(name) > 255:
         name = os.fsencode(path.name)[:200] + b"~" + str(abs(hash(path.name)) % 10**8).encode() + b".dropped"
     return path.parent / os.fsdecode(name)
+
+
+def _prefix_digest(fd: int, size: int):
+    """A SHA-256 (a :mod:`hashlib` object, to be updated) of the file's first ``size`` bytes."""
+    digest, offset = hashlib.sha256(), 0
+    while offset < size:
+        chunk = os.pread(fd, min(1 << 20, size - offset), offset)
+        if not chunk:
+            break
+        digest.update(chunk)
+        offset += len(chunk)
+    return digest
+
+
+def _stamp(st: os.stat_result) -> tuple[int, int]:
+    """The file's change and modification times: any write by another program moves the first."""
+    return st.st_ctime_ns, st.st_mtime_ns
 
 
 _OPEN: weakref.WeakSet = weakref.WeakSet()  # journals open in this process (closed in a forked child)
@@ -329,6 +361,8 @@ class Journal:
                 self.header = header
             st = os.fstat(self._fd)
             self._ident, self._size = (st.st_dev, st.st_ino), st.st_size
+            self._digest = _prefix_digest(self._fd, self._size)  # of the acknowledged bytes
+            self._stamp = _stamp(st)
         except BaseException:
             os.close(self._fd)
             self._fd = None
@@ -407,12 +441,41 @@ class Journal:
 
     def _heal(self) -> None:
         """Bring the file back to its acknowledged size after a failed rollback, or refuse by name."""
+        if os.fstat(self._fd).st_size < self._size:  # shortened since: never pad it with zeros
+            self._check_unchanged()
         self._truncate(self._size)
         if self._broken is None and os.fstat(self._fd).st_size == self._size:
             return
         raise SessionFileError(
             f"session file {self.path}: {self._broken or 'its size changed'}; no answer is written until it is "
             "repaired: close the session and open the file again (repair=True drops the unacknowledged tail)."
+        )
+
+    def _check_unchanged(self) -> None:
+        """The file still starts with exactly the bytes this session acknowledged, and holds nothing
+        after them: its size, and where its change time says it was touched, a SHA-256 of that
+        prefix (an answer's cost stays constant while no one else writes the file).
+
+        Raises:
+            SessionFileChanged: shortened, extended or rewritten in place by another program.
+        """
+        st = os.fstat(self._fd)
+        if st.st_size == self._size and _stamp(st) == self._stamp:
+            return
+        if st.st_size < self._size:
+            why = f"shortened from {self._size:,} to {st.st_size:,} bytes"
+        elif st.st_size > self._size:
+            why = f"extended from {self._size:,} to {st.st_size:,} bytes"
+        elif _prefix_digest(self._fd, self._size).digest() != self._digest.digest():
+            why = "rewritten in place (its bytes differ from the records this session wrote)"
+        else:
+            self._stamp = _stamp(st)  # touched, not changed
+            return
+        raise SessionFileChanged(
+            f"session file {self.path} was {why} by another program while the session had it open: this answer "
+            "was not saved, and nothing more is written to the file. The session's records in memory "
+            "(session.records) are every acknowledged answer: close the session, restore the file (or write "
+            "those records to a new one) and open it again."
         )
 
     def _check_same_file(self) -> None:
@@ -453,8 +516,9 @@ class Journal:
         self.check_writable()
         with self._lock:
             self.check_writable()
-            if self._broken is not None or os.fstat(self._fd).st_size != self._size:
-                self._heal()
+            if self._broken is not None:
+                self._heal()  # our own failed rollback: the file may be longer than acknowledged
+            self._check_unchanged()
             self._check_same_file()
             check_new_record(
                 f"session file {self.path}, line {len(self.records) + 2}",
@@ -472,6 +536,8 @@ class Journal:
                 self._truncate(self._size)
                 raise
             self._size += len(data)
+            self._digest.update(data)
+            self._stamp = _stamp(os.fstat(self._fd))
             self.records.append(record)
             self.last_seq = record["seq"]
             _account(self.in_force, record)

@@ -31,6 +31,7 @@ __all__ = [
     "SessionSettings",
     "as_items",
     "as_seconds",
+    "as_time",
     "default_ranking_size",
     "default_session_model",
     "step_generator",
@@ -308,6 +309,28 @@ def as_seconds(value: Any) -> float | None:
     ok = isinstance(value, (int, float)) and not isinstance(value, bool)
     if not ok and isinstance(value, Tensor) and value.numel() == 1 and not value.dtype.is_complex:
         value, ok = value.item(), value.dtype != torch.bool
-    if not ok or not math.isfinite(float(value)) or float(value) < 0:
+    try:
+        seconds = float(value) if ok else math.nan
+    except OverflowError:  # an integer too large for a float
+        seconds = math.inf
+    if not math.isfinite(seconds) or seconds < 0:
         raise ValueError(f"response_time must be None or a finite number of seconds >= 0, got {value!r:.80}.")
-    return float(value)
+    return seconds
+
+
+def as_time(value: Any, name: str) -> str:
+    """A time stamp kept in an answer record (``shown_at``, ``answered_at``): an ISO 8601 date and
+    time, as :meth:`datetime.datetime.fromisoformat` reads it, of at most 40 characters.
+
+    Raises:
+        ValueError: anything else, naming ``name`` and the value.
+    """
+    import datetime as _dt
+
+    try:
+        ok = isinstance(value, str) and len(value) <= 40 and _dt.datetime.fromisoformat(value) is not None
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} must be an ISO 8601 date and time, got {value!r:.80}.")
+    return value
