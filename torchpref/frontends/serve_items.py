@@ -112,6 +112,25 @@ class ServeItems:
         """Whether items have pictures (a render function or image files)."""
         return self.render is not None
 
+    def prerender_in_background(self) -> threading.Event:
+        """Make every item's picture (up to the cache's size) in a daemon thread, one at a time,
+        so that a question's pictures are ready before it is asked; set the returned event to stop."""
+        stop = threading.Event()
+        if self.render is None:
+            return stop
+
+        def work() -> None:
+            for i in range(min(len(self), CACHE_SIZE)):
+                if stop.is_set():
+                    return
+                try:
+                    self.picture(i)
+                except Exception:  # a bad picture is reported when it is asked for (a 404)
+                    continue
+
+        threading.Thread(target=work, name="torchpref-serve-pictures", daemon=True).start()
+        return stop
+
     def picture(self, i: int) -> tuple[bytes, str] | None:
         """Item ``i``'s picture as ``(bytes, media type)``, or ``None``; made once and kept."""
         if not 0 <= i < len(self):
