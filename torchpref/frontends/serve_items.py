@@ -231,8 +231,9 @@ def items_from_csv(
 
 def lake_items(seed: int = 0) -> ServeItems:
     """The lake scenario's training paths (objectives ``[distance, information]``), each drawn on
-    its map (:func:`torchpref.frontends.elicit.plot_paths`); the scenario is cached on disk."""
-    from torchpref.frontends.elicit import plot_paths
+    its map (:func:`torchpref.lake.plotting.plot_paths`, a wide line at 120 dpi); the scenario is
+    cached on disk."""
+    from torchpref.lake.plotting import plot_paths
     from torchpref.lake.scenario import cached_scenario
 
     scenario = cached_scenario(seed, progress=True)
@@ -241,8 +242,10 @@ def lake_items(seed: int = 0) -> ServeItems:
         import tempfile
 
         title = f"path {index}: distance {float(item[0]):.0f}, information {float(item[1]):.0f}"
-        with tempfile.TemporaryDirectory() as tmp:
-            return plot_paths(scenario, [int(index)], [""], title, Path(tmp) / "path.png").read_bytes()
+        path = [scenario.train_paths[int(index)]]
+        with tempfile.TemporaryDirectory() as tmp:  # a wide line and 120 dpi: readable small, sharp enlarged
+            out = plot_paths(scenario, path, [""], Path(tmp) / "path.png", title=title, dpi=120, line_width=4.5)
+            return out.read_bytes()
 
     labels = [f"path {i}" for i in range(scenario.train_X.shape[0])]
     return ServeItems(
