@@ -30,11 +30,16 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/python -m torchpref.demo
 
+# `make test`: the suite without the tests marked slow (kills, browsers, long loops, the longer
+# grids); `make test-slow`: only those. CI (CI=true) runs both, then the checks.
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 ifeq ($(CI),true)
-	$(MAKE) lint types docs wheel-check test-floor
+	$(MAKE) test-slow lint types docs wheel-check test-floor
 endif
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
 
 bench: $(STAMP)
 	$(BIN)/python -m pytest benchmarks/ --benchmark-only -q
@@ -100,4 +105,4 @@ test-integrations:
 clean:
 	rm -rf $(VENV) .venv-floor .venv-ax .venv-bofire .cache/upstream dist build docs/_build docs/_generated docs/jupyter_execute
 
-.PHONY: venv demo test bench lint format types docs wheel wheel-check clean test-floor upstream-tests test-integrations
+.PHONY: venv demo test test-slow bench lint format types docs wheel wheel-check clean test-floor upstream-tests test-integrations

@@ -23,6 +23,8 @@ import pytest
 
 from torchpref.testing.serve import CHROMIUM, CHROMIUM_ARGS, Server, acknowledged_in_file, choose, records, write_items
 
+pytestmark = pytest.mark.slow  # a browser and server processes: make test-slow (CI runs it)
+
 if not os.path.exists(CHROMIUM):
     pytest.skip(
         f"no Chromium at {CHROMIUM} (Debian: apt-get install chromium; or set TORCHPREF_CHROMIUM)",
