@@ -419,6 +419,7 @@ def serve(
         _run_uvicorn(app, sock, host, token, ready, path)
     finally:
         prerender.set()
+        sock.close()
         store.close()
         torch.set_num_threads(before)
 

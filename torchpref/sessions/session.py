@@ -81,6 +81,7 @@ from torchpref.sessions.settings import (
     default_ranking_size,
     default_session_model,
     step_generator,
+    unrated_rows,
 )
 
 __all__ = [
@@ -402,6 +403,11 @@ class PreferenceSession(ModelCache):
         X, idx = self._candidates.draw(gen)
         rows = torch.arange(X.shape[0])  # a pool draws each distinct item once (FinitePool)
         q = self.selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)
+        if isinstance(q, RatingQuery) and idx is not None:  # never a second rating while unrated items are left
+            keep = unrated_rows(idx, self._journal.in_force.values(), int(q.index), getattr(self.selector, "m", 2))
+            if keep is not None:
+                X, idx = X[keep], idx[keep]
+                q = self.selector.select(self.model, self.transform(X), rows[: len(keep)], step, self.num_queries, gen)
         if isinstance(q, RatingQuery):
             r = int(q.index)
             return RatingQuery(X[r], None if idx is None else int(idx[r]))

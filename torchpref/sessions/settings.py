@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,6 +35,7 @@ __all__ = [
     "default_ranking_size",
     "default_session_model",
     "step_generator",
+    "unrated_rows",
 ]
 
 
@@ -296,6 +297,26 @@ class SessionSettings:
                     str(theirs),
                     str(mine),
                 )
+
+
+def unrated_rows(pool_rows: Tensor, in_force: Iterable[dict], chosen: int, m: int) -> Tensor | None:
+    """Where a selector chose to ask for a rating of ``pool_rows[chosen]``, an item that already has
+    a rating in force: the positions of the candidates with none, to choose among instead (as long
+    as at least ``max(2, m)`` are left: a ranking of ``m`` can still be asked); else ``None``.
+
+    A second rating of the same item is not asked: a person rating an item again mostly recalls
+    their first answer, which the model would count as independent evidence, and the question is
+    better spent on an item with no rating (docs/sessions.md).
+    """
+    rated = {
+        rec["query"]["pool_indices"][0]
+        for rec in in_force
+        if rec["kind"] == "rating" and (rec.get("query") or {}).get("pool_indices")
+    }
+    if int(pool_rows[chosen]) not in rated:
+        return None
+    keep = [k for k, i in enumerate(pool_rows.tolist()) if int(i) not in rated]
+    return torch.tensor(keep, dtype=torch.long) if len(keep) >= max(2, m) else None
 
 
 def as_seconds(value: Any) -> float | None:
