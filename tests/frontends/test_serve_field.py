@@ -271,3 +271,23 @@ def test_ratings_on_a_1_to_5_scale_name_likert_to_unit():
         torchpref.PreferenceGP(X, ratings=[1.0, 5.0, 3.0], rating_index=[0, 1, 2])
     with pytest.raises(ValueError, match=r"must lie in \[0, 1\], got \[-0.5\]\.$"):  # no scale hint below 0
         torchpref.PreferenceGP(X, ratings=[-0.5, 0.5, 0.5], rating_index=[0, 1, 2])
+
+
+def test_pictures_are_made_ahead_of_the_questions():
+    """``serve`` starts drawing every item's picture in the background, so that a question's
+    pictures are ready when it is asked (each drawn once)."""
+    calls = []
+    png = b"\x89PNG\r\n\x1a\n" + b"\x00" * 16
+
+    def render(item, index):
+        calls.append(index)
+        return png
+
+    items = ServeItems(_items(n=12).X, ["a", "b", "c"], render=render)
+    stop = items.prerender_in_background()
+    deadline = time.monotonic() + 120
+    while len(calls) < 12 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    stop.set()
+    assert sorted(calls) == list(range(12))
+    assert items.picture(7) == (png, "image/png") and len(calls) == 12  # from the cache

@@ -383,7 +383,7 @@ def test_sigkill_of_torchpref_elicit_loses_no_acknowledged_answer(tmp_path):
 def test_kills_mid_write_mid_rollback_and_mid_header_lose_nothing(tmp_path):
     """The benchmark's kill harness (benchmarks/durability/session_kills.py, 200 kills there) with 8 kills: two
     at random moments, two mid-write, two mid-rollback of a failed write, two mid-header."""
-    path = os.path.join(os.path.dirname(__file__), "..", "benchmarks", "session_kills.py")
+    path = os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks", "durability", "session_kills.py")
     spec = importlib.util.spec_from_file_location("session_kills", path)
     kills = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(kills)
