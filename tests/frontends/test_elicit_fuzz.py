@@ -131,6 +131,7 @@ def drive(child, rng: random.Random, acked: list, max_steps: int = 40) -> str:
     return "quit"
 
 
+@pytest.mark.slow  # a long loop (27-38 s here): make test-slow, which CI runs
 @pytest.mark.parametrize("run", range(int(os.environ.get("TORCHPREF_FUZZ_RUNS", "2"))))
 def test_hostile_keystrokes_lose_nothing(tmp_path, run):
     rng = random.Random(1000 + run)
