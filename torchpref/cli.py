@@ -272,10 +272,12 @@ CSV_OPTIONS = ("--csv", "--items", "--file", "--input", "--data", "--feature")
 """Options a newcomer may try for the CSV of items (``--features`` is the one)."""
 
 
-def _check_world(world: str | None) -> None:
+def _check_world(world: str | None, features: str | None = None) -> None:
     """A world's name, or a CSV given where the world goes: named, with ``--features``."""
     if world is None or world in WORLDS:
         return
+    if features is not None:
+        raise UsageError(f"unexpected argument {world!r}: the items are the --features CSV ({features})")
     if world.lower().endswith((".csv", ".tsv", ".txt")) or Path(world).is_file():
         raise UsageError(f"{world!r} is not a built-in world: to use a CSV of items, give it as --features {world}")
     raise UsageError(f"unknown world {world!r}: the built-in world is {', '.join(WORLDS)} (or --features FILE)")
@@ -292,7 +294,7 @@ def _unknown_options(unknown: list[str]) -> UsageError:
 
 
 def _elicit(args) -> int:
-    _check_world(args.world)
+    _check_world(args.world, args.features)
     if (args.world is None) == (args.features is None):
         raise UsageError("give either a world (lake) or --features FILE")
     if args.no_session and args.session:
@@ -305,7 +307,7 @@ def _elicit(args) -> int:
 
 
 def _serve(args) -> int:
-    _check_world(args.world)
+    _check_world(args.world, args.features)
     if (args.world is None) == (args.features is None):
         raise UsageError("give either a world (lake) or --features FILE")
     if args.features is None and (args.image_column or args.image_dir or args.id_column):

@@ -239,6 +239,7 @@ def test_a_busy_port_is_named_with_port_0(tmp_path, capsys):
         (["elicit", "--csv", "ITEMS"], ["unknown option --csv", "--features FILE"]),
         (["serve", "lake", "--colour", "red"], ["unknown option --colour"]),
         (["elicit", "mars"], ["unknown world 'mars'", "lake"]),
+        (["serve", "--features", "ITEMS", "more.csv"], ["unexpected argument 'more.csv'", "--features CSV"]),
     ],
 )
 def test_command_line_slips_name_the_fix(tmp_path, capsys, argv, words):
