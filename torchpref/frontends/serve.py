@@ -449,7 +449,7 @@ def _shown_host(host: str) -> str:
     return f"[{host}]" if ":" in host else host
 
 
-def listening_socket(host: str, port: int):
+def listening_socket(host: str, port: int) -> Any:
     """A socket bound to ``(host, port)`` (``port`` 0: a free one).
 
     Raises:
@@ -515,7 +515,7 @@ def _timed_protocol():
     return TimedH11Protocol
 
 
-def uvicorn_server(app, ready: Callable[[], None] | None = None) -> Any:
+def uvicorn_server(app: Any, ready: Callable[[], None] | None = None) -> Any:
     """The uvicorn server of ``app``: one event loop, h11 with header deadlines
     (:func:`_timed_protocol`), at most :data:`MAX_CONNECTIONS` at once; ``ready()`` is called (in
     a thread of its own) once it accepts connections."""

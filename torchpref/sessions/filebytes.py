@@ -7,6 +7,7 @@ import hashlib
 import os
 import stat
 from pathlib import Path
+from typing import Any
 
 __all__ = ["dropped_path", "file_kind", "fsync_dir", "prefix_digest", "read_fd", "stamp"]
 
@@ -59,7 +60,7 @@ def dropped_path(path: Path) -> Path:
     return path.parent / os.fsdecode(name)
 
 
-def prefix_digest(fd: int, size: int):
+def prefix_digest(fd: int, size: int) -> Any:
     """A SHA-256 (a :mod:`hashlib` object, to be updated) of the file's first ``size`` bytes."""
     digest, offset = hashlib.sha256(), 0
     while offset < size:

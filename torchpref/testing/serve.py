@@ -14,6 +14,7 @@ import sys
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from pathlib import Path
 
 CHROMIUM = os.environ.get("TORCHPREF_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
@@ -138,7 +139,7 @@ def records(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()[1:] if line.strip()]
 
 
-def choose(question: dict, k: int):
+def choose(question: dict, k: int) -> int | None:
     """A deterministic, varied answer to question ``k``: levels cycle, choices cycle, a tie now and then."""
     if question["kind"] == "rating":
         return 1 + (k * 3) % question["levels"]
@@ -163,7 +164,7 @@ def acknowledged_in_file(acked: list[tuple[str, object]], recs: list[dict]) -> l
     return problems
 
 
-def kill_run(folder: Path, kills: int = 20, seed: int = 0, progress=None) -> dict:
+def kill_run(folder: Path, kills: int = 20, seed: int = 0, progress: Callable[[int], object] | None = None) -> dict:
     """Answer a session over HTTP while the server is killed (SIGKILL) ``kills`` times, each time
     with an answer in flight after a random delay, and restarted; an answer whose reply was lost
     is sent again (as the page does). Returns what happened and the problems with acknowledged
