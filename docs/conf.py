@@ -77,6 +77,7 @@ STAGES = [
     ("Experiments", ["torchpref.experiments"]),
     ("Front ends", ["torchpref.frontends"]),
     ("Integrations", ["torchpref.integrations"]),
+    ("Testing helpers", ["torchpref.testing"]),
     ("Command line, demo, optional dependencies", ["torchpref.cli", "torchpref.demo", "torchpref.extras"]),
 ]
 

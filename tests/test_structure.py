@@ -1,6 +1,6 @@
 """The package's layout stays as docs/architecture.md describes it: subpackages by stage, each
 importing only the stages below it (any import, at module level or inside a function), no import
-cycle among the modules (module-level imports), no module over 600 lines and no function over 100 (ruff-formatted),
+cycle among the modules (module-level imports), no module over 600 lines (one exception, :data:`LONG_MODULES`) and no function over 60 lines of code (ruff-formatted),
 and the lake world (``torchpref/lake/``) imports nothing of learning (the model, the loop, the
 selectors, the metrics) from the rest of the package."""
 
@@ -11,7 +11,10 @@ import torchpref
 
 PACKAGE = Path(torchpref.__file__).parent
 MAX_MODULE_LINES = 600  # a guard against files that should be split, not a goal (formatted by ruff)
-MAX_FUNCTION_LINES = 100
+#: One class, one file, as BoTorch keeps ``PairwiseGP`` in ``pairwise_gp.py``: the model's data,
+#: predictives and BoTorch interface are one class, not mixins split by a size rule (issue 35).
+LONG_MODULES = {"models/preference_gp.py": 1200}
+MAX_FUNCTION_LINES = 60  # code lines: the docstring does not count
 
 # What a module of torchpref/lake/ may import from the rest of torchpref: the data conventions
 # (Likert levels) and numerical helpers; never a model, a selector, the loop or the metrics.
@@ -50,7 +53,11 @@ def _name(f: Path) -> str:
 
 
 def test_no_module_over_the_limit():
-    long = {_name(f): n for f in _modules() if (n := len(f.read_text().splitlines())) > MAX_MODULE_LINES}
+    long = {
+        _name(f): n
+        for f in _modules()
+        if (n := len(f.read_text().splitlines())) > LONG_MODULES.get(_name(f), MAX_MODULE_LINES)
+    }
     assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
 
 
@@ -60,17 +67,28 @@ def test_no_function_over_the_limit():
         for node in ast.walk(ast.parse(f.read_text())):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 n = node.end_lineno - node.lineno + 1
+                first = node.body[0]
+                if (
+                    isinstance(first, ast.Expr)
+                    and isinstance(first.value, ast.Constant)
+                    and isinstance(first.value.value, str)
+                ):
+                    n -= first.end_lineno - first.lineno + 1  # the docstring
                 if n > MAX_FUNCTION_LINES:
                     long.append(f"{_name(f)}:{node.lineno} {node.name} ({n} lines)")
     assert not long, f"functions over {MAX_FUNCTION_LINES} lines:\n" + "\n".join(long)
 
 
 def _module_imports(f: Path) -> set[str]:
-    """The torchpref modules ``f`` imports at module level (not inside functions), as dotted names."""
+    """The torchpref modules ``f`` imports at module level (not inside functions), type-only imports
+    (``if TYPE_CHECKING:``) included, as dotted names."""
     package = "torchpref." + ".".join(f.relative_to(PACKAGE).with_suffix("").parts[:-1])
     package = package.rstrip(".")
     out = set()
-    for node in ast.parse(f.read_text()).body:
+    body = ast.parse(f.read_text()).body
+    # type-only imports count too: a cycle that only type checkers follow is still a cycle
+    body += [n for node in body if _is_type_checking(node) for n in node.body]
+    for node in body:
         if isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
@@ -84,6 +102,16 @@ def _module_imports(f: Path) -> set[str]:
             continue
         out |= {n for n in names if n.startswith("torchpref.") and _path(n) is not None}
     return out
+
+
+def _is_type_checking(node: ast.stmt) -> bool:
+    """``if TYPE_CHECKING:`` (or ``typing.TYPE_CHECKING``)."""
+    if not isinstance(node, ast.If):
+        return False
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
 
 
 def _path(dotted: str) -> Path | None:

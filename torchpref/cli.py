@@ -125,6 +125,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="strategies to compare, e.g. 'UCBC' 'profile per effort' (default: the suite's eight; "
         "any of torchpref.experiments.runner.STRATEGIES)",
     )
+    _elicit_parser(sub)
+    _serve_parser(sub)
+    return parser
+
+
+def _elicit_parser(sub) -> None:
+    """``torchpref elicit``'s arguments (docs/sessions.md)."""
     el = sub.add_parser("elicit", help="learn your preferences in the terminal")
     el.add_argument("world", nargs="?", metavar="WORLD", help="a built-in world to elicit over: lake")
     el.add_argument("--features", help="CSV of items' objective values (a header row, one row per item)")
@@ -146,8 +153,6 @@ def build_parser() -> argparse.ArgumentParser:
         "--seed", type=int, default=None, help="seed of a new session (default 0; a resumed session keeps its own)"
     )
     el.add_argument("--out", default=".", help="where to write figures (default: current folder)")
-    _serve_parser(sub)
-    return parser
 
 
 def _serve_parser(sub) -> None:

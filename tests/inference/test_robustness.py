@@ -9,25 +9,9 @@ import torch
 from gpytorch.kernels import RBFKernel, ScaleKernel
 
 from torchpref.models.preference_gp import PreferenceGP
-from torchpref.testing import problems as fp
+from torchpref.testing.problems import random_config
 
 F64 = torch.float64
-
-
-def random_config(seed):
-    """The hostile problem of ``seed`` from the fuzz (``torchpref/testing/problems.py``), at most 15
-    items, with hostile likelihood parameters for every kind."""
-    p = fp.make_problem(seed, max_n=15, pairwise_likelihood=False)
-    cfg = dict(
-        seed=seed,
-        n=p.n,
-        d=p.X.shape[-1],
-        kind=p.kind,
-        lengthscale=p.lengthscale,
-        outputscale=p.outputscale,
-        **p.likelihood,
-    )
-    return cfg, p.X, p.comparisons, p.ratings, p.rating_index
 
 
 def check(seed):

@@ -195,9 +195,9 @@ def test_batch_random_extreme_problems(hyper_seed):
     import warnings
 
     from gpytorch.kernels import RBFKernel, ScaleKernel
-    from test_robustness import random_config
 
     from torchpref.models.preference_gp import PreferenceGP
+    from torchpref.testing.problems import random_config
 
     hyper = random_config(1000 + hyper_seed)[0]
     problems = [random_config(s) for s in range(hyper_seed * 40, hyper_seed * 40 + 40)]

@@ -68,3 +68,30 @@ def test_package_ships_py_typed():
     assert (Path(torchpref.__file__).parent / "py.typed").is_file()
     pyproject = (Path(__file__).resolve().parents[2] / "pyproject.toml").read_text()
     assert 'torchpref = ["py.typed"]' in pyproject
+
+
+def test_a_model_first_built_in_inference_mode_leaves_later_models_loadable():
+    """The likelihoods' shared default constraints are made on first use: made inside
+    ``torch.inference_mode`` (a simulation's block), they were inference tensors, and every later
+    ``load_model`` failed ("Inplace update to inference tensor"). A fresh process, so that this
+    test makes them first."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(
+        """
+        import pathlib, tempfile, torch, torchpref
+        def model():
+            X = torch.rand(4, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+            c, u, i = torch.tensor([[0, 1]]), torch.tensor([0.5]), torch.tensor([2])
+            return torchpref.PreferenceGP(X, comparisons=c, ratings=u, rating_index=i)
+        with torch.inference_mode():
+            model()
+        path = pathlib.Path(tempfile.mkdtemp()) / "m.pt"
+        torchpref.save_model(model(), path)
+        torchpref.load_model(path)
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -242,11 +242,11 @@ def test_keyboard_interrupt_in_tell_keeps_model_file_and_history_together(tmp_pa
     q = s.ask()
     if where == "model":  # inside the model's update, after it took the new data (the worst case)
 
-        def half_update(self, data, warm_f):
+        def half_update(self, data, warm_f=None, *, lazy=False):
             self._data, self._cache = data, None
             raise KeyboardInterrupt
 
-        monkeypatch.setattr(models.PreferenceGP, "_set_data", half_update)
+        monkeypatch.setattr(models.PreferenceGP, "replace_data", half_update)
     elif where == "write":  # half the record written
 
         def half(fd, data):

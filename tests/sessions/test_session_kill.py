@@ -345,48 +345,12 @@ def test_sigkill_during_save_model_leaves_the_last_complete_checkpoint(tmp_path)
             assert list(tmp_path.glob("model.pt.*.tmp"))
 
 
-# ------------------------------------------------------------------ a kill of the terminal front end
-def test_sigkill_of_torchpref_elicit_loses_no_acknowledged_answer(tmp_path):
-    pytest.importorskip("pexpect")
-    from test_elicit_fuzz import CSV, PROMPT, answers_in_file, spawn
-
-    items, session = tmp_path / "items.csv", tmp_path / "s.jsonl"
-    items.write_text(CSV)
-    rng = random.Random(7)
-    acked: list = []  # answers acknowledged by the next prompt
-    repairs = 0
-    for run in range(5):
-        child = spawn("--features", items, "--session", session, "--queries", 30)
-        if child.expect([PROMPT, "Repair the file now"]) == 1:
-            repairs += 1
-            child.sendline("y")
-            child.expect(PROMPT)
-        in_file = answers_in_file(session) if session.exists() else []
-        # every acknowledged answer is there; the one in flight at the kill is there or not, whole
-        assert in_file[: len(acked)] == acked and len(in_file) <= len(acked) + 1, (run, in_file, acked)
-        acked = in_file
-        for k in range(rng.randint(1, 3) + 1):
-            answer = 0 if child.match.group(2) is not None else 3
-            child.sendline("A" if answer == 0 else "3")
-            if k == 0 and run % 2:  # kill right after the keystroke: inside tell or its write
-                time.sleep(rng.uniform(0.0, 0.05))
-                break
-            child.expect(PROMPT)
-            acked.append(answer)
-        child.kill(signal.SIGKILL)
-        child.close(force=True)
-    final = answers_in_file(session)
-    assert final[: len(acked)] == acked and len(final) <= len(acked) + 1 and len(final) >= 5
-
-
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
 def test_kills_mid_write_mid_rollback_and_mid_header_lose_nothing(tmp_path):
     """The benchmark's kill harness (benchmarks/durability/session_kills.py, 200 kills there) with 8 kills: two
     at random moments, two mid-write, two mid-rollback of a failed write, two mid-header."""
-    path = os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks", "durability", "session_kills.py")
-    spec = importlib.util.spec_from_file_location("session_kills", path)
-    kills = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(kills)
+    from torchpref.testing import session_kills as kills
+
     out = kills.run_all(8, 2, seed=3, workdir=tmp_path, progress=False)
     assert out["by_mode"] == {"random": 2, "write": 2, "rollback": 2, "header": 2}
     assert out["killed_at"].get("ROLLBACK") == 2 and out["killed_at"].get("HEADER") == 2

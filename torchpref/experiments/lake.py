@@ -143,6 +143,22 @@ def trial_seeds(seed: int, trials: int) -> list[int]:
     return runner.trial_seeds(int(seed) + 1, trials)
 
 
+def _lake_metrics(Z_test: torch.Tensor, level_test: torch.Tensor):
+    """The lake's metrics of a model: the error on the paths rated 5, WRMS of the expected rating
+    against the operator's, and the operator's rating of the path of highest posterior mean."""
+    u_true = likert_to_unit(level_test).to(torch.float64)
+    five = level_test == 5
+
+    def metrics(model) -> dict[str, float]:
+        with torch.no_grad():
+            est = model.expected_rating(Z_test)
+            mean = model.posterior(Z_test.unsqueeze(-2)).mean.reshape(-1)
+        e5 = float((est[five] - u_true[five]).abs().mean()) if five.any() else float("nan")
+        return {"error5": e5, "wrms": float(wrms(est, u_true)), "chosen_rating": float(level_test[mean.argmax()])}
+
+    return metrics
+
+
 def run_trial(
     scenario: LakeScenario,
     trial_seed: int,
@@ -174,21 +190,13 @@ def run_trial(
     pool = normalise(scenario.train_X[keep], bounds)
     Z_test = normalise(scenario.test_X, bounds)
     level_test = operator.level(scenario.test_X)
-    u_true = likert_to_unit(level_test).to(torch.float64)
-    five = level_test == 5
     user = NormalisedOperator(operator, bounds)
     g = torch.Generator().manual_seed(trial_seed)
     first_idx = torch.randperm(pool.shape[0], generator=g)[:2]
     sel_seed = int(torch.randint(0, 2**62, (1,), generator=g))
     x0 = pool[first_idx]
 
-    def metrics(model) -> dict[str, float]:
-        with torch.no_grad():
-            est = model.expected_rating(Z_test)
-            mean = model.posterior(Z_test.unsqueeze(-2)).mean.reshape(-1)
-        e5 = float((est[five] - u_true[five]).abs().mean()) if five.any() else float("nan")
-        return {"error5": e5, "wrms": float(wrms(est, u_true)), "chosen_rating": float(level_test[mean.argmax()])}
-
+    metrics = _lake_metrics(Z_test, level_test)
     costs = LAKE_EFFORT.costs(M)
     out = {}
     for name in strategies:
@@ -391,26 +399,11 @@ def run_lake_experiment(
     results = run_trials(run_trial, args, description="lake trials", **run_kw)
     wall = time.perf_counter() - t0
     summary = _summarise_run(results, strategies, seeds, lake_of)
-    summary.update(
-        trials=trials,
-        queries=queries,
-        seed=seed,
-        lakes=lakes,
-        lake_seeds=seeds,
-        wall_time_s=wall,
-        scenario_time_s=t_scenario,
-        workers=workers,
-        settings={
-            "model": MODEL_SETTINGS,
-            "m": M,
-            "gamma": GAMMA,
-            "plan": settings,
-            "plan_strategies": plan,
-            "plan_trials": plan_trials,
-            "operator": operator,
-            "test_paths_rated_5": [_rated_5(sc) for sc, _ in prepared],
-        },
-    )
+    summary.update(trials=trials, queries=queries, seed=seed, lakes=lakes, lake_seeds=seeds)
+    summary.update(wall_time_s=wall, scenario_time_s=t_scenario, workers=workers)
+    summary["settings"] = {"model": MODEL_SETTINGS, "m": M, "gamma": GAMMA, "plan": settings}
+    summary["settings"].update(plan_strategies=plan, plan_trials=plan_trials, operator=operator)
+    summary["settings"]["test_paths_rated_5"] = [_rated_5(sc) for sc, _ in prepared]
     result = {"trials": trials, "queries": queries, "lakes": lakes, "strategies": summary["per_query"]}
     if out is not None:
         _write_files(Path(out), result, summary, strategies, [sc for sc, _ in prepared], results, lake_of)

@@ -42,10 +42,10 @@ def mean_sem(values: Sequence[Sequence[float]]) -> tuple[list[float], list[float
         n = t.shape[0]
         sem = t.std(dim=0, correction=1) / math.sqrt(n) if n > 1 else torch.zeros(t.shape[1], dtype=t.dtype)
         return t.mean(dim=0).tolist(), sem.tolist()
-    n = ok.sum(0).clamp_min(1)
-    m = torch.where(ok, t, 0).sum(0) / n
-    var = torch.where(ok, (t - m).pow(2), 0).sum(0) / (n - 1).clamp_min(1)
-    sem = torch.where(n > 1, var.sqrt() / n.sqrt(), torch.zeros_like(m))
+    counts = ok.sum(0).clamp_min(1)
+    m = torch.where(ok, t, 0).sum(0) / counts
+    var = torch.where(ok, (t - m).pow(2), 0).sum(0) / (counts - 1).clamp_min(1)
+    sem = torch.where(counts > 1, var.sqrt() / counts.sqrt(), torch.zeros_like(m))
     return m.tolist(), sem.tolist()
 
 

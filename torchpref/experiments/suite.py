@@ -183,6 +183,26 @@ def _start_model(family: Family, condition: str, x0s: list[torch.Tensor], firsts
     return BatchedPreferenceGP(template, [m.data for m in models])
 
 
+def _suite_metrics(eval_X: torch.Tensor, f_true: torch.Tensor, u_true: torch.Tensor):
+    """The suite's metrics of a batched model, per trial: WRMS and true positives of the expected
+    ratings at ``eval_X``, and the regret of the item of highest posterior mean (relative to the
+    best item's margin over the median)."""
+    best = f_true.max(-1).values
+    margin = (best - f_true.median(-1).values).clamp_min(1e-12)
+
+    def metrics(model) -> dict[str, torch.Tensor]:
+        mean, var = model.marginals(eval_X)
+        est = model.likelihood.rating.expected_rating(mean, var)
+        chosen = f_true.gather(1, mean.argmax(-1, keepdim=True)).squeeze(-1)
+        return {
+            "wrms": wrms(est, u_true),
+            "tp": true_positives(est, u_true, k=TOP_K).to(est),
+            "regret": (best - chosen) / margin,
+        }
+
+    return metrics
+
+
 def run_batch(
     trial_seeds: tuple[int, ...], family_name: str, condition: str, queries: int, strategy: str, effort: str = "units"
 ) -> list[dict[str, Any]]:
@@ -200,19 +220,7 @@ def run_batch(
     firsts = [s.user.choose(s.x0) for s in setups]
     eval_X = torch.stack([s.eval_X for s in setups])
     f_true = torch.stack([s.f_true for s in setups])
-    u_true = torch.stack([s.u_true for s in setups])
-    best = f_true.max(-1).values
-    margin = (best - f_true.median(-1).values).clamp_min(1e-12)
-
-    def metrics(model) -> dict[str, torch.Tensor]:
-        mean, var = model.marginals(eval_X)
-        est = model.likelihood.rating.expected_rating(mean, var)
-        chosen = f_true.gather(1, mean.argmax(-1, keepdim=True)).squeeze(-1)
-        return {
-            "wrms": wrms(est, u_true),
-            "tp": true_positives(est, u_true, k=TOP_K).to(est),
-            "regret": (best - chosen) / margin,
-        }
+    metrics = _suite_metrics(eval_X, f_true, torch.stack([s.u_true for s in setups]))
 
     def refit(step: int, model: BatchedPreferenceGP) -> None:
         if condition == "learned" and step + 1 in REFIT_AFTER:
@@ -336,27 +344,14 @@ def run_suite(
     checkpoints = sorted({q for q in CHECKPOINTS if q <= queries} | {queries})
     summary = summarise(results, strategies, METRICS, budgets=effort_budgets(effort), checkpoints=checkpoints)
     cpu = sum(r[s]["cpu_s"] for trials_ in results.values() for r in trials_ for s in strategies)
-    summary.update(
-        trials=trials,
-        queries=queries,
-        seed=seed,
-        wall_time_s=wall,
-        cpu_time_s=cpu,
-        workers=workers,
-        settings=_settings(families, effort),
-    )
+    summary.update(trials=trials, queries=queries, seed=seed, wall_time_s=wall, cpu_time_s=cpu, workers=workers)
+    summary["settings"] = _settings(families, effort)
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
         write_json(Path(out) / "suite_trials.json", {f"{f}/{c}": v for (f, c), v in results.items()})
         write_suite_files(Path(out), summary, families, conditions, strategies, METRICS)
-    return {
-        "families": families,
-        "conditions": list(conditions),
-        "strategies": strategies,
-        "trials": trials,
-        "queries": queries,
-        "summary": summary,
-    }
+    result = {"families": families, "conditions": list(conditions), "strategies": strategies, "trials": trials}
+    return {**result, "queries": queries, "summary": summary}
 
 
 def _checked(families: Sequence[str], conditions: Sequence[str]) -> list[str]:

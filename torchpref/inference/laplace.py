@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, fields, replace
+from typing import cast
 
 import torch
 from torch import Tensor
@@ -144,7 +145,7 @@ def find_mode(
             raise LaplaceNumericalError(f"the Laplace mode could not be found: {err}") from err
     mode = ModeResult(
         out.point.a.clone(),
-        out.point.f.clone(),
+        cast(Tensor, out.point.f).clone(),  # set by newton_mode
         out.factor.M.clone(),
         tuple(w.clone() for w in out.factor.weights),
         out.iterations,
@@ -346,7 +347,8 @@ class PredictiveCache:
     """
 
     def __init__(self, L: Tensor, alpha: Tensor, B_chol: Tensor):
-        self.L, self.alpha, self.B_chol, self._A = L, alpha, B_chol, None
+        self.L, self.alpha, self.B_chol = L, alpha, B_chol
+        self._A: Tensor | None = None
 
     @classmethod
     def from_mode(cls, L: Tensor, mode: ModeResult) -> PredictiveCache:
@@ -371,10 +373,11 @@ class PredictiveCache:
     @property
     def A(self) -> Tensor:
         """``I - B^-1`` (``B x n x n``), so that ``cov = K** - v^T A v`` with ``v = L^-1 K_X*``."""
-        if self._A is None:
+        A = self._A
+        if A is None:
             A = _eye(self.L.shape[-1], self.L) - torch.cholesky_inverse(self.B_chol)
-            self._A = 0.5 * (A + A.mT)
-        return self._A
+            A = self._A = 0.5 * (A + A.mT)
+        return A
 
 
 def predictive_cache(L: Tensor, mode: ModeResult) -> PredictiveCache:

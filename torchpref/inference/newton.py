@@ -256,6 +256,18 @@ def chord_steps(
     return point, decrement
 
 
+def _stalled(prob: Problem, point, dec: list[float], newton_dec: list[float]) -> tuple[list[bool], list | None]:
+    """Per problem, whether a whole iteration (step and chord steps) did not contract the decrement
+    ``dec`` from the last factorisation's ``newton_dec`` while it is below the round-off floor (no
+    further progress can be resolved in this dtype); and the floor, if it was formed (rarely: on
+    demand)."""
+    stalled = [d > 0.25 * old for d, old in zip(dec, newton_dec)]
+    floor = prob.floor(point).tolist() if any(stalled) else None
+    if floor is not None:
+        stalled = [s and d / 2 < fl for s, d, fl in zip(stalled, dec, floor)]
+    return stalled, floor
+
+
 def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: NewtonOptions) -> NewtonResult:
     """The modes of ``B`` problems (see the module docstring), each from the candidate start (``B x n``
     each; zeros if none) of highest ``Psi``; all inputs detached. The per-problem tests run on the
@@ -285,12 +297,7 @@ def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: 
         if bad:
             raise FloatingPointError(f"non-finite Newton step while finding the Laplace modes of problems {bad}")
         decrement = [d if a else old for a, d, old in zip(active, dec, decrement)]
-        # stalled: a whole iteration (step and chord steps) did not contract the decrement, which
-        # is below the round-off floor: no further progress can be resolved in this dtype
-        stalled = [d > 0.25 * old for d, old in zip(dec, newton_dec)]
-        floor = prob.floor(point).tolist() if any(stalled) else None  # rarely needed: formed on demand
-        if floor is not None:
-            stalled = [s and d / 2 < fl for s, d, fl in zip(stalled, dec, floor)]
+        stalled, floor = _stalled(prob, point, dec, newton_dec)
         newton_dec = [d if a else old for a, d, old in zip(active, dec, newton_dec)]
         done = [a and (d / 2 < tol or s) for a, d, s in zip(active, dec, stalled)]  # the point stays: keep B
         if any(done):
@@ -314,6 +321,7 @@ def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: 
     if not all(has_factor):  # stuck or out of iterations: a factor at the final points
         fresh = prob.factorise(point)
         final = fresh if final is None else _pick(final, has_factor, fresh)
+    assert final is not None  # a factor at the final points of every problem
     return NewtonResult(
         replace(point, f=prob.utilities(point)),
         final,

@@ -103,8 +103,8 @@ def gauss_hermite(n: int, like: Tensor, expectation: bool = True) -> tuple[Tenso
     (the weights sum to 1). ``expectation=False``: the physicists' rule,
     ``int exp(-x^2) g(x) dx ~ sum_k w_k g(x_k)``.
     """
-    x, w = _hermgauss(int(n))
-    x, w = like.new_tensor(x), like.new_tensor(w)
+    nodes, weights = _hermgauss(int(n))
+    x, w = like.new_tensor(nodes), like.new_tensor(weights)
     return (x, w / math.sqrt(math.pi)) if expectation else (x, w)
 
 

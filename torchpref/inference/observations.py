@@ -85,6 +85,7 @@ class Term:
         for c, coef in enumerate(self.coef):
             x = flat.index_select(0, self._flat_index(c, B, n)).view(B, -1)
             eta = (x if coef == 1.0 else coef * x) if eta is None else (eta - x if coef == -1.0 else eta + coef * x)
+        assert eta is not None  # a term has at least one coefficient
         return eta
 
     def adjoint(self, x: Tensor, n: int) -> Tensor:
@@ -113,6 +114,7 @@ class Term:
         for c, coef in enumerate(self.coef):
             picked = flat.index_select(0, self._flat_index(c, B, n)).reshape(B, -1, k)
             out = (picked if coef == 1.0 else coef * picked) if out is None else out.add_(picked, alpha=coef)
+        assert out is not None  # a term has at least one coefficient
         return out
 
     def adjoint_rows(self, X: Tensor, n: int) -> Tensor:
@@ -260,14 +262,16 @@ class Observations:
     def evaluate_whitened(self, a: Tensor, rows: Sequence[Tensor]) -> LikelihoodTerms:
         """:meth:`evaluate` at ``f = L a`` given each term's rows ``D L`` (:meth:`whitened_rows`),
         with the gradient in ``a``: ``L^T d log p / d f`` (``B x n``)."""
-        ll, grad, weights = None, None, []
+        ll: Tensor | None = None
+        grad = torch.zeros_like(a)
+        weights = []
         for t, R in zip(self.terms, rows):
             lp, d1, w = t.evaluate(a, eta=(R @ a.unsqueeze(-1)).squeeze(-1))
             g = (R.mT @ d1.unsqueeze(-1)).squeeze(-1)
             ll, grad = (lp, g) if ll is None else (ll + lp, grad + g)
             weights.append(w)
         if ll is None:
-            ll, grad = a.new_zeros(a.shape[0]), torch.zeros_like(a)
+            ll = a.new_zeros(a.shape[0])
         return LikelihoodTerms(ll, grad, tuple(weights))
 
     def whitened_rows(self, L: Tensor) -> tuple[Tensor, ...] | None:
@@ -364,9 +368,9 @@ class Observations:
             WL = self.W_times(weights, L)
             H = lower_t_matmul(L[0], WL[0]).unsqueeze(0) if L.shape[0] == 1 else L.mT @ WL
         else:
-            H = torch.zeros_like(L) if not self.terms else None
-            for t, w, DL in zip(self.terms, weights, rows if rows is not None else [None] * len(self.terms)):
-                DL = t.rows(L) if DL is None else DL
-                H = DL.mT @ (w.unsqueeze(-1) * DL) if H is None else torch.baddbmm(H, DL.mT, w.unsqueeze(-1) * DL)
+            H = torch.zeros_like(L)
+            for k, (t, w) in enumerate(zip(self.terms, weights)):
+                DL = t.rows(L) if rows is None else rows[k]
+                H = DL.mT @ (w.unsqueeze(-1) * DL) if k == 0 else torch.baddbmm(H, DL.mT, w.unsqueeze(-1) * DL)
         H.diagonal(dim1=-2, dim2=-1).add_(1.0)
         return H

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields, replace
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor
@@ -111,7 +111,7 @@ class PaddedData:
             None if min(n) == N else _lengths_mask(n, N, dev),
             None if min(p) == P else _lengths_mask(p, P, dev),
             None if min(q) == Q else _lengths_mask(q, Q, dev),
-            _pad([d.ties for d in data], T, 0),
+            _pad([cast(Tensor, d.ties) for d in data], T, 0),  # PreferenceData's ties are never None
             None if min(t) == T else _lengths_mask(t, T, dev),
         )
 
@@ -165,11 +165,14 @@ class PaddedData:
         def f(t: Tensor | None, k: int) -> Tensor | None:
             return None if t is None else t.reshape(B, *t.shape[t.dim() - k :])
 
+        def g(t: Tensor, k: int) -> Tensor:
+            return t.reshape(B, *t.shape[t.dim() - k :])
+
         return PaddedData(
-            f(self.X, 2),
-            f(self.comparisons, 2),
-            f(self.ratings, 1),
-            f(self.rating_index, 1),
+            g(self.X, 2),
+            g(self.comparisons, 2),
+            g(self.ratings, 1),
+            g(self.rating_index, 1),
             f(self.item_mask, 1),
             f(self.comparison_mask, 1),
             f(self.rating_mask, 1),
@@ -179,7 +182,8 @@ class PaddedData:
 
     def map(self, fn: Callable[[Tensor], Tensor]) -> PaddedData:
         """The same problems with ``fn`` applied to every tensor (e.g. a device move)."""
-        return PaddedData(*(None if getattr(self, f.name) is None else fn(getattr(self, f.name)) for f in fields(self)))
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        return PaddedData(**{k: None if v is None else fn(v) for k, v in values.items()})  # type: ignore[arg-type]
 
     def with_items(self, X: Tensor) -> PaddedData:
         """The same problems with items ``X`` (e.g. transformed by an input transform)."""
@@ -260,3 +264,22 @@ class PaddedData:
             None if self.ties is None else grow(self.ties, None, 2, False),
             None if self.tie_mask is None else self.tie_mask.expand(*shape, self.tie_mask.shape[-1]),
         )
+
+
+def create_data(
+    train_X: Tensor,
+    comparisons: Tensor | None,
+    ratings: Tensor | None,
+    rating_index: Tensor | None,
+    rating_eps: float,
+    ties: Tensor | None = None,
+    rating_levels: int | None = None,
+) -> PreferenceData | PaddedData:
+    """Validated data: one problem for ``n x d`` items, one per batch element for ``b x n x d``."""
+    if isinstance(train_X, Tensor) and train_X.dim() == 3:
+        return PaddedData.create(
+            train_X, comparisons, ratings, rating_index, rating_eps=rating_eps, ties=ties, rating_levels=rating_levels
+        )
+    return PreferenceData.create(
+        train_X, comparisons, ratings, rating_index, rating_eps=rating_eps, ties=ties, rating_levels=rating_levels
+    )

@@ -150,7 +150,7 @@ class InformationField:
             raise ValueError(f"grid must be a 2-D tensor of at least 2 x 2, got shape {tuple(grid.shape)}.")
         if not torch.isfinite(grid).all():
             raise ValueError("grid must be finite.")
-        extent = tuple(float(e) for e in extent)
+        extent = tuple(float(e) for e in extent)  # type: ignore[assignment]
         if len(extent) != 4 or not (extent[0] < extent[1] and extent[2] < extent[3]):
             raise ValueError(f"extent must be (xmin, xmax, ymin, ymax) with xmin < xmax, ymin < ymax, got {extent}.")
         self.grid = grid

@@ -99,7 +99,7 @@ def make_scenario(
     if (seed is None) == (generator is None):
         raise ValueError(f"give exactly one of seed and generator, got seed={seed}, generator={generator}.")
     if generator is None:
-        generator = torch.Generator().manual_seed(int(seed))
+        generator = torch.Generator().manual_seed(int(seed))  # type: ignore[arg-type]
     if paths_per_planner < 1:
         raise ValueError(f"paths_per_planner must be positive, got {paths_per_planner}.")
     if not 0 < weight_range[0] <= weight_range[1]:

@@ -66,9 +66,12 @@ def shared_constraint(kind: str) -> Interval:
     ratings depends on it to 1e-8."""
     constraint = _SHARED_CONSTRAINTS.get(kind)
     if constraint is None:
-        constraint = DEFAULT_CONSTRAINTS[kind]()
-        for key, bound in constraint.named_buffers(recurse=False):
-            setattr(constraint, key, bound.to(torch.float64))
+        # normal tensors even when first made inside torch.inference_mode (a model built in a
+        # simulation's inference block): an inference tensor could not be loaded into later
+        with torch.inference_mode(False):
+            constraint = DEFAULT_CONSTRAINTS[kind]()
+            for key, bound in constraint.named_buffers(recurse=False):
+                setattr(constraint, key, bound.to(torch.float64))
         constraint._torchpref_shared = kind
         _SHARED_CONSTRAINTS[kind] = constraint
     return constraint
@@ -104,9 +107,10 @@ class _ScalarParamsMixin:
         if kind and isinstance(value, (int, float)) and not isinstance(value, bool):
             key = (kind, float(value))
             if key not in _SHARED_RAW_VALUES:
-                _SHARED_RAW_VALUES[key] = _raw_value(
-                    name, value, DEFAULT_CONSTRAINTS[kind](), torch.zeros((), dtype=torch.float64)
-                )
+                with torch.inference_mode(False):  # a normal tensor, as for the shared constraint
+                    _SHARED_RAW_VALUES[key] = _raw_value(
+                        name, value, DEFAULT_CONSTRAINTS[kind](), torch.zeros((), dtype=torch.float64)
+                    )
             raw_value = _SHARED_RAW_VALUES[key]
         raw = torch.nn.Parameter(
             torch.zeros((), dtype=torch.float64) if raw_value is None else raw_value.clone(), requires_grad=learn

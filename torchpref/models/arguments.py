@@ -33,9 +33,9 @@ def check_flag(name: str, value: object) -> bool:
 
 def check_rating_eps(value: object) -> float:
     """``rating_eps`` as a float in ``(0, 0.5)``, or a ``ValueError``."""
-    if not _is_real(value) or not (0.0 < float(value) < 0.5):
+    if not _is_real(value) or not (0.0 < float(value) < 0.5):  # type: ignore[arg-type]
         raise ValueError(f"rating_eps must be a number in (0, 0.5), got {value!r}.")
-    return float(value)
+    return float(value)  # type: ignore[arg-type]
 
 
 def check_model_arguments(
@@ -66,8 +66,8 @@ def check_model_arguments(
     for name, value in (reals or {}).items():
         if value is not None and not _is_real(value):
             raise ValueError(f"{name} must be a real number, got {value!r:.60} ({type(value).__name__}).")
-        if value is not None and not math.isfinite(float(value)):
-            raise ValueError(f"{name} must be finite, got {float(value)}.")
+        if value is not None and not math.isfinite(float(value)):  # type: ignore[arg-type]
+            raise ValueError(f"{name} must be finite, got {float(value)}.")  # type: ignore[arg-type]
     for name, value in (flags or {}).items():
         check_flag(name, value)
     check_rating_eps(rating_eps)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Sequence
+from typing import cast
 
 import torch
 from torch import Tensor
@@ -46,7 +47,7 @@ class BatchedPreferenceGP:
         if len(data) < 1:
             raise ValueError("need at least one trial.")
         self.model = copy.deepcopy(template)  # the hyperparameters as they are now
-        self.model._set_data(PaddedData.stack(list(data)), None)
+        self.model.replace_data(PaddedData.stack(list(data)))
         self.template = self.model
         self.covar_module, self.likelihood = self.model.covar_module, self.model.likelihood
         self.rating_eps = template.rating_eps
@@ -64,7 +65,7 @@ class BatchedPreferenceGP:
             sd = m.state_dict()
             if sd.keys() != ref.keys() or not all(torch.equal(sd[k], ref[k]) for k in ref):
                 raise ValueError(f"model {b} has hyperparameters different from model 0's.")
-        return cls(models[0], [m.data for m in models])
+        return cls(models[0], [cast(PreferenceData, m.data) for m in models])
 
     # ------------------------------------------------------------------ data
     @property
@@ -118,11 +119,12 @@ class BatchedPreferenceGP:
                 f0, _ = self.model._predict(new.X, diag=True)  # under the old data
                 f_old, old = self.model._state().mode.f, self.model.data
                 n_old = f_old.shape[-1]
+                old = cast(PaddedData, old)
                 keep = old.item_mask if old.item_mask is not None else torch.ones_like(f_old, dtype=torch.bool)
                 f0[:, :n_old] = torch.where(keep, f_old, f0[:, :n_old])
                 if new.item_mask is not None:
                     f0 = torch.where(new.item_mask, f0, 0.0)
-            self.model._data, self.model._cache, self.model._warm_f = new, None, f0
+            self.model.replace_data(new, f0, lazy=True)
             self._changed = False
         return self.model
 

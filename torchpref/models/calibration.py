@@ -115,8 +115,8 @@ def fit_person(model: PreferenceGP, *, max_iter: int = 50) -> PreferenceGP:
             raise FloatingPointError(f"fit_person: non-finite values of {bad}")
     except BaseException:
         with torch.no_grad():
-            for k, p in params.items():
-                p.copy_(saved[k])
+            for k, q in params.items():
+                q.copy_(saved[k])
         raise
     finally:
         for p in others:

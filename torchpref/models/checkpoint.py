@@ -66,6 +66,7 @@ def model_checkpoint(model: PreferenceGP) -> dict[str, Any]:
             f"save_model saves a model of one problem; this one has batch_shape {tuple(model.batch_shape)}."
         )
     d = model.data
+    assert isinstance(d, PreferenceData)  # one problem: checked above
     learn = bool(model.likelihood.comparison.raw_comparison_noise.requires_grad)
     return {
         "format": FORMAT,
@@ -266,13 +267,18 @@ def _check_contents(ck: Any, where: str, max_items: int | None = MAX_ITEMS) -> N
     version = ck.get("version")
     if type(version) is not int or version != VERSION:
         raise CheckpointError(f"checkpoint version {version!r} is not supported (this torchpref reads {VERSION}).")
-    for key, allowed in (("data", DATA_KEYS), ("settings", SETTINGS_KEYS), ("state_dict", None)):
+    checks: tuple[tuple[str, tuple[str, ...] | None], ...] = (
+        ("data", DATA_KEYS),
+        ("settings", SETTINGS_KEYS),
+        ("state_dict", None),
+    )
+    for key, allowed in checks:
         entry = ck.get(key)
         if not isinstance(entry, dict):
             raise CheckpointError(f"{where}: the checkpoint's {key!r} is missing or not a dictionary.")
         unknown = sorted(map(str, set(entry) - set(allowed))) if allowed is not None else []
         if unknown:
-            raise CheckpointError(f"{where}: unknown {key} entries {unknown}; expected some of {list(allowed)}.")
+            raise CheckpointError(f"{where}: unknown {key} entries {unknown}; expected some of {list(allowed or ())}.")
     if not isinstance(ck["data"].get("train_X"), torch.Tensor):
         raise CheckpointError(f"{where}: the checkpoint's data has no train_X tensor.")
     for name, value in ck["settings"].items():
@@ -386,7 +392,7 @@ def _check_loaded_values(model: PreferenceGP, where: str) -> None:
                     raise CheckpointError(
                         f"{where}: hyperparameter {name!r} is {value.tolist()}, outside its constraint {constraint}."
                     )
-        for name, module, prior, closure, _ in model.named_priors():
+        for name, module, prior, closure, _ in model.named_priors():  # type: ignore[operator]
             for arg, support in getattr(prior, "arg_constraints", {}).items():
                 value = getattr(prior, arg, None)
                 if isinstance(value, torch.Tensor) and not bool(support.check(value).all()):

@@ -13,7 +13,7 @@ posterior mean at ``X``.
 from __future__ import annotations
 
 import copy
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 from botorch.posteriors.gpytorch import GPyTorchPosterior
@@ -23,8 +23,8 @@ from torch import Tensor
 
 from torchpref.data.preference_data import prepare_levels, prepare_ratings
 
-if TYPE_CHECKING:
-    from torchpref.models.preference_gp import PreferenceGP
+#: A :class:`~torchpref.PreferenceGP` (not imported: ``preference_gp`` imports this module).
+PreferenceGP = Any
 
 
 def _check_indices(name: str, index: Tensor, m: int) -> Tensor:
@@ -90,6 +90,7 @@ def condition_batch(
     if (ratings is None) != (rating_index is None):
         raise ValueError("ratings and rating_index must be given together.")
     if ratings is not None:
+        assert rating_index is not None  # given together: checked above
         rating_index = _check_indices("rating_index", rating_index, m)
         shape = torch.as_tensor(ratings).shape
         if getattr(model, "rating_levels", None) is not None:  # an ordinal model's ratings are levels
@@ -109,7 +110,7 @@ def condition_batch(
         new = copy.deepcopy(model)
     finally:
         model._cache = cache
-    new._data, new._cache, new._warm_f = new_data, None, warm.reshape(-1, N + m)
+    new.replace_data(new_data, warm.reshape(-1, N + m), lazy=True)
     return new
 
 
@@ -130,7 +131,7 @@ def sampled_comparisons(sampler: PairwiseMCSampler, posterior: GPyTorchPosterior
     utility samples (the same base samples: the sampler caches them).
     """
     pairs = sampler(posterior)
-    samples = super(PairwiseMCSampler, sampler).forward(posterior).squeeze(-1)  # sample_shape x batch x q
+    samples = super(PairwiseMCSampler, sampler).forward(posterior).squeeze(-1)  # type: ignore[safe-super]  # sample_shape x batch x q
     first = samples.gather(-1, pairs[..., 0].to(samples.device))
     second = samples.gather(-1, pairs[..., 1].to(samples.device))
     return torch.where((first >= second).unsqueeze(-1), pairs, pairs.flip(-1)).to(samples.device)

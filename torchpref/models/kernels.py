@@ -35,6 +35,9 @@ class FixedRBFKernel(Kernel):
         outputscale: the kernel variance ``sigma_f^2``, a scalar or ``B`` values.
     """
 
+    lengthscale_value: Tensor  # buffers
+    outputscale_value: Tensor
+
     def __init__(self, lengthscale: float | Tensor, outputscale: float | Tensor):
         super().__init__()
         ls, os_ = (torch.as_tensor(v) for v in (lengthscale, outputscale))

@@ -15,14 +15,11 @@ from typing import Any
 
 import torch
 from botorch.exceptions.errors import UnsupportedError
-from botorch.utils.datasets import RankingDataset
-from gpytorch.distributions import MultivariateNormal
-from linear_operator.operators import DenseLinearOperator
 from torch import Tensor
 
 from torchpref.data.preference_data import PreferenceData
-from torchpref.models.fantasy import batch_shape_of, condition_batch
-from torchpref.models.model_data import create_data
+from torchpref.inference.padding import create_data
+from torchpref.models.fantasy import batch_shape_of
 
 
 class TrainDataMismatchError(ValueError, RuntimeError):
@@ -106,229 +103,6 @@ def prior_only_data(dtype: torch.dtype = torch.float64, device: torch.device | N
     )
 
 
-class PairwiseGPInterface:
-    r"""The part of BoTorch's ``PairwiseGP`` interface that BoTorch's preference tools use.
-
-    Mixed into :class:`~torchpref.models.preference_gp.PreferenceGP`; relies on its ``_data`` (a
-    :class:`~torchpref.data.preference_data.PreferenceData` or, batched, a :class:`~torchpref.inference.padding.PaddedData`),
-    ``train_X`` / ``comparisons`` / ``ratings``, ``_set_data``, ``add_observations``, ``mode``
-    and ``likelihood``.
-    """
-
-    # ------------------------------------------------------------ names read by BoTorch
-    @property
-    def datapoints(self) -> Tensor:
-        r"""``batch_shape x n x d`` items as given (before any input transform):
-        ``PairwiseGP.datapoints``. For a prior-only model an empty ``0 x 0`` tensor of the
-        model's dtype and device."""
-        return self.train_X
-
-    @property
-    def dim(self) -> int | None:
-        """Number of input columns ``d`` (``None`` for a prior-only model that has seen no
-        items yet): ``PairwiseGP.dim``, read by BoTorch's EUBO input constructors."""
-        return self._data.dim or None
-
-    @property
-    def utility(self) -> Tensor:
-        r"""``batch_shape x n`` posterior-mode utilities of the items (``PairwiseGP.utility``), in
-        the model's dtype."""
-        return self.mode.f.reshape(*self.batch_shape, -1).to(self.train_X.dtype)
-
-    @property
-    def has_data(self) -> bool:
-        """Whether the model holds any item (a prior-only model does not)."""
-        return self.train_X.shape[-2] > 0
-
-    # ---------------------------------------------------------------- construction
-    @classmethod
-    def construct_inputs(cls, training_data: Any, **kwargs: Any) -> dict[str, Tensor]:
-        r"""Constructor keyword arguments from BoTorch's ``RankingDataset``.
-
-        A ranking dataset holds items (``X.values``, ``n x d``), the items of each query
-        (``X.indices``, ``r x m``) and the rank of each of them (``Y``, ``r x m``, 0 = best,
-        ties share a rank). A query becomes comparisons ``[preferred, other]`` between the items
-        of adjacent ranks: for ``m = 2`` exactly ``PairwiseGP``'s comparisons, for a strict
-        ranking of ``m`` items ``m - 1`` of them (tied items are not compared).
-
-        Returns:
-            ``{"train_X": n x d, "comparisons": p x 2}`` (plus ``kwargs``), for ``cls(**inputs)``.
-
-        Raises:
-            UnsupportedError: for any other dataset (as ``PairwiseGP`` does): a
-                ``SupervisedDataset``'s ``Y`` could be ratings or utilities; give ratings
-                explicitly with ``ratings=`` and ``rating_index=``.
-        """
-        if not isinstance(training_data, RankingDataset):
-            raise UnsupportedError(
-                f"PreferenceGP.construct_inputs supports only a RankingDataset, got {type(training_data).__name__}; "
-                "pass ratings to the constructor with ratings= and rating_index=."
-            )
-        comparisons = ranking_comparisons(training_data._X.indices, training_data.Y)
-        return {"train_X": training_data._X.values, "comparisons": comparisons, **kwargs}
-
-    def subset_output(self, idcs: list[int]) -> PairwiseGPInterface:
-        """A copy of this one-output model for ``idcs == [0]`` (BoTorch's output subsetting).
-
-        Raises:
-            ValueError: for any other output index.
-        """
-        if [int(i) for i in idcs] not in ([0], [-1]):
-            raise ValueError(f"PreferenceGP has one output (index 0); got output indices {list(idcs)}.")
-        return copy.deepcopy(self)
-
-    def load_state_dict(self, state_dict: dict[str, Any], strict: bool = False, assign: bool = False) -> Any:
-        r"""Load hyperparameters; **non-strict by default**, as ``PairwiseGP.load_state_dict``.
-
-        A state dict holds hyperparameters (kernel, likelihoods, input transform), never the data.
-        With ``strict=False`` a key the model does not have is ignored (listed in the result's
-        ``unexpected_keys``) and a parameter the dict lacks keeps its current value (listed in
-        ``missing_keys``): an empty dict, as BoTorch's and Ax's cross-validation load, changes
-        nothing. A value of the wrong shape raises, as in PyTorch. ``strict=True`` (which
-        ``PairwiseGP`` refuses) requires exactly the model's keys. The posterior follows the new
-        values at the next call (its cache is keyed on every parameter).
-
-        Returns:
-            PyTorch's ``_IncompatibleKeys`` (``missing_keys``, ``unexpected_keys``).
-        """
-        return super().load_state_dict(state_dict, strict=strict, assign=assign)
-
-    # ------------------------------------------------------------------ data
-    def set_train_data(
-        self,
-        train_X: Tensor | None = None,
-        comparisons: Tensor | None = None,
-        ratings: Tensor | None = None,
-        rating_index: Tensor | None = None,
-        strict: bool = False,
-        update_model: bool = True,
-        ties: Tensor | None = None,
-    ) -> None:
-        r"""Replace all data; validated and the mode solved first, so the model is unchanged on
-        error. ``train_X=None`` keeps no items (a prior-only model keeps its unknown ``d``).
-
-        Args:
-            train_X: ``n x d`` items, or ``None``.
-            comparisons: ``p x 2`` long, rows ``[preferred, other]``.
-            ratings: ``q`` values in ``[0, 1]``, with ``rating_index`` (``q`` long).
-            strict: as in GPyTorch: the new items, comparisons and ratings must have the shapes,
-                dtype and device of the current ones (used when only values change).
-            update_model: accepted for ``PairwiseGP``'s signature; the mode is always re-solved.
-            ties: ``t x 2`` "no preference" pairs; ratings are levels for a model with ``rating_levels``.
-
-        Raises:
-            TrainDataMismatchError: ``strict`` and a shape, dtype or device differs.
-        """
-        old_X = self.train_X
-        if train_X is None:
-            if comparisons is not None or ratings is not None:
-                raise ValueError("comparisons and ratings need the items they index: train_X is None.")
-            train_X = old_X[..., :0, :]
-        if strict:
-            _check_strict(self, train_X, comparisons, ratings)
-        if train_X.dim() != 2:
-            raise UnsupportedError(
-                f"set_train_data takes n x d items, got shape {tuple(train_X.shape)}; "
-                "a batched model is built by the constructor or condition_on_observations."
-            )
-        if self._data.dim == 0 and train_X.shape[-1] == 0:
-            return
-        new = PreferenceData.create(
-            train_X,
-            comparisons,
-            ratings,
-            rating_index,
-            rating_eps=self.rating_eps,
-            ties=ties,
-            rating_levels=self.rating_levels,
-        )
-        self._set_data(new.to(device=old_X.device, dtype=old_X.dtype), None)
-
-    def condition_on_observations(
-        self,
-        X: Tensor,
-        Y: Tensor | None = None,
-        *,
-        comparisons: Tensor | None = None,
-        ratings: Tensor | None = None,
-        rating_index: Tensor | None = None,
-        **kwargs: Any,
-    ) -> PairwiseGPInterface:
-        r"""A new model with the items ``X`` and observations among them added (``self`` is
-        unchanged), with BoTorch's meaning of ``Y``.
-
-        * ``Y`` of integer dtype and shape ``m x 2`` holds comparisons, rows
-          ``[preferred, other]`` indexing the rows of ``X`` (``PairwiseGP``'s meaning and
-          what ``PairwiseSobolQMCNormalSampler`` fantasises); so does ``comparisons=``.
-        * Ratings go in by keyword only: ``ratings=`` (``q`` values in ``[0, 1]``) with
-          ``rating_index=`` (rows of ``X``; by default one rating per row of ``X``).
-
-        Batched ``X`` (``batch x m x d``), batched observations (``batch x m x 2`` comparisons,
-        ``batch x q`` ratings) or a batched model give a batched model, one problem per batch
-        element (:func:`~torchpref.models.fantasy.condition_batch`): fantasies.
-
-        Args:
-            X: ``m x d`` items (a row equal to an existing item reuses its index).
-            Y: comparisons as above, or ``None``.
-
-        Raises:
-            ValueError: for a floating-point ``Y`` (ratings and comparisons cannot be told
-                apart: use ``ratings=`` or a long ``Y``), an integer ``Y`` not of shape
-                ``m x 2``, or ``Y`` together with ``comparisons=``.
-        """
-        if not isinstance(X, Tensor):  # nested lists of numbers, as everywhere else in the API
-            X = torch.as_tensor(X, dtype=self.train_X.dtype, device=self.train_X.device)
-        if Y is not None:
-            if comparisons is not None:
-                raise ValueError("give comparisons either as Y or as comparisons=, not both.")
-            comparisons = _comparisons_from_Y(Y)
-        elif comparisons is not None:
-            comparisons = torch.as_tensor(comparisons)
-        if ratings is not None:
-            ratings = torch.as_tensor(ratings)
-            if ratings.dim() > 1 and ratings.shape[-1] == 1:  # BoTorch's m x 1 outcomes
-                ratings = ratings.squeeze(-1)
-            if rating_index is None:
-                rating_index = torch.arange(ratings.shape[-1], device=X.device).expand(ratings.shape)
-        if not self.has_data and self._data.dim == 0:  # prior-only: these become the data
-            return _condition_prior_only(self, X, comparisons, ratings, rating_index)
-        batched = (
-            self.batch_shape
-            or X.dim() > 2
-            or (comparisons is not None and comparisons.dim() > 2)
-            or (ratings is not None and ratings.dim() > 1)
-        )
-        if batched:
-            return condition_batch(self, X, comparisons, ratings, rating_index)
-        return copy.deepcopy(self).add_observations(X, comparisons, ratings, rating_index)
-
-    # ------------------------------------------------------------ observation noise
-    def _add_observation_noise(self, mvn: MultivariateNormal, observation_noise: bool | Tensor) -> MultivariateNormal:
-        r"""The posterior of the utility as a person perceives it when comparing: ``f + eps``
-        with independent ``eps ~ N(0, sigma_R^2)`` per item (eq. 3), or with the given
-        ``batch x q x 1`` (or ``q``) variances when ``observation_noise`` is a tensor."""
-        cov = mvn.covariance_matrix
-        if isinstance(observation_noise, Tensor):
-            noise = observation_noise.to(cov)
-            if noise.dim() > 1 and noise.shape[-1] == 1:
-                noise = noise.squeeze(-1)
-            try:
-                noise = noise.expand(cov.shape[:-1])
-            except RuntimeError:
-                raise ValueError(
-                    f"observation_noise must be variances of shape {(*cov.shape[:-1], 1)} (or "
-                    f"broadcast to it), got shape {tuple(observation_noise.shape)}."
-                ) from None
-            ok = (noise.detach() >= 0) & noise.detach().isfinite()
-            if not bool(ok.all()):
-                raise ValueError(
-                    f"observation_noise must be finite variances >= 0, got {noise.detach()[~ok][:3].tolist()}."
-                )
-        else:
-            noise = (self.likelihood.comparison.comparison_noise**2).to(cov).expand(cov.shape[:-1])
-        return MultivariateNormal(mvn.mean, DenseLinearOperator(cov + torch.diag_embed(noise)))
-
-
 def ranking_comparisons(items: Tensor, ranks: Tensor) -> Tensor:
     r"""Comparisons ``[better, worse]`` between the items of adjacent ranks of each query.
 
@@ -367,7 +141,7 @@ def _condition_prior_only(model, X: Tensor, comparisons, ratings, rating_index):
             ratings.expand(*batch, ratings.shape[-1]),
             rating_index.expand(*batch, ratings.shape[-1]),
         )
-    new._set_data(
+    new.replace_data(
         create_data(X, comparisons, ratings, rating_index, model.rating_eps, rating_levels=model.rating_levels), None
     )
     return new

@@ -2,19 +2,24 @@ r"""``PreferenceGP``: a BoTorch model of a latent utility learned from ratings a
 
 from __future__ import annotations
 
+import copy
 import numbers
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from itertools import chain
-from typing import Any
+from typing import Any, cast
 
 import torch
 from botorch.acquisition.objective import PosteriorTransform
 from botorch.exceptions import warnings as botorch_warnings
+from botorch.exceptions.errors import UnsupportedError
 from botorch.exceptions.warnings import InputDataWarning
 from botorch.models.model import Model
 from botorch.models.transforms.input import InputTransform
 from botorch.posteriors.gpytorch import GPyTorchPosterior
 from botorch.sampling.base import MCSampler
+from botorch.utils.datasets import RankingDataset
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.kernels import Kernel
 from gpytorch.mlls import MarginalLogLikelihood
@@ -24,10 +29,11 @@ from linear_operator.operators import DenseLinearOperator, LinearOperator
 from torch import Tensor
 
 from torchpref.data.preference_data import DEFAULT_RATING_EPS, PreferenceData
-from torchpref.inference.laplace import ModeResult, laplace_evidence
+from torchpref.inference.laplace import ModeResult, Observations, laplace_evidence
 from torchpref.inference.numerics import LaplaceNumericalError, pin_coincident
-from torchpref.inference.padding import PaddedData
+from torchpref.inference.padding import PaddedData, create_data
 from torchpref.inference.precision import call_in_dtype, check_dtype, check_laplace_dtype, solve_dtype
+from torchpref.inference.solver import PosteriorState, SolveKey, carries_gradients
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, TieLikelihood
 from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.likelihoods.scalar_params import weak_load_hook
@@ -38,18 +44,19 @@ from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_F
     PreferenceLikelihood,
     default_covar_module,
 )
-from torchpref.models.fantasy import fantasize
-from torchpref.models.model_data import ModelData, create_data
+from torchpref.models.fantasy import condition_batch, fantasize
 from torchpref.models.pairwise_interface import (
-    PairwiseGPInterface,
     TrainDataMismatchError,
+    _check_strict,
+    _comparisons_from_Y,
+    _condition_prior_only,
     check_jitter,
     pairwise_alias,
     pairwise_likelihood_noise,
     prior_only_data,
+    ranking_comparisons,
 )
-from torchpref.models.posterior_state import PosteriorState, cache_key, carries_gradients, submodules
-from torchpref.models.predictives import Predictives
+from torchpref.models.posterior_state import cache_key, submodules
 
 
 def _initial_data(
@@ -97,7 +104,7 @@ def _check_evidence(value: Tensor) -> None:
         )
 
 
-class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
+class PreferenceGP(Model, GP):
     r"""A GP over the items' objective space, learned from comparisons and ratings together.
 
     The latent utility ``f ~ GP(0, k)`` (eq. 1) is observed through comparisons (eq. 3) and
@@ -166,6 +173,8 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         >>> model.posterior(X_test).mean
     """
 
+    _max_newton_iter: int
+
     _num_outputs = 1
 
     def __init__(
@@ -199,34 +208,18 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
         train_X = pairwise_alias(train_X, datapoints)
         comparison_noise = pairwise_likelihood_noise(likelihood, comparison_noise)
         check_jitter(jitter)
-        check_model_arguments(
-            covar_module,
-            input_transform,
-            reals=dict(
-                comparison_noise=comparison_noise,
-                rating_scale=rating_scale,
-                rating_precision=rating_precision,
-                tie_threshold=tie_threshold,
-                level_noise=level_noise,
-            ),
-            flags=dict(learn_likelihood=learn_likelihood, ties_offered=ties_offered),
-            rating_eps=rating_eps,
-        )
+        reals: dict[str, object] = dict(comparison_noise=comparison_noise, rating_scale=rating_scale)
+        reals.update(rating_precision=rating_precision, tie_threshold=tie_threshold, level_noise=level_noise)
+        flags: dict[str, object] = dict(learn_likelihood=learn_likelihood, ties_offered=ties_offered)
+        check_model_arguments(covar_module, input_transform, reals=reals, flags=flags, rating_eps=rating_eps)
         data = _initial_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
         X = data.train_X if isinstance(data, PreferenceData) else data.X
         check_dtype(X.dtype)
         _warn_dtype(X.dtype)
         self.covar_module = covar_module if covar_module is not None else default_covar_module(X.shape[-1])
         self.likelihood = PreferenceLikelihood.create(
-            comparison_noise,
-            rating_scale,
-            rating_precision,
-            learn_likelihood,
-            tie_threshold,
-            rating_levels,
-            cut_points,
-            level_noise,
-        )
+            comparison_noise, rating_scale, rating_precision, learn_likelihood, tie_threshold, rating_levels, cut_points, level_noise
+        )  # fmt: skip
         self._rating_levels = None if rating_levels is None else int(rating_levels)
         self.ties_offered = bool(ties_offered)
         if input_transform is not None:
@@ -330,9 +323,20 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
     def _state(self, prior: tuple[PaddedData, Tensor] | None = None) -> PosteriorState:
         """The mode and prediction cache for the current hyperparameters and data (cached);
         ``prior``: :meth:`_prior`'s result if already computed (then the kernel is not evaluated again)."""
-        fp, key = cache_key(self)
-        if self._cache is None or not self._cache.is_current(self._data, fp, key):
-            self._cache = PosteriorState.build(self, fp, key, self._cache, prior)
+        fp, structure = cache_key(self)
+        key = SolveKey(self._data, fp, structure, self.likelihood)
+        if self._cache is None or not self._cache.key.matches(key):
+            if prior is None:
+                with torch.no_grad():
+                    prior = self._prior()
+            self._cache = PosteriorState.solve(
+                key,
+                *prior,
+                self._observations,
+                previous=self._cache,
+                warm_f=self._warm_f,
+                max_iter=self.max_newton_iter,
+            )
         return self._cache
 
     def train(self, mode: bool = True) -> PreferenceGP:
@@ -470,6 +474,519 @@ class PreferenceGP(PairwiseGPInterface, ModelData, Predictives, Model, GP):
 
     def __call__(self, X: Tensor) -> MultivariateNormal:  # skip gpytorch's GP.__call__ machinery
         return self.forward(X)
+
+    # ================================================================ data
+    @property
+    def data(self) -> PreferenceData | PaddedData:
+        """The observations (immutable): a :class:`~torchpref.data.preference_data.PreferenceData`, or for a
+        batched model (``batch_shape`` not empty) a :class:`~torchpref.inference.padding.PaddedData`."""
+        return self._data
+
+    def _padded(self) -> PaddedData:
+        d = self._data
+        return PaddedData.single(d) if isinstance(d, PreferenceData) else d
+
+    @property
+    def train_X(self) -> Tensor:
+        """``batch_shape x n x d`` items."""
+        return self._padded().X
+
+    @property
+    def comparisons(self) -> Tensor:
+        """``batch_shape x p x 2`` comparisons (rows ``[preferred, other]``)."""
+        return self._padded().comparisons
+
+    @property
+    def ratings(self) -> Tensor:
+        """``batch_shape x r`` ratings in ``(0, 1)``."""
+        return self._padded().ratings
+
+    @property
+    def rating_index(self) -> Tensor:
+        """``batch_shape x r`` rows of :attr:`train_X` the :attr:`ratings` are of."""
+        return self._padded().rating_index
+
+    @property
+    def ties(self) -> Tensor:
+        """``batch_shape x t x 2`` long: the "no preference" pairs."""
+        return cast(Tensor, self._padded().ties)  # never None for a model's data
+
+    @property
+    def rating_levels(self) -> int | None:
+        """``K`` when ratings are levels ``1..K`` (ordinal likelihood), else ``None``."""
+        return self._rating_levels
+
+    @property
+    def train_inputs(self) -> tuple[Tensor]:
+        """``(train_X,)``, as GPyTorch models hold their inputs."""
+        return (self.train_X,)
+
+    @property
+    def num_outputs(self) -> int:
+        """``1``: one latent utility."""
+        return 1
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """``torch.Size([])`` for one problem; ``[b]`` for batched training data (BoTorch's meaning)."""
+        return self._padded().batch_shape
+
+    # The model applies its input transform itself (``_transformed_train_X``): BoTorch's
+    # swapping of transformed training inputs on train()/eval() must not replace the data.
+    def _set_transformed_inputs(self) -> None:
+        pass
+
+    def _revert_to_original_inputs(self) -> None:
+        pass
+
+    def _fit_input_transform(self) -> None:
+        tf = getattr(self, "input_transform", None)
+        if tf is not None and self.train_X.shape[-2] > 0:  # no items: nothing to learn bounds from
+            was_training = tf.training
+            tf.train()
+            with torch.no_grad():
+                tf(self.train_X)
+            tf.train(was_training)
+
+    def _check_scaling(self) -> None:
+        """BoTorch's ``InputDataWarning`` (once per model) when the items, after the input
+        transform, leave the unit cube by more than BoTorch's tolerance of 0.01."""
+        X = self._transformed_train_X()
+        if self._scaling_warned or X.shape[-2] == 0:
+            return
+        with torch.no_grad():
+            X = X.reshape(-1, X.shape[-1])
+            lo, hi = X.min(0).values, X.max(0).values
+        out = ((lo < -0.01) | (hi > 1.01)).nonzero().reshape(-1).tolist()
+        if out:
+            self._scaling_warned = True
+            ranges = ", ".join(f"column {i}: [{float(lo[i]):.3g}, {float(hi[i]):.3g}]" for i in out[:5])
+            warnings.warn(
+                f"the items are not contained in the unit cube ({ranges}); the default kernel's "
+                f"lengthscale prior assumes inputs in [0, 1]: pass input_transform=Normalize(d={X.shape[-1]}, "
+                "bounds=...) with your domain's bounds (botorch.models.transforms), or scale the items yourself.",
+                InputDataWarning,
+                stacklevel=3,
+            )
+
+    def _transformed_train_X(self) -> Tensor:
+        tf = getattr(self, "input_transform", None)
+        if tf is None or self.train_X.shape[-1] == 0:  # a prior-only model's 0 x 0 items: d not known yet
+            return self.train_X
+        was_training = tf.training
+        tf.eval()  # bounds were learned from train_X when the data was set
+        X = tf(self.train_X)
+        tf.train(was_training)
+        return X
+
+    def _observations(self) -> Observations:
+        """The observations of the ``B`` problems (flattened batch) as likelihood terms; strict
+        comparisons as the tie's upper category where ties were offered."""
+        lik = self.likelihood
+        comparison = lik.strict if self.ties_offered else lik.comparison
+        padded, dtype = self._padded(), self.laplace_dtype
+        if padded.X.dtype != dtype:
+            padded = padded.map(lambda t: t.to(dtype) if t.is_floating_point() else t)
+        return padded.observations(comparison, lik.rating, lik.tie)
+
+    def replace_data(
+        self, data: PreferenceData | PaddedData, warm_f: Tensor | None = None, *, lazy: bool = False
+    ) -> PreferenceGP:
+        """Swap in new observations: a :class:`~torchpref.data.preference_data.PreferenceData`, or for
+        a batched model a :class:`~torchpref.inference.padding.PaddedData`, with Newton started from
+        ``warm_f`` (the mode of ``data``'s items, flattened batch first; ``None``: from zero).
+
+        By default the input transform learns from the new items and the mode is solved at once;
+        if that fails or is interrupted (any ``BaseException``: a ``KeyboardInterrupt`` leaves
+        nothing half-updated), the model is put back as it was and the error raised. With
+        ``lazy=True`` nothing is solved (the next prediction does it) and the input transform is
+        kept as it is: the data of a fantasy or of a batch's members, in the model's own inputs.
+
+        The one writer of the model's observations: :meth:`add_observations`, fantasies, the
+        batched model and sessions all go through it.
+
+        Returns:
+            ``self``.
+        """
+        if not isinstance(data, (PreferenceData, PaddedData)):
+            raise TypeError(f"data must be a PreferenceData or a PaddedData, got {type(data).__name__}.")
+        if lazy:
+            self._data, self._cache, self._warm_f = data, None, warm_f
+            return self
+        with self.rollback():
+            self._data, self._cache, self._warm_f = data, None, warm_f
+            self._fit_input_transform()
+            self._state()
+        self._check_scaling()
+        return self
+
+    @contextmanager
+    def rollback(self) -> Iterator[PreferenceGP]:
+        """A block after which the model is exactly as before it if the block raises (any
+        ``BaseException``): its observations, posterior cache and warm start are put back, with no
+        computation, and the input transform relearns the old items; the error goes on. A block
+        that completes keeps its changes. ::
+
+            with model.rollback():
+                model.add_observations(X, ratings=[0.7], rating_index=[0])
+                journal.append(record)  # fails: the answer is not in the model either
+        """
+        saved = (self._data, self._cache, self._warm_f)
+        try:
+            yield self
+        except BaseException:
+            self._data, self._cache, self._warm_f = saved
+            self._fit_input_transform()
+            raise
+
+    @property
+    def jitter(self) -> float | Tensor:
+        """The diagonal jitter added to the kernel matrix for its Cholesky factor (one per problem
+        for a batched model), at the current hyperparameters."""
+        return self._state().jitter
+
+    def add_observations(
+        self,
+        X: Tensor | None = None,
+        comparisons: Tensor | None = None,
+        ratings: Tensor | None = None,
+        rating_index: Tensor | None = None,
+        ties: Tensor | None = None,
+    ) -> PreferenceGP:
+        r"""Add items and observations in place, warm-starting the mode (no refit from scratch).
+
+        Indices in ``comparisons``, ``ties`` and ``rating_index`` refer to the rows of ``X`` when
+        ``X`` is given (rows equal to an existing item reuse its index), otherwise to ``train_X``.
+        Ratings are levels ``1..K`` for a model with ``rating_levels``. The input is validated and
+        the new mode solved before anything changes: on error the model is left exactly as it was.
+
+        Returns:
+            ``self``.
+        """
+        if not isinstance(self._data, PreferenceData):
+            raise NotImplementedError(
+                "add_observations needs a model of one problem; a batched model is "
+                "conditioned with condition_on_observations."
+            )
+        new = self._data.add(X, comparisons, ratings, rating_index, rating_eps=self.rating_eps, ties=ties)
+        warm = None
+        if self._cache is not None or self._data.num_observations:
+            f_old = self._state().mode.f[0]
+            if new.n > self._data.n:
+                with torch.no_grad():
+                    extra = self.posterior(new.train_X[self._data.n :].unsqueeze(-2)).mean.reshape(-1)
+                warm = torch.cat([f_old, extra])
+            else:
+                warm = f_old
+        self.replace_data(new, warm)
+        return self
+
+    def _apply(self, fn, *args, **kwargs):
+        super()._apply(fn, *args, **kwargs)
+        data = getattr(self, "_data", None)
+        if isinstance(data, PreferenceData):
+            self._data = PreferenceData(
+                *(fn(t) for t in (data.train_X, data.comparisons, data.ratings, data.rating_index, data.ties)),
+                data.rating_levels,
+            )
+        elif data is not None:
+            self._data = data.map(fn)
+        if data is not None:
+            self._cache, self._warm_f = None, None
+        return self
+
+    # ================================================================ predictives (eq. 11)
+    def marginals(self, X: Tensor) -> tuple[Tensor, Tensor]:
+        r"""Posterior mean and variance of the latent utility at each row of ``X`` (``... x d``),
+        each of ``X``'s shape without its last dimension: what ``posterior(X.unsqueeze(-2))``
+        gives, without building a batch of ``1 x 1`` covariances and distribution objects. For a
+        batched model, ``X`` is ``... x batch_shape x m x d``."""
+        Xt = self._prediction_inputs(X)
+        if X.shape[:-1].numel() == 0:  # an empty batch: empty results
+            empty = Xt.new_zeros(X.shape[:-1])
+            return empty, empty.clone()
+        if not self.batch_shape:  # one problem: all rows as one block
+            Xt = Xt.reshape(-1, X.shape[-1])
+        mean, var = self._predict(Xt, diag=True)
+        return mean.reshape(X.shape[:-1]), var.reshape(X.shape[:-1])
+
+    def expected_rating(self, X: Tensor) -> Tensor:
+        r"""Expected rating ``Phi(m / sqrt(2 sigma_B^2 + v))`` at each row of ``X`` (``... x d``);
+        returns the shape of ``X`` without its last dimension."""
+        mean, var = self.marginals(X)
+        return self.likelihood.rating.expected_rating(mean, var)
+
+    def expected_level(self, X: Tensor) -> Tensor:
+        r"""Expected level ``1 + sum_k Phi((m - c_k) / sqrt(sigma^2 + v))`` at each row of ``X``
+        (``... x d``), for a model with ``rating_levels``."""
+        return self._ordinal().expected_level(*self.marginals(X))
+
+    def level_probabilities(self, X: Tensor) -> Tensor:
+        r"""Predictive probability of each level at each row of ``X`` (``... x d``): ``... x K``."""
+        return self._ordinal().level_probabilities(*self.marginals(X))
+
+    def _ordinal(self) -> OrdinalRatingLikelihood:
+        if not isinstance(self.likelihood.rating, OrdinalRatingLikelihood):
+            raise ValueError("levels are predicted by a model with rating_levels=K (ordinal ratings).")
+        return self.likelihood.rating
+
+    def _pair_moments(self, Xa: Tensor, Xb: Tensor) -> tuple[Tensor, Tensor]:
+        """Posterior mean and variance of ``f(a) - f(b)``, row by row."""
+        if Xa.shape != Xb.shape:
+            raise ValueError(f"Xa and Xb must have the same shape, got {tuple(Xa.shape)} and {tuple(Xb.shape)}.")
+        mvn = self.posterior(torch.stack([Xa, Xb], dim=-2)).distribution
+        m, S = mvn.mean, mvn.covariance_matrix
+        return m[..., 0] - m[..., 1], S[..., 0, 0] + S[..., 1, 1] - 2 * S[..., 0, 1]
+
+    def preference_probability(self, Xa: Tensor, Xb: Tensor) -> Tensor:
+        r"""``P(a preferred to b)`` row by row (``... x d`` each): ``Phi((m_a - m_b) /
+        sqrt(2 sigma_R^2 + v_a + v_b - 2 c_ab))`` (with ``ties_offered``, ``m_a - m_b - tau``)."""
+        lik = self.likelihood.strict if self.ties_offered else self.likelihood.comparison
+        return lik.preference_probability(*self._pair_moments(Xa, Xb))
+
+    def tie_probability(self, Xa: Tensor, Xb: Tensor) -> Tensor:
+        r"""``P(no preference between a and b)`` row by row (``... x d`` each), the tie likelihood
+        integrated over the posterior of ``f(a) - f(b)``."""
+        return self.likelihood.tie.tie_probability(*self._pair_moments(Xa, Xb))
+
+    def best_item(self, X: Tensor | None = None) -> tuple[int, Tensor]:
+        r"""The item of highest posterior mean utility among the rows of ``X`` (``n x d``;
+        default :attr:`train_X`), in ``X``'s own coordinates (an input transform is applied as in
+        :meth:`posterior`).
+
+        Returns:
+            ``(row, item)``: the row of ``X`` (the first on a tie) and that ``d`` item.
+
+        Raises:
+            ValueError: a batched model, or ``X`` not ``n x d`` with ``n >= 1``.
+        """
+        if self.batch_shape:
+            raise ValueError(f"best_item needs a single model, this one has batch shape {tuple(self.batch_shape)}.")
+        X = self.train_X if X is None else X
+        d = self.train_X.shape[-1]
+        if not isinstance(X, Tensor) or X.dim() != 2 or X.shape[0] < 1 or X.shape[-1] != d:
+            raise ValueError(f"X must be an n x {d} tensor with n >= 1, got {getattr(X, 'shape', type(X).__name__)}.")
+        with torch.no_grad():
+            mean, _ = self.marginals(X)
+        i = int(mean.argmax())
+        return i, X[i]
+
+    # ================================================================ BoTorch's PairwiseGP interface
+    # ------------------------------------------------------------ names read by BoTorch
+    @property
+    def datapoints(self) -> Tensor:
+        r"""``batch_shape x n x d`` items as given (before any input transform):
+        ``PairwiseGP.datapoints``. For a prior-only model an empty ``0 x 0`` tensor of the
+        model's dtype and device."""
+        return self.train_X
+
+    @property
+    def dim(self) -> int | None:
+        """Number of input columns ``d`` (``None`` for a prior-only model that has seen no
+        items yet): ``PairwiseGP.dim``, read by BoTorch's EUBO input constructors."""
+        return self._data.dim or None
+
+    @property
+    def utility(self) -> Tensor:
+        r"""``batch_shape x n`` posterior-mode utilities of the items (``PairwiseGP.utility``), in
+        the model's dtype."""
+        return self.mode.f.reshape(*self.batch_shape, -1).to(self.train_X.dtype)
+
+    @property
+    def has_data(self) -> bool:
+        """Whether the model holds any item (a prior-only model does not)."""
+        return self.train_X.shape[-2] > 0
+
+    # ---------------------------------------------------------------- construction
+    @classmethod
+    def construct_inputs(cls, training_data: Any, **kwargs: Any) -> dict[str, Tensor]:  # type: ignore[override]
+        r"""Constructor keyword arguments from BoTorch's ``RankingDataset``.
+
+        A ranking dataset holds items (``X.values``, ``n x d``), the items of each query
+        (``X.indices``, ``r x m``) and the rank of each of them (``Y``, ``r x m``, 0 = best,
+        ties share a rank). A query becomes comparisons ``[preferred, other]`` between the items
+        of adjacent ranks: for ``m = 2`` exactly ``PairwiseGP``'s comparisons, for a strict
+        ranking of ``m`` items ``m - 1`` of them (tied items are not compared).
+
+        Returns:
+            ``{"train_X": n x d, "comparisons": p x 2}`` (plus ``kwargs``), for ``cls(**inputs)``.
+
+        Raises:
+            UnsupportedError: for any other dataset (as ``PairwiseGP`` does): a
+                ``SupervisedDataset``'s ``Y`` could be ratings or utilities; give ratings
+                explicitly with ``ratings=`` and ``rating_index=``.
+        """
+        if not isinstance(training_data, RankingDataset):
+            raise UnsupportedError(
+                f"PreferenceGP.construct_inputs supports only a RankingDataset, got {type(training_data).__name__}; "
+                "pass ratings to the constructor with ratings= and rating_index=."
+            )
+        X: Any = training_data._X  # a SliceContainer: values and indices
+        comparisons = ranking_comparisons(X.indices, training_data.Y)
+        return {"train_X": X.values, "comparisons": comparisons, **kwargs}
+
+    def subset_output(self, idcs: list[int]) -> PreferenceGP:
+        """A copy of this one-output model for ``idcs == [0]`` (BoTorch's output subsetting).
+
+        Raises:
+            ValueError: for any other output index.
+        """
+        if [int(i) for i in idcs] not in ([0], [-1]):
+            raise ValueError(f"PreferenceGP has one output (index 0); got output indices {list(idcs)}.")
+        return copy.deepcopy(self)
+
+    def load_state_dict(  # type: ignore[override]
+        self, state_dict: dict[str, Any], strict: bool = False, assign: bool = False
+    ) -> Any:
+        r"""Load hyperparameters; **non-strict by default**, as ``PairwiseGP.load_state_dict``.
+
+        A state dict holds hyperparameters (kernel, likelihoods, input transform), never the data.
+        With ``strict=False`` a key the model does not have is ignored (listed in the result's
+        ``unexpected_keys``) and a parameter the dict lacks keeps its current value (listed in
+        ``missing_keys``): an empty dict, as BoTorch's and Ax's cross-validation load, changes
+        nothing. A value of the wrong shape raises, as in PyTorch. ``strict=True`` (which
+        ``PairwiseGP`` refuses) requires exactly the model's keys. The posterior follows the new
+        values at the next call (its cache is keyed on every parameter).
+
+        Returns:
+            PyTorch's ``_IncompatibleKeys`` (``missing_keys``, ``unexpected_keys``).
+        """
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    # ------------------------------------------------------------------ data
+    def set_train_data(
+        self,
+        train_X: Tensor | None = None,
+        comparisons: Tensor | None = None,
+        ratings: Tensor | None = None,
+        rating_index: Tensor | None = None,
+        strict: bool = False,
+        update_model: bool = True,
+        ties: Tensor | None = None,
+    ) -> None:
+        r"""Replace all data; validated and the mode solved first, so the model is unchanged on
+        error. ``train_X=None`` keeps no items (a prior-only model keeps its unknown ``d``).
+
+        Args:
+            train_X: ``n x d`` items, or ``None``.
+            comparisons: ``p x 2`` long, rows ``[preferred, other]``.
+            ratings: ``q`` values in ``[0, 1]``, with ``rating_index`` (``q`` long).
+            strict: as in GPyTorch: the new items, comparisons and ratings must have the shapes,
+                dtype and device of the current ones (used when only values change).
+            update_model: accepted for ``PairwiseGP``'s signature; the mode is always re-solved.
+            ties: ``t x 2`` "no preference" pairs; ratings are levels for a model with ``rating_levels``.
+
+        Raises:
+            TrainDataMismatchError: ``strict`` and a shape, dtype or device differs.
+        """
+        old_X = self.train_X
+        if train_X is None:
+            if comparisons is not None or ratings is not None:
+                raise ValueError("comparisons and ratings need the items they index: train_X is None.")
+            train_X = old_X[..., :0, :]
+        if strict:
+            _check_strict(self, train_X, comparisons, ratings)
+        if train_X.dim() != 2:
+            raise UnsupportedError(
+                f"set_train_data takes n x d items, got shape {tuple(train_X.shape)}; "
+                "a batched model is built by the constructor or condition_on_observations."
+            )
+        if self._data.dim == 0 and train_X.shape[-1] == 0:
+            return
+        new = PreferenceData.create(
+            train_X,
+            comparisons,
+            ratings,
+            rating_index,
+            rating_eps=self.rating_eps,
+            ties=ties,
+            rating_levels=self.rating_levels,
+        )
+        self.replace_data(new.to(device=old_X.device, dtype=old_X.dtype), None)
+
+    def condition_on_observations(
+        self,
+        X: Tensor,
+        Y: Tensor | None = None,
+        *,
+        comparisons: Tensor | None = None,
+        ratings: Tensor | None = None,
+        rating_index: Tensor | None = None,
+        **kwargs: Any,
+    ) -> PreferenceGP:
+        r"""A new model with the items ``X`` and observations among them added (``self`` is
+        unchanged), with BoTorch's meaning of ``Y``.
+
+        * ``Y`` of integer dtype and shape ``m x 2`` holds comparisons, rows
+          ``[preferred, other]`` indexing the rows of ``X`` (``PairwiseGP``'s meaning and
+          what ``PairwiseSobolQMCNormalSampler`` fantasises); so does ``comparisons=``.
+        * Ratings go in by keyword only: ``ratings=`` (``q`` values in ``[0, 1]``) with
+          ``rating_index=`` (rows of ``X``; by default one rating per row of ``X``).
+
+        Batched ``X`` (``batch x m x d``), batched observations (``batch x m x 2`` comparisons,
+        ``batch x q`` ratings) or a batched model give a batched model, one problem per batch
+        element (:func:`~torchpref.models.fantasy.condition_batch`): fantasies.
+
+        Args:
+            X: ``m x d`` items (a row equal to an existing item reuses its index).
+            Y: comparisons as above, or ``None``.
+
+        Raises:
+            ValueError: for a floating-point ``Y`` (ratings and comparisons cannot be told
+                apart: use ``ratings=`` or a long ``Y``), an integer ``Y`` not of shape
+                ``m x 2``, or ``Y`` together with ``comparisons=``.
+        """
+        if not isinstance(X, Tensor):  # nested lists of numbers, as everywhere else in the API
+            X = torch.as_tensor(X, dtype=self.train_X.dtype, device=self.train_X.device)
+        if Y is not None:
+            if comparisons is not None:
+                raise ValueError("give comparisons either as Y or as comparisons=, not both.")
+            comparisons = _comparisons_from_Y(Y)
+        elif comparisons is not None:
+            comparisons = torch.as_tensor(comparisons)
+        if ratings is not None:
+            ratings = torch.as_tensor(ratings)
+            if ratings.dim() > 1 and ratings.shape[-1] == 1:  # BoTorch's m x 1 outcomes
+                ratings = ratings.squeeze(-1)
+            if rating_index is None:
+                rating_index = torch.arange(ratings.shape[-1], device=X.device).expand(ratings.shape)
+        if not self.has_data and self._data.dim == 0:  # prior-only: these become the data
+            return _condition_prior_only(self, X, comparisons, ratings, rating_index)
+        batched = (
+            self.batch_shape
+            or X.dim() > 2
+            or (comparisons is not None and comparisons.dim() > 2)
+            or (ratings is not None and ratings.dim() > 1)
+        )
+        if batched:
+            return condition_batch(self, X, comparisons, ratings, rating_index)
+        return copy.deepcopy(self).add_observations(X, comparisons, ratings, rating_index)
+
+    # ------------------------------------------------------------ observation noise
+    def _add_observation_noise(self, mvn: MultivariateNormal, observation_noise: bool | Tensor) -> MultivariateNormal:
+        r"""The posterior of the utility as a person perceives it when comparing: ``f + eps``
+        with independent ``eps ~ N(0, sigma_R^2)`` per item (eq. 3), or with the given
+        ``batch x q x 1`` (or ``q``) variances when ``observation_noise`` is a tensor."""
+        cov = mvn.covariance_matrix
+        if isinstance(observation_noise, Tensor):
+            noise = observation_noise.to(cov)
+            if noise.dim() > 1 and noise.shape[-1] == 1:
+                noise = noise.squeeze(-1)
+            try:
+                noise = noise.expand(cov.shape[:-1])
+            except RuntimeError:
+                raise ValueError(
+                    f"observation_noise must be variances of shape {(*cov.shape[:-1], 1)} (or "
+                    f"broadcast to it), got shape {tuple(observation_noise.shape)}."
+                ) from None
+            ok = (noise.detach() >= 0) & noise.detach().isfinite()
+            if not bool(ok.all()):
+                raise ValueError(
+                    f"observation_noise must be finite variances >= 0, got {noise.detach()[~ok][:3].tolist()}."
+                )
+        else:
+            noise = (self.likelihood.comparison.comparison_noise**2).to(cov).expand(cov.shape[:-1])
+        return MultivariateNormal(mvn.mean, DenseLinearOperator(cov + torch.diag_embed(noise)))
 
     # ------------------------------------------------------- predictives (eq. 11)
 

@@ -6,8 +6,6 @@ r"""A session's model as a cache of its answers, kept at constant cost per answe
   each answer (so that it can be undone later without a replay).
 * :func:`truncate`: the model taken back to its data before an answer (the data are appended in
   order, so the earlier model's data are a prefix), its mode warm-started from the current one.
-* :class:`Saved`: the model's data and posterior cache before an update, put back exactly if the
-  update or the record's write fails.
 * :func:`write_snapshot` / :func:`read_snapshot`: the posterior mode after the latest record, kept
   beside the file (``FILE.mode``): a resume starts Newton there and replays only the answers
   after it, so that it is the interrupted process's posterior (to round-off) at constant cost.
@@ -35,7 +33,6 @@ __all__ = [
     "MODE_MEMORY",
     "ModelCache",
     "REPLAY_LIMIT",
-    "Saved",
     "Sizes",
     "build_data",
     "header_digest",
@@ -138,7 +135,7 @@ def build_data(
 
 def mode(model: PreferenceGP) -> Tensor:
     """The model's current posterior mode ``f`` (``n``), solving it if need be."""
-    return model._state().mode.f[0].detach()
+    return model.mode.f.detach()
 
 
 def truncate(model: PreferenceGP, before: Sizes, f: Tensor | None = None) -> None:
@@ -150,21 +147,7 @@ def truncate(model: PreferenceGP, before: Sizes, f: Tensor | None = None) -> Non
     prefix = PreferenceData(
         d.train_X[:n], d.comparisons[:p], d.ratings[:r], d.rating_index[:r], d.ties[:t], d.rating_levels
     )
-    model._set_data(prefix, mode(model)[:n] if f is None else f)
-
-
-class Saved:
-    """A model's data and posterior cache, to put back exactly after a failed update."""
-
-    def __init__(self, model: PreferenceGP):
-        self.model = model
-        self.state = (model._data, model._cache, model._warm_f)
-
-    def restore(self) -> None:
-        """Put the saved data and cache back (no computation)."""
-        m = self.model
-        m._data, m._cache, m._warm_f = self.state
-        m._fit_input_transform()
+    model.replace_data(prefix, mode(model)[:n] if f is None else f)
 
 
 SNAPSHOT_FORMAT = "torchpref-session-mode"
@@ -266,7 +249,7 @@ class ModelCache:
             return self._replay(records) if records else model
         k, f = self._snapshot_start(records)
         data, before = build_data(self._anchor, records[:k], self.transform, model.rating_eps, model.rating_levels)
-        model._set_data(data, f if f is not None and f.numel() == data.n else None)
+        model.replace_data(data, f if f is not None and f.numel() == data.n else None)
         self._sizes = {r["seq"]: b for r, b in zip(records[:k], before, strict=True)}
         for rec in records[k:]:  # after the snapshot: through the live path, as they were told
             b, fb = sizes(model.data), mode(model)

@@ -21,7 +21,7 @@ append and its ``fsync`` happen as one, so a session may be shared by threads. A
 cannot write to its parent's file (:class:`~torchpref.sessions.journal.SessionForkError`).
 
 The model is a cache of the file's answers in force: an interrupted or failed update is undone
-exactly (:class:`~torchpref.sessions.model_state.Saved`), and a model that may not match is rebuilt,
+exactly (:meth:`~torchpref.PreferenceGP.rollback`), and a model that may not match is rebuilt,
 so a ``KeyboardInterrupt`` anywhere in :meth:`~PreferenceSession.tell` leaves the model, the file
 and the history agreeing.
 """
@@ -60,7 +60,7 @@ from torchpref.sessions.journal import (
     read_header,
     read_session_file,
 )
-from torchpref.sessions.model_state import ModelCache, Saved, Sizes, header_digest, mode, sizes, truncate
+from torchpref.sessions.model_state import ModelCache, Sizes, header_digest, mode, sizes, truncate
 from torchpref.sessions.recorded import SessionSettingsError, describe_model, describe_selector, resume_settings
 from torchpref.sessions.records import (
     FORMAT_VERSION,
@@ -512,28 +512,30 @@ class PreferenceSession(ModelCache):
         if isinstance(query, RankingQuery) and items.shape[0] < 2:
             raise ValueError(f"a choice needs at least 2 items shown, got {items.shape[0]}.")
         model = self.model
-        saved, before, f_before = Saved(model), sizes(model.data), mode(model)
+        before, f_before = sizes(model.data), mode(model)
         self._model_version = -1  # in flux: rebuilt from the file if this neither completes nor rolls back
         try:
-            value = record_answer(model, self._model_query(query.kind, items), answer, num_levels=self.num_levels)
-            rec = {
-                "type": "answer",
-                "v": FORMAT_VERSION,
-                "seq": self._journal.last_seq + 1,
-                "time": now(),
-                "kind": "rating" if query.kind == "rating" else ("choice" if value is not None else "no_preference"),
-                "items": items.tolist(),
-            }
-            if query.kind == "rating":
-                rec.update(answer=int(answer) if self.num_levels is not None else value, value=value)
-            else:
-                rec["answer"] = value
-            rec["query"] = info
-            rec["response_time"] = response_time
-            rec.update(times)
-            self._journal.append(rec)
+            with model.rollback():  # on any failure the model is put back exactly
+                value = record_answer(model, self._model_query(query.kind, items), answer, num_levels=self.num_levels)
+                rec = {
+                    "type": "answer",
+                    "v": FORMAT_VERSION,
+                    "seq": self._journal.last_seq + 1,
+                    "time": now(),
+                    "kind": "rating"
+                    if query.kind == "rating"
+                    else ("choice" if value is not None else "no_preference"),
+                    "items": items.tolist(),
+                }
+                if query.kind == "rating":
+                    rec.update(answer=int(answer) if self.num_levels is not None else value, value=value)
+                else:
+                    rec["answer"] = value
+                rec["query"] = info
+                rec["response_time"] = response_time
+                rec.update(times)
+                self._journal.append(rec)
         except BaseException:
-            saved.restore()
             self._model_version = self._version
             raise
         self._sizes[rec["seq"]] = before
@@ -559,22 +561,21 @@ class PreferenceSession(ModelCache):
             undone = SessionAnswer.from_record(last)
             model = self.model
             before = self._sizes.get(last["seq"])
-            saved = Saved(model)
             self._model_version = -1
             try:
-                if before is not None:
-                    truncate(model, before, self._modes.get(last["seq"]))
-                self._journal.append(
-                    {
-                        "type": "undo",
-                        "v": FORMAT_VERSION,
-                        "seq": self._journal.last_seq + 1,
-                        "time": now(),
-                        "undoes": undone.seq,
-                    }
-                )
+                with model.rollback():
+                    if before is not None:
+                        truncate(model, before, self._modes.get(last["seq"]))
+                    self._journal.append(
+                        {
+                            "type": "undo",
+                            "v": FORMAT_VERSION,
+                            "seq": self._journal.last_seq + 1,
+                            "time": now(),
+                            "undoes": undone.seq,
+                        }
+                    )
             except BaseException:
-                saved.restore()
                 self._model_version = self._version
                 raise
             self._sizes.pop(last["seq"], None)

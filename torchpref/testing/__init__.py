@@ -13,7 +13,12 @@ Nothing here is imported by the rest of the package; ``pytest`` is not needed to
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
+
+if TYPE_CHECKING:
+    from torchpref.models.preference_gp import PreferenceGP
 
 __all__ = ["DTYPE", "SEED", "assert_evidence_gradient", "rand", "randn", "random_comparisons"]
 
@@ -38,7 +43,7 @@ def random_comparisons(n: int, p: int, generator: torch.Generator) -> torch.Tens
     return torch.stack([i, j], dim=-1)
 
 
-def assert_evidence_gradient(model, params: dict, h: float = 1e-5, rtol: float = 1e-5) -> None:
+def assert_evidence_gradient(model: PreferenceGP, params: dict, h: float = 1e-5, rtol: float = 1e-5) -> None:
     """Autograd's gradient of ``model.log_marginal_likelihood()`` in each raw parameter of
     ``params`` (name -> tensor) against central differences of the re-solved evidence, element by
     element; each parameter is put back, so the evidence is unchanged afterwards."""

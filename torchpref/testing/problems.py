@@ -24,6 +24,7 @@ import math
 import time
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from gpytorch.kernels import RBFKernel, ScaleKernel
@@ -104,6 +105,22 @@ def make_problem(seed: int, max_n: int = 1500, pairwise_likelihood: bool = True)
     return Problem(seed, kind, X, C, u, ri, lengthscale, outputscale, lik)
 
 
+def random_config(seed: int) -> tuple[dict, Tensor, Tensor, Tensor, Tensor]:
+    """The hostile problem of ``seed`` from the fuzz (:func:`make_problem`), at most 15
+    items, with hostile likelihood parameters for every kind."""
+    p = make_problem(seed, max_n=15, pairwise_likelihood=False)
+    cfg = dict(
+        seed=seed,
+        n=p.n,
+        d=p.X.shape[-1],
+        kind=p.kind,
+        lengthscale=p.lengthscale,
+        outputscale=p.outputscale,
+        **p.likelihood,
+    )
+    return cfg, p.X, p.comparisons, p.ratings, p.rating_index
+
+
 def kernel(problem: Problem, dtype: torch.dtype) -> ScaleKernel:
     k = ScaleKernel(RBFKernel(ard_num_dims=problem.X.shape[-1])).to(dtype)
     k.base_kernel.lengthscale = problem.lengthscale
@@ -131,7 +148,7 @@ def build(problem: Problem, dtype: torch.dtype, laplace_dtype: torch.dtype | Non
     )
 
 
-def posterior_moments(model, X: Tensor, grad: bool) -> tuple[Tensor, Tensor]:
+def posterior_moments(model: PreferenceGP, X: Tensor, grad: bool) -> tuple[Tensor, Tensor]:
     """Joint posterior mean and covariance at ``X`` (``m x d``, the model's dtype), float64; with
     ``grad`` the inputs require a gradient (and one is taken, as an optimiser would)."""
     if grad:
@@ -149,13 +166,14 @@ def _run(problem: Problem, run: str, Xq: Tensor) -> dict:
     """One model of :data:`RUNS`: its outcome, moments (``None`` where it raised) and seconds
     (building, the mode, the posterior with autograd off and on)."""
     dtype, laplace_dtype = RUNS[run]
-    out = {"error": None, "nan": False, "converged": None, "iterations": None, "moments": None, "jitter": None}
+    out: dict[str, Any] = {"error": None, "nan": False, "converged": None, "iterations": None}
+    out.update(moments=None, jitter=None)
     t = time.perf_counter()
     try:
         model = build(problem, dtype, laplace_dtype)
         mode = model.mode
         out["converged"], out["iterations"] = bool(mode.converged), int(mode.iterations)
-        out["jitter"] = float(model._state().jitter) / problem.outputscale  # the diagonal jitter of L
+        out["jitter"] = float(model.jitter) / problem.outputscale  # the diagonal jitter of L
         out["moments"] = {grad: posterior_moments(model, Xq.to(dtype), grad) for grad in (False, True)}
         out["nan"] = not bool(torch.isfinite(mode.f).all()) or any(
             not (torch.isfinite(m).all() and torch.isfinite(S).all()) for m, S in out["moments"].values()
@@ -170,7 +188,7 @@ def _pairwisegp(problem: Problem, Xq: Tensor) -> dict:
     """BoTorch's ``PairwiseGP`` in float32 on a comparisons-only problem."""
     from botorch.models.pairwise_gp import PairwiseGP
 
-    out = {"error": None, "nan": False}
+    out: dict[str, Any] = {"error": None, "nan": False}
     try:
         model = PairwiseGP(problem.X.to(F32), problem.comparisons, covar_module=kernel(problem, F32))
         mean, cov = posterior_moments(model, Xq.to(F32), grad=False)
@@ -216,7 +234,7 @@ def check(problem: Problem, pairwisegp: bool = True, runs: tuple[str, ...] = tup
     for name in runs[1:]:
         for grad in (False, True):
             tag = "grad" if grad else "nograd"
-            gaps = (None, None)
+            gaps: tuple[float | None, float | None] = (None, None)
             if res["f64"]["moments"] is not None and res[name]["moments"] is not None:
                 gaps = relative_gap(res[name]["moments"][grad], res["f64"]["moments"][False], problem.outputscale)
             rec[f"{name}_gap_mean_{tag}"], rec[f"{name}_gap_cov_{tag}"] = gaps
@@ -235,7 +253,7 @@ def _log_uniform_tensor(lo: float, hi: float, g: torch.Generator, shape=()) -> t
     return torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * u)
 
 
-def hostile_model(seed: int, max_n: int = 15):
+def hostile_model(seed: int, max_n: int = 15) -> tuple[Problem, PreferenceGP]:
     """The hostile problem of ``seed`` and a model started from hostile hyperparameters."""
     from gpytorch.kernels import RBFKernel, ScaleKernel
 
@@ -263,7 +281,7 @@ def hostile_model(seed: int, max_n: int = 15):
     return p, model
 
 
-def usable(model) -> str | None:
+def usable(model: PreferenceGP) -> str | None:
     """Why ``model`` is not usable after a fit (``None``: it is)."""
     if not all(bool(torch.isfinite(v).all()) for v in model.parameters()):
         return "non-finite hyperparameters"
