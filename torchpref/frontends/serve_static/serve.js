@@ -145,11 +145,13 @@
   // The answer controls wait for the question's pictures: the clock starts once they are decoded.
   async function showWhenDecoded(qid, box) {
     box.classList.add("loading");
+    box.setAttribute("aria-busy", "true");
     document.body.dataset.ready = "false";
     const imgs = [...box.querySelectorAll("img")];
     const failed = (await Promise.all(imgs.map((i) => i.decode().then(() => false, () => true)))).some((x) => x);
     if (!state || state.qid !== qid || box !== $("question")) return; // another question since
     box.classList.remove("loading");
+    box.setAttribute("aria-busy", "false");
     if (failed) message("A picture could not be shown; answer from the figures, or reload the page.");
     markShown(qid);
     ready = true;
