@@ -30,15 +30,20 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/python -m torchpref.demo
 
+# `make test`: the suite without the tests marked slow (kills, browsers, long loops, the longer
+# grids); `make test-slow`: only those. CI (CI=true) runs both, then the checks.
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 ifeq ($(CI),true)
-	$(MAKE) lint types docs wheel-check test-floor
+	$(MAKE) test-slow lint types docs wheel-check test-floor
 endif
 
 # every results file under benchmarks/results: fresh, stale (its measured code changed) or unstamped
 results-status: $(STAMP)
 	$(BIN)/python benchmarks/results_status.py
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
 
 bench: $(STAMP)
 	$(BIN)/python -m pytest benchmarks/ --benchmark-only -q
@@ -104,4 +109,4 @@ test-integrations:
 clean:
 	rm -rf $(VENV) .venv-floor .venv-ax .venv-bofire .cache/upstream dist build docs/_build docs/_generated docs/jupyter_execute
 
-.PHONY: venv demo test results-status bench lint format types docs wheel wheel-check clean test-floor upstream-tests test-integrations
+.PHONY: venv demo test test-slow results-status bench lint format types docs wheel wheel-check clean test-floor upstream-tests test-integrations

@@ -97,6 +97,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"torchpref {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
+    _reproduce_parser(sub)
+    _elicit_parser(sub)
+    _serve_parser(sub)
+    return parser
+
+
+def _reproduce_parser(sub) -> None:
+    """``torchpref reproduce``'s experiments and their arguments."""
     rep = sub.add_parser("reproduce", help="reproduce one of the paper's experiments")
     rep_sub = rep.add_subparsers(dest="experiment", required=True)
     _experiment_args(rep_sub.add_parser("wave", help="the 1-D wave-function experiment (Fig. 6)"), 100, 20)
@@ -145,8 +153,12 @@ def build_parser() -> argparse.ArgumentParser:
         "information, per second, information + 0.5 random)",
     )
     rp.set_defaults(trials=None)
+
+
+def _elicit_parser(sub) -> None:
+    """``torchpref elicit``'s arguments (docs/sessions.md)."""
     el = sub.add_parser("elicit", help="learn your preferences in the terminal")
-    el.add_argument("world", nargs="?", choices=["lake"], help="a built-in world to elicit over")
+    el.add_argument("world", nargs="?", metavar="WORLD", help="a built-in world to elicit over: lake")
     el.add_argument("--features", help="CSV of items' objective values (a header row, one row per item)")
     el.add_argument(
         "--id",
@@ -172,14 +184,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--seed", type=int, default=None, help="seed of a new session (default 0; a resumed session keeps its own)"
     )
     el.add_argument("--out", default=".", help="where to write figures (default: current folder)")
-    _serve_parser(sub)
-    return parser
 
 
 def _serve_parser(sub) -> None:
     """``torchpref serve``'s arguments (docs/serve.md)."""
     sv = sub.add_parser("serve", help="the answering page in a browser, one session per participant")
-    sv.add_argument("world", nargs="?", choices=["lake"], help="a built-in world to serve")
+    sv.add_argument("world", nargs="?", metavar="WORLD", help="a built-in world to serve: lake")
     sv.add_argument("--features", help="CSV of items' objective values (as for elicit)")
     sv.add_argument("--id", dest="id_column", metavar="COLUMN", help="the CSV column that names the items")
     sv.add_argument("--image-column", metavar="COLUMN", help="the CSV column naming each item's image file")
@@ -292,7 +302,35 @@ def _reproduce(args) -> int:
     return code
 
 
+WORLDS = ("lake",)
+"""The built-in worlds of ``elicit`` and ``serve``."""
+CSV_OPTIONS = ("--csv", "--items", "--file", "--input", "--data", "--feature")
+"""Options a newcomer may try for the CSV of items (``--features`` is the one)."""
+
+
+def _check_world(world: str | None, features: str | None = None) -> None:
+    """A world's name, or a CSV given where the world goes: named, with ``--features``."""
+    if world is None or world in WORLDS:
+        return
+    if features is not None:
+        raise UsageError(f"unexpected argument {world!r}: the items are the --features CSV ({features})")
+    if world.lower().endswith((".csv", ".tsv", ".txt")) or Path(world).is_file():
+        raise UsageError(f"{world!r} is not a built-in world: to use a CSV of items, give it as --features {world}")
+    raise UsageError(f"unknown world {world!r}: the built-in world is {', '.join(WORLDS)} (or --features FILE)")
+
+
+def _unknown_options(unknown: list[str]) -> UsageError:
+    """The error for options the command does not have, naming them (and ``--features`` for a CSV)."""
+    names = [u for u in unknown if u.startswith("-")] or unknown
+    hint = ""
+    if any(u.split("=")[0] in CSV_OPTIONS or u.lower().endswith(".csv") for u in unknown):
+        hint = "; a CSV of items is given with --features FILE"
+    what = "option" if len(names) == 1 else "options"
+    return UsageError(f"unknown {what} {' '.join(names)} (see --help){hint}")
+
+
 def _elicit(args) -> int:
+    _check_world(args.world, args.features)
     if (args.world is None) == (args.features is None):
         raise UsageError("give either a world (lake) or --features FILE")
     if args.no_session and args.session:
@@ -305,6 +343,7 @@ def _elicit(args) -> int:
 
 
 def _serve(args) -> int:
+    _check_world(args.world, args.features)
     if (args.world is None) == (args.features is None):
         raise UsageError("give either a world (lake) or --features FILE")
     if args.features is None and (args.image_column or args.image_dir or args.id_column):
@@ -344,8 +383,10 @@ def _warning_line(message, category, filename, lineno, file=None, line=None) -> 
 def _main(argv: list[str] | None) -> int:
     command = "torchpref"
     try:
-        args = build_parser().parse_args(argv)
+        args, unknown = build_parser().parse_known_args(argv)
         command = f"torchpref {args.command}"
+        if unknown:
+            raise _unknown_options(unknown)
         if (line := _missing_extra(args)) is not None:
             print(line, file=sys.stderr)
             return MISSING_EXTRA

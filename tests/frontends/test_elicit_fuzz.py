@@ -133,6 +133,7 @@ def drive(child, rng: random.Random, acked: list, max_steps: int = 40) -> str:
     return "quit"
 
 
+@pytest.mark.slow  # a long loop (27-38 s here): make test-slow, which CI runs
 @pytest.mark.parametrize("run", range(int(os.environ.get("TORCHPREF_FUZZ_RUNS", "2"))))
 def test_hostile_keystrokes_lose_nothing(tmp_path, run):
     rng = random.Random(1000 + run)
@@ -260,6 +261,7 @@ def test_damaged_session_files_through_the_terminal(tmp_path):
 
 
 # ------------------------------------------------------------------ a kill of the terminal front end
+@pytest.mark.slow  # SIGKILLs (51 s here at load 6-8): make test-slow, which CI runs
 def test_sigkill_of_torchpref_elicit_loses_no_acknowledged_answer(tmp_path):
     items, session = tmp_path / "items.csv", tmp_path / "s.jsonl"
     items.write_text(CSV)

@@ -45,6 +45,7 @@ def next_query(child) -> tuple[int, str, str] | None:
     return number, ("rating" if j == 0 else "ranking"), child.before
 
 
+@pytest.mark.slow  # a long loop (27-38 s here): make test-slow, which CI runs
 def test_lake_elicitation_14_queries_with_bad_answers_undo_and_help(tmp_path):
     session, out = tmp_path / "lake.jsonl", tmp_path / "figures"
     child = spawn("lake", "--session", session, "--out", out, "--queries", 14, "--seed", 0)

@@ -409,13 +409,20 @@ def render(item, index):
     fig.add_subplot().bar([0, 1], item.tolist())
     return fig
 
-torchpref.serve(session, render=render, port=int(sys.argv[2]), noun="design")
+def ready(url):  # called once the server accepts connections: the page is there
+    import urllib.request
+    with urllib.request.urlopen(url + "state", timeout=60) as r:
+        print("READY", url, r.status, flush=True)
+
+torchpref.serve(session, render=render, host=sys.argv[3], port=int(sys.argv[2]), noun="design", ready=ready)
 """
 
 
 def test_serve_from_python_in_a_process(tmp_path):
-    """``torchpref.serve(session, render=...)`` as a user's script runs it: the page, its
-    pictures, an answer with its response time in the user's session file."""
+    """``torchpref.serve(session, render=...)`` as a user's script runs it, on another loopback
+    address than 127.0.0.1 (its own address is an allowed Host): ``ready`` is called once the
+    page can be fetched, then the page, its pictures, an answer with its response time in the
+    user's session file."""
     import subprocess
     import sys
 
@@ -427,12 +434,12 @@ def test_serve_from_python_in_a_process(tmp_path):
     log = open(tmp_path / "log.txt", "w+")
     env = dict(os.environ, MPLBACKEND="Agg")
     proc = subprocess.Popen(
-        [sys.executable, str(script), str(tmp_path / "me.session.jsonl"), str(port)],
+        [sys.executable, str(script), str(tmp_path / "me.session.jsonl"), str(port), "127.0.0.2"],
         stdout=log,
         stderr=subprocess.STDOUT,
         env=env,
     )
-    base = f"http://127.0.0.1:{port}/s/me/"
+    base = f"http://127.0.0.2:{port}/s/me/"
     try:
         import time
 
@@ -449,7 +456,7 @@ def test_serve_from_python_in_a_process(tmp_path):
         import urllib.request
 
         pic = st["question"]["options"][0]["picture"].rsplit("/", 1)[1]
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/picture/{pic}", timeout=60) as r:
+        with urllib.request.urlopen(f"http://127.0.0.2:{port}/picture/{pic}", timeout=60) as r:
             assert r.read().startswith(b"\x89PNG")
         a = 3 if st["question"]["kind"] == "rating" else 0
         status, reply, _ = post(base + "answer", {"qid": st["qid"], "answer": a, "response_time": 4.5})
@@ -457,7 +464,11 @@ def test_serve_from_python_in_a_process(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+        log.seek(0)
+        printed = log.read()
         log.close()
+    assert f"READY http://127.0.0.2:{port}/s/me/ 200" in printed, printed[-3000:]
+    assert printed.index("torchpref serve: open") < printed.index("READY")  # the link is printed once it works
     recs = _answers(tmp_path / "me.session.jsonl")
     assert len(recs) == 1 and recs[0]["response_time"] == 4.5
 

@@ -23,6 +23,8 @@ import pytest
 
 from torchpref.testing.serve import CHROMIUM, CHROMIUM_ARGS, Server, acknowledged_in_file, choose, records, write_items
 
+pytestmark = pytest.mark.slow  # a browser and server processes: make test-slow (CI runs it)
+
 if not os.path.exists(CHROMIUM):
     pytest.skip(
         f"no Chromium at {CHROMIUM} (Debian: apt-get install chromium; or set TORCHPREF_CHROMIUM)",
@@ -60,12 +62,14 @@ def browser():
             b.close()
 
 
-def _start_session(page, url: str) -> str:
+def _start_session(page, url: str, ready: bool = True) -> str:
     page.goto(url)
     page.wait_for_function("document.activeElement && document.activeElement.id === 'start'", timeout=ACK_MS)
     page.keyboard.press("Enter")  # the Start button has the focus
     page.wait_for_url("**/s/*/", timeout=ACK_MS)
     page.wait_for_selector("body[data-qid]", timeout=ACK_MS)
+    if ready:
+        _wait_ready(page)
     return page.url.rstrip("/").rsplit("/", 1)[1]
 
 
@@ -73,8 +77,16 @@ def _state(page) -> dict:
     return page.evaluate("window.torchpref.state()")
 
 
+def _wait_ready(page) -> None:
+    """The question on screen is shown in full (its pictures decoded): it can be answered."""
+    page.wait_for_function(
+        "document.body.dataset.ready === 'true' || !!document.getElementById('to-summary')", timeout=ACK_MS
+    )
+
+
 def _wait_answered(page, n: int) -> None:
     page.wait_for_function(f"document.body.dataset.answered === '{n}'", timeout=ACK_MS)
+    _wait_ready(page)
 
 
 def _answer(page, k: int, by_keyboard: bool, tie: bool = False):
@@ -121,6 +133,7 @@ def test_twenty_questions_by_mouse_and_keyboard(server, browser, tmp_path):
         if len(given) == 6 and undone_at is None:  # reload mid-question: the same question
             page.reload()
             page.wait_for_selector("body[data-qid]", timeout=ACK_MS)
+            _wait_ready(page)
             assert _state(page)["qid"] == st["qid"]
         a = _answer(page, k, by_keyboard=k % 2 == 1, tie=k >= 3 and not tie_seen)
         tie_seen |= a is None
@@ -201,22 +214,96 @@ def test_server_killed_mid_answer_and_restarted(server, browser):
     assert len(recs) == 7 and not acknowledged_in_file([(a["qid"], a["answer"]) for a in acked], recs)
 
 
+def test_the_clock_starts_when_the_pictures_are_shown(server, browser):
+    """Pictures held back (a slow network): the question shows "loading", its answer controls are
+    disabled and its keys do nothing; once the pictures are decoded the clock starts, and the
+    journal's shown_at is after the pictures were let through, its response_time that of the
+    person alone (answered_at - shown_at)."""
+    import datetime as dt
+
+    page = browser.new_page(viewport={"width": 1280, "height": 900}, bypass_csp=True)
+    holding, held = {"on": True}, []
+    page.route("**/picture/**", lambda route: held.append(route) if holding["on"] else route.continue_())
+    sid = _start_session(page, server.url, ready=False)
+    page.wait_for_selector("#question.loading", timeout=ACK_MS)
+    assert page.locator("#loading").is_visible()
+    assert all(page.eval_on_selector_all("#question button.answer", "bs => bs.map(b => b.disabled)"))
+    q = _state(page)["question"]
+    for key in ("1", "2", "a", "Enter"):  # answers before the pictures show: nothing is sent
+        page.keyboard.press(key)
+    page.wait_for_timeout(1500)  # the pictures are still held back
+    assert held and page.evaluate("window.torchpref.log.acked.length") == 0
+    path = server.folder / "sessions" / f"{sid}.session.jsonl"
+    assert records(path) == [] and page.locator("#question.loading").count() == 1
+    released = page.evaluate("Date.now()")
+    holding["on"] = False
+    for route in held:
+        route.continue_()
+    _wait_ready(page)
+    assert not page.locator("#loading").is_visible()
+    a = _answer(page, 0, by_keyboard=True)
+    _wait_answered(page, 1)
+    (rec,) = records(path)
+    assert rec["answer"] == a and rec["items"] and q["options"]
+
+    def ms(text: str) -> float:
+        return dt.datetime.fromisoformat(text).timestamp() * 1000
+
+    shown, answered = ms(rec["shown_at"]), ms(rec["answered_at"])
+    assert shown >= released  # the clock started after the pictures were let through
+    assert abs(rec["response_time"] - (answered - shown) / 1000) < 0.002  # the wait is not in it
+    assert page.evaluate("window.torchpref.log.acked[0].shown_at") == shown
+
+
 def test_lake_page(tmp_path, browser):
-    """``torchpref serve lake``: each path drawn on its map, answered by keyboard."""
-    srv = Server(["lake", "--sessions", "sessions", "--queries", "3"], tmp_path)
+    """``torchpref serve lake``: each path drawn on its map, answered by keyboard; a best-of-5
+    question in a 1280 px window gives each map at least 340 px, Shift + a letter (or a click)
+    enlarges one, Escape closes it, and the recommendation is one line until opened."""
+    srv = Server(["lake", "--sessions", "sessions", "--queries", "10"], tmp_path)
     srv.start()
+    shots = {}
     try:
-        page = browser.new_page(viewport={"width": 1400, "height": 1000}, bypass_csp=True)
+        page = browser.new_page(viewport={"width": 1280, "height": 900}, bypass_csp=True)
         _start_session(page, srv.url)
         q = _state(page)["question"]
         assert q["options"][0]["label"].startswith("path ")
         page.wait_for_function(
-            "[...document.querySelectorAll('img.picture')].every(i => i.complete && i.naturalWidth > 300)",
+            "[...document.querySelectorAll('#question img.picture')].every(i => i.complete && i.naturalWidth > 600)",
             timeout=ACK_MS,
         )
-        assert page.locator("img.picture").count() == len(q["options"])
-        _answer(page, 0, by_keyboard=True)
-        _wait_answered(page, 1)
-        assert page.locator("#recommended img.picture").count() == 1  # the recommended path's map
+        assert page.locator("#question img.picture").count() == len(q["options"])
+        k = 0
+        while k == 0 or _state(page)["question"]["kind"] != "ranking":  # one answer: a recommendation
+            _answer(page, k, by_keyboard=True)
+            k += 1
+            _wait_answered(page, k)
+        q = _state(page)["question"]
+        widths = page.eval_on_selector_all("#question img.picture", "imgs => imgs.map(i => i.clientWidth)")
+        assert len(widths) == len(q["options"]) == 5 and min(widths) >= 340, widths
+        assert page.locator("#recommended img.picture").count() == 1  # the recommended path's map ...
+        assert not page.locator("#recommended img.picture").is_visible()  # ... only when opened
+        shots["serve_lake_best_of_5"] = tmp_path / "serve_lake_best_of_5.png"
+        page.screenshot(path=str(shots["serve_lake_best_of_5"]), full_page=True)
+        page.keyboard.press("Shift+B")
+        page.wait_for_function("document.getElementById('zoom').open", timeout=ACK_MS)
+        page.wait_for_function("document.getElementById('zoom-img').naturalWidth > 600", timeout=ACK_MS)
+        zoomed = page.evaluate("document.getElementById('zoom-img').clientWidth")
+        assert zoomed > 2 * min(widths) and q["options"][1]["label"] in page.inner_text("#zoom-title")
+        shots["serve_lake_enlarged"] = tmp_path / "serve_lake_enlarged.png"
+        page.screenshot(path=str(shots["serve_lake_enlarged"]))
+        page.keyboard.press("2")  # no answer while the enlarged picture is open
+        page.keyboard.press("Escape")
+        page.wait_for_function("!document.getElementById('zoom').open", timeout=ACK_MS)
+        assert _state(page)["answered"] == k
+        page.locator("#question button.enlarge").nth(0).click()  # a click enlarges too
+        page.wait_for_function("document.getElementById('zoom').open", timeout=ACK_MS)
+        page.keyboard.press("Escape")
+        _answer(page, 1, by_keyboard=True)
+        _wait_answered(page, k + 1)
     finally:
         srv.stop()
+    out = os.environ.get("TORCHPREF_SCREENSHOT_DIR")
+    if out:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        for p in shots.values():
+            shutil.copy(p, Path(out) / p.name)

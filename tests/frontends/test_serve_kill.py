@@ -1,6 +1,7 @@
 """``torchpref serve`` killed with SIGKILL while answers are in flight, restarted each time: no
-acknowledged answer is lost (:func:`torchpref.testing.serve.kill_run`). Four kills in the default run;
-twenty in the slow one (``benchmarks/durability/serve_kill.py`` runs it and keeps the results)."""
+acknowledged answer is lost (:func:`torchpref.testing.serve.kill_run`). Four kills, and twenty
+(``benchmarks/durability/serve_kill.py`` runs that and keeps the results); both marked slow
+(``make test-slow``, which CI runs)."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ def _check(result: dict, kills: int) -> None:
     assert sum(result["outcomes"].values()) == kills and result["server_starts"] == kills + 1
 
 
+@pytest.mark.slow
 def test_four_kills(tmp_path):
     _check(kill_run(tmp_path, kills=4, seed=1), 4)
 

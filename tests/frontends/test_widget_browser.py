@@ -24,6 +24,8 @@ from pathlib import Path
 import pytest
 
 CHROMIUM = os.environ.get("TORCHPREF_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
+pytestmark = pytest.mark.slow  # a browser: make test-slow (CI runs it)
+
 if not os.path.exists(CHROMIUM):
     pytest.skip(
         f"no Chromium at {CHROMIUM} (Debian: apt-get install chromium; or set TORCHPREF_CHROMIUM)",

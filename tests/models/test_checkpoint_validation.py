@@ -171,3 +171,14 @@ def test_a_good_checkpoint_still_loads_to_the_same_posterior(tmp_path):
     X = torch.rand(4, 2, dtype=F64, generator=torch.Generator().manual_seed(2))
     assert loaded.ties_offered is True
     torch.testing.assert_close(loaded.posterior(X).mean, model.posterior(X).mean, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("name", ["m" * 252 + ".pt", "\u00e9" * 126 + ".pt"])  # 255 bytes: the longest legal name
+def test_save_model_onto_the_longest_legal_file_name(tmp_path, name):
+    assert len(os.fsencode(name)) == 255
+    model = _model()
+    torchpref.save_model(model, tmp_path / name)
+    torchpref.save_model(model, tmp_path / name)  # and over it
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # no temporary file left
+    loaded = torchpref.load_model(tmp_path / name)
+    assert torch.equal(loaded.train_inputs[0], model.train_inputs[0])

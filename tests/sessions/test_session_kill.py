@@ -23,7 +23,10 @@ import time
 import pytest
 import torch
 
-pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs POSIX signals")
+pytestmark = [  # processes killed with SIGKILL: make test-slow (CI runs it)
+    pytest.mark.slow,
+    pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs POSIX signals"),
+]
 
 TOTAL = 50
 SEED = 11

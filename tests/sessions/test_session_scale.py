@@ -57,6 +57,7 @@ def posterior(model, Z):
     return post.mean.reshape(-1), post.variance.reshape(-1)
 
 
+@pytest.mark.slow  # a long loop (27-38 s here): make test-slow, which CI runs
 def test_incremental_session_undo_and_resume_agree_with_a_full_replay(tmp_path):
     X = pool()
     path = tmp_path / "s.jsonl"

@@ -91,6 +91,19 @@ def _label_column(path: Path, header: list[str], body: list[list[str]], id_colum
     return None
 
 
+_IMAGE_ENDINGS = (".png", ".jpg", ".jpeg", ".gif", ".webp", ".svg", ".bmp")
+
+
+def _hint(value: str, column: str, label_column: int | None) -> str:
+    """What a cell that is not a number may be: an image file's name, or the items' names."""
+    if value.strip().lower().endswith(_IMAGE_ENDINGS):
+        return (
+            f" (a column of image files? torchpref serve shows them with --image-column {printable(column)}, "
+            "and reads the CSV without that column)"
+        )
+    return " (a column that names the items: --id COLUMN)" if label_column is None else ""
+
+
 def read_features_csv(path: str | Path, id_column: str | None = None) -> tuple[Tensor, list[str], list[str] | None]:
     """Items from a CSV: a header row of column names, then one row per item.
 
@@ -123,7 +136,7 @@ def read_features_csv(path: str | Path, id_column: str | None = None) -> tuple[T
             if v is None or not math.isfinite(v):
                 raise FeaturesError(
                     f"{path}, row {i}, column {printable(header[j])!r}: {printable(r[j])!r} is not a "
-                    "finite number" + (" (a column that names the items: --id COLUMN)" if lab is None else "") + "."
+                    "finite number" + _hint(r[j], header[j], lab) + "."
                 )
             row.append(v)
         values.append(row)

@@ -185,7 +185,13 @@ def prepare_ratings(
     _check_finite("ratings", r)
     if ((r < 0) | (r > 1)).any():
         bad = r[(r < 0) | (r > 1)][:3].tolist()
-        raise ValueError(f"ratings must lie in [0, 1], got {bad}.")
+        hint = (
+            " Ratings on a scale of levels 1..K (a Likert scale) map into [0, 1] with "
+            "torchpref.likert_to_unit(levels, num_levels=K)."
+            if (r > 1).any()
+            else ""
+        )
+        raise ValueError(f"ratings must lie in [0, 1], got {bad}.{hint}")
     if not 0 < eps < 0.5:
         raise ValueError(f"rating_eps must lie in (0, 0.5), got {eps}.")
     at_edge = (r == 0) | (r == 1)

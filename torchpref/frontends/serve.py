@@ -25,12 +25,15 @@ pictures are served by item number only. See ``docs/serve.md``.
 
 from __future__ import annotations
 
+import asyncio
+import errno
 import hmac
 import inspect
 import ipaddress
 import json
 import secrets
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -46,6 +49,12 @@ __all__ = ["ServeError", "create_app", "run", "serve"]
 
 HERE = Path(__file__).parent
 MAX_BODY = 4096
+HEADER_TIMEOUT_S = 15.0
+"""A connection must send a request's headers within this many seconds (else it is closed)."""
+BODY_TIMEOUT_S = 15.0
+"""A request's body must arrive within this many seconds (else ``408``)."""
+MAX_CONNECTIONS = 200
+"""Connections served at once; more get ``503``."""
 TOKEN_COOKIE = "torchpref_token"
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
 HEADERS = {
@@ -143,7 +152,8 @@ class _Handlers:
             except AnswerRefused as err:
                 if request.method == "GET" and "text/html" in request.headers.get("accept", ""):
                     return self.page("error.html", err.status, message=str(err))
-                return JSONResponse({"error": str(err), "state": err.state}, status_code=err.status)
+                headers = {"Retry-After": "5"} if err.status in (503, 507) else None
+                return JSONResponse({"error": str(err), "state": err.state}, status_code=err.status, headers=headers)
 
         return wrapped
 
@@ -154,13 +164,14 @@ class _Handlers:
         origin = request.headers.get("origin")
         if origin is not None and origin != f"{request.url.scheme}://{request.headers.get('host')}":
             raise AnswerRefused(f"a request from another site ({origin[:80]}) is refused.", 403)
-        data = b""
-        async for chunk in request.stream():
-            data += chunk
-            if len(data) > MAX_BODY:
-                raise AnswerRefused(f"the request is over {MAX_BODY} bytes.", 413)
+        try:  # a client sending its body slowly is cut off
+            data = await asyncio.wait_for(_read_body(request), BODY_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            raise AnswerRefused(f"the request's body did not arrive within {BODY_TIMEOUT_S:.0f} s.", 408) from None
         try:
             return json.loads(data.decode(), parse_constant=_no_constant)
+        except RecursionError:
+            raise AnswerRefused("the request is not JSON this server reads (nested too deeply).", 400) from None
         except (UnicodeDecodeError, ValueError) as exc:
             raise AnswerRefused(f"the request is not JSON ({str(exc)[:80]}).", 400) from None
 
@@ -262,6 +273,21 @@ def _host_name(host: str) -> str:
     return host.rsplit(":", 1)[0]
 
 
+async def _read_body(request) -> bytes:
+    data = b""
+    async for chunk in request.stream():
+        data += chunk
+        if len(data) > MAX_BODY:
+            raise AnswerRefused(f"the request is over {MAX_BODY} bytes.", 413)
+    return data
+
+
+def _same_token(given: str, token: str) -> bool:
+    """Whether ``given`` is ``token``, compared in constant time as UTF-8 bytes (a string with
+    characters outside ASCII is a wrong token, not an error)."""
+    return hmac.compare_digest(given.encode("utf-8", "surrogatepass"), token.encode("utf-8", "surrogatepass"))
+
+
 def _no_constant(name: str):
     raise ValueError(f"{name} is not a number")
 
@@ -288,13 +314,13 @@ class _Guard:
         if self.token is not None:
             url = URL(scope=scope)
             given = QueryParams(scope.get("query_string", b"")).get("token")
-            if given is not None and hmac.compare_digest(given, self.token):
+            if given is not None and _same_token(given, self.token):
                 target = url.remove_query_params("token")
                 response = RedirectResponse(target.path + (f"?{target.query}" if target.query else ""), 303)
                 response.set_cookie(TOKEN_COOKIE, self.token, httponly=True, samesite="strict")
                 return await response(scope, receive, send)
             cookie = cookie_parser(headers.get("cookie", "")).get(TOKEN_COOKIE, "")
-            if not hmac.compare_digest(cookie, self.token):
+            if not _same_token(cookie, self.token):
                 return await PlainTextResponse("a token is needed: open the link with ?token=...", 403)(
                     scope, receive, send
                 )
@@ -362,7 +388,8 @@ def serve(
         num_queries, seed, num_levels, ties: each new session's settings.
         host, port: where to listen (``port=0``: a free one); another host than the loopback
             needs ``allow_remote=True`` and a token (one is made and printed if not given).
-        ready: called with the page's URL once the server listens.
+        ready: called with the page's URL once the server accepts connections (from a thread of
+            its own, so it may itself request the page).
         threads: torch's intra-op threads while serving (:func:`torch.set_num_threads`, restored
             after; ``None``: left as they are). One is fastest for a session's small matrices, and
             sessions of different people run in parallel threads (5-10x faster answers than
@@ -373,17 +400,26 @@ def serve(
     """
     _require()
     token = _check_network(host, port, allow_remote, token)
-    store = _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun)
-    hosts = ["*"] if not _is_loopback(host) else None
+    sock = listening_socket(host, port)  # a busy port is named before any work
+    try:
+        store = _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun)
+    except BaseException:
+        sock.close()
+        raise
+    hosts = ["*"] if not _is_loopback(host) else [*LOOPBACK_NAMES, _shown_host(host)]
     app = create_app(store, token=token, allowed_hosts=hosts)
     import torch
 
     before = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(threads)
+    prerender = store.items.prerender_in_background()
     try:
-        _run_uvicorn(app, host, port, token, ready, f"s/{store.sids[0]}/" if store.fixed else "")
+        path = f"s/{store.sids[0]}/" if store.fixed else ""
+        _run_uvicorn(app, sock, host, token, ready, path)
     finally:
+        prerender.set()
+        sock.close()
         store.close()
         torch.set_num_threads(before)
 
@@ -408,29 +444,118 @@ def _store(source, render, names, labels, sessions, num_queries, seed, num_level
     return SessionStore(items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties)
 
 
-def _run_uvicorn(app, host: str, port: int, token: str | None, ready, path: str = "") -> None:
-    import socket
+def _shown_host(host: str) -> str:
+    """``host`` as a URL and a ``Host`` header name it (an IPv6 address in brackets)."""
+    return f"[{host}]" if ":" in host else host
 
-    import uvicorn
+
+def listening_socket(host: str, port: int) -> Any:
+    """A socket bound to ``(host, port)`` (``port`` 0: a free one).
+
+    Raises:
+        ServeError: the port is in use or the address cannot be bound, naming it and ``--port 0``.
+    """
+    import socket
 
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind((host, port))  # bound here, so port 0 is known before the server starts
+    try:
+        sock.bind((host, port))
+    except OSError as err:
+        sock.close()
+        where = f"{_shown_host(host)}:{port}"
+        if err.errno == errno.EADDRINUSE:
+            raise ServeError(
+                f"port {port} on {host} is in use (another server?): choose another with --port N, "
+                "or --port 0 for a free one (the link is printed)."
+            ) from None
+        raise ServeError(f"cannot listen on {where}: {err.strerror or err}.") from None
+    return sock
+
+
+def _timed_protocol():
+    """uvicorn's h11 protocol with a deadline for each request's headers: a client that connects
+    and sends nothing, or its headers a byte at a time, is disconnected after
+    :data:`HEADER_TIMEOUT_S` (uvicorn times out only idle keep-alive connections)."""
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    class TimedH11Protocol(H11Protocol):
+        _header_timer: asyncio.TimerHandle | None = None
+
+        def connection_made(self, transport) -> None:
+            super().connection_made(transport)
+            self._arm()
+
+        def _arm(self) -> None:
+            if self._header_timer is None:
+                self._header_timer = self.loop.call_later(HEADER_TIMEOUT_S, self._too_slow)
+
+        def _disarm(self) -> None:
+            if self._header_timer is not None:
+                self._header_timer.cancel()
+                self._header_timer = None
+
+        def data_received(self, data: bytes) -> None:
+            if self.cycle is None or self.cycle.response_complete:  # waiting for a request's headers
+                self._arm()
+            super().data_received(data)
+            if self.cycle is not None and not self.cycle.response_complete:
+                self._disarm()  # the headers are in; the body has its own deadline (BODY_TIMEOUT_S)
+
+        def connection_lost(self, exc) -> None:
+            self._disarm()
+            super().connection_lost(exc)
+
+        def _too_slow(self) -> None:
+            self._header_timer = None
+            if not self.transport.is_closing() and (self.cycle is None or self.cycle.response_complete):
+                self.transport.close()
+
+    return TimedH11Protocol
+
+
+def uvicorn_server(app: Any, ready: Callable[[], None] | None = None) -> Any:
+    """The uvicorn server of ``app``: one event loop, h11 with header deadlines
+    (:func:`_timed_protocol`), at most :data:`MAX_CONNECTIONS` at once; ``ready()`` is called (in
+    a thread of its own) once it accepts connections."""
+    import uvicorn
+
+    class Server(uvicorn.Server):
+        async def startup(self, sockets=None) -> None:
+            await super().startup(sockets=sockets)
+            if self.started and ready is not None:
+                threading.Thread(target=ready, name="torchpref-serve-ready", daemon=True).start()
+
+    config = uvicorn.Config(
+        app,
+        log_level="warning",
+        access_log=False,
+        lifespan="off",
+        http=_timed_protocol(),
+        limit_concurrency=MAX_CONNECTIONS,
+        timeout_keep_alive=5,
+    )
+    return Server(config)
+
+
+def _run_uvicorn(app, sock, host: str, token: str | None, ready, path: str = "") -> None:
     bound = sock.getsockname()[1]
-    shown = f"[{host}]" if ":" in host else host
-    url = f"http://{shown}:{bound}/{path}" + (f"?token={token}" if token else "")
-    config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="off")
-    server = uvicorn.Server(config)
-    print(f"torchpref serve: open {url}  (Ctrl-C stops; every answer is already saved)", flush=True)
-    if ready is not None:
-        ready(url)
-    server.run(sockets=[sock])
+    url = f"http://{_shown_host(host)}:{bound}/{path}" + (f"?token={token}" if token else "")
+
+    def listening() -> None:
+        print(f"torchpref serve: open {url}  (Ctrl-C stops; every answer is already saved)", flush=True)
+        if ready is not None:
+            ready(url)
+
+    uvicorn_server(app, listening).run(sockets=[sock])
 
 
 def run(args: Any) -> int:
     """``torchpref serve`` (``args`` from :mod:`torchpref.cli`); returns the exit code."""
     _require()
+    _check_network(args.host, args.port, args.allow_remote, args.token)
+    listening_socket(args.host, args.port).close()  # a busy port is named before the items are read
     if args.features is not None:
         items = items_from_csv(args.features, args.id_column, args.image_column, args.image_dir)
     else:

@@ -112,6 +112,25 @@ class ServeItems:
         """Whether items have pictures (a render function or image files)."""
         return self.render is not None
 
+    def prerender_in_background(self) -> threading.Event:
+        """Make every item's picture (up to the cache's size) in a daemon thread, one at a time,
+        so that a question's pictures are ready before it is asked; set the returned event to stop."""
+        stop = threading.Event()
+        if self.render is None:
+            return stop
+
+        def work() -> None:
+            for i in range(min(len(self), CACHE_SIZE)):
+                if stop.is_set():
+                    return
+                try:
+                    self.picture(i)
+                except Exception:  # a bad picture is reported when it is asked for (a 404)
+                    continue
+
+        threading.Thread(target=work, name="torchpref-serve-pictures", daemon=True).start()
+        return stop
+
     def picture(self, i: int) -> tuple[bytes, str] | None:
         """Item ``i``'s picture as ``(bytes, media type)``, or ``None``; made once and kept."""
         if not 0 <= i < len(self):
@@ -212,8 +231,9 @@ def items_from_csv(
 
 def lake_items(seed: int = 0) -> ServeItems:
     """The lake scenario's training paths (objectives ``[distance, information]``), each drawn on
-    its map (:func:`torchpref.frontends.elicit.plot_paths`); the scenario is cached on disk."""
-    from torchpref.frontends.elicit import plot_paths
+    its map (:func:`torchpref.lake.plotting.plot_paths`, a wide line at 120 dpi); the scenario is
+    cached on disk."""
+    from torchpref.lake.plotting import plot_paths
     from torchpref.lake.scenario import cached_scenario
 
     scenario = cached_scenario(seed, progress=True)
@@ -222,8 +242,10 @@ def lake_items(seed: int = 0) -> ServeItems:
         import tempfile
 
         title = f"path {index}: distance {float(item[0]):.0f}, information {float(item[1]):.0f}"
-        with tempfile.TemporaryDirectory() as tmp:
-            return plot_paths(scenario, [int(index)], [""], title, Path(tmp) / "path.png").read_bytes()
+        path = [scenario.train_paths[int(index)]]
+        with tempfile.TemporaryDirectory() as tmp:  # a wide line and 120 dpi: readable small, sharp enlarged
+            out = plot_paths(scenario, path, [""], Path(tmp) / "path.png", title=title, dpi=120, line_width=4.5)
+            return out.read_bytes()
 
     labels = [f"path {i}" for i in range(scenario.train_X.shape[0])]
     return ServeItems(

@@ -20,10 +20,11 @@ interleave; sessions of different participants run in parallel.
 from __future__ import annotations
 
 import csv
+import datetime as _dt
+import errno
 import hashlib
 import io
 import json
-import math
 import re
 import secrets
 import threading
@@ -46,6 +47,11 @@ SID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,64}")
 
 MAX_RESPONSE_TIME = 7 * 24 * 3600.0
 """The longest response time accepted, in seconds (a week: a page left open and come back to)."""
+
+ANSWER_FIELDS = {"qid", "answer", "response_time", "shown_at", "answered_at"}
+"""What an answer request may hold: ``shown_at`` and ``answered_at`` are the page's clock in
+milliseconds since 1970 (JavaScript's ``Date.now()``) when the question was on screen with its
+pictures decoded and when it was answered."""
 
 LEVEL_WORDS = {1: "unacceptable", 2: "poor", 3: "fair", 4: "good", 5: "excellent"}
 
@@ -139,8 +145,21 @@ class SessionStore:
                     break
             else:  # pragma: no cover - 2^-96 per try
                 raise RuntimeError("could not draw a new session id")
-            self._entries[sid] = _Entry(sid, self._open(sid))
+            try:
+                self._entries[sid] = _Entry(sid, self._open(sid))
+            except OSError as err:
+                self._remove_empty(sid)
+                raise _storage_refused(err, "no session was started") from None
         return sid
+
+    def _remove_empty(self, sid: str) -> None:
+        """Remove the file of a session whose creation failed, if it holds no complete record."""
+        path = self.path(sid)
+        try:
+            if path.is_file() and b"\n" not in path.read_bytes()[: 1 << 20]:
+                path.unlink()
+        except OSError:
+            pass
 
     def _open(self, sid: str) -> PreferenceSession:
         kwargs = dict(self._kwargs, selector=UCBC(m=self._ranking_size), session_file=self.path(sid), repair=True)
@@ -169,6 +188,8 @@ class SessionStore:
                 found = self._entries[sid] = _Entry(sid, self._open(sid))
             except SessionFileError as err:
                 raise AnswerRefused(f"session {sid} cannot be opened: {err}", 409) from None
+            except OSError as err:
+                raise _storage_refused(err, f"session {sid} cannot be opened") from None
             return found
 
     @property
@@ -243,7 +264,9 @@ class SessionStore:
                 (404), a stale, differently answered or foreign question (409).
         """
         entry = self.entry(sid)
-        body = _object(body, {"qid", "answer", "response_time"})
+        body = _object(body, ANSWER_FIELDS)
+        rt = _response_time(body.get("response_time"))
+        times = _times(body)
         with entry.lock:
             qid, q = self._current(entry)
             if body.get("qid") == qid and q is None:
@@ -254,9 +277,12 @@ class SessionStore:
             if body.get("qid") != qid:
                 return self._not_current(entry, body)
             answer = self._checked_answer(entry, q, body.get("answer"))
-            rt = _response_time(body.get("response_time"))
             try:
-                entry.session.tell(q, answer, response_time=rt)
+                entry.session.tell(q, answer, response_time=rt, **times)
+            except OSError as err:  # the disk is full, or another failure to write: nothing recorded
+                raise _storage_refused(err, "your answer was not saved; the page tries again") from None
+            except SessionFileError as err:  # the file cannot take this answer (changed, gone, read-only)
+                raise AnswerRefused(f"answer not recorded: {err}", 503, self.state(entry)) from None
             except ValueError as exc:
                 raise AnswerRefused(f"answer not recorded: {exc}", 400, self.state(entry)) from None
             return self.state(entry)
@@ -293,8 +319,11 @@ class SessionStore:
             asked = rec.get("type") == "answer" and (rec.get("query") or {}).get("step") is not None
             if asked and qid == make_qid(entry.sid, position, rec["items"]):
                 in_force = any(r["seq"] == rec["seq"] for r in _in_force(entry.session))
-                if in_force and position == len(records) - 1 and body.get("answer") == rec["answer"]:
-                    return dict(self.state(entry), duplicate=True)
+                if in_force and position == len(records) - 1:
+                    # the retry's answer is checked as the first try's was (3.0 or true is not 3 or 1)
+                    answer = self._checked_answer(entry, _asked(rec), body.get("answer"))
+                    if _same_answer(answer, rec["answer"]):
+                        return dict(self.state(entry), duplicate=True)
                 raise AnswerRefused("this question was already answered.", 409, self.state(entry))
         raise AnswerRefused("not the current question of this session (stale, or another's).", 409, self.state(entry))
 
@@ -311,7 +340,12 @@ class SessionStore:
                 )
             if entry.session.step == 0:
                 raise AnswerRefused("nothing to undo yet.", 400, self.state(entry))
-            entry.session.undo()
+            try:
+                entry.session.undo()
+            except OSError as err:
+                raise _storage_refused(err, "nothing was undone") from None
+            except SessionFileError as err:
+                raise AnswerRefused(f"nothing undone: {err}", 503, self.state(entry)) from None
             return self.state(entry)
 
     # ------------------------------------------------------------- exports
@@ -371,6 +405,50 @@ class SessionStore:
             return "".join(json.dumps(r) + "\n" for r in s.records).encode()
 
 
+def _asked(rec: dict) -> Query:
+    """The question an answer record answered (its items; for the answer's checks)."""
+    from torchpref.data.queries import RatingQuery
+
+    items = torch.tensor(rec["items"], dtype=torch.float64)
+    return RatingQuery(items[0]) if rec["kind"] == "rating" else RankingQuery(items)
+
+
+def _same_answer(a: Any, b: Any) -> bool:
+    """Equal answers of the same JSON type (``1 == 1.0 == True`` in Python, not in an answer)."""
+    return a == b and (a is None) == (b is None) and isinstance(a, float) == isinstance(b, float)
+
+
+def _storage_refused(err: OSError, what: str) -> AnswerRefused:
+    """A failure to write a session file as a reply: ``507`` for a full disk or quota, else ``503``."""
+    if err.errno in (errno.ENOSPC, errno.EDQUOT):
+        return AnswerRefused(f"the server's disk is full: {what}. Tell the study's organiser.", 507)
+    return AnswerRefused(f"the server cannot write its session files ({err.strerror or err}): {what}.", 503)
+
+
+def _times(body: dict) -> dict[str, str]:
+    """``shown_at`` / ``answered_at`` of an answer request (the page's clock, ms since 1970) as
+    ISO 8601 times; absent ones are left out.
+
+    Raises:
+        AnswerRefused: (400) not a number of milliseconds between 2000 and 2200, or answered
+            before shown.
+    """
+    out, ms = {}, {}
+    for key in ("shown_at", "answered_at"):
+        value = body.get(key)
+        if value is None:
+            continue
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not ok or not 946684800000 <= value <= 7258118400000:
+            raise AnswerRefused(f"{key} must be the page's time in milliseconds since 1970, got {value!r:.40}.", 400)
+        ms[key] = float(value)
+        stamp = _dt.datetime.fromtimestamp(ms[key] / 1000, _dt.timezone.utc)
+        out[key] = stamp.isoformat(timespec="milliseconds")
+    if len(ms) == 2 and ms["answered_at"] < ms["shown_at"]:
+        raise AnswerRefused("answered_at is before shown_at.", 400)
+    return out
+
+
 def _in_force(session: PreferenceSession) -> list[dict]:
     from torchpref.sessions.records import records_in_force
 
@@ -395,8 +473,8 @@ def _object(body: Any, allowed: set[str]) -> dict:
 def _response_time(value: Any) -> float | None:
     if value is None:
         return None
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if not ok or not 0.0 <= value <= MAX_RESPONSE_TIME:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not ok or not 0.0 <= value <= MAX_RESPONSE_TIME:  # a huge integer compares without overflow
         raise AnswerRefused(
             f"response_time must be a number of seconds in 0..{MAX_RESPONSE_TIME:.0f}, got {value!r:.40}.", 400
         )

@@ -83,16 +83,17 @@ def draw_paths(
     colours: Sequence[str] | None = None,
     styles: Sequence[str] | None = None,
     markers: bool = True,
+    line_width: float = 2.2,
 ) -> None:
     """Paths (each ``T x 2``) on ``ax`` with their labels in the legend; with ``markers`` each path
     also carries its label's part before a colon at a point along it, staggered so that labels of paths
-    that run together do not cover each other."""
+    that run together do not cover each other. ``line_width`` in points."""
     n = len(paths)
     for k, (p, label) in enumerate(zip(paths, labels)):
         xy = torch.as_tensor(p).numpy()
         c = (colours or PATH_COLOURS)[k % len(colours or PATH_COLOURS)]
         ls = styles[k] if styles else "-"
-        ax.plot(xy[:, 0], xy[:, 1], ls, color=c, lw=2.2, label=label, zorder=3)
+        ax.plot(xy[:, 0], xy[:, 1], ls, color=c, lw=line_width, label=label, zorder=3)
         if markers and ":" in label:
             at = xy[min(len(xy) - 1, int(len(xy) * (k + 1) / (n + 1)))]
             ax.annotate(
@@ -116,13 +117,14 @@ def plot_paths(
     *,
     title: str = "",
     dpi: int = 110,
+    line_width: float = 2.2,
 ) -> Path:
-    """A map of the lake (:func:`draw_lake`) with ``paths`` (each ``T x 2``) and their ``labels``,
-    written to ``path``."""
+    """A map of the lake (:func:`draw_lake`) with ``paths`` (each ``T x 2``, drawn ``line_width``
+    points wide) and their ``labels``, written to ``path``."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 5.4))
     draw_lake(ax, scenario)
-    draw_paths(ax, paths, labels)
+    draw_paths(ax, paths, labels, line_width=line_width)
     ax.set_title(title)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.06), ncol=min(2, len(paths)), fontsize=8, frameon=False)
     fig.tight_layout()

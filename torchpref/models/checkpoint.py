@@ -107,7 +107,7 @@ def save_model(model: PreferenceGP, path: str | os.PathLike) -> None:
         raise FileNotFoundError(f"cannot save to {path}: the folder {path.parent} does not exist.")
     ck = model_checkpoint(model)
     mode = _file_mode(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=_temporary_prefix(path.name), suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
             if hasattr(os, "fchmod"):
@@ -120,6 +120,14 @@ def save_model(model: PreferenceGP, path: str | os.PathLike) -> None:
         Path(tmp).unlink(missing_ok=True)
         raise
     _fsync_folder(path.parent)
+
+
+def _temporary_prefix(name: str) -> str:
+    """The temporary file's name start: ``NAME.``, with ``NAME`` cut to 200 bytes so that the
+    temporary name (8 random characters and ``.tmp`` added) fits where ``NAME`` itself fits
+    (255 bytes on most file systems)."""
+    raw = os.fsencode(name)
+    return (os.fsdecode(raw[:200]) if len(raw) > 200 else name) + "."
 
 
 def _umask() -> int:

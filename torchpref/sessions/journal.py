@@ -26,13 +26,13 @@ import datetime as _dt
 import errno
 import json
 import os
-import stat
 import threading
 import warnings
 import weakref
 from collections.abc import Callable
 from pathlib import Path
 
+from torchpref.sessions.filebytes import dropped_path, file_kind, fsync_dir, prefix_digest, read_fd, stamp
 from torchpref.sessions.records import (
     ANSWER_KINDS,
     FORMAT_VERSION,
@@ -52,6 +52,7 @@ __all__ = [
     "Journal",
     "MAX_FILE_BYTES",
     "SessionFileCorrupt",
+    "SessionFileChanged",
     "SessionFileError",
     "SessionFileGone",
     "SessionForkError",
@@ -69,6 +70,12 @@ name before it is read (a file of that size is not a session's)."""
 
 class SessionFileGone(SessionFileError):
     """The session file was deleted, moved away or replaced while the session had it open."""
+
+
+class SessionFileChanged(SessionFileError):
+    """Another program shortened, extended or rewrote the open session file in place (an editor,
+    ``rsync --inplace``): its bytes are no longer the records this session acknowledged, so
+    nothing more is written after them."""
 
 
 class SessionForkError(SessionFileError):
@@ -158,25 +165,11 @@ def read_session_file(path: str | os.PathLike[str]) -> tuple[dict | None, list[d
     path = Path(path)
     fd = _open(path, os.O_RDONLY)
     try:
-        data = _read_fd(fd, _checked_size(fd, path))
+        data = read_fd(fd, _checked_size(fd, path))
     finally:
         os.close(fd)
     header, records, _ = _parse(path, data)
     return header, records, len(data)
-
-
-def _kind(mode: int) -> str | None:
-    """What a file that is not a regular file is (``None`` for a regular file)."""
-    for test, name in (
-        (stat.S_ISDIR, "a directory; give a file name"),
-        (stat.S_ISFIFO, "a FIFO (named pipe)"),
-        (stat.S_ISCHR, "a character device"),
-        (stat.S_ISBLK, "a block device"),
-        (stat.S_ISSOCK, "a socket"),
-    ):
-        if test(mode):
-            return name
-    return None if stat.S_ISREG(mode) else "not a regular file"
 
 
 def _open(path: Path, flags: int) -> int:
@@ -188,8 +181,8 @@ def _open(path: Path, flags: int) -> int:
         st = None
     except OSError as err:
         raise _name_error(path, err) from None
-    if st is not None and _kind(st.st_mode):
-        raise SessionFileError(f"session file {path} is {_kind(st.st_mode)}; a session file is a regular file.")
+    if st is not None and file_kind(st.st_mode):
+        raise SessionFileError(f"session file {path} is {file_kind(st.st_mode)}; a session file is a regular file.")
     try:
         fd = os.open(path, flags | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0), 0o644)
     except IsADirectoryError:
@@ -198,7 +191,7 @@ def _open(path: Path, flags: int) -> int:
         raise
     except OSError as err:
         raise _name_error(path, err) from None
-    kind = _kind(os.fstat(fd).st_mode)  # it may have changed between the stat and the open
+    kind = file_kind(os.fstat(fd).st_mode)  # it may have changed between the stat and the open
     if kind:
         os.close(fd)
         raise SessionFileError(f"session file {path} is {kind}; a session file is a regular file.")
@@ -229,40 +222,14 @@ def _lock(fd: int, path, shared: bool = False) -> None:
     try:
         fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
     except BlockingIOError:
+        st = os.fstat(fd)
+        if any(j._fd is not None and j._ident == (st.st_dev, st.st_ino) for j in list(_OPEN)):
+            raise SessionFileError(
+                f"session file {path} is in use: it is already open in this process (a session opened before, e.g. by a "
+                "notebook cell run again): close that one first (session.close()), or open sessions with "
+                "'with PreferenceSession(...) as session:' so that they close themselves."
+            ) from None
         raise SessionFileError(f"session file {path} is in use by another process.") from None
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path.parent if str(path.parent) else ".", os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def _read_fd(fd: int, size: int) -> bytes:
-    """The file's bytes, read up to ``size`` (checked against :data:`MAX_FILE_BYTES` first)."""
-    chunks, offset = [], 0
-    while offset < size:
-        chunk = os.pread(fd, min(1 << 20, size - offset), offset)
-        if not chunk:
-            break
-        chunks.append(chunk)
-        offset += len(chunk)
-    return b"".join(chunks)
-
-
-def _dropped_path(path: Path) -> Path:
-    """``FILE.dropped`` beside the file, with the name shortened where that would be too long."""
-    name = os.fsencode(path.name) + b".dropped"
-    if len(name) > 255:
-        name = os.fsencode(path.name)[:200] + b"~" + str(abs(hash(path.name)) % 10**8).encode() + b".dropped"
-    return path.parent / os.fsdecode(name)
 
 
 _OPEN: weakref.WeakSet = weakref.WeakSet()  # journals open in this process (closed in a forked child)
@@ -325,10 +292,12 @@ class Journal:
                     raise SessionReadOnlyError(f"session file {self.path} is empty and cannot be written.")
                 header = new_header()
                 self._write_or_undo(_encode(header), 0)
-                _fsync_dir(self.path)
+                fsync_dir(self.path)
                 self.header = header
             st = os.fstat(self._fd)
             self._ident, self._size = (st.st_dev, st.st_ino), st.st_size
+            self._digest = prefix_digest(self._fd, self._size)  # of the acknowledged bytes
+            self._stamp = stamp(st)
         except BaseException:
             os.close(self._fd)
             self._fd = None
@@ -340,7 +309,7 @@ class Journal:
         _OPEN.add(self)
 
     def _read(self, repair: bool) -> tuple[dict | None, list[dict]]:
-        data = _read_fd(self._fd, _checked_size(self._fd, self.path))
+        data = read_fd(self._fd, _checked_size(self._fd, self.path))
         try:
             header, records, newline_missing = _parse(self.path, data)
         except SessionFileCorrupt as err:
@@ -358,7 +327,7 @@ class Journal:
 
     def _repair(self, err: SessionFileCorrupt, half_header: bool) -> None:
         """Move a partial last line to ``path.dropped`` and truncate the file before it (reported)."""
-        dropped = _dropped_path(self.path)
+        dropped = dropped_path(self.path)
         name = os.fsencode(self.path.name)
         with open(dropped, "ab") as f:
             f.write(f"# {now()} line {err.line_number} of ".encode() + name + f": {err.reason}\n".encode())
@@ -407,12 +376,41 @@ class Journal:
 
     def _heal(self) -> None:
         """Bring the file back to its acknowledged size after a failed rollback, or refuse by name."""
+        if os.fstat(self._fd).st_size < self._size:  # shortened since: never pad it with zeros
+            self._check_unchanged()
         self._truncate(self._size)
         if self._broken is None and os.fstat(self._fd).st_size == self._size:
             return
         raise SessionFileError(
             f"session file {self.path}: {self._broken or 'its size changed'}; no answer is written until it is "
             "repaired: close the session and open the file again (repair=True drops the unacknowledged tail)."
+        )
+
+    def _check_unchanged(self) -> None:
+        """The file still starts with exactly the bytes this session acknowledged, and holds nothing
+        after them: its size, and where its change time says it was touched, a SHA-256 of that
+        prefix (an answer's cost stays constant while no one else writes the file).
+
+        Raises:
+            SessionFileChanged: shortened, extended or rewritten in place by another program.
+        """
+        st = os.fstat(self._fd)
+        if st.st_size == self._size and stamp(st) == self._stamp:
+            return
+        if st.st_size < self._size:
+            why = f"shortened from {self._size:,} to {st.st_size:,} bytes"
+        elif st.st_size > self._size:
+            why = f"extended from {self._size:,} to {st.st_size:,} bytes"
+        elif prefix_digest(self._fd, self._size).digest() != self._digest.digest():
+            why = "rewritten in place (its bytes differ from the records this session wrote)"
+        else:
+            self._stamp = stamp(st)  # touched, not changed
+            return
+        raise SessionFileChanged(
+            f"session file {self.path} was {why} by another program while the session had it open: this answer "
+            "was not saved, and nothing more is written to the file. The session's records in memory "
+            "(session.records) are every acknowledged answer: close the session, restore the file (or write "
+            "those records to a new one) and open it again."
         )
 
     def _check_same_file(self) -> None:
@@ -453,8 +451,9 @@ class Journal:
         self.check_writable()
         with self._lock:
             self.check_writable()
-            if self._broken is not None or os.fstat(self._fd).st_size != self._size:
-                self._heal()
+            if self._broken is not None:
+                self._heal()  # our own failed rollback: the file may be longer than acknowledged
+            self._check_unchanged()
             self._check_same_file()
             check_new_record(
                 f"session file {self.path}, line {len(self.records) + 2}",
@@ -472,6 +471,8 @@ class Journal:
                 self._truncate(self._size)
                 raise
             self._size += len(data)
+            self._digest.update(data)
+            self._stamp = stamp(os.fstat(self._fd))
             self.records.append(record)
             self.last_seq = record["seq"]
             _account(self.in_force, record)

@@ -217,6 +217,9 @@ def _check_answer(c: _Line, rec: dict, header: dict) -> None:
     rt = rec.get("response_time")
     if rt is not None and not (_is_number(rt) and math.isfinite(rt) and rt >= 0):
         c.fail(f"'response_time' must be null or a finite number of seconds >= 0, got {rt!r:.80}")
+    for key in ("shown_at", "answered_at"):  # optional: when the front end showed and got the answer
+        if key in rec and not (isinstance(rec[key], str) and 0 < len(rec[key]) <= 40):
+            c.fail(f"'{key}' must be an ISO 8601 time string, got {rec[key]!r:.80}")
     _check_query(c, rec.get("query"), kind, len(items), header)
 
 

@@ -54,6 +54,7 @@ from torchpref.selection.strategies import Selector
 from torchpref.sessions.journal import (
     Journal,
     MemoryJournal,
+    SessionFileChanged,
     SessionFileGone,
     SessionForkError,
     SessionReadOnlyError,
@@ -78,10 +79,12 @@ from torchpref.sessions.settings import (
     SessionSettings,
     as_items,
     as_seconds,
+    as_time,
     candidates_from_header,
     default_ranking_size,
     default_session_model,
     step_generator,
+    unrated_rows,
 )
 
 __all__ = [
@@ -90,6 +93,7 @@ __all__ = [
     "SessionAnswer",
     "SessionFileCorrupt",
     "SessionFileError",
+    "SessionFileChanged",
     "SessionFileGone",
     "SessionForkError",
     "SessionMismatchError",
@@ -423,18 +427,33 @@ class PreferenceSession(ModelCache):
         X, idx = self._candidates.draw(gen)
         rows = torch.arange(X.shape[0])  # a pool draws each distinct item once (FinitePool)
         q = self.selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)
+        if isinstance(q, RatingQuery) and idx is not None:  # never a second rating while unrated items are left
+            keep = unrated_rows(idx, self._journal.in_force.values(), int(q.index), getattr(self.selector, "m", 2))
+            if keep is not None:
+                X, idx = X[keep], idx[keep]
+                q = self.selector.select(self.model, self.transform(X), rows[: len(keep)], step, self.num_queries, gen)
         if isinstance(q, RatingQuery):
             r = int(q.index)
             return RatingQuery(X[r], None if idx is None else int(idx[r]))
         rr = list(q.indices)
         return RankingQuery(X[rr], None if idx is None else tuple(int(idx[r]) for r in rr))
 
-    def tell(self, query: Query, answer: int | float | None, *, response_time: float | None = None) -> None:
+    def tell(
+        self,
+        query: Query,
+        answer: int | float | None,
+        *,
+        response_time: float | None = None,
+        shown_at: str | None = None,
+        answered_at: str | None = None,
+    ) -> None:
         """Record ``answer`` to ``query``: a Likert level (or a ``[0, 1]`` rating if the session has
         no levels) for a :class:`~torchpref.RatingQuery`; the index of the chosen row of
         ``query.items`` for a :class:`~torchpref.RankingQuery`, or ``None`` for no preference
         (see :func:`~torchpref.data.queries.record_answer`). ``response_time``: seconds from the
-        question being shown to the answer, if the front end measured it (kept in the record).
+        question being shown to the answer, if the front end measured it (kept in the record);
+        ``shown_at`` and ``answered_at``: when the question was on screen and when it was answered
+        (ISO 8601 times from the front end, e.g. the page's clock), kept in the record too.
 
         Raises:
             ValueError: an invalid answer (naming it), a query already answered (a second click),
@@ -462,7 +481,8 @@ class PreferenceSession(ModelCache):
             }
             if info["pool_indices"] is not None:
                 self._check_pool_rows(query, info["pool_indices"])
-            seq = self._tell(query, answer, info, response_time)
+            times = {"shown_at": shown_at, "answered_at": answered_at}
+            seq = self._tell(query, answer, info, response_time, {k: v for k, v in times.items() if v is not None})
             self._answered = (seq, query)
 
     def _check_pool_rows(self, query: Query, rows: list[int]) -> None:
@@ -505,13 +525,14 @@ class PreferenceSession(ModelCache):
         with self._guarded():
             self._tell(RankingQuery(X), None, None, response_time)
 
-    def _tell(self, query: Query, answer, info: dict | None, response_time=None) -> int:
+    def _tell(self, query: Query, answer, info: dict | None, response_time=None, times: dict | None = None) -> int:
         """Validate and add the answer to the model (:func:`~torchpref.data.queries.record_answer`,
         a warm-started update), then append its record; on any failure the model is put back
         exactly. Called under the lock; returns the record's sequence number."""
         self._journal.check_writable()  # a forked child or a read-only file: refused before anything changes
         items = as_items(query.items, self.dim, "the query's items")
         response_time = as_seconds(response_time)
+        times = {k: as_time(v, k) for k, v in (times or {}).items()}
         if isinstance(query, RankingQuery) and items.shape[0] < 2:
             raise ValueError(f"a choice needs at least 2 items shown, got {items.shape[0]}.")
         model = self.model
@@ -536,6 +557,7 @@ class PreferenceSession(ModelCache):
                     rec["answer"] = value
                 rec["query"] = info
                 rec["response_time"] = response_time
+                rec.update(times)
                 self._journal.append(rec)
         except BaseException:
             self._model_version = self._version

@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,9 +32,11 @@ __all__ = [
     "SessionSettings",
     "as_items",
     "as_seconds",
+    "as_time",
     "default_ranking_size",
     "default_session_model",
     "step_generator",
+    "unrated_rows",
 ]
 
 
@@ -299,6 +301,26 @@ class SessionSettings:
                 )
 
 
+def unrated_rows(pool_rows: Tensor, in_force: Iterable[dict], chosen: int, m: int) -> Tensor | None:
+    """Where a selector chose to ask for a rating of ``pool_rows[chosen]``, an item that already has
+    a rating in force: the positions of the candidates with none, to choose among instead (as long
+    as at least ``max(2, m)`` are left: a ranking of ``m`` can still be asked); else ``None``.
+
+    A second rating of the same item is not asked: a person rating an item again mostly recalls
+    their first answer, which the model would count as independent evidence, and the question is
+    better spent on an item with no rating (docs/sessions.md).
+    """
+    rated = {
+        rec["query"]["pool_indices"][0]
+        for rec in in_force
+        if rec["kind"] == "rating" and (rec.get("query") or {}).get("pool_indices")
+    }
+    if int(pool_rows[chosen]) not in rated:
+        return None
+    keep = [k for k, i in enumerate(pool_rows.tolist()) if int(i) not in rated]
+    return torch.tensor(keep, dtype=torch.long) if len(keep) >= max(2, m) else None
+
+
 def as_seconds(value: Any) -> float | None:
     """A response time as float seconds (``None`` stays ``None``).
 
@@ -310,6 +332,28 @@ def as_seconds(value: Any) -> float | None:
     ok = isinstance(value, (int, float)) and not isinstance(value, bool)
     if not ok and isinstance(value, Tensor) and value.numel() == 1 and not value.dtype.is_complex:
         value, ok = value.item(), value.dtype != torch.bool
-    if not ok or not math.isfinite(float(value)) or float(value) < 0:
+    try:
+        seconds = float(value) if ok else math.nan
+    except OverflowError:  # an integer too large for a float
+        seconds = math.inf
+    if not math.isfinite(seconds) or seconds < 0:
         raise ValueError(f"response_time must be None or a finite number of seconds >= 0, got {value!r:.80}.")
-    return float(value)
+    return seconds
+
+
+def as_time(value: Any, name: str) -> str:
+    """A time stamp kept in an answer record (``shown_at``, ``answered_at``): an ISO 8601 date and
+    time, as :meth:`datetime.datetime.fromisoformat` reads it, of at most 40 characters.
+
+    Raises:
+        ValueError: anything else, naming ``name`` and the value.
+    """
+    import datetime as _dt
+
+    try:
+        ok = isinstance(value, str) and len(value) <= 40 and _dt.datetime.fromisoformat(value) is not None
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} must be an ISO 8601 date and time, got {value!r:.80}.")
+    return value

@@ -164,13 +164,47 @@ def acknowledged_in_file(acked: list[tuple[str, object]], recs: list[dict]) -> l
     return problems
 
 
+def _retried(url: str, body: dict) -> dict:
+    """The reply to ``body`` sent again until the restarted server answers (bounded, as the page's)."""
+    for _ in range(100):
+        try:
+            status, data, _ = post(url, body)
+        except OSError:
+            time.sleep(0.2)
+            continue
+        break
+    assert status == 200, data
+    return data
+
+
+def _killed_in_flight(srv: Server, url: str, body: dict, delay: float) -> list:
+    """Send ``body`` and SIGKILL the server ``delay`` seconds later, then start it again; returns
+    ``[reply]`` or ``[the exception]`` of the answer in flight."""
+    import threading
+
+    result: list = []
+
+    def send() -> None:
+        try:
+            result.append(post(url, body, timeout=30))
+        except OSError as exc:  # the connection died with the server
+            result.append(exc)
+
+    t = threading.Thread(target=send)
+    t.start()
+    time.sleep(delay)
+    srv.kill()
+    t.join(timeout=60)
+    srv.start()
+    return result
+
+
 def kill_run(folder: Path, kills: int = 20, seed: int = 0, progress: Callable[[int], object] | None = None) -> dict:
     """Answer a session over HTTP while the server is killed (SIGKILL) ``kills`` times, each time
     with an answer in flight after a random delay, and restarted; an answer whose reply was lost
     is sent again (as the page does). Returns what happened and the problems with acknowledged
     answers (:func:`acknowledged_in_file`: none expected)."""
     import random
-    import threading
 
     rng = random.Random(seed)
     items = write_items(folder, n=40, d=3, seed=seed, pictures=False)
@@ -197,33 +231,12 @@ def kill_run(folder: Path, kills: int = 20, seed: int = 0, progress: Callable[[i
                 acked.append((body["qid"], a))
                 k += 1
             body, a = body_for()
-            result: list = []
-
-            def send(body=body, result=result):
-                try:
-                    result.append(post(base + "answer", body, timeout=30))
-                except OSError as exc:  # the connection died with the server
-                    result.append(exc)
-
-            t = threading.Thread(target=send)
-            t.start()
-            delay = rng.uniform(0.0, 0.3)
-            delays.append(delay)
-            time.sleep(delay)
-            srv.kill()
-            t.join(timeout=60)
-            srv.start()
+            delays.append(rng.uniform(0.0, 0.3))
+            result = _killed_in_flight(srv, base + "answer", body, delays[-1])
             if result and isinstance(result[0], tuple) and result[0][0] == 200:
                 outcome["acknowledged before the kill"] += 1
             else:
-                for _ in range(100):  # bounded retries, as the page's
-                    try:
-                        status, data, _ = post(base + "answer", body)
-                    except OSError:
-                        time.sleep(0.2)
-                        continue
-                    break
-                assert status == 200, data
+                data = _retried(base + "answer", body)
                 outcome["already recorded on retry" if data.get("duplicate") else "recorded on retry"] += 1
             acked.append((body["qid"], a))
             k += 1

@@ -10,6 +10,7 @@
   const $ = (id) => document.getElementById(id);
   let state = null;
   let busy = false;
+  let ready = false; // the question on screen is shown in full (its pictures decoded)
   // what tests and studies can read: every acknowledged answer, and the server's time for each
   const log = { acked: [], serverMs: [], refused: [] };
   window.torchpref = { log, state: () => state };
@@ -29,32 +30,51 @@
     $("message").className = ok ? "ok" : "";
   }
 
+  // A question's clock starts when everything it shows is on screen (its pictures decoded), not
+  // when its state arrives: until then the answer controls are disabled ("loading"). The time it
+  // was shown is kept in the tab's sessionStorage, so a reload does not restart the clock.
   const shownKey = (qid) => "torchpref-shown:" + location.pathname + ":" + qid;
+  const shownTimes = {};
   function markShown(qid) {
+    let t = null;
     try {
-      if (!sessionStorage.getItem(shownKey(qid))) sessionStorage.setItem(shownKey(qid), String(Date.now()));
+      t = Number(sessionStorage.getItem(shownKey(qid))) || null;
+      if (!t) sessionStorage.setItem(shownKey(qid), String(Date.now()));
     } catch (e) { /* storage off: timed from this showing */ }
-    if (!markShown.times) markShown.times = {};
-    if (!markShown.times[qid]) markShown.times[qid] = Date.now();
+    if (!shownTimes[qid]) shownTimes[qid] = t || Date.now();
   }
-  function elapsed(qid) {
+  function shownAt(qid) {
     let t = null;
     try { t = Number(sessionStorage.getItem(shownKey(qid))) || null; } catch (e) { t = null; }
-    t = t || (markShown.times && markShown.times[qid]);
-    return t ? Math.max(0, (Date.now() - t) / 1000) : null;
+    return t || shownTimes[qid] || null;
   }
 
   function card(o, title, button) {
     const rows = o.features.map(([n, v]) => el("tr", {}, el("td", {}, n), el("td", {}, v)));
     const c = el("div", { class: "option" }, el("h3", {}, title));
-    if (o.picture) c.append(el("img", { src: o.picture, alt: "picture of " + o.label, class: "picture" }));
+    if (o.picture) {
+      const img = el("img", { src: o.picture, alt: "picture of " + o.label, class: "picture" });
+      const zoom = el("button", { type: "button", class: "enlarge", title: "Enlarge (click, or Shift + its letter)",
+                                  "aria-label": "Enlarge " + title }, img);
+      zoom.addEventListener("click", () => enlarge(o.picture, title));
+      c.append(zoom);
+    }
     c.append(el("table", { class: "features" }, el("tbody", {}, ...rows)));
     if (button) c.append(button);
     return c;
   }
 
+  function enlarge(src, title) {
+    const dialog = $("zoom");
+    $("zoom-title").textContent = title;
+    $("zoom-img").src = src;
+    $("zoom-img").alt = "enlarged picture of " + title;
+    if (!dialog.open) dialog.showModal();
+    $("zoom-close").focus();
+  }
+
   function answerButton(text, answer, key) {
-    const b = el("button", { class: "answer", type: "button", title: "key " + key }, text);
+    const b = el("button", { class: "answer", type: "button", title: "key " + key, disabled: "" }, text);
     b.addEventListener("click", () => submit(answer));
     return b;
   }
@@ -75,8 +95,8 @@
     } else {
       box.append(el("h1", {}, `Rate this ${s.noun} from 0 (worst) to 1 (best)`));
       const slider = el("input", { type: "range", min: "0", max: "1", step: "0.01", value: "0.5", id: "slider",
-                                   "aria-label": "rating from 0 to 1" });
-      const go = el("button", { class: "answer", type: "button" }, "Submit rating (Enter)");
+                                   "aria-label": "rating from 0 to 1", disabled: "" });
+      const go = el("button", { class: "answer", type: "button", disabled: "" }, "Submit rating (Enter)");
       go.addEventListener("click", () => submit(Number(slider.value)));
       slider.addEventListener("keydown", (ev) => { if (ev.key === "Enter") submit(Number(slider.value)); });
       box.append(card(o, o.label), el("div", { class: "levels" }, slider, go));
@@ -85,7 +105,7 @@
 
   function renderRanking(q, s, box) {
     box.append(el("h1", {}, `Which ${s.noun} is best?`));
-    const opts = el("div", { class: "options" });
+    const opts = el("div", { class: "options", "data-m": String(q.options.length) });
     q.options.forEach((o, i) => {
       const L = LETTERS[i];
       opts.append(card(o, `${L}: ${o.label}`, answerButton(`${L} is best`, i, `${L} or ${i + 1}`)));
@@ -97,6 +117,7 @@
   function render(s) {
     state = s;
     busy = false;
+    ready = false;
     const box = $("question");
     box.replaceChildren();
     $("progress").max = s.total;
@@ -111,15 +132,33 @@
       $("progress-text").textContent = `Question ${s.answered + 1} of ${s.total}`;
       if (s.question.kind === "rating") renderRating(s.question, s, box);
       else renderRanking(s.question, s, box);
-      const first = box.querySelector("button, input");
-      if (first) first.focus();
-      markShown(s.qid);
+      showWhenDecoded(s.qid, box);
     }
     const rec = $("recommended");
     rec.hidden = !s.recommended;
+    if (s.recommended) $("recommended-label").textContent = s.recommended.label;
     $("recommended-body").replaceChildren(...(s.recommended ? [card(s.recommended, s.recommended.label)] : []));
     document.body.dataset.qid = s.qid;
     document.body.dataset.answered = String(s.answered);
+  }
+
+  // The answer controls wait for the question's pictures: the clock starts once they are decoded.
+  async function showWhenDecoded(qid, box) {
+    box.classList.add("loading");
+    box.setAttribute("aria-busy", "true");
+    document.body.dataset.ready = "false";
+    const imgs = [...box.querySelectorAll("img")];
+    const failed = (await Promise.all(imgs.map((i) => i.decode().then(() => false, () => true)))).some((x) => x);
+    if (!state || state.qid !== qid || box !== $("question")) return; // another question since
+    box.classList.remove("loading");
+    box.setAttribute("aria-busy", "false");
+    if (failed) message("A picture could not be shown; answer from the figures, or reload the page.");
+    markShown(qid);
+    ready = true;
+    document.body.dataset.ready = "true";
+    setEnabled(true);
+    const first = box.querySelector("button.answer, input");
+    if (first) first.focus();
   }
 
   function setEnabled(on) {
@@ -135,27 +174,36 @@
       try {
         const r = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json" },
                                       body: JSON.stringify(body), cache: "no-store" });
-        if (r.status >= 500) throw new Error("server error " + r.status);
+        if (r.status >= 500) { // not saved (a full disk, a restart): said, then tried again
+          let why = "server error " + r.status;
+          try { why = (await r.json()).error || why; } catch (e) { /* not JSON */ }
+          throw new Error(why);
+        }
         const timing = r.headers.get("Server-Timing");
         const data = await r.json();
         return { status: r.status, data, timing };
       } catch (e) {
         if (Date.now() - start > RETRY_FOR_MS) return { status: 0, data: { error: "the server cannot be reached" } };
-        message("The connection was lost; trying again… (nothing you answered is lost)");
+        message(e.message && !/fetch|network/i.test(e.message) ? e.message + " Trying again…"
+          : "The connection was lost; trying again… (nothing you answered is lost)");
         await sleep(RETRY_MS);
       }
     }
   }
 
   async function submit(answer) {
-    if (busy || !state || state.done) return;
+    if (busy || !ready || !state || state.done) return;
     busy = true;
     setEnabled(false);
     const qid = state.qid;
-    const body = { qid, answer, response_time: elapsed(qid) };
+    const shown = shownAt(qid);
+    const answered = Math.max(Date.now(), shown || 0);
+    const body = { qid, answer, response_time: shown ? (answered - shown) / 1000 : null };
+    if (shown) Object.assign(body, { shown_at: shown, answered_at: answered });
     const r = await post("answer", body);
     if (r.status === 200) {
-      log.acked.push({ qid, answer, response_time: body.response_time, duplicate: !!r.data.duplicate });
+      log.acked.push({ qid, answer, response_time: body.response_time, shown_at: body.shown_at,
+                       duplicate: !!r.data.duplicate });
       const m = /dur=([0-9.]+)/.exec(r.timing || "");
       if (m) log.serverMs.push(Number(m[1]));
       try { sessionStorage.removeItem(shownKey(qid)); } catch (e) { /* nothing kept */ }
@@ -183,10 +231,17 @@
   function onKey(ev) {
     if (ev.ctrlKey || ev.metaKey || ev.altKey || !state) return;
     if (ev.target && ev.target.tagName === "INPUT") return;
+    if ($("zoom").open) return; // the enlarged picture: Escape closes it first
     const key = ev.key;
-    if (key === "u" || key === "U") { ev.preventDefault(); undo(); return; }
-    if (state.done) return;
+    if (state.done) { if (key === "u" || key === "U") { ev.preventDefault(); undo(); } return; }
     const q = state.question;
+    if (ev.shiftKey && /^[A-Z]$/.test(key) && q.kind === "ranking") { // Shift + a letter: enlarge that option
+      const o = q.options[LETTERS.indexOf(key)];
+      if (o && o.picture) { ev.preventDefault(); enlarge(o.picture, `${key}: ${o.label}`); }
+      return;
+    }
+    if (key === "u" || key === "U") { ev.preventDefault(); undo(); return; }
+    if (!ready) return; // nothing is answered before it is on screen
     let answer;
     if (q.kind === "rating") {
       if (!q.levels || !/^[1-9]$/.test(key) || Number(key) > q.levels) return;
@@ -218,6 +273,8 @@
   }
 
   document.addEventListener("keydown", onKey);
+  $("zoom-close").addEventListener("click", () => $("zoom").close());
+  $("zoom").addEventListener("click", (ev) => { if (ev.target === $("zoom")) $("zoom").close(); });
   $("undo").addEventListener("click", undo);
   load();
 })();
