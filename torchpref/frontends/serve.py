@@ -38,7 +38,7 @@ from typing import Any
 
 from torch import Tensor
 
-from torchpref.frontends.serve_items import PLOT_LOCK, ServeItems, items_from_csv, lake_items
+from torchpref.frontends.serve_items import ServeItems, items_from_csv, lake_items
 from torchpref.frontends.serve_store import AnswerRefused, SessionStore
 from torchpref.sessions.session import PreferenceSession
 
@@ -126,10 +126,10 @@ class _Handlers:
         self.store = store
         self.env = jinja2.Environment(loader=jinja2.FileSystemLoader(HERE / "serve_templates"), autoescape=True)
 
-    def page(self, name: str, status: int = 200, **ctx):
+    def page(self, name: str, status: int = 200, headers: dict | None = None, **ctx):
         from starlette.responses import HTMLResponse
 
-        return HTMLResponse(self.env.get_template(name).render(**ctx), status_code=status)
+        return HTMLResponse(self.env.get_template(name).render(**ctx), status_code=status, headers=headers)
 
     def wrap(self, fn):
         from starlette.concurrency import run_in_threadpool
@@ -141,9 +141,11 @@ class _Handlers:
                     return await fn(request)
                 return await run_in_threadpool(fn, request)
             except AnswerRefused as err:
+                retry = getattr(err, "retry_after", None)  # ServerBusy (503): out of descriptors or memory
+                headers = {"Retry-After": str(retry)} if retry is not None else None
                 if request.method == "GET" and "text/html" in request.headers.get("accept", ""):
-                    return self.page("error.html", err.status, message=str(err))
-                return JSONResponse({"error": str(err), "state": err.state}, status_code=err.status)
+                    return self.page("error.html", err.status, message=str(err), headers=headers)
+                return JSONResponse({"error": str(err), "state": err.state}, status_code=err.status, headers=headers)
 
         return wrapped
 
@@ -186,7 +188,9 @@ class _Handlers:
 
         entry = self.store.entry(request.path_params["sid"])
         with entry.lock:
-            return JSONResponse(self.store.state(entry))
+            state = self.store.state(entry)
+        self.store.plots.prefetch_state(state)  # the pictures it shows, started before they are asked for
+        return JSONResponse(state)
 
     async def answer(self, request):
         from starlette.concurrency import run_in_threadpool
@@ -196,6 +200,9 @@ class _Handlers:
         start = time.perf_counter()
         result = await run_in_threadpool(self.store.answer, request.path_params["sid"], body)
         ms = 1000 * (time.perf_counter() - start)
+        self.store.plots.prefetch_state(result)  # queued only: no picture or plot delays this reply
+        if result["done"]:
+            self.store.plots.prerender(self.store, result["sid"])
         return JSONResponse(result, headers={"Server-Timing": f"answer;dur={ms:.2f}"})
 
     async def undo(self, request):
@@ -211,17 +218,16 @@ class _Handlers:
         entry = self.store.entry(request.path_params["sid"])
         with entry.lock:
             ctx = summary_context(self.store, entry, request.query_params)
+        self.store.plots.prerender(self.store, entry.sid, ctx["x"], ctx["y"])
         return self.page("summary.html", **ctx)
 
     def utility_png(self, request):
         from starlette.responses import Response
 
-        from torchpref.frontends.serve_summary import axes_from_query, utility_plot
+        from torchpref.frontends.serve_summary import axes_from_query
 
-        entry = self.store.entry(request.path_params["sid"])
         x, y = axes_from_query(self.store.items, request.query_params)
-        with entry.lock, PLOT_LOCK:
-            png = utility_plot(self.store.items, entry.session, x, y)
+        png = self.store.plots.utility_png(self.store, request.path_params["sid"], x, y)  # drawn by a worker
         return Response(png, media_type="image/png")
 
     def download(self, request):
@@ -244,7 +250,7 @@ class _Handlers:
         from starlette.responses import Response
 
         try:
-            pic = self.store.items.picture(int(request.path_params["index"]))
+            pic = self.store.plots.picture(int(request.path_params["index"]))  # drawn by a worker, kept
         except (ValueError, IndexError):
             raise AnswerRefused("no such picture.", 404) from None
         except OSError:
@@ -347,6 +353,9 @@ def serve(
     noun: str = "item",
     ready: Callable[[str], None] | None = None,
     threads: int | None = 1,
+    max_open: int | None = None,
+    idle_close: float = 120.0,
+    finished_close: float = 5.0,
 ) -> None:
     """Serve the answering page until interrupted (Ctrl-C).
 
@@ -367,13 +376,21 @@ def serve(
             after; ``None``: left as they are). One is fastest for a session's small matrices, and
             sessions of different people run in parallel threads (5-10x faster answers than
             torch's default on a loaded 2-core machine, docs/serve.md).
+        max_open, idle_close, finished_close: sessions are a bounded cache over their files
+            (:class:`~torchpref.frontends.serve_pool.SessionPool`): at most ``max_open`` open at
+            once (default: from the descriptor limit, :func:`~torchpref.frontends.serve_pool.default_max_open`),
+            each closed after ``idle_close`` seconds without a request (``finished_close`` once
+            all its questions are answered) and reopened from its file on the next one.
 
     Raises:
         ServeError: unsafe or impossible network settings. ImportError: the ``serve`` extra is missing.
     """
     _require()
+    from torchpref.frontends.serve_pool import PoolLimits, quiet_resource_errors
+
     token = _check_network(host, port, allow_remote, token)
-    store = _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun)
+    limits = PoolLimits(max_open=max_open, idle_close=idle_close, finished_close=finished_close)
+    store = _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun, limits)
     hosts = ["*"] if not _is_loopback(host) else None
     app = create_app(store, token=token, allowed_hosts=hosts)
     import torch
@@ -382,13 +399,16 @@ def serve(
     if threads is not None:
         torch.set_num_threads(threads)
     try:
-        _run_uvicorn(app, host, port, token, ready, f"s/{store.sids[0]}/" if store.fixed else "")
+        with quiet_resource_errors():  # out of descriptors: one log line, not a traceback a second
+            _run_uvicorn(app, host, port, token, ready, f"s/{store.sids[0]}/" if store.fixed else "")
     finally:
         store.close()
         torch.set_num_threads(before)
 
 
-def _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun) -> SessionStore:
+def _store(
+    source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun, limits=None
+) -> SessionStore:
     from torchpref.data.queries import FinitePool
 
     if isinstance(source, PreferenceSession):
@@ -396,7 +416,7 @@ def _store(source, render, names, labels, sessions, num_queries, seed, num_level
         if not isinstance(pool, FinitePool):
             raise ServeError("a served session's candidates must be a pool of items (N x d), not a box.")
         items = ServeItems(pool.X, names or source.names, labels, render=render, noun=noun)
-        return SessionStore(items, session=source, ties=ties)
+        return SessionStore(items, session=source, ties=ties, limits=limits)
     if isinstance(source, ServeItems):
         items = source
     elif isinstance(source, Tensor):
@@ -405,7 +425,9 @@ def _store(source, render, names, labels, sessions, num_queries, seed, num_level
         raise TypeError(
             f"serve() takes a PreferenceSession, an N x d tensor or ServeItems, got {type(source).__name__}."
         )
-    return SessionStore(items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties)
+    return SessionStore(
+        items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties, limits=limits
+    )
 
 
 def _run_uvicorn(app, host: str, port: int, token: str | None, ready, path: str = "") -> None:
@@ -447,5 +469,8 @@ def run(args: Any) -> int:
         port=args.port,
         allow_remote=args.allow_remote,
         token=args.token,
+        max_open=args.max_open,
+        idle_close=args.idle_close,
+        finished_close=args.finished_close,
     )
     return 0
