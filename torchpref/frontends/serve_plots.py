@@ -110,6 +110,12 @@ class Worker:
                     self._pending.pop(key, None)
                     self.running = None
                     self.done += 1
+                    self._cv.notify_all()
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Wait until no job is queued or running; whether it is so (``False``: ``timeout`` passed)."""
+        with self._cv:
+            return self._cv.wait_for(lambda: not self._pending, timeout)
 
     def close(self) -> None:
         """Finish the queued jobs' futures with an error and stop the thread."""
