@@ -48,6 +48,9 @@ QUEUE_LIMIT = 256
 
 WORKER_SCRIPT = Path(__file__).with_name("serve_plot_worker.py")
 
+IDLE_EXIT = 30.0
+"""Seconds a worker's thread waits for a job before it ends (the next job starts another)."""
+
 
 class Worker:
     """One thread running jobs one at a time, each at most once while it is pending (jobs are
@@ -93,9 +96,10 @@ class Worker:
         _lower_priority(self.nice)
         while True:
             with self._cv:
-                while not self._queue and not self._closed:
-                    self._cv.wait()
-                if not self._queue:
+                if not self._queue and not self._closed:
+                    self._cv.wait(IDLE_EXIT)
+                if not self._queue:  # closed, or idle: the thread ends (the next job starts another)
+                    self._thread = None
                     return
                 key, job, fut = self._queue.popleft()
                 self.running = key
@@ -215,6 +219,14 @@ class ProcessDrawer:
     def close(self) -> None:
         with self._lock:
             self._stop()
+
+    def __del__(self) -> None:
+        proc = getattr(self, "_proc", None)
+        if proc is not None and proc.stdin is not None:
+            try:
+                proc.stdin.close()  # the worker ends at the end of its input
+            except OSError:
+                pass
 
 
 def _send(proc: subprocess.Popen, obj: Any) -> None:
