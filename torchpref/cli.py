@@ -195,9 +195,9 @@ def _serve_parser(sub) -> None:
     sv.add_argument(
         "--finished-close",
         type=seconds,
-        default=5.0,
+        default=1.0,
         metavar="S",
-        help="the same once all its questions are answered (default 5)",
+        help="the same once all its questions are answered (default 1)",
     )
 
 

@@ -250,6 +250,7 @@ def summarise(args, answers: list[dict], samples: list[dict], jobs: list[dict], 
     run_rows = [s for s in samples if s["phase"] == "run"]
     # RSS against sessions finished, after the first 10 (imports, first plots, caches filling)
     pts = [(s["finished"], s["rss_kb"]) for s in run_rows if s["finished"] >= min(10, len(full) // 2)]
+    late = [p for p in pts if p[0] >= len(full) // 2]
     ms = [a["server_ms"] for a in answers if a["server_ms"] is not None]
     during = [a["server_ms"] for a in answers if a["during_plot"]]
     other = [a["server_ms"] for a in answers if not a["during_plot"]]
@@ -266,6 +267,9 @@ def summarise(args, answers: list[dict], samples: list[dict], jobs: list[dict], 
         "answer_ms_other_p50_p95_p99": [pct(other, 0.5), pct(other, 0.95), pct(other, 0.99)] if other else None,
         "finished_session_kb_slope": round(slope([p[0] for p in pts], [p[1] for p in pts]), 1)
         if len(pts) > 2
+        else None,
+        "finished_session_kb_slope_second_half": round(slope([p[0] for p in late], [p[1] for p in late]), 1)
+        if len(late) > 2
         else None,
         "rss_kb_first_last_max": [run_rows[0]["rss_kb"], run_rows[-1]["rss_kb"], max(s["rss_kb"] for s in run_rows)],
         "worker_rss_kb_max": max(s["worker_rss_kb"] for s in samples),
@@ -369,7 +373,7 @@ def main() -> None:
                 run_wave(srv, jobs, args.active, args.think, args.seed, ctx, progress)
                 cpu = cpu_seconds(srv.proc.pid) - cpu0
                 wall = time.monotonic() - t0
-                time.sleep(8)  # finished_close (5 s) and a sweep: what is left open after the run
+                time.sleep(5)  # finished_close (1 s) and a sweep: what is left open after the run
                 progress["phase"] = "after run"
                 after = sampler.sample("after run")
                 progress["phase"] = "partial"

@@ -355,7 +355,7 @@ def serve(
     threads: int | None = 1,
     max_open: int | None = None,
     idle_close: float = 120.0,
-    finished_close: float = 5.0,
+    finished_close: float = 1.0,
 ) -> None:
     """Serve the answering page until interrupted (Ctrl-C).
 

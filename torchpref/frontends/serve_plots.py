@@ -37,8 +37,8 @@ from torchpref.frontends.serve_items import PLOT_LOCK, ServeItems
 
 __all__ = ["DRAW_TIMEOUT", "Plots", "ProcessDrawer", "SUMMARY_CACHE", "Worker"]
 
-SUMMARY_CACHE = 32
-"""Summary plots kept (some 50 KB each)."""
+SUMMARY_CACHE = 8
+"""Summary plots kept (some 60 KB each): a finished session's, drawn at its last answer, until its page has loaded it."""
 
 DRAW_TIMEOUT = 120.0
 """Seconds a summary plot may take in the worker process before it is restarted."""

@@ -144,7 +144,7 @@ class PoolLimits:
 
     max_open: int | None = None
     idle_close: float = 120.0
-    finished_close: float = 5.0
+    finished_close: float = 1.0
     retry_after: int = 30
     fd_reserve: int | None = None
     memory_reserve: int = 64 * 2**20
