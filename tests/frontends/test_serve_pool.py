@@ -221,6 +221,30 @@ def test_a_failed_open_for_want_of_descriptors_is_503_and_leaves_no_file(tmp_pat
     store.close()
 
 
+@pytest.mark.parametrize(
+    "exc",
+    [MemoryError(), RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 8 bytes")],
+    ids=["MemoryError", "torch"],
+)
+def test_out_of_memory_in_an_answer_is_503_and_nothing_recorded(tmp_path, monkeypatch, exc):
+    store = SessionStore(_items(), tmp_path)
+    lines: list[str] = []
+    store.pool._log = lines.append
+    c = _client(store)
+    sid = c.post("/api/new", json={}).json()["sid"]
+    st = c.get(f"/s/{sid}/state").json()
+    monkeypatch.setattr(type(store.entry(sid).session), "tell", lambda *a, **k: (_ for _ in ()).throw(exc))
+    body = {"qid": st["qid"], "answer": 1 if st["question"]["kind"] != "rating" else 3}
+    for _ in range(3):
+        r = c.post(f"/s/{sid}/answer", json=body)
+        assert r.status_code == 503 and "retry-after" in r.headers and "nothing was recorded" in r.json()["error"]
+    assert len(lines) == 1 and store.entry(sid).session.step == 0
+    monkeypatch.undo()
+    assert c.post(f"/s/{sid}/answer", json=body).status_code == 200  # the page's retry goes through
+    assert store.entry(sid).session.step == 1
+    store.close()
+
+
 def test_resource_errors_are_recognised_through_their_chain():
     assert resource_error(OSError(errno.EMFILE, "x")) and resource_error(MemoryError())
     try:

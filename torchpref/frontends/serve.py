@@ -137,9 +137,12 @@ class _Handlers:
 
         async def wrapped(request):
             try:
-                if inspect.iscoroutinefunction(fn):
-                    return await fn(request)
-                return await run_in_threadpool(fn, request)
+                try:
+                    if inspect.iscoroutinefunction(fn):
+                        return await fn(request)
+                    return await run_in_threadpool(fn, request)
+                except (MemoryError, OSError, RuntimeError) as exc:  # out of memory or files: 503, else re-raised
+                    raise self.store.pool.as_busy(exc) from None
             except AnswerRefused as err:
                 retry = getattr(err, "retry_after", None)  # ServerBusy (503): out of descriptors or memory
                 headers = {"Retry-After": str(retry)} if retry is not None else None

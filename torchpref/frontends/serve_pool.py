@@ -59,6 +59,7 @@ MAX_OPEN_CAP = 512
 """The default ``max_open`` never exceeds this (an open session holds its model: some 0.5 MB)."""
 
 RESOURCE_ERRNOS = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOMEM, errno.ENOBUFS})
+OOM_MESSAGES = ("can't allocate memory", "Cannot allocate memory", "not enough memory")
 
 
 def default_max_open(soft_limit: int | None = None) -> int:
@@ -108,12 +109,15 @@ def available_memory() -> int | None:
 
 def resource_error(exc: BaseException) -> bool:
     """Whether ``exc`` (or an exception it was raised from or during) is running out of descriptors
-    or memory: ``MemoryError`` or an ``OSError`` ``EMFILE`` / ``ENFILE`` / ``ENOMEM`` / ``ENOBUFS``."""
+    or memory: ``MemoryError``, an ``OSError`` ``EMFILE`` / ``ENFILE`` / ``ENOMEM`` / ``ENOBUFS``, or
+    torch's allocator failing (a ``RuntimeError`` saying so)."""
     seen: set[int] = set()
     e: BaseException | None = exc
     while e is not None and id(e) not in seen:
         seen.add(id(e))
         if isinstance(e, MemoryError) or (isinstance(e, OSError) and e.errno in RESOURCE_ERRNOS):
+            return True
+        if isinstance(e, RuntimeError) and any(m in str(e) for m in OOM_MESSAGES):  # torch's allocator
             return True
         e = e.__cause__ or e.__context__
     return False
@@ -389,6 +393,21 @@ class SessionPool:
             f"Please try again in {self.limits.retry_after} seconds.",
             self.limits.retry_after,
         )
+
+    def as_busy(self, exc: BaseException) -> BaseException:
+        """``exc`` as :class:`ServerBusy` if it is running out of descriptors or memory (any request:
+        nothing was recorded, the page sends it again), logged once per shortage; else ``exc``."""
+        if not resource_error(exc):
+            return exc
+        try:
+            self.refuse("memory or file descriptors")
+        except ServerBusy as busy:
+            busy.args = (
+                "the server is out of memory or open files for a moment: nothing was recorded. "
+                f"Please try again in {self.limits.retry_after} seconds.",
+            )
+            return busy
+        raise AssertionError("unreachable")  # pragma: no cover
 
     def recovered(self) -> None:
         """A new session was created: if participants were being refused, say once that it is over."""
