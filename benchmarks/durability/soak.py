@@ -2,7 +2,8 @@ r"""A soak run of ``torchpref serve`` as a study uses it: many participants, a f
 kill and a restart. It records the server's memory, open files and time per answer over the run.
 
 ``--sessions`` participants (60) answer ``--answers`` questions each (20), ``--active`` (10) at a
-time: scripted clients over HTTP that, like the page, fetch each question's state and pictures,
+time: scripted clients over HTTP that, like the page, show each question (from the last answer's
+reply) and fetch its pictures,
 "think" for a seeded random 0.5-1.5 x ``--think`` seconds, send the answer, and at the end load the
 summary page and its plot (drawn by the server's plot worker while the others go on answering).
 A sampler reads the server's RSS, its open descriptors and how many of them are session files
@@ -129,8 +130,8 @@ def participant(srv: Server, job: dict, rng: random.Random, think: float, ctx: d
     assert status == 200, data
     sid, base = data["sid"], f"{srv.url}s/{data['sid']}/"
     job["sid"], acked = sid, []
+    st = get_json(base + "state")  # then, as the page, the next question from each answer's reply
     for k in range(job["answers"]):
-        st = get_json(base + "state")
         for o in st["question"]["options"]:
             if o["picture"]:
                 fetch(srv.url + f"picture/{o['index']}")
@@ -141,6 +142,7 @@ def participant(srv: Server, job: dict, rng: random.Random, think: float, ctx: d
         t1 = time.monotonic()
         assert status == 200, reply
         acked.append((st["qid"], a))
+        st = reply
         ctx["answers"].append(
             {
                 "session": job["n"],
