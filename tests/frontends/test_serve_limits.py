@@ -28,6 +28,7 @@ def _answer(url: str, k: int) -> int:
     return post(url + "answer", {"qid": st["qid"], "answer": a, "response_time": 1.0})[0]
 
 
+@pytest.mark.slow  # a server process started (some 20 s on a loaded machine); test_serve_pool checks the same in-process
 def test_out_of_descriptors_is_503_then_recovers(tmp_path):
     items = write_items(tmp_path, n=20, d=2, pictures=False)
     srv = Server(["--features", str(items), "--sessions", "sessions", "--queries", "6"], tmp_path)

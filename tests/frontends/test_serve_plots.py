@@ -168,3 +168,19 @@ def test_a_questions_pictures_are_drawn_before_they_are_asked_for(tmp_path):
         assert c.get(f"/picture/{i}").content == PNG
     assert len(drawn) == n  # served from the cache
     store.close()
+
+
+def test_without_a_worker_process_the_plot_is_drawn_in_its_thread(tmp_path, monkeypatch):
+    import torchpref.frontends.serve_plots as plots
+
+    monkeypatch.setattr(plots, "WORKER_SCRIPT", tmp_path / "missing.py")  # the process starts and ends at once
+    store = SessionStore(_items(), tmp_path / "s", num_queries=4)
+    c = _client(store)
+    sid = c.post("/api/new", json={}).json()["sid"]
+    _answer(c, sid)
+    r = c.get(f"/s/{sid}/utility.png")
+    entry = store.entry(sid)
+    with entry.lock:
+        expected = draw_utility(utility_data(store.items, entry.session, 0, 1))
+    assert r.status_code == 200 and r.content == expected and store.plots.fallbacks == 1
+    store.close()
