@@ -271,3 +271,43 @@ def test_accept_errors_become_one_log_line(caplog):
     assert len(lines) == 2 and flt.dropped == 999
     assert "Too many open files" in lines[0].getMessage() and lines[0].exc_info is None
     assert not any(f is flt for f in log.filters)  # removed afterwards
+
+
+def test_participants_in_parallel_through_a_pool_of_two(tmp_path):
+    """Four participants at once, sessions closed after every request (idle 0 s, two open at most)
+    and reopened by the next: every answer acknowledged is in its file, in order, nothing twice."""
+    import threading
+
+    from torchpref.testing.serve import acknowledged_in_file, records
+
+    store = SessionStore(_items(), tmp_path, num_queries=6, limits=PoolLimits(max_open=2, idle_close=0))
+    c = _client(store)
+    sids = [c.post("/api/new", json={}).json()["sid"] for _ in range(4)]
+    acked: dict[str, list] = {sid: [] for sid in sids}
+    errors: list = []
+
+    def participant(sid):
+        try:
+            for k in range(6):
+                st = c.get(f"/s/{sid}/state").json()
+                q = st["question"]
+                a = 1 + (3 * k) % 5 if q["kind"] == "rating" else k % len(q["options"])
+                r = c.post(f"/s/{sid}/answer", json={"qid": st["qid"], "answer": a})
+                assert r.status_code == 200, r.text
+                acked[sid].append((st["qid"], a))
+                store.pool.sweep()
+        except BaseException as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=participant, args=(sid,)) for sid in sids]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    assert store.pool.closed > 8 and len(store.sids) <= 2 + 4  # closed and reopened many times
+    for sid in sids:
+        recs = records(store.path(sid))
+        assert len(recs) == 6 and acknowledged_in_file(acked[sid], recs) == []
+        assert c.get(f"/s/{sid}/state").json()["done"]
+    store.close()
