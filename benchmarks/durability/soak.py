@@ -338,9 +338,7 @@ def write(out: Path, res: dict, answers: list[dict], samples: list[dict]) -> Non
                 w.writerows(rows)
 
 
-def main() -> None:
-    from tqdm import tqdm
-
+def parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sessions", type=int, default=60)
     ap.add_argument("--answers", type=int, default=20)
@@ -352,7 +350,13 @@ def main() -> None:
     ap.add_argument("--every", type=float, default=0.5)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(HERE.parent / "results" / "serve"))
-    args = ap.parse_args()
+    return ap.parse_args()
+
+
+def main() -> None:
+    from tqdm import tqdm
+
+    args = parse_args()
     load0 = os.getloadavg()
     rng = random.Random(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
