@@ -78,6 +78,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def seconds(text: str) -> float:
+    """An argparse type: a finite number of seconds >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0, got {text}")
+    return value
+
+
 def _experiment_args(p: argparse.ArgumentParser, trials: int, queries: int) -> None:
     p.add_argument("--trials", type=positive_int, default=trials, help=f"number of trials (default {trials})")
     p.add_argument("--queries", type=positive_int, default=queries, help=f"queries per trial (default {queries})")
@@ -203,6 +214,27 @@ def _serve_parser(sub) -> None:
     sv.add_argument("--port", type=int, default=8000, help="port (default 8000; 0: a free one)")
     sv.add_argument("--allow-remote", action="store_true", help="allow --host other than this machine (needs a token)")
     sv.add_argument("--token", help="the token a browser must give (made and printed for --allow-remote if not given)")
+    sv.add_argument(
+        "--max-open",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="sessions open at once; idle ones close and reopen from their files (default: from the open-files limit)",
+    )
+    sv.add_argument(
+        "--idle-close",
+        type=seconds,
+        default=120.0,
+        metavar="S",
+        help="close a session after S seconds without a request (default 120)",
+    )
+    sv.add_argument(
+        "--finished-close",
+        type=seconds,
+        default=1.0,
+        metavar="S",
+        help="the same once all its questions are answered (default 1)",
+    )
 
 
 def seconds_since_start() -> float:

@@ -41,7 +41,7 @@ from typing import Any
 
 from torch import Tensor
 
-from torchpref.frontends.serve_items import PLOT_LOCK, ServeItems, items_from_csv, lake_items
+from torchpref.frontends.serve_items import ServeItems, items_from_csv, lake_items
 from torchpref.frontends.serve_store import AnswerRefused, SessionStore
 from torchpref.sessions.session import PreferenceSession
 
@@ -135,10 +135,10 @@ class _Handlers:
         self.store = store
         self.env = jinja2.Environment(loader=jinja2.FileSystemLoader(HERE / "serve_templates"), autoescape=True)
 
-    def page(self, name: str, status: int = 200, **ctx):
+    def page(self, name: str, status: int = 200, headers: dict | None = None, **ctx):
         from starlette.responses import HTMLResponse
 
-        return HTMLResponse(self.env.get_template(name).render(**ctx), status_code=status)
+        return HTMLResponse(self.env.get_template(name).render(**ctx), status_code=status, headers=headers)
 
     def wrap(self, fn):
         from starlette.concurrency import run_in_threadpool
@@ -146,13 +146,19 @@ class _Handlers:
 
         async def wrapped(request):
             try:
-                if inspect.iscoroutinefunction(fn):
-                    return await fn(request)
-                return await run_in_threadpool(fn, request)
+                try:
+                    if inspect.iscoroutinefunction(fn):
+                        return await fn(request)
+                    return await run_in_threadpool(fn, request)
+                except (MemoryError, OSError, RuntimeError) as exc:  # out of memory or files: 503, else re-raised
+                    raise self.store.pool.as_busy(exc) from None
             except AnswerRefused as err:
+                retry = getattr(err, "retry_after", None)  # ServerBusy (503): out of descriptors or memory
+                if retry is None and err.status in (503, 507):  # a full disk, a file changed under a session
+                    retry = 5
+                headers = {"Retry-After": str(retry)} if retry is not None else None
                 if request.method == "GET" and "text/html" in request.headers.get("accept", ""):
-                    return self.page("error.html", err.status, message=str(err))
-                headers = {"Retry-After": "5"} if err.status in (503, 507) else None
+                    return self.page("error.html", err.status, message=str(err), headers=headers)
                 return JSONResponse({"error": str(err), "state": err.state}, status_code=err.status, headers=headers)
 
         return wrapped
@@ -197,7 +203,9 @@ class _Handlers:
 
         entry = self.store.entry(request.path_params["sid"])
         with entry.lock:
-            return JSONResponse(self.store.state(entry))
+            state = self.store.state(entry)
+        self.store.plots.prefetch_state(state)  # the pictures it shows, started before they are asked for
+        return JSONResponse(state)
 
     async def answer(self, request):
         from starlette.concurrency import run_in_threadpool
@@ -207,6 +215,9 @@ class _Handlers:
         start = time.perf_counter()
         result = await run_in_threadpool(self.store.answer, request.path_params["sid"], body)
         ms = 1000 * (time.perf_counter() - start)
+        self.store.plots.prefetch_state(result)  # queued only: no picture or plot delays this reply
+        if result["done"]:
+            self.store.plots.prerender(self.store, result["sid"])
         return JSONResponse(result, headers={"Server-Timing": f"answer;dur={ms:.2f}"})
 
     async def undo(self, request):
@@ -222,17 +233,16 @@ class _Handlers:
         entry = self.store.entry(request.path_params["sid"])
         with entry.lock:
             ctx = summary_context(self.store, entry, request.query_params)
+        self.store.plots.prerender(self.store, entry.sid, ctx["x"], ctx["y"])
         return self.page("summary.html", **ctx)
 
     def utility_png(self, request):
         from starlette.responses import Response
 
-        from torchpref.frontends.serve_summary import axes_from_query, utility_plot
+        from torchpref.frontends.serve_summary import axes_from_query
 
-        entry = self.store.entry(request.path_params["sid"])
         x, y = axes_from_query(self.store.items, request.query_params)
-        with entry.lock, PLOT_LOCK:
-            png = utility_plot(self.store.items, entry.session, x, y)
+        png = self.store.plots.utility_png(self.store, request.path_params["sid"], x, y)  # drawn by a worker
         return Response(png, media_type="image/png")
 
     def download(self, request):
@@ -255,7 +265,7 @@ class _Handlers:
         from starlette.responses import Response
 
         try:
-            pic = self.store.items.picture(int(request.path_params["index"]))
+            pic = self.store.plots.picture(int(request.path_params["index"]))  # drawn by a worker, kept
         except (ValueError, IndexError):
             raise AnswerRefused("no such picture.", 404) from None
         except OSError:
@@ -373,6 +383,9 @@ def serve(
     noun: str = "item",
     ready: Callable[[str], None] | None = None,
     threads: int | None = 1,
+    max_open: int | None = None,
+    idle_close: float = 120.0,
+    finished_close: float = 1.0,
 ) -> None:
     """Serve the answering page until interrupted (Ctrl-C).
 
@@ -394,15 +407,23 @@ def serve(
             after; ``None``: left as they are). One is fastest for a session's small matrices, and
             sessions of different people run in parallel threads (5-10x faster answers than
             torch's default on a loaded 2-core machine, docs/serve.md).
+        max_open, idle_close, finished_close: sessions are a bounded cache over their files
+            (:class:`~torchpref.frontends.serve_pool.SessionPool`): at most ``max_open`` open at
+            once (default: from the descriptor limit, :func:`~torchpref.frontends.serve_pool.default_max_open`),
+            each closed after ``idle_close`` seconds without a request (``finished_close`` once
+            all its questions are answered) and reopened from its file on the next one.
 
     Raises:
         ServeError: unsafe or impossible network settings. ImportError: the ``serve`` extra is missing.
     """
     _require()
+    from torchpref.frontends.serve_pool import PoolLimits, quiet_resource_errors
+
     token = _check_network(host, port, allow_remote, token)
     sock = listening_socket(host, port)  # a busy port is named before any work
     try:
-        store = _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun)
+        limits = PoolLimits(max_open=max_open, idle_close=idle_close, finished_close=finished_close)
+        store = _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun, limits)
     except BaseException:
         sock.close()
         raise
@@ -416,7 +437,8 @@ def serve(
     prerender = store.items.prerender_in_background()
     try:
         path = f"s/{store.sids[0]}/" if store.fixed else ""
-        _run_uvicorn(app, sock, host, token, ready, path)
+        with quiet_resource_errors():  # out of descriptors: one log line, not a traceback a second
+            _run_uvicorn(app, sock, host, token, ready, path)
     finally:
         prerender.set()
         sock.close()
@@ -424,7 +446,9 @@ def serve(
         torch.set_num_threads(before)
 
 
-def _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun) -> SessionStore:
+def _store(
+    source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun, limits=None
+) -> SessionStore:
     from torchpref.data.queries import FinitePool
 
     if isinstance(source, PreferenceSession):
@@ -432,7 +456,7 @@ def _store(source, render, names, labels, sessions, num_queries, seed, num_level
         if not isinstance(pool, FinitePool):
             raise ServeError("a served session's candidates must be a pool of items (N x d), not a box.")
         items = ServeItems(pool.X, names or source.names, labels, render=render, noun=noun)
-        return SessionStore(items, session=source, ties=ties)
+        return SessionStore(items, session=source, ties=ties, limits=limits)
     if isinstance(source, ServeItems):
         items = source
     elif isinstance(source, Tensor):
@@ -441,7 +465,9 @@ def _store(source, render, names, labels, sessions, num_queries, seed, num_level
         raise TypeError(
             f"serve() takes a PreferenceSession, an N x d tensor or ServeItems, got {type(source).__name__}."
         )
-    return SessionStore(items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties)
+    return SessionStore(
+        items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties, limits=limits
+    )
 
 
 def _shown_host(host: str) -> str:
@@ -572,5 +598,8 @@ def run(args: Any) -> int:
         port=args.port,
         allow_remote=args.allow_remote,
         token=args.token,
+        max_open=args.max_open,
+        idle_close=args.idle_close,
+        finished_close=args.finished_close,
     )
     return 0

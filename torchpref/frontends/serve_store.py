@@ -29,9 +29,8 @@ import re
 import secrets
 import threading
 import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -39,6 +38,10 @@ from torchpref.data.queries import Query, RankingQuery
 from torchpref.frontends.serve_items import ServeItems
 from torchpref.selection.strategies import UCBC
 from torchpref.sessions.session import PreferenceSession, SessionFileError, default_ranking_size
+
+if TYPE_CHECKING:
+    from torchpref.frontends.serve_pool import PoolEntry as _Entry
+    from torchpref.frontends.serve_pool import PoolLimits
 
 __all__ = ["AnswerRefused", "MAX_RESPONSE_TIME", "SID_PATTERN", "SessionStore", "make_qid"]
 
@@ -71,13 +74,6 @@ def make_qid(sid: str, position: int, items: list | None) -> str:
     return f"{position}.{digest}"
 
 
-@dataclass
-class _Entry:
-    sid: str
-    session: PreferenceSession
-    lock: threading.Lock = field(default_factory=threading.Lock)
-
-
 class SessionStore:
     """The participants' sessions over one pool of items.
 
@@ -87,6 +83,8 @@ class SessionStore:
         session: serve only this session (built in Python), under the id ``sid``; no new ones.
         sid: the id of ``session`` (default: its file's name before ``.session.jsonl``, or ``session``).
         num_queries, seed, num_levels, ties: settings of each new session (``ties``: offer "no preference").
+        limits: how many sessions stay open and for how long
+            (:class:`~torchpref.frontends.serve_pool.PoolLimits`; closed ones reopen from their files).
     """
 
     def __init__(
@@ -100,9 +98,14 @@ class SessionStore:
         seed: int = 0,
         num_levels: int | None = 5,
         ties: bool = True,
+        limits: PoolLimits | None = None,
     ) -> None:
+        from torchpref.frontends.serve_plots import Plots
+        from torchpref.frontends.serve_pool import SessionPool
+
         self.items, self.ties = items, bool(ties)
-        self._entries: dict[str, _Entry] = {}
+        self.pool = SessionPool(self._open_checked, limits)
+        self.plots = Plots(items)
         self._lock = threading.Lock()
         self.fixed = session is not None
         if session is not None:
@@ -110,7 +113,7 @@ class SessionStore:
                 sid = session.path.name.split(".")[0] if session.path is not None else "session"
             if not SID_PATTERN.fullmatch(sid):
                 raise ValueError(f"session id {sid!r:.80} must be 1-64 letters, digits, '-' or '_'.")
-            self._entries[sid] = _Entry(sid, session)
+            self.pool.add(sid, session, pinned=True)
             self.directory = None if session.path is None else session.path.parent
             self.num_levels = session.num_levels
         else:
@@ -138,6 +141,7 @@ class SessionStore:
         """A new participant's session (its file written now); returns its id."""
         if self.fixed:
             raise AnswerRefused("this server serves one session only; no new sessions.", 403)
+        self.pool.check_room()  # 503 before anything is made when descriptors or memory run short
         with self._lock:
             for _ in range(100):
                 sid = secrets.token_urlsafe(12)
@@ -146,20 +150,45 @@ class SessionStore:
             else:  # pragma: no cover - 2^-96 per try
                 raise RuntimeError("could not draw a new session id")
             try:
-                self._entries[sid] = _Entry(sid, self._open(sid))
-            except OSError as err:
-                self._remove_empty(sid)
-                raise _storage_refused(err, "no session was started") from None
+                session = self._open(sid)
+            except BaseException as exc:
+                self._discard(sid)  # no empty session file left behind
+                if isinstance(exc, Exception) and _resource_error(exc):
+                    self.pool.refuse("file descriptors or memory")
+                if isinstance(exc, OSError) and not _resource_error(exc):
+                    raise _storage_refused(exc, "no session was started") from None
+                raise
+            self.pool.add(sid, session)
+        self.pool.recovered()
         return sid
 
-    def _remove_empty(self, sid: str) -> None:
-        """Remove the file of a session whose creation failed, if it holds no complete record."""
-        path = self.path(sid)
+    def _discard(self, sid: str) -> None:
+        """Remove what a failed creation of ``sid`` left (its file holds no answer: it was never given out)."""
+        for p in (self.path(sid), self.path(sid).with_name(self.path(sid).name + ".mode")):
+            try:
+                p.unlink()
+            except OSError:
+                pass
+
+    def _open_checked(self, sid: str) -> PreferenceSession:
+        """Session ``sid`` from its file, for the pool: ``AnswerRefused`` (409) if the file does not
+        fit these items, ``ServerBusy`` (503) for want of descriptors or memory, 404 if it is gone,
+        507 / 503 if its file cannot be written (a full disk)."""
+        if not self.path(sid).is_file():  # never a new, empty session in place of a deleted file
+            raise AnswerRefused("no such session.", 404)
         try:
-            if path.is_file() and b"\n" not in path.read_bytes()[: 1 << 20]:
-                path.unlink()
-        except OSError:
-            pass
+            return self._open(sid)
+        except SessionFileError as err:
+            if _resource_error(err):
+                self.pool.refuse("file descriptors or memory")
+            raise AnswerRefused(f"session {sid} cannot be opened: {err}", 409) from None
+        except (OSError, MemoryError) as err:
+            if _resource_error(err):
+                self.pool.refuse("file descriptors or memory")
+                raise
+            if isinstance(err, OSError):
+                raise _storage_refused(err, f"session {sid} cannot be opened") from None
+            raise
 
     def _open(self, sid: str) -> PreferenceSession:
         kwargs = dict(self._kwargs, selector=UCBC(m=self._ranking_size), session_file=self.path(sid), repair=True)
@@ -178,31 +207,23 @@ class SessionStore:
         """
         if not isinstance(sid, str) or not SID_PATTERN.fullmatch(sid):
             raise AnswerRefused("no such session.", 404)
-        with self._lock:
-            found = self._entries.get(sid)
-            if found is not None:
-                return found
-            if self.fixed or not self.path(sid).is_file():
-                raise AnswerRefused("no such session.", 404)
-            try:
-                found = self._entries[sid] = _Entry(sid, self._open(sid))
-            except SessionFileError as err:
-                raise AnswerRefused(f"session {sid} cannot be opened: {err}", 409) from None
-            except OSError as err:
-                raise _storage_refused(err, f"session {sid} cannot be opened") from None
+        found = self.pool.get(sid)
+        if found is not None:
             return found
+        if self.fixed or not self.path(sid).is_file():
+            raise AnswerRefused("no such session.", 404)
+        return self.pool.entry(sid)
 
     @property
     def sids(self) -> list[str]:
         """The ids of the sessions open now."""
-        return list(self._entries)
+        return self.pool.open_sids
 
     def close(self) -> None:
-        """Release the session files this store opened (a session given to it stays open)."""
-        with self._lock:
-            for e in self._entries.values():
-                if not self.fixed:
-                    e.session.close()
+        """Release the session files this store opened (a session given to it stays open) and stop
+        the plot worker."""
+        self.pool.close()
+        self.plots.close()
 
     # --------------------------------------------------------------- state
     def _option(self, i: int | None, x) -> dict:
@@ -447,6 +468,12 @@ def _times(body: dict) -> dict[str, str]:
     if len(ms) == 2 and ms["answered_at"] < ms["shown_at"]:
         raise AnswerRefused("answered_at is before shown_at.", 400)
     return out
+
+
+def _resource_error(exc: BaseException) -> bool:
+    from torchpref.frontends.serve_pool import resource_error
+
+    return resource_error(exc)
 
 
 def _in_force(session: PreferenceSession) -> list[dict]:

@@ -9,7 +9,6 @@ posterior mean and a two-standard-deviation band against that objective.
 
 from __future__ import annotations
 
-import io
 from collections.abc import Mapping
 from typing import Any
 
@@ -17,7 +16,7 @@ import torch
 
 from torchpref.frontends.serve_items import ServeItems
 
-__all__ = ["axes_from_query", "summary_context", "utility_plot"]
+__all__ = ["axes_from_query", "summary_context", "utility_data", "utility_plot"]
 
 TOP = 5
 
@@ -87,42 +86,33 @@ def summary_context(store: Any, entry: Any, query: Mapping[str, str]) -> dict[st
     return ctx
 
 
-def utility_plot(items: ServeItems, session: Any, x: int, y: int) -> bytes:
-    """A PNG of the learned utility over objectives ``x`` and ``y`` (see the module)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
+def utility_data(items: ServeItems, session: Any, x: int, y: int) -> dict[str, Any]:
+    """The numbers the summary plot of objectives ``x`` and ``y`` is drawn from (plain lists: the
+    plot is drawn in a worker process, :func:`~torchpref.frontends.serve_plot_worker.draw_utility`).
+    Call with the session's lock held; it takes the posterior over the pool (a few milliseconds)."""
     X = items.X
-    fig = Figure(figsize=(6.4, 4.6), dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
+    data: dict[str, Any] = {
+        "step": session.step,
+        "xs": X[:, x].tolist(),
+        "ys": None if x == y else X[:, y].tolist(),
+        "xlabel": items.names[x],
+        "ylabel": items.names[y],
+    }
     if session.step == 0:
-        ax.text(0.5, 0.5, "no answers yet", ha="center", va="center", transform=ax.transAxes)
-        ax.set_axis_off()
-    else:
+        return data
+    with torch.no_grad():
         mean, std = session.predict(X)
-        seen = {i for r in session.history for i in (r.pool_indices or ())}
-        best = int(mean.argmax())
-        if x == y:
-            o = X[:, x].argsort()
-            xs, m, sd = X[o, x].numpy(), mean[o].numpy(), std[o].numpy()
-            ax.fill_between(xs, m - 2 * sd, m + 2 * sd, color="#9ecae1", alpha=0.5, label="± 2 sd")
-            ax.plot(xs, m, color="#08519c", marker=".", label="posterior mean")
-            ax.set_ylabel("utility")
-        else:
-            pts = ax.scatter(X[:, x], X[:, y], c=mean, cmap="viridis", s=36, edgecolors="none")
-            fig.colorbar(pts, ax=ax, label="utility (posterior mean)")
-            if seen:
-                rows = torch.tensor(sorted(seen))
-                ax.scatter(
-                    X[rows, x], X[rows, y], s=90, facecolors="none", edgecolors="#d62728", label="answered about"
-                )
-            ax.scatter(X[best, x], X[best, y], marker="*", s=320, c="#ff7f0e", edgecolors="k", label="recommended")
-            ax.set_ylabel(items.names[y])
-        ax.set_xlabel(items.names[x])
-        ax.legend(loc="best", fontsize=8)
-        ax.set_title(f"Learned utility from {session.step} answers")
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    return buf.getvalue()
+    data.update(
+        mean=mean.tolist(),
+        std=std.tolist(),
+        seen=sorted({i for r in session.history for i in (r.pool_indices or ())}),
+        best=int(mean.argmax()),
+    )
+    return data
+
+
+def utility_plot(items: ServeItems, session: Any, x: int, y: int) -> bytes:
+    """A PNG of the learned utility over objectives ``x`` and ``y`` (see the module), drawn here."""
+    from torchpref.frontends.serve_plot_worker import draw_utility
+
+    return draw_utility(utility_data(items, session, x, y))

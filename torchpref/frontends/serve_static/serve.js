@@ -261,6 +261,7 @@
     for (let attempt = 0; attempt < 450; attempt++) {
       try {
         const r = await fetch("state", { cache: "no-store" });
+        if (r.status === 503) throw new Error("busy");  // out of memory or files for a moment: try again
         const data = await r.json();
         if (!r.ok) { message(data.error || "This session cannot be shown."); return; }
         render(data);
