@@ -6,7 +6,8 @@ A *stamp* (:func:`make_stamp`) is a dictionary written into a results file under
   changes to the sources below);
 * ``sources``: ``{path: sha256}`` of the files the result depends on: the script that wrote it and
   every ``torchpref`` module loaded in the process when it was written (what the measured code
-  actually ran), paths relative to the repository root;
+  actually ran; packages' ``__init__`` files, which only re-export names, left out), paths
+  relative to the repository root;
 * ``versions`` of Python, torch, GPyTorch, BoTorch, NumPy and torchpref;
 * ``load_avg`` (1, 5, 15 minutes) and ``cpu_count`` when it was written;
 * ``wall_s`` and ``cpu_s``: the process's wall time since it started and its CPU time (user +
@@ -59,7 +60,9 @@ def loaded_sources(root: Path = ROOT, extra: Iterable[str | os.PathLike] = ()) -
     files.update(Path(p).resolve() for p in extra)
     for name, module in list(sys.modules.items()):
         f = getattr(module, "__file__", None)
-        if (name == "torchpref" or name.startswith("torchpref.")) and f:
+        # a package's __init__ only re-exports its modules' names (docs/architecture.md): not hashed,
+        # so that adding a public name does not make every result stale
+        if (name == "torchpref" or name.startswith("torchpref.")) and f and not f.endswith("__init__.py"):
             files.add(Path(f).resolve())
     out = {}
     for f in sorted(files):
