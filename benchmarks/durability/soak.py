@@ -349,6 +349,7 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--dim", type=int, default=3)
     ap.add_argument("--every", type=float, default=0.5)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-open", type=int, default=None, help="the server's --max-open (default: its own)")
     ap.add_argument("--out", default=str(HERE.parent / "results" / "serve"))
     return ap.parse_args()
 
@@ -362,8 +363,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         items = write_items(folder, n=args.items, d=args.dim, seed=args.seed, pictures=True)
+        extra = [] if args.max_open is None else ["--max-open", str(args.max_open)]
         srv = Server(["--features", str(items), "--image-column", "picture", "--sessions", "sessions",
-                      "--queries", str(args.answers)], folder)  # fmt: skip
+                      "--queries", str(args.answers), *extra], folder)  # fmt: skip
         srv.start()
         progress = {"active": 0, "finished": 0, "phase": "run"}
         t0 = time.monotonic()

@@ -311,3 +311,20 @@ def test_participants_in_parallel_through_a_pool_of_two(tmp_path):
         assert len(recs) == 6 and acknowledged_in_file(acked[sid], recs) == []
         assert c.get(f"/s/{sid}/state").json()["done"]
     store.close()
+
+
+def test_the_limit_passed_while_sessions_are_busy_is_restored_by_the_sweep(tmp_path):
+    store = SessionStore(_items(), tmp_path, limits=PoolLimits(max_open=1))
+    sids = [store.create() for _ in range(3)]
+    entries = [store.entry(sid) for sid in sids]
+    assert store.sids == [sids[-1]]  # one open: the others were closed to make room
+    for e in entries:
+        e.lock.acquire()  # three requests at once: none may be closed under them
+    closed = store.pool.closed
+    for e in entries:
+        assert e.session.step == 0  # each (re)opened: the limit of one is passed, all are busy
+    assert len(store.sids) == 3 and store.pool.closed == closed
+    for e in entries:
+        e.lock.release()
+    assert store.pool.sweep() == 2 and store.sids == [sids[1]]  # back to the limit: the last reopened kept
+    store.close()

@@ -293,14 +293,15 @@ class SessionPool:
 
     def sweep(self) -> int:
         """Close the sessions idle for longer than their limit (``finished_close`` once all their
-        questions are answered, else ``idle_close``); returns how many were closed."""
+        questions are answered, else ``idle_close``), and the least recently used beyond
+        ``max_open`` (open while busy, when the limit was passed); returns how many were closed."""
         lim = self.limits
 
         def stale(entry: PoolEntry, idle: float) -> bool:
             s = entry._session
             return idle >= (lim.finished_close if s is not None and s.done else lim.idle_close)
 
-        return self._close_where(stale, over_only=False)
+        return self._close_where(stale, over_only=False) + self.make_room()
 
     def _close_where(self, pick: Callable[[PoolEntry, float], bool], over_only: bool) -> int:
         floor = min(self.limits.idle_close, self.limits.finished_close)
