@@ -1,7 +1,7 @@
 """Every measured figure the README and the docs quote, read from its results file (issue 36).
 
 A figure is a file under ``benchmarks/results/``, a key in it and a format. JSON keys are dotted
-paths (``final.UCBC.wrms.0.0``: dictionary keys and list indices); CSV keys are
+paths (``final.UCBC.wrms.0``: dictionary keys and list indices); CSV keys are
 ``column@key=value,key=value`` (the column of the one row whose other columns match).
 
 * The docs site reads them at build time: ``docs/conf.py`` makes each a MyST substitution, so a
@@ -73,10 +73,10 @@ FIGURES: dict[str, Figure] = {
     "speed_eubo_500_pairwisegp": Figure(_SPEED, "ratio_pairwisegp@task=eubo,n=500", "{:.1f}×"),
     "speed_eubo_500_rust": Figure(_SPEED, "ratio_botorch_rust@task=eubo,n=500", "{:.0f}×"),
     # the paper's Fig. 6 (torchpref reproduce wave)
-    "wave_wrms_info": Figure(_WAVE, "final.info per effort.wrms.0.0", "{:.4f}"),
-    "wave_wrms_ucbc": Figure(_WAVE, "final.UCBC.wrms.0.0", "{:.4f}"),
-    "wave_tp_info": Figure(_WAVE, "final.info per effort.tp.0.0", "{:.2f}"),
-    "wave_tp_ucbc": Figure(_WAVE, "final.UCBC.tp.0.0", "{:.2f}"),
+    "wave_wrms_info": Figure(_WAVE, "final.info per effort.wrms.0", "{:.4f}"),
+    "wave_wrms_ucbc": Figure(_WAVE, "final.UCBC.wrms.0", "{:.4f}"),
+    "wave_tp_info": Figure(_WAVE, "final.info per effort.tp.0", "{:.2f}"),
+    "wave_tp_ucbc": Figure(_WAVE, "final.UCBC.tp.0", "{:.2f}"),
     "wave_p_wrms": Figure(_WAVE, f"{_PAIR}.wrms.p_wilcoxon", "sci"),
     "wave_p_tp": Figure(_WAVE, f"{_PAIR}.tp.p_wilcoxon", "sci"),
     # lake monitoring, 10 lakes x 20 trials (torchpref reproduce lake)
