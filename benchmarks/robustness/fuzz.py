@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from torchpref.experiments.stamp import stamped
 from torchpref.testing import problems as fp
 
 TARGET = 1e-3  # relative float32-float64 agreement asked for
@@ -187,6 +188,7 @@ def write(rows: list[dict], args: argparse.Namespace, seconds: float) -> dict:
         "seconds": round(seconds, 1),
         "torch": torch.__version__,
     }
+    summary = stamped(summary)  # commit, source hashes, versions, load, times (make results-status)
     (args.out / "fuzz.json").write_text(json.dumps(summary, indent=1, default=lambda x: None if math.isnan(x) else x))
     return summary
 
