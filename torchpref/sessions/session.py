@@ -108,6 +108,14 @@ __all__ = [
 ]
 
 
+def _check_callables(selector: Any, model_factory: Any) -> None:
+    """A selector with ``select`` and a callable model factory (or ``None``), else ``TypeError``."""
+    if selector is not None and not callable(getattr(selector, "select", None)):
+        raise TypeError(f"selector must be a Selector (with select(model, candidates, ...)), got {selector!r:.80}.")
+    if model_factory is not None and not callable(model_factory):
+        raise TypeError(f"model_factory must be callable(X) -> PreferenceGP, got {model_factory!r:.80}.")
+
+
 class PreferenceSession(ModelCache):
     r"""Ask queries, take answers, keep the model current; optionally persisted to a file.
 
@@ -171,10 +179,7 @@ class PreferenceSession(ModelCache):
         self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
         self.num_queries, self.num_levels, self.names = settings.num_queries, settings.num_levels, settings.names
         self._n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
-        if selector is not None and not callable(getattr(selector, "select", None)):
-            raise TypeError(f"selector must be a Selector (with select(model, candidates, ...)), got {selector!r:.80}.")
-        if model_factory is not None and not callable(model_factory):
-            raise TypeError(f"model_factory must be callable(X) -> PreferenceGP, got {model_factory!r:.80}.")
+        _check_callables(selector, model_factory)
         self._lock, self._pid = threading.RLock(), os.getpid()
         self._anchor = self.transform(self._pool[:1] if self._pool is not None else self.bounds.mean(0, keepdim=True))
         self._pending: tuple[int, Query] | None = None  # (step, query) until answered
