@@ -25,6 +25,7 @@ over ``k = 1 .. n_train`` answers; selectors are compared with random by paired 
 
 from __future__ import annotations
 
+import argparse
 import csv
 import gzip
 import math
@@ -286,7 +287,7 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     """``torchpref reproduce replay``: run, write ``replay_rows.jsonl`` (as the replays finish),
     ``replay.csv`` (the curves), ``replay.json`` (areas and tests) and ``replay.png`` in ``args.out``."""
     import json

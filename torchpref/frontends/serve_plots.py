@@ -155,6 +155,7 @@ class ProcessDrawer:
 
     @property
     def pid(self) -> int | None:
+        """The worker process's id (``None`` while none runs)."""
         proc = self._proc
         return None if proc is None or proc.poll() is not None else proc.pid
 
@@ -217,6 +218,7 @@ class ProcessDrawer:
             proc.wait(timeout=5)
 
     def close(self) -> None:
+        """Stop the worker process."""
         with self._lock:
             self._stop()
 

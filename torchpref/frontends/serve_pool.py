@@ -192,6 +192,7 @@ class PoolEntry:
 
     @property
     def is_open(self) -> bool:
+        """Whether the session is open now (its file held, its model in memory)."""
         return self._session is not None
 
 

@@ -56,6 +56,7 @@ class Problem:
 
     @property
     def n(self) -> int:
+        """The number of items."""
         return self.X.shape[0]
 
 
@@ -122,6 +123,7 @@ def random_config(seed: int) -> tuple[dict, Tensor, Tensor, Tensor, Tensor]:
 
 
 def kernel(problem: Problem, dtype: torch.dtype) -> ScaleKernel:
+    """The problem's RBF kernel (its lengthscale and outputscale) in ``dtype``."""
     k = ScaleKernel(RBFKernel(ard_num_dims=problem.X.shape[-1])).to(dtype)
     k.base_kernel.lengthscale = problem.lengthscale
     k.outputscale = problem.outputscale
@@ -135,6 +137,7 @@ def query_points(problem: Problem, num: int = 8) -> Tensor:
 
 
 def build(problem: Problem, dtype: torch.dtype, laplace_dtype: torch.dtype | None = None) -> PreferenceGP:
+    """The problem's model in ``dtype``, solving in ``laplace_dtype`` (``None``: the default)."""
     C = problem.comparisons if problem.comparisons.numel() else None
     r, ri = (problem.ratings, problem.rating_index) if problem.ratings.numel() else (None, None)
     return PreferenceGP(

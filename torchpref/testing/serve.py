@@ -32,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[2]  # the folder holding the torchpref p
 
 
 def free_port() -> int:
+    """A loopback port free now."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -83,6 +84,7 @@ class Server:
         self.starts = 0
 
     def start(self) -> None:
+        """Start the server process and wait until it answers."""
         env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}", MPLBACKEND="Agg")
         log = open(self.folder / f"server-{self.starts}.log", "w")
         cmd = [sys.executable, "-m", "torchpref.cli", "serve", *self.args, "--port", str(self.port)]
@@ -102,14 +104,17 @@ class Server:
             time.sleep(0.2)
 
     def log(self) -> str:
+        """What the server process printed so far."""
         return "\n".join(p.read_text() for p in sorted(self.folder.glob("server-*.log")))
 
     def kill(self) -> None:
+        """SIGKILL the server process and wait for it."""
         if self.proc is not None and self.proc.poll() is None:
             os.kill(self.proc.pid, signal.SIGKILL)
             self.proc.wait(timeout=30)
 
     def stop(self) -> None:
+        """Stop the server process (SIGINT, then SIGKILL if it lingers)."""
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
             try:
@@ -131,11 +136,13 @@ def post(url: str, body: dict, timeout: float = 60) -> tuple[int, dict, dict]:
 
 
 def get_json(url: str, timeout: float = 60) -> dict:
+    """``GET url`` as JSON."""
     with urllib.request.urlopen(url, timeout=timeout) as r:
         return json.loads(r.read())
 
 
 def records(path: Path) -> list[dict]:
+    """The JSON records of a session file (header first)."""
     return [json.loads(line) for line in path.read_text().splitlines()[1:] if line.strip()]
 
 

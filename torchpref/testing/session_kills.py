@@ -43,6 +43,7 @@ MODES = ("random", "write", "rollback", "header")
 
 
 def make_pool() -> torch.Tensor:
+    """The candidate items of the kill runs' sessions."""
     g = torch.Generator().manual_seed(5)
     return torch.rand(12, 2, generator=g, dtype=torch.float64) * torch.tensor([50.0, 2.0], dtype=torch.float64)
 
@@ -110,6 +111,7 @@ def child(path: Path, run: int, mode: str, wfd: int, seed: int) -> None:
 
 
 def one_run(path: Path, run: int, mode: str, seed: int, rng: random.Random) -> dict:
+    """One child process on ``path``, killed at the ``mode`` kill point; what it acknowledged."""
     rfd, wfd = os.pipe()
     pid = os.fork()
     if pid == 0:
@@ -203,6 +205,7 @@ def check_file(path: Path, acked: list[float], undone: list[float]) -> dict:
 
 
 def run_all(kills: int, files: int, seed: int, workdir: Path, progress: bool = True) -> dict:
+    """``kills`` kill runs over ``files`` session files in ``workdir``, then every file checked (the module docstring)."""
     from torchpref.sessions.session import PreferenceSession
 
     torch.set_num_threads(1)
