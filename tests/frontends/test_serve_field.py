@@ -182,7 +182,9 @@ def _serve_in_thread(app):
 
 
 def test_slow_clients_are_cut_off(tmp_path, monkeypatch):
-    monkeypatch.setattr(serve_module, "HEADER_TIMEOUT_S", 0.5)
+    import torchpref.frontends.serve_net as serve_net
+
+    monkeypatch.setattr(serve_net, "HEADER_TIMEOUT_S", 0.5)
     monkeypatch.setattr(serve_module, "BODY_TIMEOUT_S", 0.5)
     store = SessionStore(_items(), tmp_path, num_queries=3)
     server, thread, port = _serve_in_thread(create_app(store))

@@ -26,14 +26,12 @@ pictures are served by item number only. See ``docs/serve.md``.
 from __future__ import annotations
 
 import asyncio
-import errno
 import hmac
 import inspect
 import ipaddress
 import json
 import secrets
 import sys
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -42,6 +40,15 @@ from typing import Any
 from torch import Tensor
 
 from torchpref.frontends.serve_items import ServeItems, items_from_csv, lake_items
+from torchpref.frontends.serve_net import (  # noqa: F401  (HEADER_TIMEOUT_S, MAX_CONNECTIONS: re-exported)
+    HEADER_TIMEOUT_S,
+    MAX_CONNECTIONS,
+    ServeError,
+    _run_uvicorn,
+    _shown_host,
+    listening_socket,
+    uvicorn_server,
+)
 from torchpref.frontends.serve_store import AnswerRefused, SessionStore
 from torchpref.sessions.session import PreferenceSession
 
@@ -49,12 +56,8 @@ __all__ = ["ServeError", "create_app", "run", "serve"]
 
 HERE = Path(__file__).parent
 MAX_BODY = 4096
-HEADER_TIMEOUT_S = 15.0
-"""A connection must send a request's headers within this many seconds (else it is closed)."""
 BODY_TIMEOUT_S = 15.0
 """A request's body must arrive within this many seconds (else ``408``)."""
-MAX_CONNECTIONS = 200
-"""Connections served at once; more get ``503``."""
 TOKEN_COOKIE = "torchpref_token"
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
 HEADERS = {
@@ -64,10 +67,6 @@ HEADERS = {
     "Content-Security-Policy": "default-src 'self'; img-src 'self'; object-src 'none'; frame-ancestors 'none'",
     "Cache-Control": "no-store",
 }
-
-
-class ServeError(ValueError):
-    """Settings ``serve`` cannot run with (another interface without a token, a bad port)."""
 
 
 def _require() -> None:
@@ -468,113 +467,6 @@ def _store(
     return SessionStore(
         items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties, limits=limits
     )
-
-
-def _shown_host(host: str) -> str:
-    """``host`` as a URL and a ``Host`` header name it (an IPv6 address in brackets)."""
-    return f"[{host}]" if ":" in host else host
-
-
-def listening_socket(host: str, port: int) -> Any:
-    """A socket bound to ``(host, port)`` (``port`` 0: a free one).
-
-    Raises:
-        ServeError: the port is in use or the address cannot be bound, naming it and ``--port 0``.
-    """
-    import socket
-
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    try:
-        sock.bind((host, port))
-    except OSError as err:
-        sock.close()
-        where = f"{_shown_host(host)}:{port}"
-        if err.errno == errno.EADDRINUSE:
-            raise ServeError(
-                f"port {port} on {host} is in use (another server?): choose another with --port N, "
-                "or --port 0 for a free one (the link is printed)."
-            ) from None
-        raise ServeError(f"cannot listen on {where}: {err.strerror or err}.") from None
-    return sock
-
-
-def _timed_protocol():
-    """uvicorn's h11 protocol with a deadline for each request's headers: a client that connects
-    and sends nothing, or its headers a byte at a time, is disconnected after
-    :data:`HEADER_TIMEOUT_S` (uvicorn times out only idle keep-alive connections)."""
-    from uvicorn.protocols.http.h11_impl import H11Protocol
-
-    class TimedH11Protocol(H11Protocol):
-        _header_timer: asyncio.TimerHandle | None = None
-
-        def connection_made(self, transport) -> None:
-            super().connection_made(transport)
-            self._arm()
-
-        def _arm(self) -> None:
-            if self._header_timer is None:
-                self._header_timer = self.loop.call_later(HEADER_TIMEOUT_S, self._too_slow)
-
-        def _disarm(self) -> None:
-            if self._header_timer is not None:
-                self._header_timer.cancel()
-                self._header_timer = None
-
-        def data_received(self, data: bytes) -> None:
-            if self.cycle is None or self.cycle.response_complete:  # waiting for a request's headers
-                self._arm()
-            super().data_received(data)
-            if self.cycle is not None and not self.cycle.response_complete:
-                self._disarm()  # the headers are in; the body has its own deadline (BODY_TIMEOUT_S)
-
-        def connection_lost(self, exc) -> None:
-            self._disarm()
-            super().connection_lost(exc)
-
-        def _too_slow(self) -> None:
-            self._header_timer = None
-            if not self.transport.is_closing() and (self.cycle is None or self.cycle.response_complete):
-                self.transport.close()
-
-    return TimedH11Protocol
-
-
-def uvicorn_server(app: Any, ready: Callable[[], None] | None = None) -> Any:
-    """The uvicorn server of ``app``: one event loop, h11 with header deadlines
-    (:func:`_timed_protocol`), at most :data:`MAX_CONNECTIONS` at once; ``ready()`` is called (in
-    a thread of its own) once it accepts connections."""
-    import uvicorn
-
-    class Server(uvicorn.Server):
-        async def startup(self, sockets=None) -> None:
-            await super().startup(sockets=sockets)
-            if self.started and ready is not None:
-                threading.Thread(target=ready, name="torchpref-serve-ready", daemon=True).start()
-
-    config = uvicorn.Config(
-        app,
-        log_level="warning",
-        access_log=False,
-        lifespan="off",
-        http=_timed_protocol(),
-        limit_concurrency=MAX_CONNECTIONS,
-        timeout_keep_alive=5,
-    )
-    return Server(config)
-
-
-def _run_uvicorn(app, sock, host: str, token: str | None, ready, path: str = "") -> None:
-    bound = sock.getsockname()[1]
-    url = f"http://{_shown_host(host)}:{bound}/{path}" + (f"?token={token}" if token else "")
-
-    def listening() -> None:
-        print(f"torchpref serve: open {url}  (Ctrl-C stops; every answer is already saved)", flush=True)
-        if ready is not None:
-            ready(url)
-
-    uvicorn_server(app, listening).run(sockets=[sock])
 
 
 def run(args: Any) -> int:
