@@ -41,7 +41,9 @@ def test_summary_pairs_and_tests_against_random():
     for i in range(12):
         for name, shift in (("random", 0.0), ("better", 0.1)):
             curve = [0.5] + [0.6 + shift + 0.01 * i] * 4
-            rows.append(dict(dataset="d", person=str(i), split=0, selector=name, accuracy=curve, log_loss=curve, top1=curve))
+            rows.append(
+                dict(dataset="d", person=str(i), split=0, selector=name, accuracy=curve, log_loss=curve, top1=curve)
+            )
     s = replay.summarise(rows)["d"]["better"]["accuracy"]
     assert s["diff"] == pytest.approx(0.1) and s["wins"] == 12 and s["losses"] == 0 and s["p"] < 0.01
 
