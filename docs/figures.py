@@ -85,6 +85,10 @@ FIGURES: dict[str, Figure] = {
         "lakes10_selector_clipped/lake_summary.json", "share_rated_5.clipped profile", "percent"
     ),
     "lake_rated5_random": Figure("lakes10_selector/lake_summary.json", "share_rated_5.random ratings", "percent"),
+    # real people's recorded choices replayed (torchpref reproduce replay)
+    "replay_elec_info": Figure("replay/replay.json", "summary.electricity.information.accuracy.area", "{:.3f}"),
+    "replay_elec_random": Figure("replay/replay.json", "summary.electricity.random.accuracy.area", "{:.3f}"),
+    "replay_elec_info_p": Figure("replay/replay.json", "summary.electricity.information.accuracy.p", "{:.3f}"),
     # robustness (benchmarks/robustness/fuzz.py)
     "fuzz_problems": Figure("fuzz.json", "problems", "{:,}"),
     "fuzz_f64_exceptions": Figure("fuzz.json", "f64.exceptions"),

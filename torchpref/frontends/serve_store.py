@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from torchpref.data.queries import Query, RankingQuery
+from torchpref.frontends.serve_errors import AnswerRefused
 from torchpref.frontends.serve_items import ServeItems
 from torchpref.selection.strategies import UCBC
 from torchpref.sessions.session import PreferenceSession, SessionFileError, default_ranking_size
@@ -57,15 +58,6 @@ milliseconds since 1970 (JavaScript's ``Date.now()``) when the question was on s
 pictures decoded and when it was answered."""
 
 LEVEL_WORDS = {1: "unacceptable", 2: "poor", 3: "fair", 4: "good", 5: "excellent"}
-
-
-class AnswerRefused(ValueError):
-    """A request that is not recorded; ``status`` is the HTTP status (400 invalid, 404 no such
-    session, 409 stale or foreign question) and ``state`` the session's current state, if any."""
-
-    def __init__(self, message: str, status: int = 400, state: dict | None = None):
-        super().__init__(message)
-        self.status, self.state = status, state
 
 
 def make_qid(sid: str, position: int, items: list | None) -> str:

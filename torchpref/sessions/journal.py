@@ -558,3 +558,15 @@ def read_header(path: str | os.PathLike[str]) -> dict | None:
         return None
     header, _, _ = _parse(path, data[: data.index(b"\n") + 1])
     return header
+
+
+def existing_header(path: Path, repair: bool = False) -> dict:
+    """The header of the session file ``path`` (its first line; an empty or torn first line is
+    explained, or repaired with ``repair``, by the journal), else ``SessionFileError``."""
+    header = read_header(path)
+    if header is None:
+        with Journal(path, lambda: None, repair=repair) as journal:  # type: ignore[return-value]
+            header = journal.header
+    if header is None:
+        raise SessionFileError(f"session file {path} is empty: create the session with PreferenceSession(...).")
+    return header

@@ -101,3 +101,13 @@ def choose_query(session: Any, spec: QuerySpec, step: int, gen: torch.Generator)
     ]
     i = session.selector.choose(session.model, mine, step=step, num_steps=session.num_queries, generator=gen)
     return offered[i]
+
+
+def check_pool_rows(pool: Tensor | None, items: Tensor, rows: list[int]) -> None:
+    """``items`` are the rows ``rows`` of the session's pool (checked before the model is touched;
+    the file's format checks it again), else a ``ValueError``."""
+    if pool is None or not all(0 <= i < pool.shape[0] for i in rows) or not torch.equal(pool[rows].to(items), items):
+        raise ValueError(
+            f"the query's items are not this session's pool rows {rows}: a query of another "
+            "session, or one edited after ask()."
+        )

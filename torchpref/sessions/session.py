@@ -58,12 +58,12 @@ from torchpref.sessions.journal import (
     SessionFileGone,
     SessionForkError,
     SessionReadOnlyError,
+    existing_header,
     now,
-    read_header,
     read_session_file,
 )
 from torchpref.sessions.model_state import ModelCache, Sizes, header_digest, mode, sizes, truncate
-from torchpref.sessions.query_list import choose_query, pool_rows_of, resumed_queries
+from torchpref.sessions.query_list import check_pool_rows, choose_query, pool_rows_of, resumed_queries
 from torchpref.sessions.recorded import SessionSettingsError, describe_model, describe_selector, resume_settings
 from torchpref.sessions.records import (
     FORMAT_VERSION,
@@ -81,6 +81,7 @@ from torchpref.sessions.settings import (
     as_seconds,
     as_time,
     candidates_from_header,
+    check_callables,
     default_ranking_size,
     default_session_model,
     step_generator,
@@ -106,14 +107,6 @@ __all__ = [
     "read_session_file",
     "step_generator",
 ]
-
-
-def _check_callables(selector: Any, model_factory: Any) -> None:
-    """A selector with ``select`` and a callable model factory (or ``None``), else ``TypeError``."""
-    if selector is not None and not callable(getattr(selector, "select", None)):
-        raise TypeError(f"selector must be a Selector (with select(model, candidates, ...)), got {selector!r:.80}.")
-    if model_factory is not None and not callable(model_factory):
-        raise TypeError(f"model_factory must be callable(X) -> PreferenceGP, got {model_factory!r:.80}.")
 
 
 class PreferenceSession(ModelCache):
@@ -179,7 +172,7 @@ class PreferenceSession(ModelCache):
         self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
         self.num_queries, self.num_levels, self.names = settings.num_queries, settings.num_levels, settings.names
         self._n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
-        _check_callables(selector, model_factory)
+        check_callables(selector, model_factory)
         self._lock, self._pid = threading.RLock(), os.getpid()
         self._anchor = self.transform(self._pool[:1] if self._pool is not None else self.bounds.mean(0, keepdim=True))
         self._pending: tuple[int, Query] | None = None  # (step, query) until answered
@@ -196,6 +189,17 @@ class PreferenceSession(ModelCache):
         self.model_factory = model_factory if model_factory is not None else default_session_model
         self._journal: Journal | MemoryJournal | None = None
         self.path = None if session_file is None else Path(session_file)
+        try:
+            self._open_journal(metadata, repair, queries is not None, selector, model_factory, migrate)
+            self.model  # noqa: B018  (builds the model of the file's answers now: errors surface at opening)
+        except BaseException:
+            self.close()
+            raise
+
+    def _open_journal(self, metadata, repair: bool, gave_queries: bool, selector, model_factory, migrate: bool) -> None:
+        """A new journal (in memory, or a new file with this session's header) or the file's, whose
+        header must then match this session's settings; a resumed file's queries, model and
+        selector are its own (``resume_settings``)."""
         header = self._new_header(metadata)  # before the file is made: bad metadata leaves no file
         created: list[dict] = []
 
@@ -203,22 +207,17 @@ class PreferenceSession(ModelCache):
             created.append(header)
             return header
 
-        try:
-            if self.path is None:
-                self._journal = MemoryJournal(header)
-            else:
-                self._journal = Journal(self.path, new_header, repair=repair)
-                self._digest = header_digest(self._journal.header)
-                if not created:  # resumed: the file's settings must be this session's
-                    settings.check_header(self._journal.header, self.path)
-                    self._queries = resumed_queries(self._journal.header, queries is not None, self._queries, self.path)
-                    self.selector, self.model_factory = resume_settings(
-                        self, self._journal.header, selector, model_factory, migrate
-                    )
-            self.model  # noqa: B018  (builds the model of the file's answers now: errors surface at opening)
-        except BaseException:
-            self.close()
-            raise
+        if self.path is None:
+            self._journal = MemoryJournal(header)
+            return
+        self._journal = Journal(self.path, new_header, repair=repair)
+        self._digest = header_digest(self._journal.header)
+        if not created:  # resumed: the file's settings must be this session's
+            self._settings.check_header(self._journal.header, self.path)
+            self._queries = resumed_queries(self._journal.header, gave_queries, self._queries, self.path)
+            self.selector, self.model_factory = resume_settings(
+                self, self._journal.header, selector, model_factory, migrate
+            )
 
     def _new_header(self, metadata: dict | None) -> dict:
         """A new file's header: the settings, and the model and selector the session starts with."""
@@ -271,12 +270,7 @@ class PreferenceSession(ModelCache):
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"no session file {path}")
-        header = read_header(path)  # the first line only
-        if header is None:  # empty, or no complete first line: the journal explains (or repairs)
-            with Journal(path, lambda: None, repair=bool(kwargs.get("repair"))) as journal:
-                header = journal.header
-        if header is None:
-            raise SessionFileError(f"session file {path} is empty: create the session with PreferenceSession(...).")
+        header = existing_header(path, repair=bool(kwargs.get("repair")))
         if candidates is None:
             candidates = candidates_from_header(header)
         kwargs.setdefault("num_queries", header["num_queries"])
@@ -485,25 +479,10 @@ class PreferenceSession(ModelCache):
                 "pool_indices": None if rows is None or rows[0] is None else [int(i) for i in rows],
             }
             if info["pool_indices"] is not None:
-                self._check_pool_rows(query, info["pool_indices"])
+                check_pool_rows(self._pool, as_items(query.items, self.dim, "the query's items"), info["pool_indices"])
             times = {"shown_at": shown_at, "answered_at": answered_at}
             seq = self._tell(query, answer, info, response_time, {k: v for k, v in times.items() if v is not None})
             self._answered = (seq, query)
-
-    def _check_pool_rows(self, query: Query, rows: list[int]) -> None:
-        """The query's items are this session's pool rows ``rows`` (checked before the model is
-        touched; the file's format checks it again)."""
-        pool = self._pool
-        items = as_items(query.items, self.dim, "the query's items")
-        if (
-            pool is None
-            or not all(0 <= i < pool.shape[0] for i in rows)
-            or not torch.equal(pool[rows].to(items), items)
-        ):
-            raise ValueError(
-                f"the query's items are not this session's pool rows {rows}: a query of another "
-                "session, or one edited after ask()."
-            )
 
     def tell_rating(self, x: Tensor, rating: int | float, *, response_time: float | None = None) -> None:
         """A rating of any item ``x`` (``d``), given out of turn: a Likert level (or ``[0, 1]``);

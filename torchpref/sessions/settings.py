@@ -357,3 +357,11 @@ def as_time(value: Any, name: str) -> str:
     if not ok:
         raise ValueError(f"{name} must be an ISO 8601 date and time, got {value!r:.80}.")
     return value
+
+
+def check_callables(selector: Any, model_factory: Any) -> None:
+    """A selector with ``select`` and a callable model factory (or ``None``), else ``TypeError``."""
+    if selector is not None and not callable(getattr(selector, "select", None)):
+        raise TypeError(f"selector must be a Selector (with select(model, candidates, ...)), got {selector!r:.80}.")
+    if model_factory is not None and not callable(model_factory):
+        raise TypeError(f"model_factory must be callable(X) -> PreferenceGP, got {model_factory!r:.80}.")
