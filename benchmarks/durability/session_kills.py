@@ -1,21 +1,6 @@
 r"""Kill session processes (SIGKILL) at random points, mid-write, mid-rollback and mid-header, many
 times, and check that no acknowledged answer is lost or doubled and that every file opens again.
-
-A parent process (torch and torchpref imported once, one thread) forks a child per run. The child
-opens the session file with ``repair=True`` (a torn last line from the previous kill is dropped,
-with a warning; a half header is repaired anyway), answers out of turn, undoes now and then, and
-reports each answer and undo on a pipe once the call has returned (acknowledged). Each answer is
-named by its ``response_time`` (unique across runs). Kill points, in turn:
-
-* ``random``: after a random delay;
-* ``write``: half of a record written, the rest delayed (the kill lands in between);
-* ``rollback``: a write fails half-way (a simulated I/O error, caught and retried by the child),
-  and the kill lands in the middle of its rollback (the truncation delayed);
-* ``header``: a new file, killed half-way through writing its header.
-
-After every kill the next run must open the file. At the end each file is opened once more and
-checked: sequence numbers 1, 2, ...; every acknowledged answer exactly once, every acknowledged undo
-in the file, and the posterior equal to replaying the answers in force one by one.
+The harness and what it checks: :mod:`torchpref.testing.session_kills` (its docstring).
 
 Writes ``results/sessions/session_kills.json`` (and a CSV of the runs).
 
