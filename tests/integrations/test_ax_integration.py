@@ -164,6 +164,17 @@ def test_get_preference_adapter_follows_the_opt_in():
     assert isinstance(_preference_model(get_preference_adapter(experiment=exp, data=data)), PairwiseGP)
 
 
+def test_preference_model_config():
+    config = tax.preference_model_config(2, model_options={tax.RATING_METRICS_OPTION: ["rating"]})
+    assert isinstance(config, ModelConfig)
+    assert config.botorch_model_class is PreferenceGP and config.mll_class is LaplaceMarginalLogLikelihood
+    assert config.input_transform_classes == [Normalize] and config.input_transform_options["Normalize"]["d"] == 2
+    assert tax.preference_model_config().input_transform_classes is None
+    spec = SurrogateSpec(metric_to_model_configs={PREF: [tax.preference_model_config(2)]})
+    model = _preference_model(_adapter(_experiment(), spec))
+    assert isinstance(model, PreferenceGP) and isinstance(model.input_transform, Normalize)
+
+
 def test_context_manager_restores_on_exception_and_nesting():
     with pytest.raises(RuntimeError, match="boom"):
         with tax.use_preference_gp():
