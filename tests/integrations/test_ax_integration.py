@@ -136,6 +136,7 @@ def test_use_preference_gp_and_undo():
         assert handle.active
         model = _preference_model(_adapter(exp, SurrogateSpec()))
         assert isinstance(model, PreferenceGP) and model.comparisons.shape == (4, 2)
+        assert isinstance(model.input_transform, Normalize)  # Ax's default input transform, as for PairwiseGP
         assert isinstance(_preference_model(_adapter(exp, SurrogateSpec(model_configs=[_config()]))), PreferenceGP)
         # PairwiseGP named explicitly is still built
         explicit = SurrogateSpec(metric_to_model_configs={PREF: [ModelConfig(botorch_model_class=PairwiseGP)]})
@@ -169,7 +170,7 @@ def test_preference_model_config():
     assert isinstance(config, ModelConfig)
     assert config.botorch_model_class is PreferenceGP and config.mll_class is LaplaceMarginalLogLikelihood
     assert config.input_transform_classes == [Normalize] and config.input_transform_options["Normalize"]["d"] == 2
-    assert tax.preference_model_config().input_transform_classes is None
+    assert tax.preference_model_config().input_transform_classes is not None  # Ax's default (DEFAULT)
     spec = SurrogateSpec(metric_to_model_configs={PREF: [tax.preference_model_config(2)]})
     model = _preference_model(_adapter(_experiment(), spec))
     assert isinstance(model, PreferenceGP) and isinstance(model.input_transform, Normalize)

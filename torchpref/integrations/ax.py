@@ -178,8 +178,9 @@ def _preference_inputs(botorch_model_class, model_config, dataset, search_space_
 
 def preference_model_config(d: int | None = None, **kwargs: Any) -> Any:
     """Ax's ``ModelConfig`` for a ``PreferenceGP``, as Ax's ``get_preference_adapter`` writes one for
-    ``PairwiseGP``: the Laplace MLL and, with ``d`` (the number of parameters), ``Normalize``;
-    ``kwargs`` are passed on (``model_options={"rating_metrics": [...]}``, ...)."""
+    ``PairwiseGP``: the Laplace MLL and, with ``d`` (the number of parameters), ``Normalize`` to the
+    data's bounds (without ``d``, Ax's default input transforms: ``Normalize`` to the search space's
+    bounds); ``kwargs`` are passed on (``model_options={"rating_metrics": [...]}``, ...)."""
     config: dict[str, Any] = {"botorch_model_class": PreferenceGP, "mll_class": LaplaceMarginalLogLikelihood}
     if d is not None:
         config.update(
