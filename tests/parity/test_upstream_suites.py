@@ -33,6 +33,11 @@ ROOT = Path(__file__).resolve().parents[2]
 AX_KNOWN = {
     "test_fitting_auxiliary_experiment_dataset": "asserts isinstance(model, PairwiseGP) of the preference model "
     "Ax builds by default, which use_preference_gp() makes a PreferenceGP",
+    # they fit no preference model; an analysis card errors in some runs, without torchpref too
+    **{
+        name: "an analysis card errors intermittently, with PairwiseGP too"
+        for name in ("test_offline_experiments", "test_online_experiments")
+    },
 }
 #: Ax tests that build BoTorch's PairwiseGP themselves (not by an Ax default), and how.
 AX_NAMES_PAIRWISE = {
