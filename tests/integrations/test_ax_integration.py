@@ -29,6 +29,7 @@ from ax.core import Arm, GeneratorRun  # noqa: E402
 from ax.core.metric import Metric  # noqa: E402
 from ax.core.objective import Objective  # noqa: E402
 from ax.core.optimization_config import OptimizationConfig  # noqa: E402
+from ax.generators.torch.botorch_modular import utils as _ax_utils  # noqa: E402
 from ax.generators.torch.botorch_modular.generator import BoTorchGenerator  # noqa: E402
 from ax.generators.torch.botorch_modular.surrogate import ModelConfig, SurrogateSpec  # noqa: E402
 from ax.utils.testing.preference_stubs import get_pbo_experiment  # noqa: E402
@@ -36,6 +37,8 @@ from botorch.models.pairwise_gp import PairwiseGP  # noqa: E402
 from botorch.models.transforms.input import Normalize  # noqa: E402
 
 import torchpref.integrations.ax as tax  # noqa: E402
+
+_ORIGINAL_CHOOSE = _ax_utils.choose_model_class
 from torchpref import LaplaceMarginalLogLikelihood, PreferenceGP  # noqa: E402
 
 PREF = "pairwise_pref_query"
@@ -95,14 +98,96 @@ def test_metric_to_model_configs_fits_preference_gp():
     assert float(LaplaceMarginalLogLikelihood(model)()) > float(LaplaceMarginalLogLikelihood(fresh)()) - 1e-9
 
 
-def test_model_configs_form_is_not_silently_replaced():
+def test_import_changes_no_ax_type_or_function():
+    """import torchpref.integrations.ax alone rebinds nothing in Ax's modules: ModelConfig stays a
+    dataclass (isinstance, dataclasses.fields); only Ax's dispatchers learn PreferenceGP."""
+    code = (
+        "import dataclasses, sys\n"
+        "from ax.generators.torch.botorch_modular import surrogate as s, utils as u\n"
+        "from ax.utils.preference import preference_utils as p\n"
+        "from ax.service.utils import best_point as b\n"
+        "mods = (s, u, p, b)\n"
+        "before = [dict(vars(m)) for m in mods]\n"
+        "fit_before = dict(s.Surrogate.__dict__)\n"
+        "import torchpref.integrations.ax\n"
+        "changed = [k for m, old in zip(mods, before) for k in set(vars(m)) | set(old) if vars(m).get(k) is not old.get(k)]\n"
+        "changed += [k for k in fit_before if s.Surrogate.__dict__.get(k) is not fit_before[k]]\n"
+        "cfg = s.ModelConfig()\n"
+        "print(changed, isinstance(cfg, s.ModelConfig), len(dataclasses.fields(s.ModelConfig)) > 0)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[] True True"
+
+
+def test_ax_default_builds_pairwise_gp_without_the_opt_in():
     """Ax sends a preference metric that metric_to_model_configs does not name to ModelConfig(),
-    i.e. PairwiseGP; with the integration a PreferenceGP config in model_configs is used."""
+    i.e. PairwiseGP, even with a PreferenceGP config in model_configs: without the opt-in that
+    is Ax's own behaviour, and the integration does not change it at import."""
     exp = _experiment()
-    model = _preference_model(_adapter(exp, SurrogateSpec(model_configs=[_config()])))
-    assert isinstance(model, PreferenceGP)
-    # a spec naming no PreferenceGP keeps Ax's own choice
+    assert _ax_utils.choose_model_class is _ORIGINAL_CHOOSE
     assert isinstance(_preference_model(_adapter(exp, SurrogateSpec())), PairwiseGP)
+    assert isinstance(_preference_model(_adapter(exp, SurrogateSpec(model_configs=[_config()]))), PairwiseGP)
+
+
+def test_use_preference_gp_and_undo():
+    exp = _experiment()
+    handle = tax.use_preference_gp()
+    try:
+        assert handle.active
+        model = _preference_model(_adapter(exp, SurrogateSpec()))
+        assert isinstance(model, PreferenceGP) and model.comparisons.shape == (4, 2)
+        assert isinstance(model.input_transform, Normalize)  # Ax's default input transform, as for PairwiseGP
+        assert isinstance(_preference_model(_adapter(exp, SurrogateSpec(model_configs=[_config()]))), PreferenceGP)
+        # PairwiseGP named explicitly is still built
+        explicit = SurrogateSpec(metric_to_model_configs={PREF: [ModelConfig(botorch_model_class=PairwiseGP)]})
+        assert isinstance(_preference_model(_adapter(exp, explicit)), PairwiseGP)
+        # the model Ax fitted is fitted: the Laplace evidence went up from the default hyperparameters'
+        fresh = PreferenceGP(model.train_X, model.comparisons)
+        assert float(LaplaceMarginalLogLikelihood(model)()) > float(LaplaceMarginalLogLikelihood(fresh)()) - 1e-9
+    finally:
+        handle.undo()
+    assert not handle.active
+    handle.undo()  # a second undo is a no-op
+    assert _ax_utils.choose_model_class is _ORIGINAL_CHOOSE
+    assert isinstance(_preference_model(_adapter(exp, SurrogateSpec())), PairwiseGP)
+
+
+def test_get_preference_adapter_follows_the_opt_in():
+    """Ax's get_preference_adapter (BOPE's utility trace and best point) builds PairwiseGP, and
+    PreferenceGP inside the opt-in."""
+    from ax.utils.preference.preference_utils import get_preference_adapter
+
+    exp = _experiment()
+    data = exp.lookup_data()
+    assert isinstance(_preference_model(get_preference_adapter(experiment=exp, data=data)), PairwiseGP)
+    with tax.use_preference_gp():
+        assert isinstance(_preference_model(get_preference_adapter(experiment=exp, data=data)), PreferenceGP)
+    assert isinstance(_preference_model(get_preference_adapter(experiment=exp, data=data)), PairwiseGP)
+
+
+def test_preference_model_config():
+    config = tax.preference_model_config(2, model_options={tax.RATING_METRICS_OPTION: ["rating"]})
+    assert isinstance(config, ModelConfig)
+    assert config.botorch_model_class is PreferenceGP and config.mll_class is LaplaceMarginalLogLikelihood
+    assert config.input_transform_classes == [Normalize] and config.input_transform_options["Normalize"]["d"] == 2
+    assert tax.preference_model_config().input_transform_classes is not None  # Ax's default (DEFAULT)
+    spec = SurrogateSpec(metric_to_model_configs={PREF: [tax.preference_model_config(2)]})
+    model = _preference_model(_adapter(_experiment(), spec))
+    assert isinstance(model, PreferenceGP) and isinstance(model.input_transform, Normalize)
+
+
+def test_context_manager_restores_on_exception_and_nesting():
+    with pytest.raises(RuntimeError, match="boom"):
+        with tax.use_preference_gp():
+            assert _ax_utils.choose_model_class is not _ORIGINAL_CHOOSE
+            raise RuntimeError("boom")
+    assert _ax_utils.choose_model_class is _ORIGINAL_CHOOSE
+    outer = tax.use_preference_gp()
+    with tax.use_preference_gp():
+        pass
+    assert _ax_utils.choose_model_class is not _ORIGINAL_CHOOSE  # the outer opt-in still holds
+    outer.undo()
+    assert _ax_utils.choose_model_class is _ORIGINAL_CHOOSE
 
 
 def test_mll_classes():

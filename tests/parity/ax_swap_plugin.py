@@ -1,8 +1,14 @@
-"""A pytest plugin (``-p ax_swap_plugin``) that runs another project's tests with BoTorch's
+"""A pytest plugin (``-p ax_swap_plugin``) that runs another project's tests and counts which
+model each test built (``PreferenceGP`` or BoTorch's ``PairwiseGP``), either as a user runs them
+(``TORCHPREF_SWAP_BOTORCH=0``, ``TORCHPREF_SWAP_IMPORT=torchpref.integrations.ax`` and
+``TORCHPREF_SWAP_CALL=torchpref.integrations.ax:use_preference_gp``: the import and the one call
+docs/ax.md documents, before the tests are collected) or, as a harness, with BoTorch's
 ``PairwiseGP`` / ``PairwiseLaplaceMarginalLogLikelihood`` swapped for ``PreferenceGP`` /
-``LaplaceMarginalLogLikelihood``, and counts which model each test built.
+``LaplaceMarginalLogLikelihood`` (``TORCHPREF_SWAP_BOTORCH=1``, the default).
 
-The swap is of the two names in ``botorch.models`` and ``botorch.models.pairwise_gp``, made
+Counting wraps each class's ``__init__`` (signature kept), so it changes no model that is built.
+
+The harness swap is of the two names in ``botorch.models`` and ``botorch.models.pairwise_gp``, made
 before the tests (and Ax or BoFire) are imported, so every ``from botorch.models.pairwise_gp
 import PairwiseGP`` — in the tests and in the library under test — gets ``PreferenceGP``. Then
 ``torchpref.integrations.ax`` (``TORCHPREF_SWAP_IMPORT``) is imported as a user would. Each
@@ -61,6 +67,9 @@ def pytest_configure(config):
     _counting(ORIGINAL_MODEL, "PairwiseGP")
     for name in filter(None, os.environ.get("TORCHPREF_SWAP_IMPORT", "").split(",")):
         importlib.import_module(name)
+    for target in filter(None, os.environ.get("TORCHPREF_SWAP_CALL", "").split(",")):
+        module, attr = target.split(":")
+        getattr(importlib.import_module(module), attr)()  # e.g. the documented use_preference_gp()
 
 
 def pytest_collection_modifyitems(session, config, items):

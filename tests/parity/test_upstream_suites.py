@@ -1,51 +1,48 @@
-"""Ax's and BoFire's own tests of their preference paths, run unmodified with BoTorch's
-``PairwiseGP`` swapped for ``PreferenceGP`` (``tests/parity/ax_swap_plugin.py``), counting the models
-each test builds: every test that fits a preference model must build ``PreferenceGP`` and none
-may build ``PairwiseGP`` (docs/ax.md).
+"""Ax's and BoFire's own tests of their preference paths, run unmodified, counting the models each
+test builds (the plugin ``tests/parity/ax_swap_plugin.py``; docs/ax.md).
 
-* Ax (ax-platform 1.3.1 ships its tests): the tests of :data:`AX_FILES` whose names select the
-  preference path (:data:`AX_SELECT`), with ``PairwiseGP`` / ``PairwiseLaplaceMarginalLogLikelihood``
-  swapped in ``botorch.models`` before Ax is imported, and ``import torchpref.integrations.ax``.
+* Ax (ax-platform 1.3.1 ships its tests): the tests of ``AX_FILES`` whose names select the
+  preference path (``AX_SELECT``, both in :mod:`torchpref.testing.upstream`), run as a user of
+  docs/ax.md runs Ax: ``import torchpref.integrations.ax`` and ``use_preference_gp()`` before the
+  tests, nothing of BoTorch's rebound. Every test that fits a preference model by Ax's defaults
+  must build ``PreferenceGP``; ``PairwiseGP`` is built only where a test names it itself
+  (:data:`AX_NAMES_PAIRWISE`).
 * BoFire 0.5.0 (its tests are in its sdist: ``make upstream-tests`` unpacks them into
   ``.cache/upstream/``, or set ``TORCHPREF_BOFIRE_TESTS``): ``tests/bofire/surrogates/test_pairwise_gp.py``
   with its names ``PairwiseGP``, ``PairwiseGPSurrogate`` and ``PairwiseProbitLikelihood`` bound to
   ``PreferenceGP``, :class:`torchpref.integrations.bofire.PreferenceGPSurrogate` and the model's
-  likelihood class.
+  likelihood class (a harness: BoFire has no registry for its surrogate's model).
 
 Each is skipped, with the reason, where the library (or BoFire's test file) is absent. They take
-minutes: ``make test-integrations`` runs them.
+minutes: ``make test-integrations`` runs them. ``benchmarks/parity/ax_upstream_tests.py`` writes
+the counts, with Ax's ``PairwiseGP`` baseline, to ``benchmarks/results/ax/upstream_tests.json``.
 """
 
 from __future__ import annotations
 
 import importlib.util
-import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from torchpref.testing.upstream import AX_FILES, AX_MODES, AX_SELECT, ax_site, count, run_with_plugin
+
 ROOT = Path(__file__).resolve().parents[2]
-AX_FILES = [
-    "ax/utils/preference/tests/test_preference_utils.py",
-    "ax/adapter/tests/test_torch_adapter.py",
-    "ax/adapter/tests/test_cross_validation.py",
-    "ax/service/tests/test_best_point.py",
-    "ax/analysis/plotly/tests/test_utility_ranking.py",
-    "ax/analysis/plotly/tests/test_utility_progression.py",
-    "ax/analysis/tests/test_results.py",
-    "ax/analysis/tests/test_diagnostics.py",
-    "ax/generators/torch/tests/test_surrogate.py",
-    "ax/generators/torch/tests/test_utils.py",
-    "ax/adapter/tests/test_adapter_utils.py",
-]
-AX_SELECT = "pairwise or preference or pref or bope or pbo or ranking or learned or utility or plbo or auxiliary or aux_exp or PE"
-#: Ax tests that fail with PreferenceGP, and why: they fail alike with BoTorch's PairwiseGP here.
+#: Ax tests that fail through the documented path, and why.
 AX_KNOWN = {
-    name: "an analysis card errors with PairwiseGP too (Ax 1.3.1, Python 3.11, no JAX)"
-    for name in ("test_offline_experiments", "test_online_experiments")
+    "test_fitting_auxiliary_experiment_dataset": "asserts isinstance(model, PairwiseGP) of the preference model "
+    "Ax builds by default, which use_preference_gp() makes a PreferenceGP",
+    # they fit no preference model; an analysis card errors in some runs, without torchpref too
+    **{
+        name: "an analysis card errors intermittently, with PairwiseGP too"
+        for name in ("test_offline_experiments", "test_online_experiments")
+    },
+}
+#: Ax tests that build BoTorch's PairwiseGP themselves (not by an Ax default), and how.
+AX_NAMES_PAIRWISE = {
+    "test_eubo_construction_pbo_and_bope_modes": "constructs PairwiseGP(...) directly",
+    "test_fitting_auxiliary_experiment_dataset": "one of its specs names ModelConfig(botorch_model_class=PairwiseGP)",
 }
 #: Failures of the environment, not of the model, by a phrase of their error: they fail alike with
 #: PairwiseGP (docs/ax.md).
@@ -68,49 +65,36 @@ BOFIRE_KNOWN = {
 }
 
 
-def _run_swapped(tmp_path: Path, rootdir: Path, files: list[str], env: dict[str, str], select: str | None) -> dict:
-    report = tmp_path / "report.json"
-    env = {
-        **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(ROOT), str(Path(__file__).resolve().parent)]),
-        "TORCHPREF_SWAP_REPORT": str(report),
-        **env,
-    }
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "ax_swap_plugin"]
-    cmd += ["--rootdir", str(rootdir), "-c", os.devnull, "-W", "ignore", *files]
-    if select:
-        cmd += ["-k", select]
-    proc = subprocess.run(cmd, cwd=rootdir, env=env, capture_output=True, text=True)
-    assert report.is_file(), f"no report (exit {proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
-    return json.loads(report.read_text())
+def _run(tmp_path: Path, rootdir: Path, files: list[str], env: dict[str, str], select: str | None) -> dict:
+    return run_with_plugin(rootdir, files, env, select, tmp_path / "report.json", Path(__file__).resolve().parent)
 
 
-def _check(results: dict, known: dict[str, str]) -> tuple[int, int]:
-    """(tests run, tests that built a PreferenceGP); fails on an unexpected failure or any PairwiseGP."""
-    ran = {k: v for k, v in results.items() if "outcome" in v}
-    failed = {k.split("::")[-1]: v.get("error", "")[-800:] for k, v in ran.items() if v["outcome"] == "failed"}
-    env = {k for k, e in failed.items() if any(phrase in e for phrase in ENVIRONMENT)}
-    unexpected = {k: e for k, e in failed.items() if k not in known and k not in env}
-    assert not unexpected, "failed with PreferenceGP:\n" + "\n\n".join(f"{k}: {e}" for k, e in unexpected.items())
-    pairwise = [k for k, v in results.items() if v["PairwiseGP"]]
-    assert not pairwise, f"these tests still built BoTorch's PairwiseGP: {pairwise}"
-    built = sum(1 for v in ran.values() if v["PreferenceGP"])
-    print(f"{len(ran)} tests ran, {built} built PreferenceGP, 0 built PairwiseGP, failed as known: {sorted(failed)}")
-    return len(ran), built
+def _failures(results: dict, known: dict[str, str]) -> dict[str, str]:
+    """The failed tests not in ``known`` nor failing for the environment (:data:`ENVIRONMENT`)."""
+    failed = {k.split("::")[-1]: v.get("error", "")[-800:] for k, v in results.items() if v.get("outcome") == "failed"}
+    return {k: e for k, e in failed.items() if k not in known and not any(p in e for p in ENVIRONMENT)}
 
 
-def test_ax_preference_tests_with_preference_gp(tmp_path):
-    if importlib.util.find_spec("ax") is None:
+def test_ax_preference_tests_through_the_documented_path(tmp_path):
+    site = ax_site()
+    if site is None:
         pytest.skip("Ax is not installed (pip install 'torchpref[ax]'): Ax's own tests were not run")
-    import ax
-
-    site = Path(ax.__file__).resolve().parent.parent
     files = [f for f in AX_FILES if (site / f).is_file()]
     if not files:
-        pytest.skip(f"this Ax ({ax.__version__}) ships none of its test files {AX_FILES[:2]}...")
-    results = _run_swapped(tmp_path, site, files, {"TORCHPREF_SWAP_IMPORT": "torchpref.integrations.ax"}, AX_SELECT)
-    ran, built = _check(results, AX_KNOWN)
-    assert ran >= 50 and built >= 10  # Ax 1.3.1: 55 selected, 11 fit a preference model (docs/ax.md)
+        pytest.skip(f"this Ax ships none of its test files {AX_FILES[:2]}...")
+    results = _run(tmp_path, site, files, AX_MODES["documented"], AX_SELECT)
+    unexpected = _failures(results, AX_KNOWN)
+    assert not unexpected, "failed through the documented path:\n" + "\n\n".join(
+        f"{k}: {e}" for k, e in unexpected.items()
+    )
+    c = count(results)
+    pairwise = [k.split("::")[-1] for k in c["built_pairwise_gp_only"] + c["built_both"]]
+    assert set(pairwise) <= set(AX_NAMES_PAIRWISE), f"built BoTorch's PairwiseGP by an Ax default: {pairwise}"
+    built = len(c["built_preference_gp_only"]) + len(c["built_both"])
+    print(
+        f"{c['ran']} ran, {c['fit_a_preference_model']} fit a preference model, {built} built PreferenceGP; failed {c['failed']}"
+    )
+    assert c["ran"] >= 50 and built >= 10  # Ax 1.3.1: 55 selected, 11 fit a preference model (docs/ax.md)
 
 
 def _bofire_tests() -> Path | None:
@@ -132,8 +116,10 @@ def test_bofire_pairwise_surrogate_tests_with_preference_gp(tmp_path):
             ".cache/upstream/, or set TORCHPREF_BOFIRE_TESTS)"
         )
     env = {"TORCHPREF_SWAP_BOTORCH": "0", "TORCHPREF_SWAP_IMPORT": "torchpref.integrations.bofire"}
-    results = _run_swapped(tmp_path, root, [BOFIRE_FILE], {**env, "TORCHPREF_SWAP_NAMES": BOFIRE_NAMES}, None)
-    ran, built = _check(results, BOFIRE_KNOWN)
+    results = _run(tmp_path, root, [BOFIRE_FILE], {**env, "TORCHPREF_SWAP_NAMES": BOFIRE_NAMES}, None)
+    assert not _failures(results, BOFIRE_KNOWN)
+    c = count(results)
+    assert not c["built_pairwise_gp_only"] and not c["built_both"], "BoFire's tests still built BoTorch's PairwiseGP"
     failed = [k for k, v in results.items() if v.get("outcome") == "failed"]
     assert all("likelihood='logit' is not supported" in results[k]["error"] for k in failed)
-    assert ran >= 13 and built >= 6
+    assert c["ran"] >= 13 and len(c["built_preference_gp_only"]) >= 6

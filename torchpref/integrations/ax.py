@@ -1,24 +1,24 @@
-r"""``PreferenceGP`` inside Ax: ``import torchpref.integrations.ax`` registers what Ax needs.
+r"""``PreferenceGP`` inside Ax: registration at import, and an explicit, reversible opt-in.
 
 Ax (``pip install 'torchpref[ax]'``, tested with ax-platform 1.3.1) builds a model per metric
 from a ``ModelConfig``; for its preference metric (a ``RankingDataset``) it knows only BoTorch's
-``PairwiseGP``. Importing this module, once, before Ax fits anything:
+``PairwiseGP``. ``import torchpref.integrations.ax`` registers ``PreferenceGP`` with Ax's two
+dispatchers, its extension points for a model class, and changes nothing else (no Ax class or
+function is replaced; ``ModelConfig`` stays Ax's class):
 
-* registers :class:`~torchpref.models.preference_gp.PreferenceGP` with Ax's model-fitting
-  dispatcher (``fit_botorch_model``): the model is fitted with
-  :class:`~torchpref.models.preference_gp.LaplaceMarginalLogLikelihood` (built as Ax builds MLLs,
-  ``mll_class(likelihood=..., model=...)``); Ax's defaults for a model it does not know
-  (``ExactMarginalLogLikelihood``) and ``PairwiseLaplaceMarginalLogLikelihood`` are read as it;
-* fills a ``PreferenceGP`` ``ModelConfig`` as Ax fills a ``PairwiseGP`` one: the Laplace MLL by
-  default, no outcome transform (the utility has no observed scale);
-* makes ``SurrogateSpec(model_configs=[ModelConfig(PreferenceGP, ...)])`` take effect for the
-  preference metric: Ax itself sends a ``RankingDataset`` that ``metric_to_model_configs`` does not
-  name to a default ``ModelConfig()``, i.e. to ``PairwiseGP``, silently; here a ``PreferenceGP``
-  config among ``model_configs`` is used for it instead;
-* registers an input constructor (``submodel_input_constructor``) through which a rating metric's
-  data reaches the model: ``ModelConfig(PreferenceGP, model_options={"rating_metrics": ["rating"]})``
-  adds the rated arms to the items and their values, in ``[0, 1]``, as ``ratings=`` /
-  ``rating_index=`` beside the preference metric's comparisons (docs/ax.md).
+* ``fit_botorch_model``: a :class:`~torchpref.models.preference_gp.PreferenceGP` is fitted with
+  :class:`~torchpref.models.preference_gp.LaplaceMarginalLogLikelihood`; Ax's default MLL for a
+  model it does not know (``ExactMarginalLogLikelihood``) and ``PairwiseLaplaceMarginalLogLikelihood``
+  are read as it;
+* ``submodel_input_constructor``: Ax's own inputs, with no outcome transform (the utility has no
+  observed scale, as for ``PairwiseGP``), plus the ratings of the metrics
+  ``model_options["rating_metrics"]`` names, as ``ratings=`` / ``rating_index=`` (docs/ax.md).
+
+With that, ``ModelConfig(botorch_model_class=PreferenceGP, ...)`` in ``metric_to_model_configs``
+works. Ax's *defaults* still build ``PairwiseGP`` until :func:`use_preference_gp` is called: it
+makes the modular default for a ``RankingDataset`` (``choose_model_class``) and
+``get_preference_adapter`` (so BOPE's utility trace and best point in ``best_point``) build a
+``PreferenceGP``, and its handle's ``undo()`` (or the end of a ``with`` block) restores Ax's own.
 
 Nothing here is imported by ``import torchpref``; importing it twice changes nothing.
 """
@@ -37,13 +37,22 @@ except ImportError as err:  # pragma: no cover - exercised where Ax is absent
 
 import torch
 from botorch.fit import fit_gpytorch_mll
-from botorch.models.pairwise_gp import PairwiseLaplaceMarginalLogLikelihood
+from botorch.models.pairwise_gp import PairwiseGP, PairwiseLaplaceMarginalLogLikelihood
+from botorch.models.transforms.input import Normalize
 from botorch.utils.datasets import RankingDataset, SupervisedDataset
 from gpytorch.mlls import ExactMarginalLogLikelihood
 
 from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
 
-__all__ = ["RATING_METRICS_OPTION", "is_preference_model_class", "laplace_mll_class", "rating_inputs"]
+__all__ = [
+    "RATING_METRICS_OPTION",
+    "PreferenceGPOptIn",
+    "is_preference_model_class",
+    "laplace_mll_class",
+    "preference_model_config",
+    "rating_inputs",
+    "use_preference_gp",
+]
 
 
 #: The ``ModelConfig.model_options`` key naming the rating metrics whose data a
@@ -82,65 +91,6 @@ def _fit_preference_gp(model: PreferenceGP, mll_class: type | None, mll_options:
     Laplace evidence (a failed fit raises BoTorch's ``ModelFittingError``, as for GPyTorch models)."""
     mll = laplace_mll_class(mll_class)(likelihood=model.likelihood, model=model, **(mll_options or {}))
     fit_gpytorch_mll(mll)
-
-
-_ORIGINAL_DEFAULTS = _ax_utils.copy_model_config_with_default_values
-
-
-def _copy_model_config_with_default_values(model_config, dataset, search_space_digest):
-    """Ax's defaults, then a ``PreferenceGP``'s: the Laplace MLL, no outcome transform."""
-    config = _ORIGINAL_DEFAULTS(model_config=model_config, dataset=dataset, search_space_digest=search_space_digest)
-    if is_preference_model_class(config.botorch_model_class):
-        config.mll_class = laplace_mll_class(config.mll_class)
-        config.outcome_transform_classes = None
-        options = dict(config.model_options or {})
-        if RATING_METRICS_OPTION in options and not isinstance(dataset, RankingDataset):
-            raise ValueError(
-                f"model_options[{RATING_METRICS_OPTION!r}] is for the preference metric's PreferenceGP; "
-                f"metric {dataset.outcome_names[0]!r} is not a preference metric (its data are not rankings)."
-            )
-    return config
-
-
-_ModelConfig = _ax_surrogate.ModelConfig
-_routed = threading.local()  # the PreferenceGP configs of the Surrogate.fit in progress, if any
-
-
-def _model_config(*args, **kwargs):
-    """Ax's ``ModelConfig`` as ``Surrogate.fit`` calls it; inside a fit that routes rankings, the bare
-    ``ModelConfig()`` Ax falls back to for a preference metric is the spec's ``PreferenceGP`` config."""
-    configs = getattr(_routed, "configs", None)
-    if configs and not args and not kwargs:
-        return dataclasses.replace(configs[0])
-    return _ModelConfig(*args, **kwargs)
-
-
-def _ranking_configs(surrogate, datasets) -> list:
-    """The spec's ``PreferenceGP`` configs where ``model_configs`` name one and some preference metric
-    is not named by ``metric_to_model_configs`` (Ax would fall back to ``PairwiseGP`` for it)."""
-    spec = surrogate.surrogate_spec
-    explicit = spec.metric_to_model_configs or {}
-    if not any(isinstance(d, RankingDataset) and d.outcome_names[0] not in explicit for d in datasets):
-        return []
-    return [c for c in spec.model_configs or [] if is_preference_model_class(c.botorch_model_class)]
-
-
-_ORIGINAL_FIT = _ax_surrogate.Surrogate.fit
-
-
-def _fit(self, datasets, search_space_digest, *args, **kwargs):
-    configs = _ranking_configs(self, datasets)
-    if not configs:
-        return _ORIGINAL_FIT(self, datasets, search_space_digest, *args, **kwargs)
-    _routed.configs = configs
-    try:
-        return _ORIGINAL_FIT(self, datasets, search_space_digest, *args, **kwargs)
-    finally:
-        _routed.configs = None
-
-
-_fit.__doc__ = _ORIGINAL_FIT.__doc__
-_fit.__wrapped__ = _ORIGINAL_FIT
 
 
 def rating_inputs(
@@ -190,13 +140,20 @@ def rating_inputs(
 
 
 def _preference_inputs(botorch_model_class, model_config, dataset, search_space_digest, surrogate) -> dict:
-    """Ax's model inputs for a ``PreferenceGP``: its own base constructor's, plus the ratings of
-    the metrics ``model_options["rating_metrics"]`` names (from the surrogate's training data)."""
+    """Ax's model inputs for a ``PreferenceGP``: its own base constructor's with no outcome
+    transform, plus the ratings of the metrics ``model_options["rating_metrics"]`` names (from the
+    surrogate's training data)."""
     options = dict(model_config.model_options or {})
     wanted = options.pop(RATING_METRICS_OPTION, None) or []
     if isinstance(wanted, str):
         wanted = [wanted]
-    config = dataclasses.replace(model_config, model_options=options)
+    if wanted and not isinstance(dataset, RankingDataset):
+        raise ValueError(
+            f"model_options[{RATING_METRICS_OPTION!r}] is for the preference metric's PreferenceGP; "
+            f"metric {dataset.outcome_names[0]!r} is not a preference metric (its data are not rankings)."
+        )
+    # no outcome transform: the utility has no observed scale (Ax drops it for PairwiseGP alike)
+    config = dataclasses.replace(model_config, model_options=options, outcome_transform_classes=None)
     inputs = _ax_surrogate._submodel_input_constructor_base(
         botorch_model_class,
         model_config=config,
@@ -219,16 +176,89 @@ def _preference_inputs(botorch_model_class, model_config, dataset, search_space_
     return inputs
 
 
+def preference_model_config(d: int | None = None, **kwargs: Any) -> Any:
+    """Ax's ``ModelConfig`` for a ``PreferenceGP``, as Ax's ``get_preference_adapter`` writes one for
+    ``PairwiseGP``: the Laplace MLL and, with ``d`` (the number of parameters), ``Normalize`` to the
+    data's bounds (without ``d``, Ax's default input transforms: ``Normalize`` to the search space's
+    bounds); ``kwargs`` are passed on (``model_options={"rating_metrics": [...]}``, ...)."""
+    config: dict[str, Any] = {"botorch_model_class": PreferenceGP, "mll_class": LaplaceMarginalLogLikelihood}
+    if d is not None:
+        config.update(
+            input_transform_classes=[Normalize],
+            input_transform_options={"Normalize": {"d": d, "bounds": None, "indices": None}},
+        )
+    return _ax_surrogate.ModelConfig(**{**config, **kwargs})
+
+
+def _choose_model_class(dataset, search_space_digest, specified_model_class=None):
+    """Ax's ``choose_model_class``, with ``PreferenceGP`` where it would choose ``PairwiseGP`` by default."""
+    chosen = _ORIGINAL_CHOOSE(
+        dataset=dataset, search_space_digest=search_space_digest, specified_model_class=specified_model_class
+    )
+    if chosen is PairwiseGP and specified_model_class is None and isinstance(dataset, RankingDataset):
+        return PreferenceGP
+    return chosen
+
+
+_ORIGINAL_CHOOSE = _ax_utils.choose_model_class
+_choose_model_class.__wrapped__ = _ORIGINAL_CHOOSE
+_lock = threading.Lock()
+_active: list[PreferenceGPOptIn] = []
+
+
+class PreferenceGPOptIn:
+    """The handle :func:`use_preference_gp` returns: ``undo()`` (once; again is a no-op) or the end
+    of a ``with`` block restores Ax's defaults when no other opt-in is active."""
+
+    def __init__(self) -> None:
+        with _lock:
+            if not _active:
+                _ax_utils.choose_model_class = _choose_model_class
+            _active.append(self)
+
+    @property
+    def active(self) -> bool:
+        return any(h is self for h in _active)
+
+    def undo(self) -> None:
+        with _lock:
+            if not self.active:
+                return
+            _active.remove(self)
+            if not _active:
+                _ax_utils.choose_model_class = _ORIGINAL_CHOOSE
+
+    def __enter__(self) -> PreferenceGPOptIn:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.undo()
+
+
+def use_preference_gp() -> PreferenceGPOptIn:
+    """Make Ax's defaults that build ``PairwiseGP`` for comparison data build ``PreferenceGP``.
+
+    Ax sends a ``RankingDataset`` that ``metric_to_model_configs`` does not name to a default
+    ``ModelConfig()``, whose class ``choose_model_class`` fills: ``PairwiseGP``. That is the path of
+    the modular default (``Generators.BOTORCH_MODULAR``, ``SurrogateSpec()`` or
+    ``SurrogateSpec(model_configs=[...])`` for the outcome metrics), of BOPE's preference model, and
+    of ``get_preference_adapter`` (whose own ``PairwiseGP`` config never reaches the preference
+    metric), so of BOPE's utility trace and best point (``ax.service.utils.best_point``). After
+    this call the class filled is ``PreferenceGP`` (with the Laplace MLL, no outcome transform;
+    ``PairwiseGP`` named explicitly in a ``ModelConfig`` is still built). It rebinds one function,
+    ``ax.generators.torch.botorch_modular.utils.choose_model_class``, to a wrapper of Ax's own
+    (nothing changes at import); the handle's ``undo()`` restores it::
+
+        import torchpref.integrations.ax as tax
+        tax.use_preference_gp()             # or: with tax.use_preference_gp(): ...
+    """
+    return PreferenceGPOptIn()
+
+
 def _register() -> None:
-    if getattr(_ax_utils, "_torchpref_registered", False):
-        return
-    _ax_utils.fit_botorch_model.register(PreferenceGP)(_fit_preference_gp)
+    """Register ``PreferenceGP`` with Ax's dispatchers (its extension points); nothing else."""
+    _ax_utils.fit_botorch_model.register(PreferenceGP)(_fit_preference_gp)  # registering again replaces
     _ax_surrogate.submodel_input_constructor.register(PreferenceGP)(_preference_inputs)
-    _ax_utils.copy_model_config_with_default_values = _copy_model_config_with_default_values
-    _ax_surrogate.copy_model_config_with_default_values = _copy_model_config_with_default_values
-    _ax_surrogate.Surrogate.fit = _fit
-    _ax_surrogate.ModelConfig = _model_config  # only Surrogate.fit's fallback ModelConfig() is changed
-    _ax_utils._torchpref_registered = True
 
 
 _register()
