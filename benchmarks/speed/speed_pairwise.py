@@ -60,6 +60,8 @@ sys.path.insert(0, str(HERE))
 
 import bench_common as bc  # noqa: E402
 
+from torchpref.experiments.stamp import stamped  # noqa: E402
+
 RESULTS = HERE.parent / "results"
 SIZES = [20, 50, 100, 200, 500]
 PEERS = ("pairwisegp", "botorch_rust")
@@ -402,7 +404,7 @@ def main() -> None:
         ),
     }
     with open(args.out / f"{args.name}.json", "w") as fh:
-        json.dump({"meta": meta, "rows": rows, "fit_quality": quality}, fh, indent=2)
+        json.dump(stamped({"meta": meta, "rows": rows, "fit_quality": quality}), fh, indent=2)
     plot(rows, libs, args.out / f"{args.name}.png")
 
     print()
