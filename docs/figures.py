@@ -57,7 +57,7 @@ class Figure:
 
 
 _WAVE = "wave_summary.json"
-_SPEED = "speed_pairwise.csv"
+_SPEED = "speed_quiet/speed_pairwise.csv"  # the quiet run of this round (stamped JSON beside it)
 _PAIR = "paired_tests.queries.info per effort vs UCBC"
 
 FIGURES: dict[str, Figure] = {
