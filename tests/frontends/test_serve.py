@@ -22,36 +22,16 @@ pytest.importorskip("httpx", reason="starlette's test client needs httpx")
 
 with warnings.catch_warnings():  # starlette's note that a later httpx is preferred
     warnings.simplefilter("ignore")
-    from starlette.testclient import TestClient
 
 from torchpref.data.features import FeaturesError
-from torchpref.frontends.serve import ServeError, _check_network, create_app
-from torchpref.frontends.serve_items import ServeItems, items_from_csv
+from torchpref.frontends.serve import ServeError, _check_network
+from torchpref.frontends.serve_items import items_from_csv
 from torchpref.frontends.serve_store import SessionStore, make_qid
 from torchpref.sessions.session import PreferenceSession
+from torchpref.testing.serve import random_items as _items
+from torchpref.testing.serve import serve_client as _client
 
-BASE = "http://127.0.0.1:8000"
 PNG = b"\x89PNG\r\n\x1a\n" + b"\x00" * 32
-
-
-def _items(n=24, d=3, seed=0, **kw) -> ServeItems:
-    g = torch.Generator().manual_seed(seed)
-    return ServeItems(torch.rand(n, d, generator=g, dtype=torch.float64), [f"f{k}" for k in range(d)], **kw)
-
-
-def _client(store, **kw) -> TestClient:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return TestClient(create_app(store, **kw), base_url=BASE)
-
-
-@pytest.fixture
-def served(tmp_path):
-    store = SessionStore(_items(), tmp_path / "sessions", num_queries=8)
-    client = _client(store)
-    sid = client.post("/api/new", json={}).json()["sid"]
-    yield store, client, sid
-    store.close()
 
 
 def _answer_for(q):

@@ -22,36 +22,16 @@ pytest.importorskip("httpx", reason="starlette's test client needs httpx")
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
-    from starlette.testclient import TestClient
 
 import torchpref.sessions.journal as journal
 from torchpref.frontends import serve as serve_module
 from torchpref.frontends.serve import ServeError, create_app, listening_socket
 from torchpref.frontends.serve_items import ServeItems
 from torchpref.frontends.serve_store import SessionStore
+from torchpref.testing.serve import random_items as _items
+from torchpref.testing.serve import serve_client as _client
 
-BASE = "http://127.0.0.1:8000"
 TOKEN = "a-long-enough-token-1234"
-
-
-def _items(n=24, d=3, seed=0) -> ServeItems:
-    g = torch.Generator().manual_seed(seed)
-    return ServeItems(torch.rand(n, d, generator=g, dtype=torch.float64), [f"f{k}" for k in range(d)])
-
-
-def _client(store, **kw) -> TestClient:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return TestClient(create_app(store, **kw), base_url=BASE)  # a server exception fails the test
-
-
-@pytest.fixture
-def served(tmp_path):
-    store = SessionStore(_items(), tmp_path / "sessions", num_queries=8)
-    client = _client(store)
-    sid = client.post("/api/new", json={}).json()["sid"]
-    yield store, client, sid
-    store.close()
 
 
 def _answers(path):

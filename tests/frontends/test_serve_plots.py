@@ -9,7 +9,6 @@ import threading
 import warnings
 
 import pytest
-import torch
 
 pytest.importorskip("starlette", reason="the serve extra (starlette) is not installed")
 pytest.importorskip("httpx", reason="starlette's test client needs httpx")
@@ -17,29 +16,16 @@ pytest.importorskip("matplotlib", reason="the plots need matplotlib")
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
-    from starlette.testclient import TestClient
 
-from torchpref.frontends.serve import create_app
-from torchpref.frontends.serve_items import ServeItems
 from torchpref.frontends.serve_plot_worker import draw_utility
 from torchpref.frontends.serve_plots import ProcessDrawer
 from torchpref.frontends.serve_store import SessionStore
 from torchpref.frontends.serve_summary import utility_data
+from torchpref.testing.serve import random_items as _items
+from torchpref.testing.serve import serve_client as _client
 
-BASE = "http://127.0.0.1:8000"
 PNG = b"\x89PNG\r\n\x1a\n" + b"\x00" * 32
 WAIT = 300  # seconds: a bound on a deadlock, never reached when the code is right
-
-
-def _items(n=24, d=3, **kw) -> ServeItems:
-    g = torch.Generator().manual_seed(0)
-    return ServeItems(torch.rand(n, d, generator=g, dtype=torch.float64), [f"f{k}" for k in range(d)], **kw)
-
-
-def _client(store) -> TestClient:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return TestClient(create_app(store), base_url=BASE)
 
 
 def _answer(c, sid, k=1):

@@ -19,10 +19,7 @@ pytest.importorskip("httpx", reason="starlette's test client needs httpx")
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
-    from starlette.testclient import TestClient
 
-from torchpref.frontends.serve import create_app
-from torchpref.frontends.serve_items import ServeItems
 from torchpref.frontends.serve_pool import (
     FD_MARGIN,
     MAX_OPEN_CAP,
@@ -33,19 +30,12 @@ from torchpref.frontends.serve_pool import (
     resource_error,
 )
 from torchpref.frontends.serve_store import SessionStore
-
-BASE = "http://127.0.0.1:8000"
-
-
-def _items(n=30, d=3, seed=0) -> ServeItems:
-    g = torch.Generator().manual_seed(seed)
-    return ServeItems(torch.rand(n, d, generator=g, dtype=torch.float64), [f"f{k}" for k in range(d)])
+from torchpref.testing.serve import random_items
+from torchpref.testing.serve import serve_client as _client
 
 
-def _client(store) -> TestClient:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return TestClient(create_app(store), base_url=BASE)
+def _items(n=30, d=3, seed=0):
+    return random_items(n, d, seed)
 
 
 class Clock:

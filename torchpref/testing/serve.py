@@ -16,6 +16,11 @@ import urllib.error
 import urllib.request
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from torchpref.frontends.serve_items import ServeItems
+    from torchpref.frontends.serve_store import SessionStore
 
 CHROMIUM = os.environ.get("TORCHPREF_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -29,6 +34,34 @@ CHROMIUM_ARGS = [
 ]
 START_S = 180  # a loaded machine imports torch, gpytorch and botorch slowly
 ROOT = Path(__file__).resolve().parents[2]  # the folder holding the torchpref package
+
+
+TEST_BASE_URL = "http://127.0.0.1:8000"  # the in-process test client's address (an allowed Host)
+
+
+def random_items(n: int = 24, d: int = 3, seed: int = 0, **kwargs: Any) -> ServeItems:
+    """``n`` seeded random items in ``[0, 1]^d`` with objectives ``f0, f1, ...`` as
+    :class:`~torchpref.frontends.serve_items.ServeItems` (``kwargs``: its other arguments)."""
+    import torch
+
+    from torchpref.frontends.serve_items import ServeItems
+
+    g = torch.Generator().manual_seed(seed)
+    return ServeItems(torch.rand(n, d, generator=g, dtype=torch.float64), [f"f{k}" for k in range(d)], **kwargs)
+
+
+def serve_client(store: SessionStore, **kwargs: Any) -> Any:
+    """Starlette's in-process test client of the page over ``store`` (``kwargs``: ``create_app``'s,
+    e.g. ``token``, ``allowed_hosts``), at :data:`TEST_BASE_URL`; needs the ``serve`` extra and httpx."""
+    import warnings
+
+    from torchpref.frontends.serve import create_app
+
+    with warnings.catch_warnings():  # starlette's note that a later httpx is preferred
+        warnings.simplefilter("ignore")
+        from starlette.testclient import TestClient
+
+        return TestClient(create_app(store, **kwargs), base_url=TEST_BASE_URL)
 
 
 def free_port() -> int:

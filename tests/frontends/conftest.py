@@ -1,0 +1,19 @@
+"""Fixtures of the ``torchpref serve`` tests run in process (Starlette's test client)."""
+
+import pytest
+
+from torchpref.testing.serve import random_items, serve_client
+
+
+@pytest.fixture
+def served(tmp_path):
+    """A store of 24 random items (8 questions a session), its client, and one new session's id."""
+    pytest.importorskip("starlette", reason="the serve extra (starlette) is not installed")
+    pytest.importorskip("httpx", reason="starlette's test client needs httpx")
+    from torchpref.frontends.serve_store import SessionStore
+
+    store = SessionStore(random_items(), tmp_path / "sessions", num_queries=8)
+    client = serve_client(store)
+    sid = client.post("/api/new", json={}).json()["sid"]
+    yield store, client, sid
+    store.close()
