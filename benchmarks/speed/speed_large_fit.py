@@ -6,7 +6,7 @@ the lengthscales (as one L-BFGS step makes), the parts of one evaluation of the 
 timed (CPU, one thread) and the factorisations of the re-solve counted:
 
 * ``kernel``: the kernel matrix with autograd (``model._prior``);
-* ``resolve``: the warm-started re-solve of the mode (``PosteriorState.build``: Cholesky of ``K``,
+* ``resolve``: the warm-started re-solve of the mode (``PosteriorState.solve``: Cholesky of ``K``,
   the predicted start, Newton);
 * ``evidence``: the Laplace evidence and the surrogate carrying its gradient (``laplace_evidence``);
 * ``backward``: the backward pass to the raw hyperparameters.
@@ -40,7 +40,8 @@ import bench_common as bc  # noqa: E402
 
 from torchpref.inference import newton  # noqa: E402
 from torchpref.inference.laplace import laplace_evidence  # noqa: E402
-from torchpref.models.posterior_state import PosteriorState, fingerprint  # noqa: E402
+from torchpref.inference.solver import PosteriorState, SolveKey  # noqa: E402
+from torchpref.models.posterior_state import cache_key  # noqa: E402
 
 RESULTS = HERE.parent / "results"
 
@@ -81,7 +82,11 @@ def main(argv=None) -> int:
         padded, K = model._prior()
         parts["kernel"] = time.process_time() - t0
         t0 = time.process_time()
-        state = PosteriorState.build(model, fingerprint(model), model._cache, (padded, K))
+        fp, structure = cache_key(model)
+        key = SolveKey(model.data, fp, structure, model.likelihood)
+        state = PosteriorState.solve(
+            key, padded, K, model._observations, previous=model._cache, max_iter=model.max_newton_iter
+        )
         parts["resolve"] = time.process_time() - t0
         model._cache = state
         t0 = time.process_time()

@@ -1,11 +1,13 @@
-r"""What BoTorch's preference tools read from a preference model, for :class:`PreferenceGP`.
+r"""The argument aliases, errors and helpers behind ``PreferenceGP``'s BoTorch ``PairwiseGP`` interface.
 
 BoTorch's preference acquisitions, objectives and input constructors were written against its
 ``PairwiseGP``; they read ``datapoints``, ``comparisons``, ``dim`` and ``utility``, build models
 from a ``RankingDataset`` with ``construct_inputs``, start from a prior-only model
 ``(None, None)``, and condition on comparisons with ``condition_on_observations(X, Y)``.
-:class:`PairwiseGPInterface` gives :class:`~torchpref.models.preference_gp.PreferenceGP` the same names with
-the same meanings (docs/botorch.md), and adds ratings where BoTorch has none.
+:class:`~torchpref.models.preference_gp.PreferenceGP` has the same names with the same meanings
+(docs/botorch.md; the methods are in its class, in ``preference_gp.py``) and adds ratings where
+BoTorch has none; this module holds what those methods share: the ``datapoints=`` / ``likelihood=``
+/ ``jitter=`` aliases, the errors, and turning rankings and ``Y`` into comparisons.
 """
 
 from __future__ import annotations

@@ -113,8 +113,8 @@ class PreferenceGP(Model, GP):
 
     BoTorch's ``PairwiseGP`` interface is there too (``datapoints``, ``dim``, ``utility``,
     ``construct_inputs``, prior-only ``PreferenceGP(None, None)``, comparisons as
-    ``condition_on_observations(X, Y)``): see :class:`~torchpref.models.pairwise_interface.PairwiseGPInterface`
-    and docs/botorch.md.
+    ``condition_on_observations(X, Y)``): see the class's last section (its aliases and errors in
+    :mod:`torchpref.models.pairwise_interface`) and docs/botorch.md.
 
     Args:
         train_X: ``n x d`` items (float64 recommended; dtype and device are followed), or
