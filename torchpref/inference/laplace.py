@@ -36,6 +36,7 @@ from typing import cast
 import torch
 from torch import Tensor
 
+from torchpref.inference import fast_path
 from torchpref.inference.newton import NewtonOptions, newton_mode
 from torchpref.inference.numerics import LaplaceNumericalError, NotPSDError, default_tolerance
 from torchpref.inference.observations import Observations, Term, item_term, pairwise_term  # noqa: F401  (re-exported)
@@ -123,6 +124,9 @@ def find_mode(
         L = L[None]
     n = L.shape[-1]
     tol = default_tolerance(L.dtype) if tol is None else tol
+    compiled = _compiled_mode(L, obs, f0, max_iter, tol)
+    if compiled is not None:
+        return compiled.select(0) if single else compiled
     opts = NewtonOptions(
         max_iter,
         tol,
@@ -155,6 +159,42 @@ def find_mode(
     decrement = out.decrement.clone()
     _warn(mode, decrement)
     return mode.select(0) if single else mode
+
+
+def _compiled_mode(
+    L: Tensor, obs: Observations, f0: Tensor | tuple[Tensor, ...] | None, max_iter: int, tol: float
+) -> ModeResult | None:
+    """The mode from the compiled path (:mod:`torchpref.inference.fast_path` decides whether it
+    applies), or ``None``: then the torch solver runs (also where the compiled Newton did not
+    converge or met a non-finite step, so that its warnings and errors are the torch solver's)."""
+    if not fast_path.mode_applies(L, obs):
+        return None
+    s = fast_path.probit_scale(obs)
+    module = None if s is None else fast_path.compiled()
+    if module is None:
+        return None
+    import numpy as np
+
+    n = L.shape[-1]
+    Ln = np.ascontiguousarray(L[0].detach().numpy())
+    given = () if f0 is None else (f0 if isinstance(f0, tuple) else (f0,))
+    starts = np.ascontiguousarray(
+        np.stack([f.detach().to(L).reshape(n).numpy() for f in given]) if given else np.empty((0, n))
+    )
+    C = np.ascontiguousarray(obs.terms[0].index[0].numpy())
+    a, M, w, iterations, status, _ = module.newton(Ln, C, s, starts, tol, max_iter)
+    if status != module.OK:
+        return None
+    a_t = torch.from_numpy(a)[None]
+    return ModeResult(
+        a_t,
+        torch.from_numpy(Ln @ a)[None],
+        torch.from_numpy(M)[None],
+        (torch.from_numpy(w)[None],),
+        int(iterations),
+        torch.ones(1, dtype=torch.bool),
+        torch.zeros(1, dtype=torch.bool),
+    )
 
 
 def predicted_mode(f: Tensor, cache: PredictiveCache, L: Tensor) -> Tensor:
