@@ -45,6 +45,7 @@ from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_F
     default_covar_module,
 )
 from torchpref.models.fantasy import condition_batch, fantasize
+from torchpref.models.fast_fit import fit_laplace
 from torchpref.models.pairwise_interface import (
     TrainDataMismatchError,
     _check_strict,
@@ -290,6 +291,26 @@ class PreferenceGP(Model, GP):
         with any other sampler (or as ``kind`` says). ``observation_noise`` is not used: the
         answers' noise is the likelihoods'."""
         return fantasize(self, X, sampler, kind)
+
+    def custom_fit(
+        self,
+        mll: MarginalLogLikelihood,
+        closure: Any = None,
+        closure_kwargs: dict[str, Any] | None = None,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        **kwargs: Any,
+    ) -> MarginalLogLikelihood:
+        """BoTorch's hook for a model's own fitting routine: ``fit_gpytorch_mll(mll)`` comes here.
+        A :class:`LaplaceMarginalLogLikelihood` is fitted on the compiled path where it applies
+        (:func:`~torchpref.models.fast_fit.fit_laplace`: the same L-BFGS-B from the same start,
+        each evaluation one compiled call), else, as any other MLL, by BoTorch's own routine."""
+        if isinstance(mll, LaplaceMarginalLogLikelihood):
+            return fit_laplace(mll, closure, closure_kwargs, optimizer_kwargs, **kwargs)
+        from botorch.fit import _fit_fallback, _fit_fallback_approximate
+        from gpytorch.mlls._approximate_mll import _ApproximateMarginalLogLikelihood
+
+        fallback = _fit_fallback_approximate if isinstance(mll, _ApproximateMarginalLogLikelihood) else _fit_fallback
+        return fallback(mll, closure=closure, closure_kwargs=closure_kwargs, optimizer_kwargs=optimizer_kwargs, **kwargs)
 
     # ------------------------------------------------------------- inference
     def _kernel(self, X1: Tensor, X2: Tensor | None = None, diag: bool = False) -> Tensor:
