@@ -407,3 +407,85 @@ def fit_loss(x, X, C, s, kind, spec, f_prev, tol, max_iter):
     if os_index >= 0:
         grad[os_index] = -(gos + gprior_os) * dos
     return -(value + lp), grad, OK
+
+
+LINE_SEARCH_FAILED = 4
+#: SciPy's L-BFGS-B defaults, which BoTorch's fit uses: memory, ``ftol``, ``gtol``, iteration limit
+LBFGS_MEMORY, LBFGS_FTOL, LBFGS_GTOL, LBFGS_MAXITER = 10, 2.220446049250313e-09, 1e-5, 15000
+
+
+@njit(cache=True)
+def two_loop(g, S, Y, rho, count, head):
+    """The L-BFGS product ``H g`` from the last ``count`` pairs ``(s, y)`` (ring buffer ending at ``head``)."""
+    q = g.copy()
+    m = S.shape[0]
+    alpha = np.zeros(m)
+    for back in range(count):
+        i = (head - 1 - back) % m
+        alpha[i] = rho[i] * (S[i] @ q)
+        q -= alpha[i] * Y[i]
+    if count:
+        last = (head - 1) % m
+        q *= (S[last] @ Y[last]) / (Y[last] @ Y[last])
+    for fwd in range(count):
+        i = (head - count + fwd) % m
+        beta = rho[i] * (Y[i] @ q)
+        q += (alpha[i] - beta) * S[i]
+    return q
+
+
+@njit(cache=True)
+def wolfe_search(x, fx, gx, d, t, X, C, s, kind, spec, f_prev, tol, max_iter):
+    """A step along ``d`` satisfying the weak Wolfe conditions (``1e-4``, ``0.9``) by bisection
+    (Lewis and Overton): ``(x, loss, grad, status)``; :data:`LINE_SEARCH_FAILED` after 60 trials."""
+    gd = gx @ d
+    lo, hi = 0.0, np.inf
+    for _ in range(60):
+        xn = x + t * d
+        fn, gn, status = fit_loss(xn, X, C, s, kind, spec, f_prev, tol, max_iter)
+        if status != OK:
+            return x, fx, gx, status
+        if not fn <= fx + 1e-4 * t * gd:
+            hi = t
+        elif gn @ d < 0.9 * gd:
+            lo = t
+        else:
+            return xn, fn, gn, OK
+        t = 0.5 * (lo + hi) if hi < np.inf else 2.0 * lo
+    return x, fx, gx, LINE_SEARCH_FAILED
+
+
+@njit(cache=True)
+def fit_lbfgs(x0, X, C, s, kind, spec, f_prev, tol, max_iter):
+    """The whole fit in one call: L-BFGS on :func:`fit_loss` from the raw parameters ``x0``, with
+    SciPy's L-BFGS-B stopping rules and defaults (unbounded, as BoTorch's softplus-constrained
+    parameters are): ``(x, loss, status, iterations)``."""
+    k = x0.shape[0]
+    x = x0.copy()
+    fx, gx, status = fit_loss(x, X, C, s, kind, spec, f_prev, tol, max_iter)
+    if status != OK:
+        return x, fx, status, 0
+    S, Y = np.zeros((LBFGS_MEMORY, k)), np.zeros((LBFGS_MEMORY, k))
+    rho = np.zeros(LBFGS_MEMORY)
+    count, head = 0, 0
+    for it in range(LBFGS_MAXITER):
+        if np.max(np.abs(gx)) <= LBFGS_GTOL:
+            return x, fx, OK, it
+        d = -two_loop(gx, S, Y, rho, count, head)
+        if not gx @ d < 0.0:
+            d, count = -gx, 0
+        t = 1.0 if count else min(1.0, 1.0 / math.sqrt(d @ d))
+        xn, fn, gn, status = wolfe_search(x, fx, gx, d, t, X, C, s, kind, spec, f_prev, tol, max_iter)
+        if status != OK:
+            return x, fx, status, it
+        sv, yv = xn - x, gn - gx
+        sy = sv @ yv
+        if sy > 2.220446049250313e-16 * (yv @ yv):
+            S[head], Y[head], rho[head] = sv, yv, 1.0 / sy
+            head = (head + 1) % LBFGS_MEMORY
+            count = min(count + 1, LBFGS_MEMORY)
+        done = (fx - fn) <= LBFGS_FTOL * max(abs(fx), abs(fn), 1.0)
+        x, fx, gx = xn, fn, gn
+        if done:
+            return x, fx, OK, it + 1
+    return x, fx, OK, LBFGS_MAXITER

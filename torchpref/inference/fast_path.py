@@ -40,7 +40,7 @@ MODE_MAX_ITEMS = 400
 #: ``auto`` fits compiled up to this many items
 FIT_MAX_ITEMS = 1000
 #: the compiled functions whose on-disk cache ``auto`` waits for
-ENTRY_POINTS = ("newton", "fit_loss", "mode_and_evidence")
+ENTRY_POINTS = ("newton", "fit_lbfgs", "mode_and_evidence")
 
 _override: list[str] = []
 _lock = threading.Lock()
@@ -147,7 +147,7 @@ def warm_up() -> ModuleType | None:
     X = np.array([[0.0, 0.0], [0.5, 0.2], [0.9, 0.7]])
     C = np.array([[0, 1], [2, 1]], dtype=np.int64)
     spec = np.array([0.0, 2.0, 2.0, 1e-4, 0.0, 1.0, 1.7, 1.7, 2.0, 2.0, 1.0, 1.0])
-    module.fit_loss(np.zeros(3), X, C, 1.4, 0, spec, np.zeros(3), 1e-11, 100)
+    module.fit_lbfgs(np.zeros(3), X, C, 1.4, 0, spec, np.zeros(3), 1e-11, 100)
     L = np.linalg.cholesky(module.kernel_matrix(X, np.ones(2), 1.0, 0))
     module.newton(L, C, 1.4, np.zeros((1, 3)), 1e-11, 100)
     module.mode_and_evidence(X, C, 1.4, 3, np.ones(2), 1.0, np.zeros(0), 1e-11, 100)

@@ -34,10 +34,6 @@ from torchpref.inference.numerics import default_tolerance
 KINDS = {RBFKernel: 0, (MaternKernel, 0.5): 1, (MaternKernel, 1.5): 2, (MaternKernel, 2.5): 3}
 
 
-class _Failed(Exception):
-    """A compiled evaluation could not go on (status code in ``args[0]``)."""
-
-
 @dataclass
 class CompiledFit:
     """One model's fit problem as the compiled loss takes it."""
@@ -101,12 +97,10 @@ def _priors(model: Any, base: torch.nn.Module, scale: torch.nn.Module | None) ->
     return found
 
 
-def _spec(mll: Any, base, scale, priors, d: int) -> tuple[np.ndarray, dict] | None:
-    """The compiled loss's ``spec`` and the trainable parameters in BoTorch's order, or ``None``."""
-    from botorch.optim.utils import get_parameters_and_bounds
-
-    params, _ = get_parameters_and_bounds(mll)
-    params = {name: p for name, p in params.items() if p.requires_grad}
+def _spec(mll: Any, base, scale, priors) -> tuple[np.ndarray, dict] | None:
+    """The compiled loss's ``spec`` and the trainable parameters in BoTorch's order (that of
+    ``named_parameters``, as ``get_parameters_and_bounds``), or ``None``."""
+    params = {name: p for name, p in mll.named_parameters() if p.requires_grad}
     wanted = [base.raw_lengthscale] + ([] if scale is None else [scale.raw_outputscale])
     if len(params) != len(wanted) or {id(p) for p in params.values()} != {id(p) for p in wanted}:
         return None
@@ -126,6 +120,17 @@ def _spec(mll: Any, base, scale, priors, d: int) -> tuple[np.ndarray, dict] | No
     return np.array(spec, dtype=np.float64), params
 
 
+def _probit_scale(model: Any, data: PreferenceData) -> float | None:
+    """``sqrt 2 sigma_R`` where the data are comparisons only, scored by the probit the compiled
+    path knows (:func:`torchpref.inference.fast_path.probit_scale`, read from the data directly)."""
+    lik = model.likelihood.comparison
+    if model.ties_offered or data.ratings.numel() or (data.ties is not None and data.ties.numel()):
+        return None
+    if type(lik).__dict__.get("compiled_kind") != "probit" or not data.comparisons.shape[0]:
+        return None
+    return float(lik._scale())
+
+
 def compiled_problem(mll: Any) -> CompiledFit | None:
     """The fit of ``mll`` (a :class:`~torchpref.models.preference_gp.LaplaceMarginalLogLikelihood`)
     as a compiled problem, or ``None`` where the compiled path does not apply."""
@@ -140,13 +145,13 @@ def compiled_problem(mll: Any) -> CompiledFit | None:
         return None
     if fast_path.setting() != "on" and X.shape[0] > fast_path.FIT_MAX_ITEMS:
         return None
-    s = fast_path.probit_scale(model._observations())
+    s = _probit_scale(model, data)
     kernel = _kernel(model, X.shape[-1])
     if s is None or kernel is None:
         return None
     kind, base, scale = kernel
     priors = _priors(model, base, scale)
-    found = None if priors is None else _spec(mll, base, scale, priors, X.shape[-1])
+    found = None if priors is None else _spec(mll, base, scale, priors)
     if found is None:
         return None
     spec, params = found
@@ -158,34 +163,30 @@ def compiled_problem(mll: Any) -> CompiledFit | None:
 
 
 def run(problem: CompiledFit, module: Any) -> bool:
-    """L-BFGS-B as BoTorch runs it, on the compiled loss; sets the parameters and returns
-    ``True`` on success, leaves them unchanged and returns ``False`` otherwise."""
-    from scipy.optimize import minimize
-
+    """The whole fit in one compiled call (:func:`torchpref.inference.compiled.fit_lbfgs`: L-BFGS
+    with SciPy's L-BFGS-B stopping rules, from the model's raw parameters); sets the parameters
+    and returns ``True`` on success, leaves them unchanged and returns ``False`` otherwise."""
     p = problem
     x0 = np.concatenate([t.detach().reshape(-1).numpy() for t in p.params.values()]).astype(np.float64)
-    f_prev = p.f0.copy()
-
-    def loss(x: np.ndarray) -> tuple[float, np.ndarray]:
-        value, grad, status = module.fit_loss(x, p.X, p.C, p.scale, p.kind, p.spec, f_prev, p.tol, p.max_iter)
-        if status != module.OK:
-            raise _Failed(status)
-        return value, grad
-
-    try:
-        res = minimize(loss, x0, jac=True, method="L-BFGS-B")
-    except _Failed:
-        return False
-    msg = res.message if isinstance(res.message, str) else res.message.decode("ascii")
-    if not (res.success or "LIMIT" in msg.upper()) or not np.all(np.isfinite(res.x)):
+    x, _, status, _ = module.fit_lbfgs(x0, p.X, p.C, p.scale, p.kind, p.spec, p.f0.copy(), p.tol, p.max_iter)
+    if status != module.OK or not np.all(np.isfinite(x)):
         return False
     with torch.no_grad():
         offset = 0
         for t in p.params.values():
-            k = t.numel()
-            t.copy_(torch.from_numpy(res.x[offset : offset + k].copy()).reshape(t.shape))
-            offset += k
+            n = t.numel()
+            t.copy_(torch.from_numpy(x[offset : offset + n].copy()).reshape(t.shape))
+            offset += n
     return True
+
+
+def _leave_in_eval(mll: Any) -> Any:
+    """``mll.eval()``, as BoTorch's routine leaves it; a switch walks every module, so where the
+    model and likelihood already are in eval mode only the MLL's own flag is set."""
+    if any(m.training for m in mll.model.modules()) or any(m.training for m in mll.likelihood.modules()):
+        return mll.eval()
+    mll.training = False
+    return mll
 
 
 def fit_laplace(mll: Any, closure=None, closure_kwargs=None, optimizer_kwargs=None, **kwargs: Any) -> Any:
@@ -197,11 +198,10 @@ def fit_laplace(mll: Any, closure=None, closure_kwargs=None, optimizer_kwargs=No
     default = closure is None and closure_kwargs is None and not optimizer_kwargs
     default = default and kwargs.get("optimizer", fit_gpytorch_mll_scipy) is fit_gpytorch_mll_scipy
     if default:
-        mll.train()
         problem = compiled_problem(mll)
         module = None if problem is None else fast_path.compiled()
         if problem is not None and module is not None and run(problem, module):
-            return mll.eval()
+            return _leave_in_eval(mll)
     kwargs.pop("optimizer", None) if kwargs.get("optimizer") is None else None
     return _fit_fallback(
         mll, closure=closure, closure_kwargs=closure_kwargs, optimizer_kwargs=optimizer_kwargs, **kwargs
