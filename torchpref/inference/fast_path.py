@@ -82,8 +82,13 @@ class fast_path:  # noqa: N801 (used as a function and a context manager, like t
 
 
 def available() -> bool:
-    """Whether numba is installed (the ``fast`` extra)."""
-    return importlib.util.find_spec("numba") is not None
+    """Whether numba is installed (the ``fast`` extra) and not blocked (``sys.modules["numba"] = None``)."""
+    if "numba" in sys.modules:
+        return sys.modules["numba"] is not None
+    try:
+        return importlib.util.find_spec("numba") is not None
+    except (ImportError, ValueError):
+        return False
 
 
 def _cache_dirs() -> list[Path]:

@@ -1,0 +1,233 @@
+"""The compiled small-problem path (issue 33) against the torch solver, its reference: the same
+problems through both agree on the mode, the evidence and its gradient, and the fitted
+hyperparameters, on random problems and on hostile ones; the setting switches it; the package
+works without numba and ``import torchpref`` does not load it."""
+
+import math
+import os
+import subprocess
+import sys
+import warnings
+
+import pytest
+import torch
+from botorch.fit import fit_gpytorch_mll
+from gpytorch.kernels import MaternKernel, RBFKernel, ScaleKernel
+from gpytorch.priors import GammaPrior, LogNormalPrior
+
+from torchpref import LaplaceMarginalLogLikelihood, PreferenceGP
+from torchpref.inference import fast_path
+from torchpref.testing import problems
+
+F64 = torch.float64
+needs_numba = pytest.mark.skipif(not fast_path.available(), reason="numba is not installed (the fast extra)")
+
+
+def _kernel(kind: str, d: int, ls: float = 0.3, os_: float = 1.0):
+    prior = LogNormalPrior(math.sqrt(2) + 0.5 * math.log(d), math.sqrt(3))
+    base = (
+        RBFKernel(ard_num_dims=d, lengthscale_prior=prior)
+        if kind == "rbf"
+        else MaternKernel(nu={"m12": 0.5, "m32": 1.5, "m52": 2.5}[kind], ard_num_dims=d, lengthscale_prior=prior)
+    )
+    k = ScaleKernel(base, outputscale_prior=GammaPrior(2.0, 1.0)).to(F64)
+    k.base_kernel.lengthscale, k.outputscale = ls, os_
+    return k
+
+
+def _problem(seed: int, n: int, d: int = 2, p: int | None = None):
+    g = torch.Generator().manual_seed(seed)
+    X = torch.rand(n, d, generator=g, dtype=F64)
+    p = 2 * n if p is None else p
+    i = torch.randint(0, n, (p,), generator=g)
+    j = (i + torch.randint(1, n, (p,), generator=g)) % n
+    u = torch.sin(6 * X).sum(-1)
+    first = u[i] + torch.randn(p, generator=g, dtype=F64) > u[j]
+    return X, torch.stack([torch.where(first, i, j), torch.where(first, j, i)], -1)
+
+
+def _model(X, C, kind="rbf", noise=1.0, ls=0.3, os_=1.0):
+    return PreferenceGP(X, comparisons=C, covar_module=_kernel(kind, X.shape[-1], ls, os_), comparison_noise=noise)
+
+
+def _evidence_and_grad(model):
+    mll = LaplaceMarginalLogLikelihood(model)
+    params = [p for p in mll.parameters() if p.requires_grad]
+    value = mll()
+    grads = torch.autograd.grad(value, params)
+    return float(value.detach()), torch.cat([g.reshape(-1) for g in grads])
+
+
+def test_setting_values_and_errors(monkeypatch):
+    monkeypatch.delenv(fast_path.ENV, raising=False)
+    assert fast_path.setting() == "auto"
+    with fast_path.fast_path("off"):
+        assert fast_path.setting() == "off"
+        with fast_path.fast_path("on"):
+            assert fast_path.setting() == "on"
+        assert fast_path.setting() == "off"
+    assert fast_path.setting() == "auto"
+    monkeypatch.setenv(fast_path.ENV, "off")
+    assert fast_path.setting() == "off" and fast_path.compiled() is None
+    monkeypatch.setenv(fast_path.ENV, "fast")
+    with pytest.raises(ValueError, match="TORCHPREF_FAST_PATH"):
+        fast_path.setting()
+    with pytest.raises(ValueError, match="'sometimes'"):
+        fast_path.fast_path("sometimes")
+
+
+@needs_numba
+@pytest.mark.parametrize("seed,n,kind,noise", [(0, 20, "rbf", 1.0), (1, 60, "m52", 0.1), (2, 7, "m32", 3.0), (3, 150, "rbf", 0.5)])
+def test_mode_evidence_and_gradient_agree(seed, n, kind, noise):
+    X, C = _problem(seed, n)
+    out = {}
+    for mode in ("off", "on"):
+        with fast_path.fast_path(mode):
+            model = _model(X, C, kind, noise)
+            m = model.mode
+            out[mode] = (m.f, m.B_chol, m.weights[0], *_evidence_and_grad(model))
+    f0, M0, w0, e0, g0 = out["off"]
+    f1, M1, w1, e1, g1 = out["on"]
+    tol = 1e-9 if n < 128 else 1e-6  # from n = 128 the torch solver takes chord steps: other iterates
+    assert torch.allclose(f1, f0, atol=tol, rtol=0)
+    assert torch.allclose(M1, M0, atol=tol, rtol=0) and torch.allclose(w1, w0, atol=tol, rtol=0)
+    assert abs(e1 - e0) < 1e-9 * max(1.0, abs(e0))  # second-order accurate in the mode
+    assert torch.allclose(g1, g0, atol=100 * tol, rtol=100 * tol)
+
+
+@needs_numba
+@pytest.mark.parametrize("kind", ["rbf", "m12", "m32", "m52"])
+def test_compiled_loss_matches_the_torch_mll_and_autograd(kind):
+    """The compiled fit's loss and raw-parameter gradient against BoTorch's loss (``-mll()``) and
+    autograd through it at the same point, for each kernel."""
+    from torchpref.models.fast_fit import compiled_problem
+
+    module = fast_path.warm_up()
+    X, C = _problem(4, 30, d=3)
+    model = _model(X, C, kind, ls=0.4, os_=1.7)
+    model.covar_module.base_kernel.lengthscale = torch.tensor([[0.2, 0.5, 0.9]], dtype=F64)
+    mll = LaplaceMarginalLogLikelihood(model)
+    problem = compiled_problem(mll)
+    assert problem is not None
+    x = torch.cat([p.detach().reshape(-1) for p in problem.params.values()]).numpy()
+    with fast_path.fast_path("off"):
+        loss = -mll()
+        grads = torch.autograd.grad(loss, list(problem.params.values()))
+    value, grad, status = module.fit_loss(x, problem.X, problem.C, problem.scale, problem.kind, problem.spec,
+                                          problem.f0.copy(), problem.tol, problem.max_iter)  # fmt: skip
+    assert status == module.OK
+    # GPyTorch's priors keep float32 parameters and take log(scale) in float32: a constant offset
+    # of about 1e-8 per lengthscale (the gradient has none), so the loss agrees to 1e-7 here and the
+    # evidence itself to round-off (test_mode_evidence_and_gradient_agree)
+    assert abs(value - float(loss.detach())) < 1e-7 * abs(float(loss.detach()))
+    expected = torch.cat([g.reshape(-1) for g in grads]).numpy()
+    assert abs(grad - expected).max() < 1e-7 * max(1.0, abs(expected).max())
+
+
+def _fit(X, C, mode, kind="rbf", noise=1.0):
+    with fast_path.fast_path(mode), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = _model(X, C, kind, noise)
+        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+        with fast_path.fast_path("off"), torch.no_grad():
+            value = float(LaplaceMarginalLogLikelihood(model)())
+    k = model.covar_module
+    return torch.cat([k.base_kernel.lengthscale.reshape(-1), k.outputscale.reshape(-1)]).detach(), value, model
+
+
+@needs_numba
+@pytest.mark.parametrize("seed,n,kind", [(5, 20, "rbf"), (6, 50, "rbf"), (7, 35, "m52"), (8, 100, "rbf")])
+def test_fitted_hyperparameters_agree(seed, n, kind):
+    """The compiled fit (its own L-BFGS with SciPy's L-BFGS-B stopping rules) reaches the torch
+    fit's optimum: the same objective to 1e-7 relative, hyperparameters to L-BFGS's tolerance."""
+    X, C = _problem(seed, n)
+    h0, v0, _ = _fit(X, C, "off", kind)
+    h1, v1, m1 = _fit(X, C, "on", kind)
+    assert not m1.training
+    assert abs(v1 - v0) < 1e-7 * abs(v0)
+    assert torch.allclose(h1, h0, rtol=2e-3, atol=0)
+
+
+@needs_numba
+@pytest.mark.parametrize("seed", range(12))
+def test_hostile_problems_agree_or_fall_back(seed):
+    """The fuzz's hostile comparison problems (duplicated items, contradictions, noise from 1e-3,
+    lengthscales from 1e-3 to 1e3): the compiled mode agrees with the torch one wherever the
+    torch solver succeeds, and a compiled fit ends usable wherever the torch fit does."""
+    p = problems.make_problem(seed, max_n=40, pairwise_likelihood=False)
+    if not p.comparisons.numel():
+        pytest.skip("a ratings-only problem: the compiled path does not apply")
+    noise = p.likelihood["comparison_noise"]
+    modes = {}
+    for mode in ("off", "on"):
+        with fast_path.fast_path(mode), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = _model(p.X, p.comparisons, "rbf", noise, p.lengthscale, p.outputscale)
+            try:
+                modes[mode] = model.mode.f
+            except Exception as err:  # the torch solver's own errors, named
+                modes[mode] = type(err).__name__
+    if isinstance(modes["off"], torch.Tensor):
+        assert isinstance(modes["on"], torch.Tensor)
+        scale = max(1.0, float(modes["off"].abs().max()))
+        assert float((modes["on"] - modes["off"]).abs().max()) < 1e-6 * scale
+    outcome = {}
+    for mode in ("off", "on"):
+        try:
+            _, value, model = _fit(p.X, p.comparisons, mode, "rbf", noise)
+            outcome[mode] = problems.usable(model) or value
+        except Exception as err:
+            outcome[mode] = type(err).__name__
+    if isinstance(outcome["off"], float):
+        assert isinstance(outcome["on"], float), outcome
+        assert outcome["on"] > outcome["off"] - 1e-6 * max(1.0, abs(outcome["off"])), outcome
+
+
+@needs_numba
+def test_unsupported_models_use_the_torch_solver():
+    """Ratings, a batch and float32 go to the torch solver even when the compiled path is forced."""
+    X, C = _problem(9, 15)
+    u, ri = torch.rand(5, generator=torch.Generator().manual_seed(0), dtype=F64), torch.arange(5)
+    ref = {}
+    for mode in ("off", "on"):
+        with fast_path.fast_path(mode), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = PreferenceGP(X, comparisons=C, ratings=u, rating_index=ri, covar_module=_kernel("rbf", 2))
+            fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+            ref[mode] = model.covar_module.outputscale.detach().clone()
+            m32 = PreferenceGP(X.float(), comparisons=C, covar_module=_kernel("rbf", 2).float(), laplace_dtype=torch.float32)
+            ref[mode + "32"] = m32.mode.f
+    assert torch.equal(ref["on"], ref["off"]) and torch.equal(ref["on32"], ref["off32"])
+
+
+def _run(code: str, **env) -> subprocess.CompletedProcess:
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    full = {**os.environ, "PYTHONPATH": root, **env}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=full, timeout=300)
+
+
+def test_import_does_not_load_numba():
+    out = _run("import sys, torchpref; torchpref.PreferenceGP; torchpref.LaplaceMarginalLogLikelihood; print('numba' in sys.modules)")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
+
+
+def test_package_works_without_numba():
+    """numba blocked (as if not installed) and the compiled path asked for: the torch solver fits."""
+    code = (
+        "import sys; sys.modules['numba'] = None\n"
+        "import torch, warnings; warnings.simplefilter('ignore')\n"
+        "from botorch.fit import fit_gpytorch_mll\n"
+        "from torchpref import PreferenceGP, LaplaceMarginalLogLikelihood\n"
+        "from torchpref.inference import fast_path\n"
+        "X = torch.rand(12, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))\n"
+        "C = torch.tensor([[0, 1], [2, 3], [4, 5], [6, 7], [1, 2], [3, 9]])\n"
+        "m = PreferenceGP(X, comparisons=C)\n"
+        "fit_gpytorch_mll(LaplaceMarginalLogLikelihood(m))\n"
+        "assert not fast_path.available() and fast_path.compiled() is None\n"
+        "assert bool(torch.isfinite(m.posterior(X).mean).all())\n"
+        "print('ok')"
+    )
+    out = _run(code, TORCHPREF_FAST_PATH="on")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().endswith("ok")
