@@ -23,6 +23,7 @@ EXTRAS: dict[str, str] = {
     "starlette": "serve",
     "uvicorn": "serve",
     "jinja2": "serve",
+    "numba": "fast",
 }
 """Importable module -> the extra of ``pyproject.toml`` that installs it."""
 

@@ -31,6 +31,12 @@ peak and the RSS just before the task. ``tracemalloc`` does not see torch's allo
 ``getrusage``'s max RSS is inherited from the parent across fork + exec, so neither is used.
 The posterior's peak includes filling each model's prediction cache (first call).
 
+``--paths both`` adds the column ``torchpref_torch``: torchpref with the compiled path off
+(``torchpref.fast_path("off")``), beside ``torchpref`` under the setting of the run (``auto`` unless
+``TORCHPREF_FAST_PATH`` says otherwise; ``--paths torch`` runs ``torchpref`` itself with it off).
+``--quick``: n = 20, 50, 100, 200, 500, 3 repeats (5 for the mode), the mode, fit and EUBO only (no
+posterior: botorch-rust's takes 51 s a call at n = 500), no mixed model, no memory probe.
+
 Writes ``results/speed_pairwise.{csv,json,png}``.
 
 Usage::
@@ -61,12 +67,14 @@ sys.path.insert(0, str(HERE))
 import bench_common as bc  # noqa: E402
 
 from torchpref.experiments.stamp import stamped  # noqa: E402
+from torchpref.inference.fast_path import fast_path, setting, warm_up  # noqa: E402
 
 RESULTS = HERE.parent / "results"
 SIZES = [20, 50, 100, 200, 500]
-PEERS = ("pairwisegp", "botorch_rust")
+PEERS = ("pairwisegp", "botorch_rust", "torchpref_torch")
 LIB_NAMES = {
     "torchpref": "torchpref PreferenceGP",
+    "torchpref_torch": "torchpref, compiled path off",
     "pairwisegp": "BoTorch PairwiseGP",
     "botorch_rust": "botorch-rust PairwiseGP",
 }
@@ -102,9 +110,21 @@ def _timed(fn, setup=None) -> float:
     return clock() - t0
 
 
+def _torch_path(fn):
+    """``fn`` with torchpref's compiled path off (``torchpref.fast_path("off")``)."""
+
+    def run(*args):
+        with fast_path("off"):
+            return fn(*args)
+
+    return run
+
+
 BUILD = {"torchpref": bc.mode_torchpref, "pairwisegp": bc.build_pairwisegp, "botorch_rust": bc.build_botorch_rust}
 FIT = {"torchpref": bc.fit_torchpref, "pairwisegp": bc.fit_pairwisegp, "botorch_rust": bc.fit_botorch_rust}
+BUILD["torchpref_torch"], FIT["torchpref_torch"] = _torch_path(bc.mode_torchpref), _torch_path(bc.fit_torchpref)
 EVIDENCE = {
+    "torchpref_torch": _torch_path(bc.evidence_torchpref),
     "torchpref": bc.evidence_torchpref,
     "pairwisegp": bc.evidence_pairwisegp,
     "botorch_rust": bc.evidence_botorch_rust,
@@ -113,7 +133,7 @@ EVIDENCE = {
 
 def utilities(model, lib: str) -> torch.Tensor:
     """The model's mode at its training items."""
-    return model.mode.f if lib == "torchpref" else torch.as_tensor(model.utility).detach()
+    return model.mode.f if lib.startswith("torchpref") else torch.as_tensor(model.utility).detach()
 
 
 def task_fns(task: str, lib: str, X, C, fitted=None):
@@ -122,11 +142,12 @@ def task_fns(task: str, lib: str, X, C, fitted=None):
         return (lambda: BUILD[lib](X, C)), None
     if task == "fit":
         return FIT[lib], (lambda: BUILD[lib](X, C))
+    wrap = _torch_path if lib == "torchpref_torch" else (lambda fn: fn)
     if task == "posterior":
         Xq = bc.query_points()
-        return (lambda: bc.posterior_moments(fitted, Xq)), None
+        return wrap(lambda: bc.posterior_moments(fitted, Xq)), None
     if task == "eubo":
-        return (lambda: bc.eubo_optimize(fitted, lib)), None
+        return wrap(lambda: bc.eubo_optimize(fitted, "torchpref" if lib == "torchpref_torch" else lib)), None
     raise ValueError(task)
 
 
@@ -280,6 +301,13 @@ def _arguments():
     )
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--name", default="speed_pairwise", help="stem of the files written (e.g. speed_pairwise_large)")
+    ap.add_argument(
+        "--paths",
+        choices=("auto", "torch", "both"),
+        default="both",
+        help="torchpref's solver: the setting of the run (auto), the torch solver only, or both as two columns",
+    )
+    ap.add_argument("--quick", action="store_true", help="n = 20 ... 500, 3 repeats, no mixed model or memory probe")
     ap.add_argument("--child", nargs=4, metavar=("TASK", "LIB", "N", "P"), help=argparse.SUPPRESS)
     return ap.parse_args()
 
@@ -312,9 +340,16 @@ def main() -> None:
         _child(task, lib, int(n), int(p))
         return
 
+    if args.quick:
+        args.sizes, args.repeats, args.no_mixed, args.no_memory = [20, 50, 100, 200, 500], 3, True, True
+        args.tasks = ["mode", "fit", "eubo"]  # the posterior: botorch-rust's takes 51 s a call at n = 500
+    if args.paths == "torch":
+        fast_path("off")
+    else:
+        warm_up()  # load (or compile) the compiled path before any timing
     args.out.mkdir(parents=True, exist_ok=True)
     warnings.simplefilter("ignore", category=RuntimeWarning)  # BoTorch's fitting chatter, benchmark output only
-    libs = ["torchpref", "pairwisegp"]
+    libs = ["torchpref", "pairwisegp"] + (["torchpref_torch"] if args.paths == "both" else [])
     rust_note = None
     if args.no_botorch_rust:
         rust_note = "left out (--no-botorch-rust)"
@@ -390,6 +425,7 @@ def main() -> None:
         "load_average_at_start": load_start,
         "load_average_at_end": os.getloadavg(),
         "clock": args.clock,
+        "fast_path": {"torchpref": setting(), "torchpref_torch": "off" if args.paths == "both" else None},
         "repeats": args.repeats,
         "slow_n": args.slow_n,
         "statistic": "median",
