@@ -1,4 +1,4 @@
-r"""Which solver runs: the compiled small-problem path (:mod:`torchpref.inference.compiled`,
+r"""Which solver runs: the compiled small-problem path (:mod:`torchpref.inference._compiled`,
 numba) or the torch solver, and the setting that forces either (docs/speed.md, "The compiled path").
 
 The setting, in order of precedence: :func:`fast_path` as a context manager (``with
@@ -65,7 +65,7 @@ def setting() -> str:
     return env
 
 
-class fast_path:  # noqa: N801 (used as a function and a context manager, like torch.no_grad)
+class fast_path:  # lower case: used as a function and a context manager, like torch.no_grad
     """Force the compiled path (``"on"``), the torch solver (``"off"``) or let each call choose
     (``"auto"``). As a context manager it applies inside the block; called alone, until changed."""
 
@@ -103,7 +103,7 @@ def cached_on_disk() -> bool:
     """Whether numba's on-disk cache holds every entry point (judged by its index files)."""
     tag = f"py{sys.version_info.major}{sys.version_info.minor}"
     for name in ENTRY_POINTS:
-        pattern = f"compiled.{name}-*.{tag}.nbi"
+        pattern = f"_compiled.{name}-*.{tag}.nbi"
         if not any(any(d.rglob(pattern)) for d in _cache_dirs() if d.is_dir()):
             return False
     return True
@@ -123,7 +123,7 @@ def _warm_in_background() -> None:
 
 
 def compiled(need: bool = False) -> ModuleType | None:
-    """:mod:`torchpref.inference.compiled` if the setting and the installation allow it now:
+    """:mod:`torchpref.inference._compiled` if the setting and the installation allow it now:
     ``None`` for ``"off"`` or without numba; for ``"auto"`` also while nothing is cached on disk
     (a background process compiles it then). ``need``: compile in this process if necessary."""
     mode = setting()
@@ -137,7 +137,7 @@ def compiled(need: bool = False) -> ModuleType | None:
             if mode == "auto" and not need and not cached_on_disk():
                 _warm_in_background()
                 return None
-            _state["module"] = importlib.import_module("torchpref.inference.compiled")
+            _state["module"] = importlib.import_module("torchpref.inference._compiled")
     return _state["module"]  # type: ignore[return-value]
 
 
@@ -148,10 +148,10 @@ def warm_up() -> ModuleType | None:
         return None
     import numpy as np
 
-    module = importlib.import_module("torchpref.inference.compiled")
+    module = importlib.import_module("torchpref.inference._compiled")
     X = np.array([[0.0, 0.0], [0.5, 0.2], [0.9, 0.7]])
     C = np.array([[0, 1], [2, 1]], dtype=np.int64)
-    spec = np.array([0.0, 2.0, 2.0, 1e-4, 0.0, 1.0, 1.7, 1.7, 2.0, 2.0, 1.0, 1.0])
+    spec = np.array([0.0, 2.0, 2.0, 1e-4, 0.0, 1.0, 1.7, 1.7, 2.0, 2.0, 1.0, 1.0, -1.5, 0.0])
     module.fit_lbfgs(np.zeros(3), X, C, 1.4, 0, spec, np.zeros(3), 1e-11, 100)
     L = np.linalg.cholesky(module.kernel_matrix(X, np.ones(2), 1.0, 0))
     module.newton(L, C, 1.4, np.zeros((1, 3)), 1e-11, 100)

@@ -36,7 +36,8 @@ from typing import cast
 import torch
 from torch import Tensor
 
-from torchpref.inference import fast_path
+from torchpref.inference.fast_path import compiled as compiled_module
+from torchpref.inference.fast_path import mode_applies, probit_scale
 from torchpref.inference.newton import NewtonOptions, newton_mode
 from torchpref.inference.numerics import LaplaceNumericalError, NotPSDError, default_tolerance
 from torchpref.inference.observations import Observations, Term, item_term, pairwise_term  # noqa: F401  (re-exported)
@@ -167,10 +168,10 @@ def _compiled_mode(
     """The mode from the compiled path (:mod:`torchpref.inference.fast_path` decides whether it
     applies), or ``None``: then the torch solver runs (also where the compiled Newton did not
     converge or met a non-finite step, so that its warnings and errors are the torch solver's)."""
-    if not fast_path.mode_applies(L, obs):
+    if not mode_applies(L, obs):
         return None
-    s = fast_path.probit_scale(obs)
-    module = None if s is None else fast_path.compiled()
+    s = probit_scale(obs)
+    module = None if s is None else compiled_module()
     if module is None:
         return None
     import numpy as np

@@ -96,7 +96,7 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
 
     comparison_noise = scalar_parameter("comparison_noise", "``sigma_R`` (eq. 3): the noise of a comparison.")
 
-    #: the compiled path (:mod:`torchpref.inference.compiled`) knows this likelihood; a subclass
+    #: the compiled path (:mod:`torchpref.inference._compiled`) knows this likelihood; a subclass
     #: (which may change its derivatives) is solved by the torch solver unless it says so too
     compiled_kind = "probit"
 

@@ -7,7 +7,7 @@ own fitting routine), which comes here. Where the compiled path applies
 ``ScaleKernel`` of an ``RBFKernel`` or ``MaternKernel`` with softplus-constrained lengthscales and
 outputscale, LogNormal / Gamma priors or none, nothing else trainable and no other prior) it runs
 BoTorch's optimiser, SciPy's L-BFGS-B from the same raw parameters with the same bounds, on one
-compiled call per evaluation (:func:`torchpref.inference.compiled.fit_loss`: kernel matrix and its
+compiled call per evaluation (:func:`torchpref.inference._compiled.fit_loss`: kernel matrix and its
 derivatives, Newton warm-started from the last mode, the evidence and its written-out gradient,
 the priors and the constraints' chain rule). Anything else, any failure of the compiled
 evaluation (a kernel matrix that needs jitter, a Newton solve that does not converge) and any
@@ -17,20 +17,21 @@ the starting values, so that retries, warnings and errors are exactly BoTorch's.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
-from gpytorch.constraints import GreaterThan
+from gpytorch.constraints import GreaterThan, Positive
 from gpytorch.kernels import MaternKernel, RBFKernel, ScaleKernel
 from gpytorch.priors import GammaPrior, LogNormalPrior
 
 from torchpref.data.preference_data import PreferenceData
-from torchpref.inference import fast_path
+from torchpref.inference.fast_path import FIT_MAX_ITEMS, compiled, setting
 from torchpref.inference.numerics import default_tolerance
 
-#: GPyTorch kernel -> :mod:`torchpref.inference.compiled`'s kind (Matern by its ``nu``)
+#: GPyTorch kernel -> :mod:`torchpref.inference._compiled`'s kind (Matern by its ``nu``)
 KINDS = {RBFKernel: 0, (MaternKernel, 0.5): 1, (MaternKernel, 1.5): 2, (MaternKernel, 2.5): 3}
 
 
@@ -49,24 +50,29 @@ class CompiledFit:
     max_iter: int
 
 
-def _constraint(module: torch.nn.Module, name: str) -> float | None:
-    """The lower bound of a ``GreaterThan`` softplus constraint (torch's default softplus), else ``None``."""
+def _constraint(module: Any, name: str) -> float | None:
+    """The lower bound of a ``GreaterThan`` (or ``Positive``) constraint with torch's default
+    softplus, else ``None``."""
     c = module.constraint_for_parameter_name(name)
     t = getattr(c, "_transform", None)
-    ok = type(c) in (GreaterThan,) or type(c).__name__ == "Positive"
+    ok = type(c) in (GreaterThan, Positive)
     if not (ok and c.enforced and isinstance(t, torch.nn.Softplus) and t.beta == 1.0 and t.threshold == 20.0):
         return None
     return float(c.lower_bound)
 
 
-def _prior(prior: Any) -> tuple[float, float, float] | None:
-    """``(kind, p1, p2)`` of :func:`torchpref.inference.compiled.log_prior`, or ``None``."""
+def _prior(prior: Any) -> tuple[float, float, float, float] | None:
+    """``(kind, p1, p2, const)`` of :func:`torchpref.inference._compiled.log_prior`, or ``None``;
+    ``const`` computed as the prior computes it (in its parameters' dtype)."""
     if prior is None:
-        return (0.0, 0.0, 0.0)
+        return (0.0, 0.0, 0.0, 0.0)
     if type(prior) is LogNormalPrior and prior.loc.numel() == 1 and prior.scale.numel() == 1:
-        return (1.0, float(prior.loc), float(prior.scale))
+        # as torch's Normal.log_prob takes them: the variance and log(scale) in the prior's dtype
+        const = -float(prior.scale.log()) - 0.5 * math.log(2 * math.pi)
+        return (1.0, float(prior.loc), math.sqrt(float(prior.scale**2)), const)
     if type(prior) is GammaPrior and prior.concentration.numel() == 1 and prior.rate.numel() == 1:
-        return (2.0, float(prior.concentration), float(prior.rate))
+        a, b = prior.concentration, prior.rate
+        return (2.0, float(a), float(b), float(torch.xlogy(a, b) - torch.lgamma(a)))
     return None
 
 
@@ -116,7 +122,7 @@ def _spec(mll: Any, base, scale, priors) -> tuple[np.ndarray, dict] | None:
         else:
             os_index = offset
         offset += t.numel()
-    spec = [ls_start, count, os_index, ls_lower, os_lower, *ls_prior, *os_prior, 1.0]
+    spec = [ls_start, count, os_index, ls_lower, os_lower, *ls_prior[:3], *os_prior[:3], 1.0, ls_prior[3], os_prior[3]]
     return np.array(spec, dtype=np.float64), params
 
 
@@ -143,7 +149,7 @@ def compiled_problem(mll: Any) -> CompiledFit | None:
     X = model._transformed_train_X().detach()
     if X.dtype != torch.float64 or X.device.type != "cpu":
         return None
-    if fast_path.setting() != "on" and X.shape[0] > fast_path.FIT_MAX_ITEMS:
+    if setting() != "on" and X.shape[0] > FIT_MAX_ITEMS:
         return None
     s = _probit_scale(model, data)
     kernel = _kernel(model, X.shape[-1])
@@ -163,7 +169,7 @@ def compiled_problem(mll: Any) -> CompiledFit | None:
 
 
 def run(problem: CompiledFit, module: Any) -> bool:
-    """The whole fit in one compiled call (:func:`torchpref.inference.compiled.fit_lbfgs`: L-BFGS
+    """The whole fit in one compiled call (:func:`torchpref.inference._compiled.fit_lbfgs`: L-BFGS
     with SciPy's L-BFGS-B stopping rules, from the model's raw parameters); sets the parameters
     and returns ``True`` on success, leaves them unchanged and returns ``False`` otherwise."""
     p = problem
@@ -189,7 +195,13 @@ def _leave_in_eval(mll: Any) -> Any:
     return mll
 
 
-def fit_laplace(mll: Any, closure=None, closure_kwargs=None, optimizer_kwargs=None, **kwargs: Any) -> Any:
+def fit_laplace(
+    mll: Any,
+    closure: Any = None,
+    closure_kwargs: dict[str, Any] | None = None,
+    optimizer_kwargs: dict[str, Any] | None = None,
+    **kwargs: Any,
+) -> Any:
     """``fit_gpytorch_mll(mll)`` for a Laplace MLL: compiled where it applies (and nothing but the
     defaults was asked for: no closure, optimizer or their arguments), else BoTorch's routine."""
     from botorch.fit import _fit_fallback
@@ -199,7 +211,7 @@ def fit_laplace(mll: Any, closure=None, closure_kwargs=None, optimizer_kwargs=No
     default = default and kwargs.get("optimizer", fit_gpytorch_mll_scipy) is fit_gpytorch_mll_scipy
     if default:
         problem = compiled_problem(mll)
-        module = None if problem is None else fast_path.compiled()
+        module = None if problem is None else compiled()
         if problem is not None and module is not None and run(problem, module):
             return _leave_in_eval(mll)
     kwargs.pop("optimizer", None) if kwargs.get("optimizer") is None else None

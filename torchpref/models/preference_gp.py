@@ -310,7 +310,9 @@ class PreferenceGP(Model, GP):
         from gpytorch.mlls._approximate_mll import _ApproximateMarginalLogLikelihood
 
         fallback = _fit_fallback_approximate if isinstance(mll, _ApproximateMarginalLogLikelihood) else _fit_fallback
-        return fallback(mll, closure=closure, closure_kwargs=closure_kwargs, optimizer_kwargs=optimizer_kwargs, **kwargs)
+        return fallback(
+            mll, closure=closure, closure_kwargs=closure_kwargs, optimizer_kwargs=optimizer_kwargs, **kwargs
+        )
 
     # ------------------------------------------------------------- inference
     def _kernel(self, X1: Tensor, X2: Tensor | None = None, diag: bool = False) -> Tensor:

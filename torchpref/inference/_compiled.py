@@ -11,7 +11,7 @@ stopping tests; no chord or float32 steps, which the torch solver takes only fro
 ARD or shared lengthscale, times an outputscale.
 
 This module imports numba; nothing imports it at ``import torchpref`` time:
-:mod:`torchpref.inference.fast_path` loads it on the first solve that uses it. Functions are
+the dispatch (:mod:`torchpref.inference.fast_path`) loads it on the first solve that uses it. Functions are
 compiled with ``cache=True`` (numba's on-disk cache beside this file, or in
 ``NUMBA_CACHE_DIR``), so only the first process ever pays the compilation.
 
@@ -352,15 +352,17 @@ def softplus(x):
 
 
 @njit(cache=True)
-def log_prior(x, kind, p1, p2):
+def log_prior(x, kind, p1, p2, const):
     """``(log density, its derivative)`` at ``x > 0`` of a LogNormal(``p1``, ``p2``) or
-    Gamma(concentration ``p1``, rate ``p2``) prior (0 for none)."""
+    Gamma(concentration ``p1``, rate ``p2``) prior (0 for none), whose constant part is ``const``
+    (``-log p2 - log(2 pi) / 2``, ``p1 log p2 - lgamma(p1)``: computed by the prior itself, in its
+    own dtype, as GPyTorch's float32 prior parameters give it)."""
     if kind == LOG_NORMAL:
         lx = math.log(x)
         z = (lx - p1) / p2
-        return -lx - math.log(p2) - LOG_2PI_HALF - 0.5 * z * z, (-1.0 - z / p2) / x
+        return const - lx - 0.5 * z * z, (-1.0 - z / p2) / x
     if kind == GAMMA:
-        return p1 * math.log(p2) + (p1 - 1.0) * math.log(x) - p2 * x - math.lgamma(p1), (p1 - 1.0) / x - p2
+        return const + (p1 - 1.0) * math.log(x) - p2 * x, (p1 - 1.0) / x - p2
     return 0.0, 0.0
 
 
@@ -369,7 +371,7 @@ def fit_loss(x, X, C, s, kind, spec, f_prev, tol, max_iter):
     """BoTorch's loss ``-(log q + log priors)`` and its gradient in the raw parameters ``x``.
 
     ``spec`` (floats): ``[ls_start, ls_count, os_index, ls_lower, os_lower, ls_prior kind, p1, p2,
-    os_prior kind, p1, p2, fixed outputscale]``: the lengthscales are ``softplus(x[ls_start :
+    os_prior kind, p1, p2, fixed outputscale, ls_prior const, os_prior const]`` (:func:`log_prior`): the lengthscales are ``softplus(x[ls_start :
     ls_start + ls_count]) + ls_lower`` (one shared value when ``ls_count = 1``), the outputscale
     ``softplus(x[os_index]) + os_lower`` (the fixed value where ``os_index < 0``). ``f_prev`` is
     overwritten with the new mode (the next call's warm start). Returns ``(loss, grad, status)``."""
@@ -383,7 +385,7 @@ def fit_loss(x, X, C, s, kind, spec, f_prev, tol, max_iter):
         v, dv = softplus(x[start + c])
         v += spec[3]
         dls[c] = dv
-        pr, dpr = log_prior(v, int(spec[5]), spec[6], spec[7])
+        pr, dpr = log_prior(v, int(spec[5]), spec[6], spec[7], spec[12])
         lp += pr
         gprior_ls[c] = dpr
         for e in range(d):
@@ -393,7 +395,7 @@ def fit_loss(x, X, C, s, kind, spec, f_prev, tol, max_iter):
     if os_index >= 0:
         outputscale, dos = softplus(x[os_index])
         outputscale += spec[4]
-        pr, gprior_os = log_prior(outputscale, int(spec[8]), spec[9], spec[10])
+        pr, gprior_os = log_prior(outputscale, int(spec[8]), spec[9], spec[10], spec[13])
         lp += pr
     value, gls, gos, f, status = mode_and_evidence(X, C, s, kind, ls, outputscale, f_prev, tol, max_iter)
     grad = np.zeros(x.shape[0])
