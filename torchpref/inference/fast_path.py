@@ -8,9 +8,12 @@ environment variable ``TORCHPREF_FAST_PATH``, else ``"auto"``:
 * ``"off"``: the torch solver everywhere.
 * ``"on"``: the compiled path wherever it applies (compiling it now if no on-disk cache exists).
 * ``"auto"``: the compiled path where it applies and is faster (up to :data:`MODE_MAX_ITEMS`
-  items for a mode, :data:`FIT_MAX_ITEMS` for a fit), once its compiled code is on disk; when it
-  is not yet (the first use after installing), a background process compiles it while the torch
-  solver answers, so no call waits for the compiler.
+  items for a mode, :data:`FIT_MAX_ITEMS` for a fit). It is loaded by the first fit of a process
+  (where loading, about 0.5 s, pays at once), or by :func:`warm_up`; modes use it once it is
+  loaded, so a program that only predicts (``torchpref elicit``, ``serve``) starts as before. It
+  is loaded only from numba's on-disk cache: where that does not exist yet (the first use after
+  installing), a background process compiles it while the torch solver answers, so no call
+  waits for the compiler.
 
 It applies to one problem (no batch), on the CPU, in float64, with probit comparisons only, and,
 for a fit, the stationary kernels :mod:`torchpref.models.fast_fit` lists. numba is imported on the
@@ -92,11 +95,18 @@ def available() -> bool:
 
 
 def _cache_dirs() -> list[Path]:
-    here = Path(__file__).resolve().parent
-    dirs = [here / "__pycache__"]
+    """Where numba keeps this package's cache: ``NUMBA_CACHE_DIR`` if set, else beside the module
+    (or, where that is not writable, numba's user-wide cache folder)."""
     if os.environ.get("NUMBA_CACHE_DIR"):
-        dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]))
-    return dirs
+        return [Path(os.environ["NUMBA_CACHE_DIR"])]
+    home = Path.home()
+    if sys.platform == "darwin":
+        user = home / "Library" / "Caches" / "numba"
+    elif sys.platform == "win32":
+        user = Path(os.environ.get("LOCALAPPDATA", home)) / "numba" / "numba" / "Cache"
+    else:
+        user = Path(os.environ.get("XDG_CACHE_HOME", home / ".cache")) / "numba"
+    return [Path(__file__).resolve().parent / "__pycache__", user]
 
 
 def cached_on_disk() -> bool:
@@ -122,19 +132,23 @@ def _warm_in_background() -> None:
         _state["warming"] = False
 
 
-def compiled(need: bool = False) -> ModuleType | None:
-    """:mod:`torchpref.inference._compiled` if the setting and the installation allow it now:
-    ``None`` for ``"off"`` or without numba; for ``"auto"`` also while nothing is cached on disk
-    (a background process compiles it then). ``need``: compile in this process if necessary."""
+def compiled(load: bool = False) -> ModuleType | None:
+    """:mod:`torchpref.inference._compiled` if the setting and the installation allow it now, else
+    ``None``: for ``"off"`` or without numba. For ``"on"`` it is loaded (compiled, where no on-disk
+    cache exists) on first use. For ``"auto"`` only once loaded, or when ``load`` (a fit, where
+    loading pays at once) and its compiled code is on disk; while it is not, a background process
+    compiles it and the torch solver answers."""
     mode = setting()
     if mode == "off" or not available():
         return None
     module = _state["module"]
     if module is not None:
         return module  # type: ignore[return-value]
+    if mode == "auto" and not load:
+        return None
     with _lock:
         if _state["module"] is None:
-            if mode == "auto" and not need and not cached_on_disk():
+            if mode == "auto" and not cached_on_disk():
                 _warm_in_background()
                 return None
             _state["module"] = importlib.import_module("torchpref.inference._compiled")
@@ -160,6 +174,15 @@ def warm_up() -> ModuleType | None:
     return module
 
 
+def known_probit(likelihood: object) -> bool:
+    """Whether ``likelihood`` is one the compiled path computes: its class declares
+    ``compiled_kind = "probit"`` itself (not inherited) and no derivative is replaced on the object."""
+    if type(likelihood).__dict__.get("compiled_kind") != "probit":
+        return False
+    own = getattr(likelihood, "__dict__", {})
+    return not any(name in own for name in ("derivatives", "third_derivative", "_scale", "log_prob"))
+
+
 def probit_scale(obs: Observations) -> float | None:
     """``sqrt 2 sigma_R`` when ``obs`` is one problem's unmasked probit comparisons (the one
     kind the compiled path knows), else ``None``."""
@@ -167,7 +190,7 @@ def probit_scale(obs: Observations) -> float | None:
         return None
     term = obs.terms[0]
     lik = term.likelihood
-    if type(lik).__dict__.get("compiled_kind") != "probit" or term.coef != (1.0, -1.0) or term.target is not None:
+    if not known_probit(lik) or term.coef != (1.0, -1.0) or term.target is not None:
         return None
     if term.mask is not None and not bool(term.mask.all()):
         return None

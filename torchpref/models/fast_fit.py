@@ -28,7 +28,7 @@ from gpytorch.kernels import MaternKernel, RBFKernel, ScaleKernel
 from gpytorch.priors import GammaPrior, LogNormalPrior
 
 from torchpref.data.preference_data import PreferenceData
-from torchpref.inference.fast_path import FIT_MAX_ITEMS, compiled, setting
+from torchpref.inference.fast_path import FIT_MAX_ITEMS, compiled, known_probit, setting
 from torchpref.inference.numerics import default_tolerance
 
 #: GPyTorch kernel -> :mod:`torchpref.inference._compiled`'s kind (Matern by its ``nu``)
@@ -132,7 +132,7 @@ def _probit_scale(model: Any, data: PreferenceData) -> float | None:
     lik = model.likelihood.comparison
     if model.ties_offered or data.ratings.numel() or (data.ties is not None and data.ties.numel()):
         return None
-    if type(lik).__dict__.get("compiled_kind") != "probit" or not data.comparisons.shape[0]:
+    if not known_probit(lik) or not data.comparisons.shape[0]:
         return None
     return float(lik._scale())
 
@@ -211,7 +211,7 @@ def fit_laplace(
     default = default and kwargs.get("optimizer", fit_gpytorch_mll_scipy) is fit_gpytorch_mll_scipy
     if default:
         problem = compiled_problem(mll)
-        module = None if problem is None else compiled()
+        module = None if problem is None else compiled(load=True)
         if problem is not None and module is not None and run(problem, module):
             return _leave_in_eval(mll)
     kwargs.pop("optimizer", None) if kwargs.get("optimizer") is None else None
