@@ -35,7 +35,8 @@ The posterior's peak includes filling each model's prediction cache (first call)
 (``torchpref.fast_path("off")``), beside ``torchpref`` under the setting of the run (``auto`` unless
 ``TORCHPREF_FAST_PATH`` says otherwise; ``--paths torch`` runs ``torchpref`` itself with it off).
 ``--quick``: n = 20, 50, 100, 200, 500, 3 repeats (5 for the mode), the mode, fit and EUBO only (no
-posterior: botorch-rust's takes 51 s a call at n = 500), no mixed model, no memory probe.
+posterior: botorch-rust's takes 51 s a call at n = 500; n = 500 timed once per library), no mixed
+model, no memory probe: about 5 minutes.
 
 Writes ``results/speed_pairwise.{csv,json,png}``.
 
@@ -343,6 +344,7 @@ def main() -> None:
     if args.quick:
         args.sizes, args.repeats, args.no_mixed, args.no_memory = [20, 50, 100, 200, 500], 3, True, True
         args.tasks = ["mode", "fit", "eubo"]  # the posterior: botorch-rust's takes 51 s a call at n = 500
+        args.slow_n = 500  # n = 500: one timing per library (botorch-rust's EUBO takes 30-50 s a call)
     if args.paths == "torch":
         fast_path("off")
     else:
