@@ -8,9 +8,10 @@ environment variable ``TORCHPREF_FAST_PATH``, else ``"auto"``:
 * ``"off"``: the torch solver everywhere.
 * ``"on"``: the compiled path wherever it applies (compiling it now if no on-disk cache exists).
 * ``"auto"``: the compiled path where it applies and is faster (up to :data:`MODE_MAX_ITEMS`
-  items for a mode, :data:`FIT_MAX_ITEMS` for a fit). It is loaded by the first fit of a process
-  (where loading, about 0.5 s, pays at once), or by :func:`warm_up`; modes use it once it is
-  loaded, so a program that only predicts (``torchpref elicit``, ``serve``) starts as before. It
+  items for a mode, :data:`FIT_MAX_ITEMS` for a fit). It is loaded at the second fit of a process
+  (:data:`LOAD_AT_FIT`: loading numba, 0.5-1 s, pays back over a loop of fits, not over one), or
+  by :func:`warm_up`; modes use it once it is loaded, so a program that fits once or only
+  predicts (``torchpref elicit``, ``serve``) runs as before. It
   is loaded only from numba's on-disk cache: where that does not exist yet (the first use after
   installing), a background process compiles it while the torch solver answers, so no call
   waits for the compiler.
@@ -30,6 +31,7 @@ import sys
 import threading
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -48,7 +50,11 @@ ENTRY_POINTS = ("newton", "fit_lbfgs", "mode_and_evidence")
 
 _override: list[str] = []
 _lock = threading.Lock()
-_state: dict[str, object] = {"module": None, "warming": None}
+#: ``auto`` loads the compiled path at a process's second fit: the first fit is the torch solver's,
+#: as before, so a program that fits once never pays numba's import (0.5-1 s); a loop that refits
+#: pays it once, at its second fit
+LOAD_AT_FIT = 2
+_state: dict[str, Any] = {"module": None, "warming": None, "fits": 0}
 
 
 def _check(value: str) -> str:
@@ -136,24 +142,28 @@ def _warm_in_background() -> None:
 def compiled(load: bool = False) -> ModuleType | None:
     """:mod:`torchpref.inference._compiled` if the setting and the installation allow it now, else
     ``None``: for ``"off"`` or without numba. For ``"on"`` it is loaded (compiled, where no on-disk
-    cache exists) on first use. For ``"auto"`` only once loaded, or when ``load`` (a fit, where
-    loading pays at once) and its compiled code is on disk; while it is not, a background process
-    compiles it and the torch solver answers."""
+    cache exists) on first use. For ``"auto"`` only once loaded, or when ``load`` (a fit) from the
+    :data:`LOAD_AT_FIT`-th fit of the process on, and only from the on-disk cache: while there is
+    none, a background process compiles it and the torch solver answers."""
     mode = setting()
     if mode == "off" or not available():
         return None
     module = _state["module"]
     if module is not None:
-        return module  # type: ignore[return-value]
+        return module
     if mode == "auto" and not load:
         return None
     with _lock:
         if _state["module"] is None:
-            if mode == "auto" and not cached_on_disk():
-                _warm_in_background()
-                return None
+            if mode == "auto":
+                if not cached_on_disk():
+                    _warm_in_background()
+                    return None
+                _state["fits"] += 1
+                if _state["fits"] < LOAD_AT_FIT:
+                    return None
             _state["module"] = importlib.import_module("torchpref.inference._compiled")
-    return _state["module"]  # type: ignore[return-value]
+    return _state["module"]
 
 
 def warm_up() -> ModuleType | None:
