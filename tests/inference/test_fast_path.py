@@ -234,3 +234,22 @@ def test_package_works_without_numba():
     out = _run(code, TORCHPREF_FAST_PATH="on")
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().endswith("ok")
+
+
+@needs_numba
+def test_auto_loads_at_the_second_fit_and_only_from_the_cache(monkeypatch):
+    """``auto``: no load for modes or a process's first fit; the second fit loads it, and only when
+    numba's on-disk cache exists (else one background compile starts and the torch solver answers)."""
+    monkeypatch.delenv(fast_path.ENV, raising=False)
+    monkeypatch.setattr(fast_path, "_state", {"module": None, "warming": None, "fits": 0})
+    started = []
+    monkeypatch.setattr(fast_path, "_warm_in_background", lambda: started.append(1))
+    monkeypatch.setattr(fast_path, "cached_on_disk", lambda: False)
+    assert fast_path.compiled(load=True) is None and started == [1]
+    monkeypatch.setattr(fast_path, "cached_on_disk", lambda: True)
+    assert fast_path.compiled() is None  # a mode never loads it
+    assert fast_path.compiled(load=True) is None  # the first fit
+    module = fast_path.compiled(load=True)  # the second
+    assert module is not None and fast_path.compiled() is module
+    with fast_path.fast_path("off"):
+        assert fast_path.compiled() is None
