@@ -253,3 +253,28 @@ def test_auto_loads_at_the_second_fit_and_only_from_the_cache(monkeypatch):
     assert module is not None and fast_path.compiled() is module
     with fast_path.fast_path("off"):
         assert fast_path.compiled() is None
+
+
+@needs_numba
+def test_custom_fit_routes_only_the_default_fit_of_a_supported_model(monkeypatch):
+    """BoTorch's ``fit_gpytorch_mll`` comes to ``custom_fit``: the compiled fit runs for the default
+    call of a supported model; arguments, learnable likelihoods and a failed compiled fit go to
+    BoTorch's own routine, which still fits."""
+    from torchpref.models import fast_fit
+
+    calls = []
+    real = fast_fit.run
+    monkeypatch.setattr(fast_fit, "run", lambda p, m: calls.append(1) or real(p, m))
+    X, C = _problem(10, 12)
+    with fast_path.fast_path("on"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(_model(X, C)))
+        assert calls == [1]
+        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(_model(X, C)), optimizer_kwargs={"options": {"maxiter": 5}})
+        learnable = PreferenceGP(X, comparisons=C, covar_module=_kernel("rbf", 2), learn_likelihood=True)
+        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(learnable))
+        assert calls == [1]
+        monkeypatch.setattr(fast_fit, "run", lambda p, m: False)  # a compiled fit that gave up
+        model = _model(X, C)
+        mll = fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+    assert not mll.training and float(model.covar_module.outputscale) != 1.0
