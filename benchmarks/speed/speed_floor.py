@@ -24,7 +24,10 @@ For comparisons-only data (``n`` items, ``p = 2 n`` comparisons, the data and ke
    ``L-BFGS evaluations x (prior + evidence)``): no Python around it, no line-search logic, no
    model, no BoTorch.
 3. *What we spend*: construction + mode (the kernel module built too, as in
-   ``speed_pairwise.py``), the solve alone (``find_mode`` on a ready ``L``), and the fit.
+   ``speed_pairwise.py``), the solve alone (``find_mode`` on a ready ``L``), and the fit, under
+   the run's setting of the compiled path (``TORCHPREF_FAST_PATH``, ``auto`` by default: loaded
+   before the timings) and, as ``*_torch``, with it off. The work in 1. is counted on the torch
+   solver.
 
 The ratio ``ours / floor`` is the number to track. Medians of interleaved repeats, CPU time, one
 thread; the load average is recorded. Writes ``results/speed_floor.{csv,json}``.
@@ -61,6 +64,7 @@ sys.path.insert(0, str(HERE))
 import bench_common as bc  # noqa: E402
 
 from torchpref.inference import newton  # noqa: E402
+from torchpref.inference.fast_path import fast_path, setting, warm_up  # noqa: E402
 from torchpref.inference.laplace import find_mode  # noqa: E402
 
 RESULTS = HERE.parent / "results"
@@ -105,7 +109,13 @@ class Counts:
 
 
 def count_work(X, C) -> dict[str, int]:
-    """Factorisations and evaluations of a cold mode and of a fit (and the fit's L-BFGS evaluations)."""
+    """Factorisations and evaluations of a cold mode and of a fit (and the fit's L-BFGS evaluations),
+    counted on the torch solver (the compiled path takes the same steps below 128 items, unseen)."""
+    with fast_path("off"):
+        return _count_work(X, C)
+
+
+def _count_work(X, C) -> dict[str, int]:
     with Counts() as cm:
         model = bc.mode_torchpref(X, C)
     mode = dict(cm.calls)
@@ -249,8 +259,17 @@ def floors(pieces: dict[str, float], work: dict[str, int]) -> dict[str, float]:
     return {"mode": mode, "fit": fit}
 
 
+def _off(fn):
+    def run(*args):
+        with fast_path("off"):
+            return fn(*args)
+
+    return run
+
+
 def ours(X, C, repeats: int) -> dict[str, float]:
-    """Construction + mode, the solve alone, and the fit: medians of ``repeats``, interleaved."""
+    """Construction + mode, the solve alone, and the fit: medians of ``repeats``, interleaved; under
+    the run's setting of the compiled path and (``*_torch``) with it off."""
     model = bc.mode_torchpref(X, C)
     state = model._state()
     L, obs = state.pred.L, state.obs
@@ -259,10 +278,11 @@ def ours(X, C, repeats: int) -> dict[str, float]:
         "solve": (lambda _: find_mode(L, obs), None),
         "fit": (bc.fit_torchpref, lambda: bc.mode_torchpref(X, C)),
     }
+    fns.update({f"{k}_torch": (_off(fn), setup) for k, (fn, setup) in list(fns.items())})
     times = {k: [] for k in fns}
     for r in range(repeats + 1):
         for k, (fn, setup) in fns.items():
-            inner = 1 if k == "fit" else 5
+            inner = 1 if k.startswith("fit") else 5
             for _ in range(inner):
                 arg = setup() if setup else None
                 t0 = clock()
@@ -287,6 +307,7 @@ def main(argv=None) -> int:
         def tqdm(x, **_):
             return x
 
+    warm_up()  # the compiled path loaded (compiled, if need be) before any timing
     load_start = os.getloadavg()
     rows = []
     for n in tqdm(args.sizes, desc="sizes"):
@@ -306,6 +327,7 @@ def main(argv=None) -> int:
             row[f"floor_torch_{task}_s"], row[f"floor_lapack_{task}_s"] = ft[task], fl[task]
             row[f"{task}_over_torch_floor"] = spent[task] / ft[task]
             row[f"{task}_over_lapack_floor"] = spent[task] / fl[task]
+            row[f"{task}_torch_path_over_torch_floor"] = spent[f"{task}_torch"] / ft[task]
         row["solve_over_torch_floor"] = spent["solve"] / (ft["mode"] - pt["prior"])
         rows.append(row)
         print(
@@ -326,6 +348,7 @@ def main(argv=None) -> int:
         "load_average_at_start": load_start,
         "load_average_at_end": os.getloadavg(),
         "cpus": os.cpu_count(),
+        "fast_path": setting(),
     }
     (args.out / "speed_floor.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
     with open(args.out / "speed_floor.csv", "w", newline="") as fh:
