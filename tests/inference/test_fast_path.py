@@ -278,3 +278,25 @@ def test_custom_fit_routes_only_the_default_fit_of_a_supported_model(monkeypatch
         model = _model(X, C)
         mll = fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
     assert not mll.training and float(model.covar_module.outputscale) != 1.0
+
+
+@needs_numba
+def test_a_compiled_arithmetic_error_falls_back_to_the_torch_solver(monkeypatch):
+    """numba raises ``ZeroDivisionError`` where torch gives inf or NaN: the torch solver then runs,
+    with its own results and errors."""
+    module = fast_path.warm_up()
+
+    def raising(*args):
+        raise ZeroDivisionError("division by zero")
+
+    X, C = _problem(11, 10)
+    with fast_path.fast_path("off"):
+        f_ref = _model(X, C).mode.f
+    monkeypatch.setattr(module, "newton", raising)
+    monkeypatch.setattr(module, "fit_lbfgs", raising)
+    with fast_path.fast_path("on"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = _model(X, C)
+        assert torch.equal(model.mode.f, f_ref)
+        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+    assert float(model.covar_module.outputscale) != 1.0

@@ -183,7 +183,10 @@ def _compiled_mode(
         np.stack([f.detach().to(L).reshape(n).numpy() for f in given]) if given else np.empty((0, n))
     )
     C = np.ascontiguousarray(obs.terms[0].index[0].numpy())
-    a, M, w, iterations, status, _ = module.newton(Ln, C, s, starts, tol, max_iter)
+    try:
+        a, M, w, iterations, status, _ = module.newton(Ln, C, s, starts, tol, max_iter)
+    except (ArithmeticError, ValueError):  # numba raises where torch gives inf or NaN: torch's errors then
+        return None
     if status != module.OK:
         return None
     a_t = torch.from_numpy(a)[None]

@@ -174,7 +174,10 @@ def run(problem: CompiledFit, module: Any) -> bool:
     and returns ``True`` on success, leaves them unchanged and returns ``False`` otherwise."""
     p = problem
     x0 = np.concatenate([t.detach().reshape(-1).numpy() for t in p.params.values()]).astype(np.float64)
-    x, _, status, _ = module.fit_lbfgs(x0, p.X, p.C, p.scale, p.kind, p.spec, p.f0.copy(), p.tol, p.max_iter)
+    try:
+        x, _, status, _ = module.fit_lbfgs(x0, p.X, p.C, p.scale, p.kind, p.spec, p.f0.copy(), p.tol, p.max_iter)
+    except (ArithmeticError, ValueError):  # numba raises where torch gives inf or NaN (a lengthscale of 0)
+        return False
     if status != module.OK or not np.all(np.isfinite(x)):
         return False
     with torch.no_grad():
