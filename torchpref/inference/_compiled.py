@@ -16,7 +16,7 @@ compiled with ``cache=True`` (numba's on-disk cache beside this file, or in
 ``NUMBA_CACHE_DIR``), so only the first process ever pays the compilation.
 
 Status codes returned by the compiled calls: :data:`OK`, :data:`NOT_PD` (the kernel matrix is
-not positive definite without jitter: the torch solver, which adds jitter, takes over),
+not positive definite even with the torch solver's largest jitter),
 :data:`NOT_FINITE` (a non-finite Newton step or evidence), :data:`NOT_CONVERGED`.
 """
 
@@ -322,12 +322,34 @@ def evidence(L, C, s, a, M, w):
 
 
 @njit(cache=True)
+def jittered_cholesky(K):
+    """``(L, ok)`` with ``L L^T = K + j I`` for the first ``j`` of the torch solver's float64
+    schedule that works (:func:`torchpref.inference.numerics.jitter_schedule`: 0, then ``1e-10``
+    to ``1e-6`` of the mean diagonal, tenfold)."""
+    L, ok = cholesky(K)
+    if ok:
+        return L, ok
+    n = K.shape[0]
+    scale = np.trace(K) / n
+    if not (np.isfinite(scale) and scale > 0.0):
+        scale = 1.0
+    for e in range(-10, -5):
+        Kj = K.copy()
+        for i in range(n):
+            Kj[i, i] += scale * 10.0**e
+        L, ok = cholesky(Kj)
+        if ok:
+            return L, ok
+    return L, False
+
+
+@njit(cache=True)
 def mode_and_evidence(X, C, s, kind, ls, outputscale, f_prev, tol, max_iter):
     """One fit evaluation: ``(log q, d log q / d ls, d log q / d outputscale, mode f, status)``,
     Newton warm-started from ``f_prev`` (``n``; a row of zeros-length ``0``: cold), cold if that fails."""
     n = X.shape[0]
     K = kernel_matrix(X, ls, outputscale, kind)
-    L, ok = cholesky(K)
+    L, ok = jittered_cholesky(K)
     if not ok:
         return 0.0, np.zeros(ls.shape[0]), 0.0, np.zeros(n), NOT_PD
     starts = f_prev.reshape(1, f_prev.shape[0]) if f_prev.shape[0] == n else np.empty((0, n))
@@ -438,8 +460,9 @@ def two_loop(g, S, Y, rho, count, head):
 
 @njit(cache=True)
 def wolfe_search(x, fx, gx, d, t, X, C, s, kind, spec, f_prev, tol, max_iter):
-    """A step along ``d`` satisfying the weak Wolfe conditions (``1e-4``, ``0.9``) by bisection
-    (Lewis and Overton): ``(x, loss, grad, status)``; :data:`LINE_SEARCH_FAILED` after 60 trials."""
+    """A step along ``d`` satisfying the strong Wolfe conditions with L-BFGS-B's constants
+    (sufficient decrease ``1e-3``, curvature ``0.9``), bracketed by bisection and extended by
+    doubling: ``(x, loss, grad, status)``; :data:`LINE_SEARCH_FAILED` after 60 trials."""
     gd = gx @ d
     lo, hi = 0.0, np.inf
     for _ in range(60):
@@ -447,21 +470,23 @@ def wolfe_search(x, fx, gx, d, t, X, C, s, kind, spec, f_prev, tol, max_iter):
         fn, gn, status = fit_loss(xn, X, C, s, kind, spec, f_prev, tol, max_iter)
         if status != OK:
             return x, fx, gx, status
-        if not fn <= fx + 1e-4 * t * gd:
-            hi = t
-        elif gn @ d < 0.9 * gd:
-            lo = t
+        gnd = gn @ d
+        if not fn <= fx + 1e-3 * t * gd or gnd > -0.9 * gd:
+            hi = t  # not enough decrease, or past the minimum along d
+        elif gnd < 0.9 * gd:
+            lo = t  # still descending steeply: a longer step
         else:
             return xn, fn, gn, OK
-        t = 0.5 * (lo + hi) if hi < np.inf else 2.0 * lo
+        t = 0.5 * (lo + hi) if hi < np.inf else 2.0 * t
     return x, fx, gx, LINE_SEARCH_FAILED
 
 
 @njit(cache=True)
 def fit_lbfgs(x0, X, C, s, kind, spec, f_prev, tol, max_iter):
     """The whole fit in one call: L-BFGS on :func:`fit_loss` from the raw parameters ``x0``, with
-    SciPy's L-BFGS-B stopping rules and defaults (unbounded, as BoTorch's softplus-constrained
-    parameters are): ``(x, loss, status, iterations)``."""
+    SciPy's L-BFGS-B stopping rules, defaults, first step (unit length along the gradient) and
+    line-search constants (unbounded, as BoTorch's softplus-constrained parameters are; the line
+    search brackets by bisection where L-BFGS-B's interpolates): ``(x, loss, status, iterations)``."""
     k = x0.shape[0]
     x = x0.copy()
     fx, gx, status = fit_loss(x, X, C, s, kind, spec, f_prev, tol, max_iter)
@@ -476,7 +501,7 @@ def fit_lbfgs(x0, X, C, s, kind, spec, f_prev, tol, max_iter):
         d = -two_loop(gx, S, Y, rho, count, head)
         if not gx @ d < 0.0:
             d, count = -gx, 0
-        t = 1.0 if count else min(1.0, 1.0 / math.sqrt(d @ d))
+        t = 1.0 if count else 1.0 / math.sqrt(d @ d)  # L-BFGS-B's first step: unit length
         xn, fn, gn, status = wolfe_search(x, fx, gx, d, t, X, C, s, kind, spec, f_prev, tol, max_iter)
         if status != OK:
             return x, fx, status, it
