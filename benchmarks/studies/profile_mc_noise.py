@@ -29,7 +29,7 @@ from torchpref.data.queries import BoxCandidates
 from torchpref.experiments import runner
 from torchpref.experiments.families import FAMILIES, model_settings, setup
 from torchpref.selection.active import run_active_learning
-from torchpref.selection.strategies import joint_posterior, joint_samples
+from torchpref.selection.samples import joint_posterior, joint_samples
 from torchpref.selection.top_profile import ProfileVariancePerEffort, profile_variance_reduction, top_profile
 
 FAMILY_NAMES = ("two-bumps", "narrow-peak", "waves", "hartmann6", "plateau")

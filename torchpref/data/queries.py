@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import operator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, overload
 
 import torch
 from torch import Tensor
@@ -49,7 +49,7 @@ class RatingQuery:
         """``1 x d``: the items shown."""
         return self.item.unsqueeze(0)
 
-    def validate_answer(self, answer: object, num_levels: int | None = None) -> float:
+    def validate_answer(self, answer: Any, num_levels: int | None = None) -> float:
         """The rating in ``[0, 1]`` that ``answer`` gives: ``answer`` itself, or with ``num_levels``
         a whole Likert level ``1..num_levels`` mapped by :func:`~torchpref.likert_to_unit`.
 
@@ -86,6 +86,12 @@ class RankingQuery:
     def m(self) -> int:
         """The number of items shown."""
         return self.items.shape[0]
+
+    @overload
+    def validate_answer(self, answer: object, no_preference: Literal[False] = False) -> int: ...
+
+    @overload
+    def validate_answer(self, answer: object, no_preference: bool) -> int | None: ...
 
     def validate_answer(self, answer: object, no_preference: bool = False) -> int | None:
         """The chosen row ``0..m-1`` (an integer; not a bool, float or text); ``None`` (no

@@ -282,12 +282,13 @@ class SessionSettings:
                 str(h["dim"]),
                 str(self.dim),
             )
-        for key, mine in (
+        settings: tuple[tuple[str, Any], ...] = (
             ("candidates", self.spec),
             ("bounds", self.bounds.tolist()),
             ("seed", self.seed),
             ("num_levels", self.num_levels),
-        ):
+        )
+        for key, mine in settings:
             if dumps_settings(h[key]) != dumps_settings(mine):
                 theirs = h[key]
                 if key == "candidates":
