@@ -32,13 +32,8 @@ from torch import Tensor
 from torchpref.data.features import FeaturesError, printable, read_features_csv
 from torchpref.data.queries import Query, RankingQuery, RatingQuery, first_unique_rows
 from torchpref.selection.defaults import default_selector
-from torchpref.sessions.session import (
-    PreferenceSession,
-    SessionFileCorrupt,
-    SessionFileError,
-    SessionMismatchError,
-    read_session_file,
-)
+from torchpref.sessions.errors import SessionFileCorrupt, SessionFileError, SessionMismatchError
+from torchpref.sessions.session import PreferenceSession, read_session_file
 
 if TYPE_CHECKING:
     from torchpref.lake.scenario import LakeScenario

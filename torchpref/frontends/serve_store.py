@@ -34,11 +34,12 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from torchpref.data.queries import Query, RankingQuery
+from torchpref.data.queries import InvalidAnswer, Query, RankingQuery
 from torchpref.frontends.serve_errors import AnswerRefused
 from torchpref.frontends.serve_items import ServeItems
 from torchpref.selection.strategies import UCBC
-from torchpref.sessions.session import PreferenceSession, SessionFileError, default_ranking_size
+from torchpref.sessions.errors import SessionFileError
+from torchpref.sessions.session import PreferenceSession, default_ranking_size
 
 if TYPE_CHECKING:
     from torchpref.frontends.serve_pool import PoolEntry as _Entry
@@ -287,36 +288,36 @@ class SessionStore:
                 raise AnswerRefused(
                     f"all {n} questions are answered; undo to change an answer.", 409, self.state(entry)
                 )
-            if body.get("qid") != qid:
-                return self._not_current(entry, body)
-            answer = self._checked_answer(entry, q, body.get("answer"))
             try:
-                entry.session.tell(q, answer, response_time=rt, **times)
+                if body.get("qid") != qid:
+                    return self._not_current(entry, body)
+                entry.session.tell(q, self._checked_answer(entry, q, body.get("answer")), response_time=rt, **times)
+            except AnswerRefused:  # a stale or repeated question (409): refused as it is
+                raise
             except OSError as err:  # the disk is full, or another failure to write: nothing recorded
                 raise _storage_refused(err, "your answer was not saved; the page tries again") from None
             except SessionFileError as err:  # the file cannot take this answer (changed, gone, read-only)
                 raise AnswerRefused(f"answer not recorded: {err}", 503, self.state(entry)) from None
-            except ValueError as exc:
+            except ValueError as exc:  # InvalidAnswer (the query's validation), or another bad value
                 raise AnswerRefused(f"answer not recorded: {exc}", 400, self.state(entry)) from None
             return self.state(entry)
 
-    def _checked_answer(self, entry: _Entry, q: Query, answer: Any):
+    def _checked_answer(self, entry: _Entry, q: Query, answer: Any) -> Any:
+        """The JSON ``answer`` to ``q`` as the session takes it; raises
+        :class:`~torchpref.data.queries.InvalidAnswer`. The query's own validation decides, after
+        what only JSON adds: a level is a JSON integer (``3.0`` is not level 3, so a retry sent as
+        ``3.0`` is not taken for the answer ``3``), and "no preference" only where it is offered."""
         if isinstance(q, RankingQuery):
-            if answer is None:
-                if not self.ties:
-                    raise AnswerRefused("'no preference' is not offered here: pick one option.", 400)
-                return None
-            if not _is_int(answer) or not 0 <= answer < q.m:
-                raise AnswerRefused(f"a choice must be an option number 0..{q.m - 1}, got {answer!r:.40}.", 400)
-            return answer
+            if answer is None and not self.ties:
+                raise InvalidAnswer("'no preference' is not offered here: pick one option.")
+            return q.validate_answer(answer, no_preference=True)
         k = entry.session.num_levels
         if k is not None:
-            if not _is_int(answer) or not 1 <= answer <= k:
-                raise AnswerRefused(f"a rating must be a whole level 1..{k}, got {answer!r:.40}.", 400)
+            if not _is_int(answer):
+                raise InvalidAnswer(f"a rating must be a whole level in 1..{k}, got {answer!r:.40}.")
+            q.validate_answer(answer, k)
             return answer
-        if isinstance(answer, bool) or not isinstance(answer, (int, float)) or not 0.0 <= answer <= 1.0:
-            raise AnswerRefused(f"a rating must be a number in [0, 1], got {answer!r:.40}.", 400)
-        return float(answer)
+        return q.validate_answer(answer)
 
     def _not_current(self, entry: _Entry, body: dict) -> dict:
         """The answer names another question than the current one: a repeat of the last answer

@@ -18,7 +18,7 @@ a stream that a restart would lose).
 
 One lock (an ``RLock``) covers each call: taking the next sequence number, the model's update, the
 append and its ``fsync`` happen as one, so a session may be shared by threads. A forked child
-cannot write to its parent's file (:class:`~torchpref.sessions.journal.SessionForkError`).
+cannot write to its parent's file (:class:`~torchpref.sessions.errors.SessionForkError`).
 
 The model is a cache of the file's answers in force: an interrupted or failed update is undone
 exactly (:meth:`~torchpref.PreferenceGP.rollback`), and a model that may not match is rebuilt,
@@ -54,24 +54,19 @@ from torchpref.selection.strategies import Selector
 from torchpref.sessions.journal import (
     Journal,
     MemoryJournal,
-    SessionFileChanged,
-    SessionFileGone,
-    SessionForkError,
-    SessionReadOnlyError,
     existing_header,
     now,
     read_session_file,
 )
 from torchpref.sessions.model_state import ModelCache, Sizes, header_digest, mode, sizes, truncate
 from torchpref.sessions.query_list import check_pool_rows, choose_query, pool_rows_of, resumed_queries
-from torchpref.sessions.recorded import SessionSettingsError, describe_model, describe_selector, resume_settings
+from torchpref.sessions.recorded import (
+    describe_model,
+    describe_selector,
+    resume_settings,
+)
 from torchpref.sessions.records import (
     FORMAT_VERSION,
-    SessionFileCorrupt,
-    SessionFileError,
-    SessionMismatchError,
-    SessionRepairWarning,
-    SessionVersionError,
 )
 from torchpref.sessions.settings import (
     MAX_REDRAWS,
@@ -92,16 +87,6 @@ __all__ = [
     "FORMAT_VERSION",
     "PreferenceSession",
     "SessionAnswer",
-    "SessionFileCorrupt",
-    "SessionFileError",
-    "SessionFileChanged",
-    "SessionFileGone",
-    "SessionForkError",
-    "SessionMismatchError",
-    "SessionReadOnlyError",
-    "SessionRepairWarning",
-    "SessionSettingsError",
-    "SessionVersionError",
     "default_ranking_size",
     "default_session_model",
     "read_session_file",

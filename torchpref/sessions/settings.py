@@ -2,7 +2,7 @@ r"""What a :class:`~torchpref.sessions.session.PreferenceSession` is set up with
 
 :class:`SessionSettings` holds a session's validated settings (candidates, bounds, seed, levels,
 number of queries, names), writes them as the session file's header and checks a resumed file's
-header against them (:class:`~torchpref.sessions.records.SessionMismatchError` naming the setting). Also
+header against them (:class:`~torchpref.sessions.errors.SessionMismatchError` naming the setting). Also
 here: the default model and ranking size of a session, the per-step random stream
 (:func:`step_generator`) and :class:`SessionAnswer`, one answer in force.
 """
@@ -22,8 +22,16 @@ from torch import Tensor
 from torchpref.data.queries import BoxCandidates, Candidates, FinitePool, as_integer
 from torchpref.models.preference_gp import PreferenceGP, default_covar_module
 from torchpref.selection import defaults as selection_defaults
-from torchpref.sessions.journal import now
-from torchpref.sessions.records import FORMAT_VERSION, SessionMismatchError, dumps_settings
+from torchpref.sessions.errors import (
+    SessionMismatchError,
+)
+from torchpref.sessions.journal import (
+    now,
+)
+from torchpref.sessions.records import (
+    FORMAT_VERSION,
+    dumps_settings,
+)
 from torchpref.version import __version__
 
 __all__ = [
@@ -272,7 +280,7 @@ class SessionSettings:
         }
 
     def check_header(self, h: dict, path: Any) -> None:
-        """Raise :class:`~torchpref.sessions.records.SessionMismatchError` where the header ``h`` of the file
+        """Raise :class:`~torchpref.sessions.errors.SessionMismatchError` where the header ``h`` of the file
         ``path`` was written with other items, candidates, bounds, seed or levels."""
         if h["dim"] != self.dim:
             raise SessionMismatchError(
