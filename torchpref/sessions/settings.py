@@ -28,10 +28,7 @@ from torchpref.sessions.errors import (
 from torchpref.sessions.journal import (
     now,
 )
-from torchpref.sessions.records import (
-    FORMAT_VERSION,
-    dumps_settings,
-)
+from torchpref.sessions.records import FORMAT_VERSION, AnswerRecord, dumps_settings
 from torchpref.version import __version__
 
 __all__ = [
@@ -78,20 +75,20 @@ class SessionAnswer:
     response_time: float | None = None
 
     @classmethod
-    def from_record(cls, r: dict) -> SessionAnswer:
-        """The answer of an ``answer`` record of the session file."""
-        q = r.get("query") or {}
-        pool = q.get("pool_indices")
+    def from_record(cls, r: dict | AnswerRecord) -> SessionAnswer:
+        """The answer of an ``answer`` record of the session file (its object or typed record)."""
+        rec = r if isinstance(r, AnswerRecord) else AnswerRecord.from_json(r)
+        pool = rec.pool_indices
         return cls(
-            r["seq"],
-            r["kind"],
-            torch.tensor(r["items"], dtype=torch.float64),
-            r.get("answer"),
-            r.get("value"),
-            q.get("step"),
+            rec.seq,
+            rec.kind,
+            torch.tensor(rec.items, dtype=torch.float64),
+            rec.answer,
+            rec.value,
+            rec.step,
             None if pool is None else tuple(pool),
-            r["time"],
-            r.get("response_time"),
+            rec.time,
+            rec.response_time,
         )
 
 
