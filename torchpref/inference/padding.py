@@ -159,14 +159,14 @@ class PaddedData:
         )
 
     def flat(self) -> PaddedData:
-        """The same problems with the batch dimensions flattened into one (``B = prod(batch_shape)``)."""
-        B = self.num_problems
+        """The same problems with the batch dimensions flattened into one (``b = prod(batch_shape)``)."""
+        b = self.num_problems
 
         def f(t: Tensor | None, k: int) -> Tensor | None:
-            return None if t is None else t.reshape(B, *t.shape[t.dim() - k :])
+            return None if t is None else t.reshape(b, *t.shape[t.dim() - k :])
 
         def g(t: Tensor, k: int) -> Tensor:
-            return t.reshape(B, *t.shape[t.dim() - k :])
+            return t.reshape(b, *t.shape[t.dim() - k :])
 
         return PaddedData(
             g(self.X, 2),
@@ -195,7 +195,7 @@ class PaddedData:
     def observations(
         self, comparison_likelihood: Any, rating_likelihood: Any, tie_likelihood: Any = None
     ) -> Observations:
-        """The observations of the ``B`` flattened problems as likelihood terms."""
+        """The observations of the ``b`` flattened problems as likelihood terms."""
         d = self.flat()
         return Observations.from_data(
             d.comparisons,
