@@ -25,7 +25,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         prepare_ratings,
         unit_to_likert,
     )
-    from torchpref.data.queries import BoxCandidates, FinitePool, RankingQuery, RatingQuery
+    from torchpref.data.queries import BoxCandidates, FinitePool, InvalidAnswer, RankingQuery, RatingQuery
     from torchpref.frontends.serve import serve
     from torchpref.inference.fast_path import fast_path
     from torchpref.inference.laplace import LaplaceConvergenceWarning
@@ -78,6 +78,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
 _EXPORTS = {
     "BatchedPreferenceGP": "models.batch",
     "CheckpointError": "models.checkpoint",
+    "InvalidAnswer": "data.queries",
     "load_model": "models.checkpoint",
     "model_checkpoint": "models.checkpoint",
     "save_model": "models.checkpoint",

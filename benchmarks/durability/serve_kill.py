@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+from torchpref.experiments.results import write_json  # noqa: E402
 from torchpref.testing.serve import kill_run  # noqa: E402
 
 
@@ -47,7 +48,7 @@ def main() -> None:
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "kill.json").write_text(json.dumps(result, indent=1))
+    write_json((out / "kill.json"), result, measured="user")
     print(json.dumps({k: v for k, v in result.items() if k != "kill_delays_s"}, indent=1))
 
 

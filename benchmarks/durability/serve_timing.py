@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+from torchpref.experiments.results import write_json  # noqa: E402
 from torchpref.testing.serve import CHROMIUM, CHROMIUM_ARGS, Server, choose, records, write_items  # noqa: E402
 
 LETTERS = "ABCDEFGHIJ"
@@ -96,7 +97,7 @@ def run(answers: int, n_items: int, dim: int, out: Path) -> dict:
     }
     summary["target_met"] = summary["median_server_ms"] < 100.0
     out.mkdir(parents=True, exist_ok=True)
-    (out / "timing.json").write_text(json.dumps({"summary": summary, "answers": rows}, indent=1))
+    write_json((out / "timing.json"), {"summary": summary, "answers": rows}, measured="user")
     with open(out / "timing.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()

@@ -20,6 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from torchpref.experiments.results import write_json
 from torchpref.testing.session_kills import run_all
 
 HERE = Path(__file__).resolve().parent
@@ -43,9 +44,7 @@ def main(argv=None) -> None:
         w = csv.DictWriter(fh, fieldnames=keys, extrasaction="ignore")
         w.writeheader()
         w.writerows(summary["runs"])
-    (args.out / "session_kills.json").write_text(
-        json.dumps({k: v for k, v in summary.items() if k != "runs"}, indent=1)
-    )
+    write_json(args.out / "session_kills.json", {k: v for k, v in summary.items() if k != "runs"}, measured="user")
     brief = {k: v for k, v in summary.items() if k not in ("runs", "files")}
     print(json.dumps(brief, indent=1))
     ok = not (summary["lost"] or summary["doubled"] or summary["undos_lost"] or summary["open_failures"])

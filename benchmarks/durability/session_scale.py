@@ -42,6 +42,8 @@ from pathlib import Path
 
 import torch
 
+from torchpref.experiments.results import write_json
+
 HERE = Path(__file__).resolve().parent
 OUT = HERE.parent / "results" / "sessions"
 POOL_SEED = 3
@@ -243,7 +245,7 @@ def main(argv=None) -> None:
         "target_under_50_ms": all(v < 50 for v in target.values()),
         "rows": rows,
     }
-    (args.out / "session_scale.json").write_text(json.dumps(summary, indent=1))
+    write_json((args.out / "session_scale.json"), summary, measured="user")
     plot(rows, args.out / "session_scale.png", args.clock)
     print(json.dumps({k: v for k, v in summary.items() if k != "rows"}, indent=1))
 

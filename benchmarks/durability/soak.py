@@ -40,6 +40,7 @@ import urllib.request
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+from torchpref.experiments.results import write_json  # noqa: E402
 from torchpref.testing.serve import Server, acknowledged_in_file, choose, get_json, post, records, write_items  # noqa: E402
 
 
@@ -329,7 +330,7 @@ def figure(path: Path, answers: list[dict], samples: list[dict], res: dict) -> N
 
 def write(out: Path, res: dict, answers: list[dict], samples: list[dict]) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    (out / "soak.json").write_text(json.dumps(res, indent=1))
+    write_json((out / "soak.json"), res, measured="user")
     for name, rows in (("soak_answers.csv", answers), ("soak_samples.csv", samples)):
         if rows:
             with open(out / name, "w", newline="") as f:

@@ -11,13 +11,14 @@ Usage: ``python benchmarks/parity/botorch_api_counts.py [--out benchmarks/result
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import tempfile
 import xml.etree.ElementTree as ET
 from collections import Counter
 from pathlib import Path
+
+from torchpref.experiments.results import write_json
 
 ROOT = Path(__file__).resolve().parents[2]
 IMPLS = ("PreferenceGP", "PairwiseGP")
@@ -77,7 +78,7 @@ def main() -> None:
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "botorch_api_counts.json").write_text(json.dumps({"summary": summary, "failed": failed}, indent=1) + "\n")
+    write_json((out / "botorch_api_counts.json"), {"summary": summary, "failed": failed}, measured="user")
     for impl in IMPLS:
         s = summary[impl]
         print(f"{impl}: {s['passed']} of {s['total']} checks pass; fails: {', '.join(failed[impl]) or 'none'}")

@@ -17,7 +17,6 @@ Usage: ``python benchmarks/parity/botorch_own_tests.py --botorch-src PATH [--out
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import subprocess
@@ -25,6 +24,8 @@ import sys
 import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
+
+from torchpref.experiments.results import write_json
 
 FILES = (
     "test/models/test_pairwise_gp.py",
@@ -137,7 +138,11 @@ def main(argv: list[str] | None = None) -> None:
     )
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "botorch_own_tests.json").write_text(json.dumps(result, indent=1) + "\n")
+        write_json(
+            (args.out / "botorch_own_tests.json"),
+            result,
+            measured="harness: BoTorch's own test files with PreferenceGP put in PairwiseGP's place",
+        )
 
 
 if __name__ == "__main__":

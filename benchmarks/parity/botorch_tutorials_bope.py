@@ -53,6 +53,8 @@ from botorch_tutorials_common import (
 from gpytorch.mlls import ExactMarginalLogLikelihood
 from tqdm import tqdm
 
+from torchpref.experiments.results import write_json
+
 X_DIM, Y_DIM = 5, 4
 NUM_RESTARTS, NUM_OUTCOME_SAMPLES, RAW_SAMPLES, BATCH_LIMIT = 8, 32, 64, 4
 EVERY_N_COMPS, N_CHECKS, N_INIT = 3, 5, 8
@@ -185,7 +187,7 @@ def main() -> None:
     )
     summary["phases"] = phase_summary(rows)
     summary["config"] = record.config
-    stem.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_json(stem.with_suffix(".json"), summary, measured="harness: the tutorial rewritten as a script")
     with stem.with_suffix(".csv").open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(

@@ -30,6 +30,8 @@ from botorch.models.deterministic import FixedSingleSampleModel
 from botorch.optim.optimize import optimize_acqf
 from botorch_tutorials_common import MODELS, RESULTS, fit_preference_model, seed_all
 
+from torchpref.experiments.results import write_json
+
 
 class Timer:
     """CPU seconds spent in the wrapped callables, per name."""
@@ -106,7 +108,9 @@ def main() -> None:
         for part in out[name].values():
             part["preference_share"] = part["preference_posterior"] / part["cpu_s"]
         print(name, json.dumps(out[name]))
-    (RESULTS / "botorch_tutorials_bope_share.json").write_text(json.dumps(out, indent=1) + "\n")
+    write_json(
+        (RESULTS / "botorch_tutorials_bope_share.json"), out, measured="harness: the tutorial rewritten as a script"
+    )
 
 
 if __name__ == "__main__":

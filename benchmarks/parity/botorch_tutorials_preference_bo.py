@@ -42,6 +42,8 @@ from botorch_tutorials_common import (
 )
 from tqdm import tqdm
 
+from torchpref.experiments.results import write_json
+
 DIM, NOISE, Q, Q_COMP = 4, 0.1, 2, 1
 NUM_RESTARTS, RAW_SAMPLES = 3, 512
 
@@ -140,7 +142,7 @@ def main() -> None:
         "phases": phase_summary(rows),
         "config": record.config,
     }
-    stem.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_json(stem.with_suffix(".json"), summary, measured="harness: the tutorial rewritten as a script")
     with stem.with_suffix(".csv").open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(

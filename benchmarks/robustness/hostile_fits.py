@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from torchpref.experiments.results import write_json
 from torchpref.testing.problems import NAMED, fit_outcome
 
 
@@ -43,7 +44,7 @@ def main(argv=None) -> None:
     other = [r for r in rows if r["outcome"] != "fit" and r["outcome"] not in NAMED]
     summary = {"fits": len(rows), "counts": counts, "other": len(other), "rows": rows}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(summary, indent=1) + "\n")
+    write_json(args.out, summary, measured="user")
     print(json.dumps({k: v for k, v in summary.items() if k != "rows"}))
 
 

@@ -25,7 +25,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -33,6 +32,8 @@ import warnings
 from pathlib import Path
 
 import torch
+
+from torchpref.experiments.results import write_json
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -104,7 +105,7 @@ def main(argv=None) -> int:
         "arms": out,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "mixed_lengthscale.json").write_text(json.dumps(result, indent=2))
+    write_json((args.out / "mixed_lengthscale.json"), result, measured="user")
     print(f"wrote {args.out / 'mixed_lengthscale.json'}")
     return 0
 

@@ -23,7 +23,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import statistics
@@ -35,6 +34,7 @@ from pathlib import Path
 
 import torch
 
+from torchpref.experiments.results import write_json
 from torchpref.inference.numerics import inv_mills, log_ndtr
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
@@ -136,9 +136,7 @@ def main(argv=None) -> int:
         "cpus": os.cpu_count(),
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "speed_compile.json").write_text(
-        json.dumps({"meta": meta, "compilation": first, "rows": rows}, indent=2)
-    )
+    write_json(args.out / "speed_compile.json", {"meta": meta, "compilation": first, "rows": rows}, measured="user")
     print(f"wrote {args.out / 'speed_compile.json'}")
     return 0
 

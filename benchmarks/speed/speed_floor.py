@@ -149,7 +149,7 @@ def _inputs(X, C, model):
     mode = state.mode  # batched: one problem
     L = state.pred.L[0]
     R = L[C[:, 0]] - L[C[:, 1]]  # D L: p x n
-    return L, R, mode.weights[0][0], mode.a[0], mode.B_chol[0]
+    return L, R, mode.weights[0][0], mode.a[0], mode.M[0]
 
 
 def _jitter(model) -> float:

@@ -38,6 +38,7 @@ sys.path.insert(0, str(HERE))
 
 import bench_common as bc  # noqa: E402
 
+from torchpref.experiments.results import write_json  # noqa: E402
 from torchpref.inference import newton  # noqa: E402
 from torchpref.inference.laplace import laplace_evidence  # noqa: E402
 from torchpref.inference.solver import PosteriorState, SolveKey  # noqa: E402
@@ -118,7 +119,7 @@ def main(argv=None) -> int:
     }
     print(json.dumps(result, indent=2))
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "speed_large_fit.json").write_text(json.dumps(result, indent=2))
+    write_json((args.out / "speed_large_fit.json"), result, measured="user")
     return 0
 
 

@@ -46,6 +46,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from torchpref.experiments.results import write_json
+
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -137,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
             ours: {k: med["authors"][k] / med[ours][k] for k in keys} for ours in ("torchpref", "torchpref_1_process")
         }
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "speed_wave.json").write_text(json.dumps(result, indent=2))
+    write_json((args.out / "speed_wave.json"), result, measured="user")
     with open(args.out / "speed_wave.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["program", "repeat", *keys])

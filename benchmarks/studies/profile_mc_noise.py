@@ -19,7 +19,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import torch
@@ -28,8 +27,9 @@ from torchpref.acquisition.functions import choice_probabilities, rating_bin_pro
 from torchpref.data.queries import BoxCandidates
 from torchpref.experiments import runner
 from torchpref.experiments.families import FAMILIES, model_settings, setup
+from torchpref.experiments.results import write_json
 from torchpref.selection.active import run_active_learning
-from torchpref.selection.strategies import joint_posterior, joint_samples
+from torchpref.selection.samples import joint_posterior, joint_samples
 from torchpref.selection.top_profile import ProfileVariancePerEffort, profile_variance_reduction, top_profile
 
 FAMILY_NAMES = ("two-bumps", "narrow-peak", "waves", "hartmann6", "plateau")
@@ -105,16 +105,15 @@ def main() -> None:
     }
     print(summary)
     out = Path(__file__).resolve().parents[1] / "results" / "profile_mc_noise.json"
-    out.write_text(
-        json.dumps(
-            {
-                "summary_mean_ratio": summary,
-                "states": rows,
-                "seeds": args.seeds,
-                "reference_samples": REFERENCE_SAMPLES,
-            },
-            indent=1,
-        )
+    write_json(
+        out,
+        {
+            "summary_mean_ratio": summary,
+            "states": rows,
+            "seeds": args.seeds,
+            "reference_samples": REFERENCE_SAMPLES,
+        },
+        measured="user",
     )
 
 

@@ -6,7 +6,7 @@ import torch
 
 from torchpref.data.queries import RankingQuery, RatingQuery
 from torchpref.frontends.elicit import question_list
-from torchpref.sessions.records import SessionFileError
+from torchpref.sessions.errors import SessionFileError
 
 
 def test_rows_become_queries_and_bad_lines_are_named(tmp_path):

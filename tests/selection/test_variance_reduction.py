@@ -14,7 +14,7 @@ from torchpref.data.queries import RankingQuery, RatingQuery
 from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
 from torchpref.models.fantasy import condition_batch
 from torchpref.models.kernels import fixed_rbf_kernel
-from torchpref.selection.strategies import joint_samples
+from torchpref.selection.samples import joint_samples
 from torchpref.selection.top_profile import ProfileVariancePerEffort
 from torchpref.selection.variance_reduction import (
     VariancePerEffort,

@@ -6,7 +6,8 @@ import json
 import pytest
 import torch
 
-from torchpref.sessions.session import PreferenceSession, SessionFileCorrupt, SessionFileError, read_session_file
+from torchpref.sessions.errors import SessionFileCorrupt, SessionFileError
+from torchpref.sessions.session import PreferenceSession, read_session_file
 
 SCALE = torch.tensor([100.0, 5.0], dtype=torch.float64)
 

@@ -8,14 +8,16 @@ import pytest
 import torch
 
 from torchpref import BoxCandidates, RankingQuery, RatingQuery, likert_to_unit
-from torchpref.sessions.session import (
-    FORMAT_VERSION,
-    PreferenceSession,
+from torchpref.sessions.errors import (
     SessionFileCorrupt,
     SessionFileError,
     SessionMismatchError,
     SessionRepairWarning,
     SessionVersionError,
+)
+from torchpref.sessions.session import (
+    FORMAT_VERSION,
+    PreferenceSession,
     default_session_model,
     read_session_file,
     step_generator,

@@ -13,7 +13,8 @@ import warnings
 import pytest
 import torch
 
-from torchpref.sessions.session import PreferenceSession, SessionFileChanged, SessionFileError
+from torchpref.sessions.errors import SessionFileChanged, SessionFileError
+from torchpref.sessions.session import PreferenceSession
 
 
 def _pool() -> torch.Tensor:

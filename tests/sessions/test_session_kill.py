@@ -254,7 +254,8 @@ def _answered_session(path, n):
 def test_sigkill_in_the_middle_of_an_undo_keeps_the_answer(tmp_path):
     import warnings
 
-    from torchpref.sessions.session import PreferenceSession, SessionFileCorrupt, SessionRepairWarning
+    from torchpref.sessions.errors import SessionFileCorrupt, SessionRepairWarning
+    from torchpref.sessions.session import PreferenceSession
 
     path = tmp_path / "s.jsonl"
     _answered_session(path, 4)

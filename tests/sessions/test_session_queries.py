@@ -8,7 +8,8 @@ import torch
 
 from torchpref import BoxCandidates, RankingQuery, RatingQuery
 from torchpref.selection import VariancePerEffort
-from torchpref.sessions.session import PreferenceSession, SessionMismatchError
+from torchpref.sessions.errors import SessionMismatchError
+from torchpref.sessions.session import PreferenceSession
 
 D = torch.float64
 

@@ -11,15 +11,14 @@ import pytest
 import torch
 
 import torchpref.sessions.journal as journal
-from torchpref.sessions.session import (
-    PreferenceSession,
+from torchpref.sessions.errors import (
     SessionFileError,
     SessionFileGone,
     SessionForkError,
     SessionReadOnlyError,
     SessionRepairWarning,
-    read_session_file,
 )
+from torchpref.sessions.session import PreferenceSession, read_session_file
 
 SCALE = torch.tensor([100.0, 5.0], dtype=torch.float64)
 

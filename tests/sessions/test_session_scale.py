@@ -11,8 +11,9 @@ import torch
 import torchpref.sessions.model_state as model_state
 import torchpref.sessions.session as session_mod
 from torchpref import RandomRankings
+from torchpref.sessions.errors import SessionSettingsError
 from torchpref.sessions.model_state import build_data, snapshot_path
-from torchpref.sessions.session import PreferenceSession, SessionSettingsError, read_session_file
+from torchpref.sessions.session import PreferenceSession, read_session_file
 
 SCALE = torch.tensor([100.0, 5.0], dtype=torch.float64)
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from torchpref.inference.numerics import gauss_hermite
 
-__all__ = ["greedy_choice_set"]
+__all__ = ["greedy_choice_set", "greedy_choice_sets"]
 
 # On a CPU, trials are processed in chunks whose temporaries stay in a core's cache (about this
 # many float64 elements each): one T = 100 batch is slower than 100 single calls otherwise.
@@ -69,19 +69,30 @@ def greedy_choice_set(
         final set (a float). 3-D ``F``: a ``T x m`` long tensor of the chosen columns and the
         ``T`` values of the final sets.
     """
-    if hasattr(comparison_noise, "with_lapses"):  # a comparison likelihood: its own answer probabilities
-        likelihood = comparison_noise
-        comparison_noise = likelihood.comparison_noise.detach().to(F)
-        value = _through(likelihood, value)
     if F.dim() == 2:
-        if isinstance(start, Tensor):
-            start = int(start)
-        chosen, best = _greedy_choice_set(
-            F.unsqueeze(0), comparison_noise, m, lambda P: value(P[0]).unsqueeze(0), start, num_quadrature
-        )
+        start = int(start) if isinstance(start, Tensor) else start
+        one: Callable[[Tensor], Tensor] = lambda P: value(P[0]).unsqueeze(0)  # noqa: E731
+        chosen, best = greedy_choice_sets(F.unsqueeze(0), comparison_noise, m, one, start, num_quadrature)
         return chosen[0].tolist(), float(best[0])
+    return greedy_choice_sets(F, comparison_noise, m, value, start, num_quadrature)
+
+
+def greedy_choice_sets(
+    F: Tensor,
+    comparison_noise: float | Tensor | Any,
+    m: int,
+    value: Callable[[Tensor], Tensor],
+    start: int | Tensor | None = None,
+    num_quadrature: int = 6,
+) -> tuple[Tensor, Tensor]:
+    r""":func:`greedy_choice_set` for ``T`` trials at once (``F``: ``T x S x K``): a ``T x m`` long
+    tensor of the chosen columns and the ``T`` values of the final sets."""
     if F.dim() != 3:
         raise ValueError(f"F must be S x K or T x S x K, got shape {tuple(F.shape)}.")
+    if not isinstance(comparison_noise, (float, int, Tensor)):  # a comparison likelihood: its own probabilities
+        likelihood: Any = comparison_noise
+        comparison_noise = likelihood.comparison_noise.detach().to(F)
+        value = _through(likelihood, value)
     return _greedy_choice_set(F, comparison_noise, m, value, start, num_quadrature)
 
 
@@ -104,7 +115,7 @@ class _ChoiceTerms:
         self.x, self.w = gauss_hermite(num_quadrature, F)
         noise = comparison_noise
         self.per_trial = isinstance(noise, Tensor) and noise.dim() > 0
-        if self.per_trial:
+        if isinstance(noise, Tensor) and noise.dim() > 0:
             if noise.shape != (T,):
                 raise ValueError(
                     f"comparison_noise must be a scalar or a T={T} tensor, got shape {tuple(noise.shape)}."
@@ -119,7 +130,8 @@ class _ChoiceTerms:
         """``f_j - f_k``, ``t x ... x S`` -> ``Phi((f_j + eps - f_k) / s) = erfc(-z / sqrt 2) / 2`` at
         the ``H`` nodes, ``t x ... x S x H``, in place: products instead of sums of logs (an
         underflow to 0 only drops a negligible probability)."""
-        s = self.noise[sl].reshape(-1, *(1,) * (diff.dim() - 1)) if self.per_trial else self.noise
+        noise = self.noise
+        s = noise[sl].reshape(-1, *(1,) * (diff.dim() - 1)) if isinstance(noise, Tensor) and self.per_trial else noise
         z = (diff / s).unsqueeze(-1) + math.sqrt(2) * self.x
         return z.mul_(-1 / math.sqrt(2)).erfc_().mul_(0.5)
 

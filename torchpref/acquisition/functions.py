@@ -30,6 +30,7 @@ from typing import Any
 import torch
 from botorch.acquisition import AcquisitionFunction, UpperConfidenceBound
 from botorch.models.model import Model
+from botorch.posteriors import GPyTorchPosterior
 from botorch.utils.transforms import t_batch_mode_transform
 from torch import Tensor
 from torch.distributions import Beta
@@ -40,6 +41,7 @@ from torchpref.inference.numerics import gauss_hermite
 from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood
 from torchpref.likelihoods.pairwise_beta import thurstone_choice_probabilities
 from torchpref.models.batch import BatchedPreferenceGP
+from torchpref.models.defaults import preference_likelihood
 from torchpref.models.preference_gp import PreferenceGP
 
 __all__ = [
@@ -75,7 +77,7 @@ def item_ucb(model: Model, X: Tensor, gamma: float = 3.0) -> tuple[Tensor, Tenso
     if isinstance(model, (PreferenceGP, BatchedPreferenceGP)):
         mean, var = model.marginals(X)
     else:
-        post = model.posterior(X.unsqueeze(-2))
+        post: Any = model.posterior(X.unsqueeze(-2))  # any posterior with a mean and a variance
         mean, var = post.mean[..., 0, 0], post.variance[..., 0, 0]
     std = var.clamp_min(0).sqrt()
     return mean + gamma * std, mean, std
@@ -89,7 +91,7 @@ class QueryUCB(AcquisitionFunction):
         super().__init__(model)
         self.gamma = gamma
 
-    @t_batch_mode_transform()
+    @t_batch_mode_transform()  # type: ignore[arg-type]  # BoTorch types it for the base class only
     def forward(self, X: Tensor) -> Tensor:
         return item_ucb(self.model, X, self.gamma)[0].max(dim=-1).values
 
@@ -130,16 +132,18 @@ class QueryInformation(AcquisitionFunction):
         g = generator if generator is not None else torch.Generator().manual_seed(0)
         self._seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g))
 
-    @t_batch_mode_transform()
+    @t_batch_mode_transform()  # type: ignore[arg-type]  # BoTorch types it for the base class only
     def forward(self, X: Tensor) -> Tensor:
         post = self.model.posterior(X)
+        if not isinstance(post, GPyTorchPosterior):
+            raise ValueError(f"QueryInformation needs a Gaussian posterior, got a {type(post).__name__}.")
         if X.shape[-2] == 1:
             return self._rating_information(post.mean[..., 0, 0], post.variance[..., 0, 0])
         mvn = post.distribution
         return self._ranking_information(mvn.mean, mvn.covariance_matrix)
 
     def _rating_information(self, mean: Tensor, var: Tensor) -> Tensor:
-        lik = self.model.likelihood.rating
+        lik = preference_likelihood(self.model).rating
         x, w = gauss_hermite(self.num_quadrature, mean)
         f = mean.unsqueeze(-1) + torch.sqrt(2 * var.clamp_min(0)).unsqueeze(-1) * x  # b x H
         if isinstance(lik, OrdinalRatingLikelihood):  # a level: H[E_f P(k | f)] - E_f H[P(k | f)]
@@ -163,7 +167,7 @@ class QueryInformation(AcquisitionFunction):
         jitter = 1e-9 * torch.eye(q, dtype=mean.dtype, device=mean.device)
         L = torch.linalg.cholesky_ex(cov + jitter)[0]
         f = mean.unsqueeze(-2) + z @ L.mT  # b x S x q
-        p = self.model.likelihood.comparison.choice_probabilities(f, self.num_quadrature)  # lapses included
+        p = preference_likelihood(self.model).comparison.choice_probabilities(f, self.num_quadrature)  # lapses included
         return sample_information(p)
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import operator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, overload
 
 import torch
 from torch import Tensor
@@ -30,6 +30,12 @@ def as_integer(value: Any) -> int | None:
         return operator.index(value)
     except TypeError:
         return None
+
+
+class InvalidAnswer(ValueError):
+    """An answer that does not answer its query: a rating out of range or not a number, a choice
+    that is not one of the items shown, "equally best" items named twice. The one error every front
+    end maps to its refusal (``torchpref serve``: HTTP 400); nothing is recorded."""
 
 
 def _is_text_or_bool(answer) -> bool:
@@ -49,12 +55,12 @@ class RatingQuery:
         """``1 x d``: the items shown."""
         return self.item.unsqueeze(0)
 
-    def validate_answer(self, answer: object, num_levels: int | None = None) -> float:
+    def validate_answer(self, answer: Any, num_levels: int | None = None) -> float:
         """The rating in ``[0, 1]`` that ``answer`` gives: ``answer`` itself, or with ``num_levels``
         a whole Likert level ``1..num_levels`` mapped by :func:`~torchpref.likert_to_unit`.
 
         Raises:
-            ValueError: not a number (text and booleans included), or out of range.
+            InvalidAnswer: not a number (text and booleans included), or out of range.
         """
         if num_levels is not None:
             try:
@@ -62,15 +68,15 @@ class RatingQuery:
                     raise TypeError
                 return float(likert_to_unit(float(answer), num_levels))
             except (TypeError, ValueError):
-                raise ValueError(f"a rating must be a whole level in 1..{num_levels}, got {answer!r}.") from None
+                raise InvalidAnswer(f"a rating must be a whole level in 1..{num_levels}, got {answer!r}.") from None
         try:
             if _is_text_or_bool(answer):
                 raise TypeError
             u = float(answer)
         except (TypeError, ValueError):
-            raise ValueError(f"a rating must be a number in [0, 1], got {answer!r}.") from None
+            raise InvalidAnswer(f"a rating must be a number in [0, 1], got {answer!r}.") from None
         if not 0.0 <= u <= 1.0:
-            raise ValueError(f"a rating must lie in [0, 1], got {u}.")
+            raise InvalidAnswer(f"a rating must be in [0, 1], got {u}.")
         return u
 
 
@@ -87,18 +93,24 @@ class RankingQuery:
         """The number of items shown."""
         return self.items.shape[0]
 
+    @overload
+    def validate_answer(self, answer: object, no_preference: Literal[False] = False) -> int: ...
+
+    @overload
+    def validate_answer(self, answer: object, no_preference: bool) -> int | None: ...
+
     def validate_answer(self, answer: object, no_preference: bool = False) -> int | None:
         """The chosen row ``0..m-1`` (an integer; not a bool, float or text); ``None`` (no
         preference) where ``no_preference`` allows it.
 
         Raises:
-            ValueError: anything else.
+            InvalidAnswer: anything else.
         """
         if answer is None and no_preference:
             return None
         j = as_integer(answer)
         if j is None or not 0 <= j < self.m:
-            raise ValueError(f"a ranking answer must be an item index in 0..{self.m - 1}, got {answer!r}.")
+            raise InvalidAnswer(f"a ranking answer must be an item index in 0..{self.m - 1}, got {answer!r}.")
         return j
 
     def comparisons(self, chosen: int) -> Tensor:
@@ -133,7 +145,7 @@ def record_answer(
         The validated answer: the rating in ``[0, 1]``, the chosen row, or ``None``.
 
     Raises:
-        ValueError: an invalid answer (naming it); the model is unchanged.
+        InvalidAnswer: an invalid answer (naming it); the model is unchanged.
     """
     if isinstance(query, RatingQuery):
         u = query.validate_answer(answer, num_levels)
@@ -145,6 +157,8 @@ def record_answer(
     if isinstance(query, RankingQuery):
         if isinstance(answer, (list, tuple)) and len(answer) > 1:  # several equally best items
             best = [query.validate_answer(a) for a in answer]
+            if len(set(best)) != len(best):
+                raise InvalidAnswer(f"the items named equally best must differ, got {list(answer)!r}.")
             comparisons, ties = best_of_m_with_ties(best, list(range(query.m)))
             model.add_observations(query.items, comparisons=comparisons, ties=ties)
             return best

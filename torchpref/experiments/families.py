@@ -24,7 +24,7 @@ from torch import Tensor
 
 from torchpref.likelihoods.pairwise_beta import rating_link
 from torchpref.simulation.raters import EffortModel, RaterProfile, RealisticUser, precision_for_noise
-from torchpref.simulation.users import LikertUser, SimulatedUser
+from torchpref.simulation.users import LikertUser, SimulatedUser, User
 from torchpref.simulation.utility_functions import (
     GaussianBumps,
     Plateau,
@@ -324,7 +324,7 @@ def model_settings(family: Family) -> dict[str, float]:
 class TrialSetup:
     """One trial of a family: the user, the metric points and their truth, the first pair."""
 
-    user: object
+    user: User
     eval_X: Tensor  # E x d metric points
     f_true: Tensor  # E true utilities
     u_true: Tensor  # E true ratings (the raters' mean rating, eq. 7)
@@ -339,15 +339,14 @@ def setup(family: Family, trial_seed: int, effort: EffortModel | None = None) ->
     utility = family.draw(g)
     user_seed, selector_seed = torch.randint(0, 2**62, (2,), generator=g).tolist()
     rating_scale = family.model["rating_scale"] if family.model is not None else RATING_SCALE
-    user = SimulatedUser(
+    paper_user = SimulatedUser(
         utility,
         family.comparison_noise,
         rating_scale,
         family.rating_precision,
         torch.Generator().manual_seed(user_seed),
     )
-    if family.likert and not family.realistic:
-        user = LikertUser(user)
+    user: User = LikertUser(paper_user) if family.likert and not family.realistic else paper_user
     pool = None
     if family.pool is not None:
         pool = _uniform(g, family.pool, family.dim)
@@ -358,7 +357,7 @@ def setup(family: Family, trial_seed: int, effort: EffortModel | None = None) ->
         x0 = _uniform(g, 2, family.dim)
     with torch.no_grad():
         f_true = utility(eval_X)
-    if family.realistic:  # the person, drawn for this utility's spread from the user's own stream
+    if family.rater is not None:  # realistic: the person, drawn for this utility's spread from the user's own stream
         person_g = torch.Generator().manual_seed(user_seed)
         profile = family.rater(person_g, float(f_true.std()))
         if effort is not None:

@@ -217,7 +217,7 @@ def run_trial(
             generator=torch.Generator().manual_seed(sel_seed),
             metrics=metrics,
         )
-        entry = {k: hist.metric(k) for k in ("error5", "wrms", "chosen_rating")}
+        entry: dict[str, Any] = {k: hist.metric(k) for k in ("error5", "wrms", "chosen_rating")}
         entry["kinds"] = [r.query.kind for r in hist.records]
         seconds = [0.0]
         for kind in entry["kinds"]:
@@ -390,7 +390,7 @@ def run_lake_experiment(
     num_fresh = int(settings["fresh_weights"]) if plan and settings["num_fresh"] > 0 else 0
     t0 = time.perf_counter()
     seeds = [seed + k for k in range(lakes)]
-    run_kw = dict(executor=executor, progress=progress, workers=workers)
+    run_kw: dict[str, Any] = dict(executor=executor, progress=progress, workers=workers)
     prepared = _prepare_lakes(seeds, scenario, cache_dir, num_fresh, run_kw)
     t_scenario = time.perf_counter() - t0
     plan_trials = trials if plan_trials is None else plan_trials

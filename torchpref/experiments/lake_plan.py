@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 from botorch.models.model import Model
+from botorch.posteriors import GPyTorchPosterior
 from botorch.utils.transforms import normalize as normalise
 from torch import Tensor
 
@@ -45,6 +46,7 @@ from torchpref.lake.planners import pad_paths, rrt_star, stomp
 
 if TYPE_CHECKING:
     from torchpref.lake.scenario import LakeScenario
+    from torchpref.models.preference_gp import PreferenceGP
 
 #: planning settings: ``beta`` of the bound, the reference (``"shown"``: the best shown path;
 #: ``"pick"``: the model's pool pick), the trust region (``None``: none), the number of best pool
@@ -65,13 +67,20 @@ PLAN_SETTINGS: dict[str, Any] = {
 }
 
 
+def _posterior(model: Model, X: Tensor) -> GPyTorchPosterior:
+    post = model.posterior(X)
+    if not isinstance(post, GPyTorchPosterior):
+        raise ValueError(f"planning needs a Gaussian posterior, got a {type(post).__name__}.")
+    return post
+
+
 def model_utility(model: Model, bounds: Tensor) -> Callable[[Tensor], Tensor]:
     """The posterior mean of ``model`` (trained on objectives normalised by ``bounds``) as a
     differentiable function of the lake's objectives ``n x 2`` -> ``n``."""
 
     def utility(X: Tensor) -> Tensor:
         Z = normalise(X, bounds)
-        return model.posterior(Z.unsqueeze(-2)).mean.reshape(Z.shape[:-1])
+        return _posterior(model, Z.unsqueeze(-2)).mean.reshape(Z.shape[:-1])
 
     return utility
 
@@ -109,11 +118,12 @@ def improvement_bound(
     def criterion(X: Tensor) -> Tensor:
         Z = normalise(X, bounds)
         pair = torch.stack([Z, z_ref.expand_as(Z)], dim=-2)  # n x 2 x 2: the point and the reference
-        post = model.posterior(pair)
+        post = _posterior(model, pair)
         mean, cov = post.mean[..., 0], post.covariance_matrix
         var = cov[..., 0, 0] + cov[..., 1, 1] - 2 * cov[..., 0, 1]
         c = mean[..., 0] - mean[..., 1] - beta * var.clamp_min(1e-12).sqrt()
         if trust_radius is not None:
+            assert answered is not None  # checked above
             excess = torch.relu(torch.cdist(Z, answered).min(-1).values - trust_radius)
             c = c - trust_weight * excess.pow(2)
         return c
@@ -146,7 +156,7 @@ def compare(operator: LakeOperator, X: Tensor, X_other: Tensor) -> dict[str, Any
 
 def plan_for_model(
     scenario: LakeScenario,
-    model: Model,
+    model: PreferenceGP,
     bounds: Tensor,
     pool_rows: Tensor,
     fresh: Tensor | None = None,
@@ -175,17 +185,17 @@ def plan_for_model(
     with torch.no_grad():
         order = mean(X).argsort(descending=True)
         answered = model.train_X
-        shown = int(model.posterior(answered.unsqueeze(-2)).mean.reshape(-1).argmax())
+        shown = int(_posterior(model, answered.unsqueeze(-2)).mean.reshape(-1).argmax())
     # the shown item's path: the pool row whose normalised objectives match it
     Z = normalise(X, bounds)
     shown_row = int((Z - answered[shown]).abs().sum(-1).argmin())
     pick = int(order[0])
-    starts = [paths[order[: s["num_pool_starts"]]]]
+    start_list = [paths[order[: s["num_pool_starts"]]]]
     if fresh is not None and s["num_fresh"] > 0:
         with torch.no_grad():
             best_fresh = mean(path_objectives(fresh, scenario.field)).argsort(descending=True)[: s["num_fresh"]]
-        starts.append(fresh[best_fresh])
-    starts = pad_paths(starts)
+        start_list.append(fresh[best_fresh])
+    starts = pad_paths(start_list)
     ref = shown_row if s["reference"] == "shown" else pick
     criterion = improvement_bound(
         model,

@@ -122,7 +122,7 @@ def run_trials(
                 done(i, trial_fn(*a))
         else:
             own = executor is None
-            ex = ProcessPoolExecutor(max_workers=workers or default_workers()) if own else executor
+            ex = executor if executor is not None else ProcessPoolExecutor(max_workers=workers or default_workers())
             _run_on(ex, trial_fn, args_list, done, own)
         return results
     finally:

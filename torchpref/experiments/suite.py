@@ -29,14 +29,15 @@ import argparse
 import copy
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from concurrent.futures import Executor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
 
-from torchpref.data.queries import BoxCandidates, FinitePool
+from torchpref.data.preference_data import PreferenceData
+from torchpref.data.queries import BoxCandidates, Candidates, FinitePool
 from torchpref.experiments import runner
 from torchpref.experiments.families import (
     ALL_FAMILIES,
@@ -180,7 +181,10 @@ def _start_model(family: Family, condition: str, x0s: list[torch.Tensor], firsts
         rating_scale=settings["rating_scale"],
         rating_precision=settings["rating_precision"],
     )
-    return BatchedPreferenceGP(template, [m.data for m in models])
+    datas = [m.data for m in models]
+    if not all(isinstance(d, PreferenceData) for d in datas):
+        raise ValueError("the suite's trial models must each be one problem (PreferenceData), not batched.")
+    return BatchedPreferenceGP(template, [d for d in datas if isinstance(d, PreferenceData)])
 
 
 def _suite_metrics(eval_X: torch.Tensor, f_true: torch.Tensor, u_true: torch.Tensor):
@@ -229,6 +233,7 @@ def run_batch(
     with torch.inference_mode():
         model = _start_model(family, condition, [s.x0 for s in setups], firsts)
         gens = [torch.Generator().manual_seed(s.selector_seed) for s in setups]
+        candidates: Candidates
         if family.pool is None:
             candidates = BoxCandidates(
                 torch.tensor([[0.0] * family.dim, [1.0] * family.dim], dtype=torch.float64), NUM_CANDIDATES
@@ -260,13 +265,15 @@ def run_batch(
     ]
 
 
-class _TrialPools:
+class _TrialPools(Candidates):
     """Each trial's own finite pool (:class:`~torchpref.data.queries.FinitePool`), found by its generator."""
 
-    def __init__(self, pools: Sequence[torch.Tensor], generators: Sequence[torch.Generator]):
-        self._by_generator = {id(g): FinitePool(p) for p, g in zip(pools, generators)}
+    def __init__(self, pools: Sequence[torch.Tensor | None], generators: Sequence[torch.Generator]):
+        if any(p is None for p in pools):
+            raise ValueError("every trial of a pool family needs its pool, got None.")
+        self._by_generator = {id(g): FinitePool(p) for p, g in zip(pools, generators) if p is not None}
 
-    def draw(self, generator: torch.Generator):
+    def draw(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor | None]:
         return self._by_generator[id(generator)].draw(generator)
 
 
@@ -355,7 +362,7 @@ def run_suite(
     return {**result, "queries": queries, "summary": summary}
 
 
-def _checked(families: Sequence[str], conditions: Sequence[str]) -> list[str]:
+def _checked(families: Iterable[str], conditions: Sequence[str]) -> list[str]:
     """``families`` as a list (groups of :data:`FAMILY_GROUPS` expanded), each a known family and
     each condition a known one.
 

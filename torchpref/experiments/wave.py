@@ -47,6 +47,7 @@ from torchpref.experiments.results import (
 from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.models.preference_gp import PreferenceGP
 from torchpref.selection.active import run_active_learning, run_active_learning_batch
+from torchpref.selection.strategies import Selector
 from torchpref.simulation.metrics import rating_from_latent, true_positives, wrms
 from torchpref.simulation.users import SimulatedUser
 from torchpref.simulation.utility_functions import WaveFunction, evaluation_grid
@@ -76,8 +77,19 @@ METRICS = ("wrms", "tp")
 
 
 #: the selector as this experiment runs it (``runner.make_selector``'s keywords)
-SELECTOR_OPTIONS = {"m": M, "gamma": GAMMA, "rating_cost": RATING_COST, "ranking_cost": SELECTOR_RANKING_COST}
-make_selector = functools.partial(runner.make_selector, **SELECTOR_OPTIONS)
+SELECTOR_OPTIONS: dict[str, Any] = {
+    "m": M,
+    "gamma": GAMMA,
+    "rating_cost": RATING_COST,
+    "ranking_cost": SELECTOR_RANKING_COST,
+}
+
+
+def make_selector(name: str) -> Selector:
+    """The selector ``name`` as this experiment runs it (:data:`SELECTOR_OPTIONS`)."""
+    return runner.make_selector(name, **SELECTOR_OPTIONS)
+
+
 make_model = functools.partial(runner.make_model, settings=MODEL_SETTINGS)
 trial_seeds = runner.trial_seeds
 
@@ -257,7 +269,7 @@ def run_wave_experiment(
     strategies = runner.check_run(queries, strategies, STRATEGIES, batch_size)
     t0 = time.perf_counter()
     seeds = trial_seeds(seed, trials)
-    run_kw = dict(executor=executor, progress=progress, workers=workers, description="wave trials")
+    run_kw: dict[str, Any] = dict(executor=executor, progress=progress, workers=workers, description="wave trials")
     if batch_size is None:
         results = runner.run_trials(run_trial, [(s, queries, tuple(strategies)) for s in seeds], **run_kw)
     else:

@@ -32,13 +32,8 @@ from torch import Tensor
 from torchpref.data.features import FeaturesError, printable, read_features_csv
 from torchpref.data.queries import Query, RankingQuery, RatingQuery, first_unique_rows
 from torchpref.selection.defaults import default_selector
-from torchpref.sessions.session import (
-    PreferenceSession,
-    SessionFileCorrupt,
-    SessionFileError,
-    SessionMismatchError,
-    read_session_file,
-)
+from torchpref.sessions.errors import SessionFileCorrupt, SessionFileError, SessionMismatchError
+from torchpref.sessions.session import PreferenceSession, read_session_file
 
 if TYPE_CHECKING:
     from torchpref.lake.scenario import LakeScenario
@@ -105,7 +100,10 @@ class LakeWorld(FeaturesWorld):
 
     def show(self, query: Query, number: int, out: TextIO) -> None:
         """Write a map of the query's paths, labelled by their letters, and say where it is."""
-        rows = list(query.indices) if isinstance(query, RankingQuery) else [query.index]
+        named = query.indices if isinstance(query, RankingQuery) else (query.index,)
+        rows = [i for i in (named or ()) if i is not None]
+        if len(rows) != query.items.shape[0]:
+            raise ValueError(f"a lake query must name its paths' pool rows, got {named!r}.")
         letters = LETTERS[: len(rows)] if isinstance(query, RankingQuery) else ["?"]
         title = (
             f"Query {number}: which path is best?"
@@ -200,7 +198,7 @@ def _read(prompt: str, inp: TextIO, out: TextIO) -> str | None:
 def _ask_answer(query: Query, inp: TextIO, out: TextIO):
     """Read an answer: ``("answer", value)``, ``("undo",)`` or ``("quit",)``; re-ask on bad input."""
     ranking = isinstance(query, RankingQuery)
-    if ranking:
+    if isinstance(query, RankingQuery):
         valid = LETTERS[: query.m]
         prompt = f"Which is best? [{valid[0]}-{valid[-1]}, = no preference, u undo, ? help, q quit]: "
     else:
@@ -242,7 +240,7 @@ def _show_query(world: FeaturesWorld, session: PreferenceSession, query: Query, 
     print("", file=out)
     if isinstance(query, RankingQuery):
         print(f"Query {number} of {session.num_queries}: which {world.noun} is best?", file=out)
-        rows = list(query.indices) if query.indices is not None else [None] * query.m
+        rows: list[int | None] = list(query.indices) if query.indices is not None else [None] * query.m
         _table(world, rows, query.items, LETTERS[: query.m], out)
     else:
         print(

@@ -454,7 +454,7 @@ def _store(
         pool = source._candidates  # the session's own candidates: queries name their rows
         if not isinstance(pool, FinitePool):
             raise ServeError("a served session's candidates must be a pool of items (N x d), not a box.")
-        items = ServeItems(pool.X, names or source.names, labels, render=render, noun=noun)
+        items = ServeItems(pool.X, list(names or source.names or []), labels, render=render, noun=noun)
         return SessionStore(items, session=source, ties=ties, limits=limits)
     if isinstance(source, ServeItems):
         items = source

@@ -34,11 +34,13 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from torchpref.data.queries import Query, RankingQuery
+from torchpref.data.queries import InvalidAnswer, Query, RankingQuery, RatingQuery
 from torchpref.frontends.serve_errors import AnswerRefused
 from torchpref.frontends.serve_items import ServeItems
 from torchpref.selection.strategies import UCBC
-from torchpref.sessions.session import PreferenceSession, SessionFileError, default_ranking_size
+from torchpref.sessions.errors import SessionFileError
+from torchpref.sessions.records import AnswerRecord, parse_record, records_in_force
+from torchpref.sessions.session import PreferenceSession, default_ranking_size
 
 if TYPE_CHECKING:
     from torchpref.frontends.serve_pool import PoolEntry as _Entry
@@ -287,36 +289,36 @@ class SessionStore:
                 raise AnswerRefused(
                     f"all {n} questions are answered; undo to change an answer.", 409, self.state(entry)
                 )
-            if body.get("qid") != qid:
-                return self._not_current(entry, body)
-            answer = self._checked_answer(entry, q, body.get("answer"))
             try:
-                entry.session.tell(q, answer, response_time=rt, **times)
+                if body.get("qid") != qid:
+                    return self._not_current(entry, body)
+                entry.session.tell(q, self._checked_answer(entry, q, body.get("answer")), response_time=rt, **times)
+            except AnswerRefused:  # a stale or repeated question (409): refused as it is
+                raise
             except OSError as err:  # the disk is full, or another failure to write: nothing recorded
                 raise _storage_refused(err, "your answer was not saved; the page tries again") from None
             except SessionFileError as err:  # the file cannot take this answer (changed, gone, read-only)
                 raise AnswerRefused(f"answer not recorded: {err}", 503, self.state(entry)) from None
-            except ValueError as exc:
+            except ValueError as exc:  # InvalidAnswer (the query's validation), or another bad value
                 raise AnswerRefused(f"answer not recorded: {exc}", 400, self.state(entry)) from None
             return self.state(entry)
 
-    def _checked_answer(self, entry: _Entry, q: Query, answer: Any):
+    def _checked_answer(self, entry: _Entry, q: Query, answer: Any) -> Any:
+        """The JSON ``answer`` to ``q`` as the session takes it; raises
+        :class:`~torchpref.data.queries.InvalidAnswer`. The query's own validation decides, after
+        what only JSON adds: a level is a JSON integer (``3.0`` is not level 3, so a retry sent as
+        ``3.0`` is not taken for the answer ``3``), and "no preference" only where it is offered."""
         if isinstance(q, RankingQuery):
-            if answer is None:
-                if not self.ties:
-                    raise AnswerRefused("'no preference' is not offered here: pick one option.", 400)
-                return None
-            if not _is_int(answer) or not 0 <= answer < q.m:
-                raise AnswerRefused(f"a choice must be an option number 0..{q.m - 1}, got {answer!r:.40}.", 400)
-            return answer
+            if answer is None and not self.ties:
+                raise InvalidAnswer("'no preference' is not offered here: pick one option.")
+            return q.validate_answer(answer, no_preference=True)
         k = entry.session.num_levels
         if k is not None:
-            if not _is_int(answer) or not 1 <= answer <= k:
-                raise AnswerRefused(f"a rating must be a whole level 1..{k}, got {answer!r:.40}.", 400)
+            if not _is_int(answer):
+                raise InvalidAnswer(f"a rating must be a whole level in 1..{k}, got {answer!r:.40}.")
+            q.validate_answer(answer, k)
             return answer
-        if isinstance(answer, bool) or not isinstance(answer, (int, float)) or not 0.0 <= answer <= 1.0:
-            raise AnswerRefused(f"a rating must be a number in [0, 1], got {answer!r:.40}.", 400)
-        return float(answer)
+        return q.validate_answer(answer)
 
     def _not_current(self, entry: _Entry, body: dict) -> dict:
         """The answer names another question than the current one: a repeat of the last answer
@@ -328,14 +330,14 @@ class SessionStore:
         except ValueError:
             position = -1
         if 0 <= position < len(records):
-            rec = records[position]
-            asked = rec.get("type") == "answer" and (rec.get("query") or {}).get("step") is not None
-            if asked and qid == make_qid(entry.sid, position, rec["items"]):
-                in_force = any(r["seq"] == rec["seq"] for r in _in_force(entry.session))
+            rec = parse_record(records[position])
+            asked = isinstance(rec, AnswerRecord) and rec.step is not None
+            if isinstance(rec, AnswerRecord) and asked and qid == make_qid(entry.sid, position, rec.items):
+                in_force = rec.seq in _in_force_seqs(entry.session)
                 if in_force and position == len(records) - 1:
                     # the retry's answer is checked as the first try's was (3.0 or true is not 3 or 1)
                     answer = self._checked_answer(entry, _asked(rec), body.get("answer"))
-                    if _same_answer(answer, rec["answer"]):
+                    if _same_answer(answer, rec.answer):
                         return dict(self.state(entry), duplicate=True)
                 raise AnswerRefused("this question was already answered.", 409, self.state(entry))
         raise AnswerRefused("not the current question of this session (stale, or another's).", 409, self.state(entry))
@@ -367,30 +369,29 @@ class SessionStore:
         rating value, response time (seconds), whether it is in force."""
         entry = self.entry(sid)
         with entry.lock:
-            records, active = entry.session.records, {r["seq"] for r in _in_force(entry.session)}
+            records, active = entry.session.records, _in_force_seqs(entry.session)
         buf = io.StringIO()
         w = csv.writer(buf)
         w.writerow(["seq", "time", "kind", "step", "items", "answer", "chosen", "value", "response_time", "in_force"])
-        for r in records:
-            if r["type"] != "answer":
+        for r in map(parse_record, records):
+            if not isinstance(r, AnswerRecord):
                 continue
-            q = r.get("query") or {}
-            rows = q.get("pool_indices")
-            labels = [self.items.label(i) for i in rows] if rows else [json.dumps(x) for x in r["items"]]
-            chosen = labels[r["answer"]] if r["kind"] == "choice" else ""
-            rt = r.get("response_time")
+            rows = r.pool_indices
+            labels = [self.items.label(i) for i in rows] if rows else [json.dumps(list(x)) for x in r.items]
+            chosen = labels[int(r.answer)] if r.kind == "choice" and r.answer is not None else ""
+            rt = r.response_time
             w.writerow(
                 [
-                    r["seq"],
-                    r["time"],
-                    r["kind"],
-                    "" if q.get("step") is None else q["step"],
+                    r.seq,
+                    r.time,
+                    r.kind,
+                    "" if r.step is None else r.step,
                     ";".join(_csv_safe(lab) for lab in labels),
-                    "" if r["answer"] is None else r["answer"],
+                    "" if r.answer is None else r.answer,
                     _csv_safe(chosen),
-                    r.get("value", ""),
+                    "" if r.value is None else r.value,
                     "" if rt is None else f"{rt:.3f}",
-                    int(r["seq"] in active),
+                    int(r.seq in active),
                 ]
             )
         return buf.getvalue()
@@ -418,12 +419,10 @@ class SessionStore:
             return "".join(json.dumps(r) + "\n" for r in s.records).encode()
 
 
-def _asked(rec: dict) -> Query:
+def _asked(rec: AnswerRecord) -> Query:
     """The question an answer record answered (its items; for the answer's checks)."""
-    from torchpref.data.queries import RatingQuery
-
-    items = torch.tensor(rec["items"], dtype=torch.float64)
-    return RatingQuery(items[0]) if rec["kind"] == "rating" else RankingQuery(items)
+    items = torch.tensor(rec.items, dtype=torch.float64)
+    return RatingQuery(items[0]) if rec.kind == "rating" else RankingQuery(items)
 
 
 def _same_answer(a: Any, b: Any) -> bool:
@@ -468,10 +467,9 @@ def _resource_error(exc: BaseException) -> bool:
     return resource_error(exc)
 
 
-def _in_force(session: PreferenceSession) -> list[dict]:
-    from torchpref.sessions.records import records_in_force
-
-    return records_in_force(session.records)
+def _in_force_seqs(session: PreferenceSession) -> set[int]:
+    """The sequence numbers of the session's answers in force."""
+    return {r["seq"] for r in records_in_force(session.records)}
 
 
 def _is_int(v: Any) -> bool:

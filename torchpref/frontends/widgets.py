@@ -106,11 +106,12 @@ def as_picture(picture: Any, width: str = "100%") -> Any:
         return _image(path.read_bytes(), fmt, width)
     if isinstance(picture, str):
         return w.HTML(picture)
-    for method, fmt in (("_repr_png_", "png"), ("_repr_svg_", None), ("_repr_html_", None)):
+    reprs: tuple[tuple[str, str | None], ...] = (("_repr_png_", "png"), ("_repr_svg_", None), ("_repr_html_", None))
+    for method, kind in reprs:
         if hasattr(picture, method):
             data = getattr(picture, method)()
-            if fmt is not None:
-                return _image(data, fmt, width)
+            if kind is not None:
+                return _image(data, kind, width)
             return w.HTML(data)
     raise TypeError(
         f"a render hook must return a figure, image bytes, a Path, an HTML string or a widget, "
@@ -267,6 +268,9 @@ class PreferenceWidget:
     def answer(self, value: Any) -> None:
         """Record ``value`` as the answer to the query shown (what a button's click does) and show
         the next query. An invalid answer is reported in :attr:`status`; nothing is recorded."""
+        if self.query is None:
+            self.status.value = "<span style='color:#b00'>not recorded: no question is shown.</span>"
+            return
         for b in self.buttons:
             b.disabled = True
         try:

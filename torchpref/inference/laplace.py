@@ -20,8 +20,8 @@ the data); it only needs ``B`` positive definite, which holds at a mode.
 ``W`` is never formed on the solver's path: each observation ``k`` with row ``d_k`` adds
 ``w_k d_k^T d_k`` (:mod:`torchpref.inference.observations`), so ``L^T W L = sum_k w_k (d_k L)^T (d_k L)``.
 
-Batch-first: every function takes ``B`` independent problems, ``L`` of shape ``B x n x n`` and
-:class:`~torchpref.inference.observations.Observations` for ``B`` problems; a single problem is ``B = 1``
+Batch-first: every function takes ``b`` independent problems, ``L`` of shape ``b x n x n`` and
+:class:`~torchpref.inference.observations.Observations` for ``b`` problems; a single problem is ``b = 1``
 (or an unbatched ``n x n`` ``L``, which returns unbatched results). Problems of different sizes
 are padded to common ones: a padded item has prior variance 1, no correlation and no
 observation (its mode is 0 and it changes nothing), a padded observation has ``mask`` false.
@@ -41,6 +41,7 @@ from torchpref.inference.fast_path import mode_applies, probit_scale
 from torchpref.inference.newton import NewtonOptions, newton_mode
 from torchpref.inference.numerics import LaplaceNumericalError, NotPSDError, default_tolerance
 from torchpref.inference.observations import Observations, Term, item_term, pairwise_term  # noqa: F401  (re-exported)
+from torchpref.inference.shapes import Latent, Matrices, ProblemMask, TermValues
 
 
 class LaplaceConvergenceWarning(UserWarning):
@@ -49,15 +50,15 @@ class LaplaceConvergenceWarning(UserWarning):
 
 @dataclass
 class ModeResult:
-    """Output of :func:`find_mode` (all detached), with the shapes of a batch of ``B``."""
+    """Output of :func:`find_mode` (all detached), with the shapes of a batch of ``b``."""
 
-    a: Tensor  # B x n whitened mode
-    f: Tensor  # B x n mode
-    B_chol: Tensor  # B x n x n Cholesky factor of B = I + L^T W L at the mode (exact W)
-    weights: tuple[Tensor, ...]  # per term, B x m: W = sum_k w_k d_k^T d_k at the mode
+    a: Latent  # whitened mode
+    f: Latent  # mode, f = L a
+    M: Matrices  # Cholesky factor of B = I + L^T W L at the mode (exact W)
+    weights: tuple[TermValues, ...]  # per term: W = sum_k w_k d_k^T d_k at the mode
     iterations: int
-    converged: Tensor  # B bool
-    fisher_fallback: Tensor  # B bool: exact B not PD at the mode, the Fisher W used instead
+    converged: ProblemMask
+    fisher_fallback: ProblemMask  # exact B not PD at the mode, the Fisher W used instead
 
     def select(self, index: int | slice | Tensor) -> ModeResult:
         """The problems ``index`` (an int drops the batch dimension)."""
@@ -100,9 +101,9 @@ def find_mode(
     its own exact ``B``. See :mod:`torchpref.inference.newton` for the steps.
 
     Args:
-        L: ``B x n x n`` (or ``n x n``) lower Cholesky factors of the (jittered) kernel matrices.
-        obs: the observations of the ``B`` problems.
-        f0: ``B x n`` (or ``n``) warm start (e.g. the previous mode), or a tuple of candidate
+        L: ``b x n x n`` (or ``n x n``) lower Cholesky factors of the (jittered) kernel matrices.
+        obs: the observations of the ``b`` problems.
+        f0: ``b x n`` (or ``n``) warm start (e.g. the previous mode), or a tuple of candidate
             starts, of which each problem starts from the one of highest ``Psi``; zeros by default.
         max_iter: iteration budget (factorisations).
         tol: a problem has converged when half its Newton decrement ``grad^T B^{-1} grad / 2``
@@ -202,14 +203,14 @@ def _compiled_mode(
 
 
 def predicted_mode(f: Tensor, cache: PredictiveCache, L: Tensor) -> Tensor:
-    r"""A start for the modes under new prior factors ``L`` (``B x n x n``, ``L L^T = K + jitter I``):
-    the old modes ``f`` (``B x n``) moved to first order in the change of ``K`` (implicit function
+    r"""A start for the modes under new prior factors ``L`` (``b x n x n``, ``L L^T = K + jitter I``):
+    the old modes ``f`` (``b x n``) moved to first order in the change of ``K`` (implicit function
     theorem, the likelihoods unchanged), ``f + (I + K_old W)^-1 (K - K_old) alpha`` with
     ``alpha = K_old^-1 f`` from the old modes' prediction ``cache``; computed as
     ``L_old B_old^-1 L_old^-1 (K alpha - f)``, since ``K_old alpha = f``. Where that is not finite, ``f``."""
     alpha = cache.alpha.unsqueeze(-1)
     change = L @ (L.mT @ alpha) - f.unsqueeze(-1)  # (K - K_old) alpha
-    step = cache.L @ torch.cholesky_solve(torch.linalg.solve_triangular(cache.L, change, upper=False), cache.B_chol)
+    step = cache.L @ torch.cholesky_solve(torch.linalg.solve_triangular(cache.L, change, upper=False), cache.M)
     start = f + step.squeeze(-1)
     return torch.where(torch.isfinite(start).all(-1, keepdim=True), start, f)
 
@@ -245,14 +246,14 @@ def laplace_evidence(
     r"""The Laplace evidence ``log q(Y)`` per problem, differentiable in the hyperparameters.
 
     Args:
-        K: ``B x n x n`` (or ``n x n``) kernel matrices; may carry gradients.
+        K: ``b x n x n`` (or ``n x n``) kernel matrices; may carry gradients.
         obs: the observations; the likelihoods' parameters may carry gradients.
         mode: the detached modes for the same values.
         L: ``chol(K + jitter I)`` (detached), if already computed.
-        jitter: the diagonal jitter of ``L`` (a float or ``B`` values).
+        jitter: the diagonal jitter of ``L`` (a float or ``b`` values).
 
     Returns:
-        ``B`` values (a scalar for an unbatched ``K``).
+        ``b`` values (a scalar for an unbatched ``K``).
 
     The value is ``log p(Y|f) - a^T a / 2 - log|B| / 2`` at the mode. Its gradient is written
     out rather than traced through the factorisations: with ``Sigma = (K^-1 + W)^-1 = L B^-1 L^T``,
@@ -280,7 +281,7 @@ def laplace_evidence(
     ll, g, weights = obs.evaluate(mode.f)  # the likelihood parameters may carry gradients
     with torch.no_grad():
         L = torch.linalg.cholesky(K.detach() + jit * _eye(n, K)) if L is None else L.detach().reshape(K.shape)
-        V = torch.linalg.solve_triangular(mode.B_chol, L.mT, upper=False)  # M^-1 L^T: Sigma = V^T V
+        V = torch.linalg.solve_triangular(mode.M, L.mT, upper=False)  # M^-1 L^T: Sigma = V^T V
         P = obs.rows(V.mT)  # per term, the rows d_k V^T: d_k^T Sigma d_k = |d_k V^T|^2
         s = tuple((Pt * Pt).sum(-1) for Pt in P)
         h = obs.adjoint([dw * sk for dw, sk in zip(obs.curvature_slopes(mode.f), s)], n, like=K)
@@ -300,7 +301,7 @@ def _kernel_gradient(
     alpha: Tensor, WV_t: Tensor, h: Tensor, Sigma_h: Tensor, obs: Observations, weights: tuple[Tensor, ...]
 ) -> Tensor:
     r"""``d log q / d K = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``
-    (``B x n x n``; see :func:`laplace_evidence`), given ``W V^T`` (``Sigma = V^T V``), whose
+    (``b x n x n``; see :func:`laplace_evidence`), given ``W V^T`` (``Sigma = V^T V``), whose
     product with its transpose is ``W Sigma W``."""
     n = WV_t.shape[-1]
     W = obs.W_dense(n, weights, like=WV_t)
@@ -311,10 +312,10 @@ def _kernel_gradient(
 
 
 def _second_order_value(ll: Tensor, g: Tensor, L: Tensor, mode: ModeResult, h: Tensor) -> Tensor:
-    r"""``log p(Y|f) - a^T a / 2 - log|B| / 2`` at the mode (``B`` values), plus the first-order
+    r"""``log p(Y|f) - a^T a / 2 - log|B| / 2`` at the mode (``b`` values), plus the first-order
     change of one more Newton step: the mode is exact only to the solver's tolerance, and the
     corrected value is second-order accurate (smooth in the hyperparameters)."""
-    a, M = mode.a, mode.B_chol
+    a, M = mode.a, mode.M
     grad_a = (L.mT @ g.unsqueeze(-1)).squeeze(-1) - a
     step = torch.cholesky_solve(grad_a.unsqueeze(-1), M).squeeze(-1)
     return (
@@ -327,7 +328,7 @@ def _second_order_value(ll: Tensor, g: Tensor, L: Tensor, mode: ModeResult, h: T
 
 
 def _solve_t(L: Tensor, a: Tensor) -> Tensor:
-    """``L^-T a`` for ``B x n`` ``a``."""
+    """``L^-T a`` for ``b x n`` ``a``."""
     return torch.linalg.solve_triangular(L.mT, a.unsqueeze(-1), upper=True).squeeze(-1)
 
 
@@ -342,15 +343,15 @@ def traced_mode(
     ``d a~ = B^{-1} d(grad Psi)``, and ``grad Psi(a(theta), theta) = 0`` gives ``B da = d(grad Psi)``).
 
     Args:
-        L: ``B x n x n`` ``chol(K + jitter I)``, carrying the gradients.
+        L: ``b x n x n`` ``chol(K + jitter I)``, carrying the gradients.
         obs: the observations (their likelihoods' parameters and targets may carry gradients).
         mode: the detached mode for the same values, batched.
         keep_value: return exactly the mode's value (only the derivative of the step); else the
             value after the step (second-order closer to the exact mode).
 
     Returns:
-        ``a~`` (``B x n``), the log-likelihood at ``f~ = L a~`` (``B``) and ``M``, the Cholesky
-        factor of ``B = I + L^T W L`` there (``B x n x n``; Fisher ``W`` where ``mode`` used it).
+        ``a~`` (``b x n``), the log-likelihood at ``f~ = L a~`` (``b``) and ``M``, the Cholesky
+        factor of ``B = I + L^T W L`` there (``b x n x n``; Fisher ``W`` where ``mode`` used it).
 
     Raises:
         NotPSDError: ``B`` is not positive definite.
@@ -358,7 +359,7 @@ def traced_mode(
     a = mode.a
     g = obs.evaluate((L @ a.unsqueeze(-1)).squeeze(-1)).grad
     grad = (L.mT @ g.unsqueeze(-1)).squeeze(-1) - a
-    step = torch.cholesky_solve(grad.unsqueeze(-1), mode.B_chol).squeeze(-1)
+    step = torch.cholesky_solve(grad.unsqueeze(-1), mode.M).squeeze(-1)
     a_t = a + (step - step.detach() if keep_value else step)
     ll, _, weights = obs.evaluate((L @ a_t.unsqueeze(-1)).squeeze(-1), fisher=mode.fisher_fallback)
     M, info = torch.linalg.cholesky_ex(obs.whitened_hessian(L, weights))
@@ -368,7 +369,7 @@ def traced_mode(
 
 
 def _laplace_evidence_traced(L: Tensor, obs: Observations, mode: ModeResult) -> Tensor:
-    r"""The evidence with its gradient traced by autograd (``L``, ``B x n x n``, carries them)
+    r"""The evidence with its gradient traced by autograd (``L``, ``b x n x n``, carries them)
     through :func:`traced_mode`, so that it includes the dependence of the mode on the
     hyperparameters, including through ``W``."""
     single = L.dim() == 2
@@ -379,47 +380,47 @@ def _laplace_evidence_traced(L: Tensor, obs: Observations, mode: ModeResult) -> 
 
 
 class PredictiveCache:
-    """What prediction needs, computed once per mode (eqs. 9-10), for ``B`` problems.
+    """What prediction needs, computed once per mode (eqs. 9-10), for ``b`` problems.
 
-    ``A = I - B^-1`` (``B x n x n`` inverses) is formed on first use only, so that re-solving the
+    ``A = I - B^-1`` (``b x n x n`` inverses) is formed on first use only, so that re-solving the
     mode during a hyperparameter fit, where no prediction is made, does not pay for it.
 
     Args:
-        L: ``B x n x n`` ``chol(K + jitter I)``.
-        alpha: ``B x n`` vectors ``K^-1 f_hat``.
-        B_chol: ``B x n x n`` Cholesky factors of ``B`` at the modes.
+        L: ``b x n x n`` ``chol(K + jitter I)``.
+        alpha: ``b x n`` vectors ``K^-1 f_hat``.
+        M: ``b x n x n`` Cholesky factors of ``B`` at the modes.
     """
 
-    def __init__(self, L: Tensor, alpha: Tensor, B_chol: Tensor):
-        self.L, self.alpha, self.B_chol = L, alpha, B_chol
+    def __init__(self, L: Tensor, alpha: Tensor, M: Tensor):
+        self.L, self.alpha, self.M = L, alpha, M
         self._A: Tensor | None = None
 
     @classmethod
     def from_mode(cls, L: Tensor, mode: ModeResult) -> PredictiveCache:
         """The cache for ``mode``, the Laplace mode of the problems whose prior factors are ``L``."""
         mode = mode.batched()
-        L = L.reshape(mode.B_chol.shape)
-        return cls(L, _solve_t(L, mode.a), mode.B_chol)
+        L = L.reshape(mode.M.shape)
+        return cls(L, _solve_t(L, mode.a), mode.M)
 
     @classmethod
     def traced(cls, K: Tensor, jitter: float | Tensor, obs: Observations, mode: ModeResult) -> PredictiveCache:
-        """The cache for ``mode`` as a differentiable function of ``K`` (``B x n x n``) and of the
+        """The cache for ``mode`` as a differentiable function of ``K`` (``b x n x n``) and of the
         observations' targets (:func:`traced_mode`): predictions then have gradients with
         respect to the training items (e.g. a fantasy model's fantasy points) and targets. The
         values are those of :meth:`from_mode`."""
         mode = mode.batched()
         n = K.shape[-1]
         jit = torch.as_tensor(jitter, dtype=K.dtype, device=K.device).reshape(-1, 1, 1)
-        L = torch.linalg.cholesky(K.reshape(mode.B_chol.shape) + jit * _eye(n, K))
+        L = torch.linalg.cholesky(K.reshape(mode.M.shape) + jit * _eye(n, K))
         a_t, _, M = traced_mode(L, obs, mode, keep_value=True)
         return cls(L, _solve_t(L, a_t), M)
 
     @property
     def A(self) -> Tensor:
-        """``I - B^-1`` (``B x n x n``), so that ``cov = K** - v^T A v`` with ``v = L^-1 K_X*``."""
+        """``I - B^-1`` (``b x n x n``), so that ``cov = K** - v^T A v`` with ``v = L^-1 K_X*``."""
         A = self._A
         if A is None:
-            A = _eye(self.L.shape[-1], self.L) - torch.cholesky_inverse(self.B_chol)
+            A = _eye(self.L.shape[-1], self.L) - torch.cholesky_inverse(self.M)
             A = self._A = 0.5 * (A + A.mT)
         return A
 
@@ -433,23 +434,23 @@ def predict(cache: PredictiveCache, K_xs: Tensor, k_ss: Tensor) -> tuple[Tensor,
     r"""Predictive mean and covariance (eqs. 9-10) of ``t`` blocks of ``q`` test points per problem.
 
     Args:
-        cache: from :func:`predictive_cache` (``B`` problems).
-        K_xs: ``B x n x t x q`` cross-covariances between each problem's items and its test points.
-        k_ss: ``B x t x q x q`` prior covariance of each block, or ``B x t x q`` prior variances
+        cache: from :func:`predictive_cache` (``b`` problems).
+        K_xs: ``b x n x t x q`` cross-covariances between each problem's items and its test points.
+        k_ss: ``b x t x q x q`` prior covariance of each block, or ``b x t x q`` prior variances
             (then the posterior variances are returned instead of the covariances).
 
     Returns:
-        mean ``B x t x q`` and covariance ``B x t x q x q`` (or variance ``B x t x q``):
+        mean ``b x t x q`` and covariance ``b x t x q x q`` (or variance ``b x t x q``):
         ``mean = K_*X K^-1 f_hat`` (eq. 9) and ``cov = K_** - K_*X (I + W K)^-1 W K_X*`` (eq. 10),
         computed as ``K_** - v^T (I - B^-1) v`` with ``v = L^-1 K_X*``.
     """
-    B, n, t, q = K_xs.shape
-    flat = K_xs.reshape(B, n, t * q)
-    mean = (cache.alpha.unsqueeze(-2) @ flat).reshape(B, t, q)
+    b, n, t, q = K_xs.shape
+    flat = K_xs.reshape(b, n, t * q)
+    mean = (cache.alpha.unsqueeze(-2) @ flat).reshape(b, t, q)
     v = torch.linalg.solve_triangular(cache.L, flat, upper=False)
     Av = cache.A @ v
     if k_ss.dim() == 3:
-        return mean, k_ss - (v * Av).sum(-2).reshape(B, t, q)
-    # v_t^T A v_t per block: (B x t x q x n) @ (B x t x n x q)
-    cov = k_ss - v.reshape(B, n, t, q).permute(0, 2, 3, 1) @ Av.reshape(B, n, t, q).transpose(1, 2)
+        return mean, k_ss - (v * Av).sum(-2).reshape(b, t, q)
+    # v_t^T A v_t per block: (b x t x q x n) @ (b x t x n x q)
+    cov = k_ss - v.reshape(b, n, t, q).permute(0, 2, 3, 1) @ Av.reshape(b, n, t, q).transpose(1, 2)
     return mean, cov

@@ -1,4 +1,4 @@
-r"""Newton's method for ``B`` Laplace modes at once, as a few named steps over a small state.
+r"""Newton's method for ``b`` Laplace modes at once, as a few named steps over a small state.
 
 The objective is :mod:`torchpref.inference.laplace`'s whitened log posterior ``Psi(a) = log p(Y | L a) -
 a^T a / 2``. One iteration of :func:`newton_mode`:
@@ -14,7 +14,7 @@ a^T a / 2``. One iteration of :func:`newton_mode`:
 4. near the mode, :func:`chord_steps`: more steps with the same factor while they contract.
 
 Far from the mode (decrement above 1) large float64 problems take step 1-3 with ``B`` in
-float32 (:func:`float32_step`). All tensors are ``B x ...``; every problem's state moves only
+float32 (:func:`float32_step`). All tensors are ``b x ...``; every problem's state moves only
 while it is *active* (not yet converged or stuck), so each problem follows the iterates it would
 follow alone.
 """
@@ -29,6 +29,7 @@ from torch import Tensor
 
 from torchpref.inference.numerics import NotPSDError, roundoff_floor
 from torchpref.inference.observations import Observations
+from torchpref.inference.shapes import Latent, Matrices, PerProblem, ProblemMask, TermValues
 
 ARMIJO = 1e-4  # sufficient increase: Psi(a + t s) >= Psi(a) + ARMIJO t grad^T s
 MIN_STEP = 1e-12  # backtracking gives up below this step length
@@ -45,18 +46,18 @@ class NewtonOptions:
 
 @dataclass(frozen=True)
 class NewtonPoint:
-    """One iterate per problem: ``a`` (``B x n``), ``f = L a`` (``None`` where the likelihood was
+    """One iterate per problem: ``a`` (``b x n``), ``f = L a`` (``None`` where the likelihood was
     evaluated from the rows ``D L``: :meth:`Problem.utilities` forms it on demand), ``Psi(a)``
-    (``B``), its gradient ``grad`` (``B x n``) and the likelihood weights there (per term, ``B x m``)."""
+    (``b``), its gradient ``grad`` (``b x n``) and the likelihood weights there (per term, ``b x m``)."""
 
-    a: Tensor
-    f: Tensor | None
-    psi: Tensor
-    grad: Tensor
-    weights: tuple[Tensor, ...]
+    a: Latent
+    f: Latent | None
+    psi: PerProblem
+    grad: Latent
+    weights: tuple[TermValues, ...]
 
     def where(self, take: Tensor, other: NewtonPoint) -> NewtonPoint:
-        """This point for the problems in ``take`` (``B`` bool), ``other`` elsewhere."""
+        """This point for the problems in ``take`` (``b`` bool), ``other`` elsewhere."""
         if bool(take.all()):
             return self
 
@@ -75,15 +76,15 @@ class NewtonPoint:
 
 @dataclass(frozen=True)
 class Factor:
-    """``B = I + L^T W L`` factorised at a point: Cholesky ``M`` (``B x n x n``), the weights used
+    """``B = I + L^T W L`` factorised at a point: Cholesky ``M`` (``b x n x n``), the weights used
     and which problems used Fisher weights."""
 
-    M: Tensor
-    weights: tuple[Tensor, ...]
-    fisher: Tensor
+    M: Matrices
+    weights: tuple[TermValues, ...]
+    fisher: ProblemMask
 
     def where(self, take: Tensor, other: Factor) -> Factor:
-        """Problem by problem: this factor where ``take`` (``B``) is true, ``other`` elsewhere."""
+        """Problem by problem: this factor where ``take`` (``b``) is true, ``other`` elsewhere."""
         if bool(take.all()):
             return self
         t1, t2 = take.reshape(-1, 1), take.reshape(-1, 1, 1)
@@ -98,13 +99,13 @@ class Factor:
 class NewtonResult:
     point: NewtonPoint
     factor: Factor  # exact (or Fisher where it had to be) at ``point``
-    converged: Tensor  # B bool
-    decrement: Tensor  # B, the last Newton decrement of each problem
+    converged: ProblemMask
+    decrement: PerProblem  # the last Newton decrement of each problem
     iterations: int
 
 
 class Problem:
-    """``B`` whitened log posteriors ``Psi`` given ``L`` (``B x n x n``) and the observations."""
+    """``b`` whitened log posteriors ``Psi`` given ``L`` (``b x n x n``) and the observations."""
 
     def __init__(self, L: Tensor, obs: Observations):
         self.L, self.obs = L, obs
@@ -121,7 +122,7 @@ class Problem:
         return torch.where(torch.isfinite(a).all(-1, keepdim=True), a, 0.0)
 
     def start(self, starts: tuple[Tensor, ...]) -> NewtonPoint:
-        """The point of highest ``Psi`` among the candidate ``starts`` (each ``B x n`` utilities;
+        """The point of highest ``Psi`` among the candidate ``starts`` (each ``b x n`` utilities;
         zeros if none), problem by problem."""
         point = self.evaluate(self.whiten(starts[0] if starts else None))
         for start in starts[1:]:
@@ -142,12 +143,12 @@ class Problem:
         return NewtonPoint(a, f, lt.log_lik - 0.5 * (a * a).sum(-1), grad, lt.weights)
 
     def utilities(self, point: NewtonPoint) -> Tensor:
-        """``f = L a`` (``B x n``) at ``point``."""
+        """``f = L a`` (``b x n``) at ``point``."""
         return point.f if point.f is not None else (self.L @ point.a.unsqueeze(-1)).squeeze(-1)
 
     @staticmethod
     def floor(point: NewtonPoint) -> Tensor:
-        """The half decrement (``B``) below which ``point``'s dtype cannot resolve progress."""
+        """The half decrement (``b``) below which ``point``'s dtype cannot resolve progress."""
         prior = 0.5 * (point.a * point.a).sum(-1)
         return roundoff_floor(point.psi + prior, prior)
 
@@ -211,7 +212,7 @@ def _in_dtype(value: float, dtype: torch.dtype) -> float:
 
 
 def newton_direction(M: Tensor, grad: Tensor) -> tuple[Tensor, Tensor]:
-    """The step ``B^-1 grad`` (``B x n``) and the Newton decrement ``grad^T B^-1 grad`` (``B``)."""
+    """The step ``B^-1 grad`` (``b x n``) and the Newton decrement ``grad^T B^-1 grad`` (``b``)."""
     step = torch.cholesky_solve(grad.unsqueeze(-1), M).squeeze(-1)
     return step, (grad * step).sum(-1)
 
@@ -269,15 +270,15 @@ def _stalled(prob: Problem, point, dec: list[float], newton_dec: list[float]) ->
 
 
 def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: NewtonOptions) -> NewtonResult:
-    """The modes of ``B`` problems (see the module docstring), each from the candidate start (``B x n``
+    """The modes of ``b`` problems (see the module docstring), each from the candidate start (``b x n``
     each; zeros if none) of highest ``Psi``; all inputs detached. The per-problem tests run on the
     host, on one copy of each iteration's decrements (a few numbers)."""
     prob = Problem(L, obs)
     point = prob.start(starts)
-    B = L.shape[0]
+    b = L.shape[0]
     tol, stuck_tol = _in_dtype(opts.tol, L.dtype), _in_dtype(STUCK_TOL, L.dtype)
-    active, converged, has_factor = [True] * B, [False] * B, [False] * B
-    decrement = [math.inf] * B
+    active, converged, has_factor = [True] * b, [False] * b, [False] * b
+    decrement = [math.inf] * b
     newton_dec = decrement  # the decrement of each problem's last factorisation
     final: Factor | None = None
     far = far_allowed = opts.float32_far

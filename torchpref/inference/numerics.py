@@ -60,7 +60,7 @@ ROUNDOFF_EPS = 100.0
 
 def roundoff_floor(log_lik: Tensor, prior_term: Tensor) -> Tensor:
     r"""The smallest half Newton decrement (log-posterior units) that ``log_lik``'s dtype can
-    resolve: ``ROUNDOFF_EPS eps (|log p(Y|f)| + a^T a / 2)`` per problem (``B`` each).
+    resolve: ``ROUNDOFF_EPS eps (|log p(Y|f)| + a^T a / 2)`` per problem (``b`` each).
 
     ``Psi = log p - a^T a / 2`` is a sum of terms much larger than itself (a Beta log density
     holds ``lgamma(nu)``), so its round-off, and that of its gradient, grows with the size of

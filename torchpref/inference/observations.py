@@ -4,7 +4,7 @@ Every kind of observation the model knows scores one scalar *predictor* per obse
 ``eta_k = sum_c coef_c f[index_{k, c}]``: a comparison ``[i, j]`` has ``eta = f_i - f_j``
 (``coef = (1, -1)``, eq. 3), a rating of item ``i`` has ``eta = f_i`` (``coef = (1,)``,
 eqs. 4-7). A :class:`Term` holds one kind (its likelihood, indices, targets and padding mask)
-for a batch of ``B`` independent problems; :class:`Observations` is a tuple of terms. Adding a
+for a batch of ``b`` independent problems; :class:`Observations` is a tuple of terms. Adding a
 likelihood kind (ties, ordinal ratings) is adding a :class:`Term` with its likelihood; the
 solver (:mod:`torchpref.inference.laplace`) only ever sees the terms.
 
@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from torchpref.inference.numerics import lower_t_matmul
+from torchpref.inference.shapes import Latent, PerProblem, TermIndex, TermValues
 
 #: Up to this many items ``W`` is multiplied as a dense matrix (formed by one scatter, no sparse
 #: pattern to build); above it as a sparse one.
@@ -48,22 +49,22 @@ class TermLikelihood(Protocol):
 
 @dataclass(frozen=True, eq=False)
 class Term:
-    r"""One kind of observation for ``B`` problems: ``m`` predictors each, scored by ``likelihood``.
+    r"""One kind of observation for ``b`` problems: ``m`` predictors each, scored by ``likelihood``.
 
     Args:
         likelihood: a :class:`TermLikelihood`.
-        index: ``B x m x c`` long, the items each predictor combines.
+        index: ``b x m x c`` long, the items each predictor combines.
         coef: the ``c`` coefficients, ``(1.0, -1.0)`` for ``f_i - f_j``, ``(1.0,)`` for ``f_i``.
-        target: ``B x m`` observed values passed to the likelihood after ``eta``, or ``None``.
-        mask: ``B x m`` bool, false for padding; ``None``: all observations are real.
+        target: ``b x m`` observed values passed to the likelihood after ``eta``, or ``None``.
+        mask: ``b x m`` bool, false for padding; ``None``: all observations are real.
         log_concave: the exact weights ``-l''`` are never negative, so Fisher scoring keeps them.
     """
 
     likelihood: TermLikelihood
-    index: Tensor
+    index: TermIndex
     coef: tuple[float, ...]
-    target: Tensor | None = None
-    mask: Tensor | None = None
+    target: TermValues | None = None
+    mask: TermValues | None = None
     log_concave: bool = False
     _patterns: dict = field(default_factory=dict, repr=False)
 
@@ -79,57 +80,57 @@ class Term:
         return x if self.mask is None else torch.where(self.mask, x, 0.0)
 
     def predictor(self, f: Tensor) -> Tensor:
-        """``eta`` (``B x m``) at ``f`` (``B x n``)."""
-        B, n = f.shape
+        """``eta`` (``b x m``) at ``f`` (``b x n``)."""
+        b, n = f.shape
         flat, eta = f.reshape(-1), None
         for c, coef in enumerate(self.coef):
-            x = flat.index_select(0, self._flat_index(c, B, n)).view(B, -1)
+            x = flat.index_select(0, self._flat_index(c, b, n)).view(b, -1)
             eta = (x if coef == 1.0 else coef * x) if eta is None else (eta - x if coef == -1.0 else eta + coef * x)
         assert eta is not None  # a term has at least one coefficient
         return eta
 
     def adjoint(self, x: Tensor, n: int) -> Tensor:
-        """``sum_k x_k d_k`` (``B x n``) for per-observation values ``x`` (``B x m``)."""
-        B = x.shape[0]
-        out = x.new_zeros(B * n)
+        """``sum_k x_k d_k`` (``b x n``) for per-observation values ``x`` (``b x m``)."""
+        b = x.shape[0]
+        out = x.new_zeros(b * n)
         for c, coef in enumerate(self.coef):
-            out.index_add_(0, self._flat_index(c, B, n), x.reshape(-1), alpha=coef)
-        return out.view(B, n)
+            out.index_add_(0, self._flat_index(c, b, n), x.reshape(-1), alpha=coef)
+        return out.view(b, n)
 
-    def _flat_index(self, c: int, B: int, n: int) -> Tensor:
-        """The items of coefficient ``c`` as positions among the ``B n`` items (or rows of ``B``
+    def _flat_index(self, c: int, b: int, n: int) -> Tensor:
+        """The items of coefficient ``c`` as positions among the ``b n`` items (or rows of ``b``
         stacked ``n x k`` matrices) of all problems."""
-        key = ("flat_rows", c, B, n)
+        key = ("flat_rows", c, b, n)
         if key not in self._patterns:
             with torch.inference_mode(False):  # kept for later autograd passes even if first asked for in a solve
-                offset = (torch.arange(B, device=self.index.device) * n).reshape(-1, 1) if B > 1 else 0
+                offset = (torch.arange(b, device=self.index.device) * n).reshape(-1, 1) if b > 1 else 0
                 self._patterns[key] = (self.index[..., c] + offset).reshape(-1)
         return self._patterns[key]
 
     def rows(self, L: Tensor) -> Tensor:
-        """``D L`` (``B x m x k``): each observation's row ``d_k`` times ``L`` (``B x n x k``)."""
-        B, n, k = L.shape
-        flat = L.reshape(B * n, k)  # the rows of all problems: one index_select per coefficient
+        """``D L`` (``b x m x k``): each observation's row ``d_k`` times ``L`` (``b x n x k``)."""
+        b, n, k = L.shape
+        flat = L.reshape(b * n, k)  # the rows of all problems: one index_select per coefficient
         out = None
         for c, coef in enumerate(self.coef):
-            picked = flat.index_select(0, self._flat_index(c, B, n)).reshape(B, -1, k)
+            picked = flat.index_select(0, self._flat_index(c, b, n)).reshape(b, -1, k)
             out = (picked if coef == 1.0 else coef * picked) if out is None else out.add_(picked, alpha=coef)
         assert out is not None  # a term has at least one coefficient
         return out
 
     def adjoint_rows(self, X: Tensor, n: int) -> Tensor:
-        """``D^T X`` (``B x n x k``) for one row per observation, ``X`` (``B x m x k``): the transpose of :meth:`rows`."""
-        B, k = X.shape[0], X.shape[-1]
-        out = X.new_zeros(B * n, k)
+        """``D^T X`` (``b x n x k``) for one row per observation, ``X`` (``b x m x k``): the transpose of :meth:`rows`."""
+        b, k = X.shape[0], X.shape[-1]
+        out = X.new_zeros(b * n, k)
         for c, coef in enumerate(self.coef):
-            out.index_add_(0, self._flat_index(c, B, n), X.reshape(-1, k), alpha=coef)
-        return out.reshape(B, n, k)
+            out.index_add_(0, self._flat_index(c, b, n), X.reshape(-1, k), alpha=coef)
+        return out.reshape(b, n, k)
 
     def evaluate(
         self, f: Tensor, fisher: Tensor | None = None, eta: Tensor | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """``(log p summed per problem (B), d log p / d eta (B x m), weights w (B x m))``;
-        ``fisher`` (``B`` bool) swaps in the Fisher weights for those problems; ``eta``: the
+        """``(log p summed per problem (b), d log p / d eta (b x m), weights w (b x m))``;
+        ``fisher`` (``b`` bool) swaps in the Fisher weights for those problems; ``eta``: the
         predictors at ``f`` if already computed."""
         eta = self.predictor(f) if eta is None else eta
         lp, d1, d2 = self.likelihood.derivatives(eta, *self._args())
@@ -139,7 +140,7 @@ class Term:
         return self._masked(lp).sum(-1), self._masked(d1), self._masked(w)
 
     def curvature_slope(self, f: Tensor) -> Tensor:
-        """``d w / d eta = -l'''(eta)`` (``B x m``), for the evidence's gradient."""
+        """``d w / d eta = -l'''(eta)`` (``b x m``), for the evidence's gradient."""
         return self._masked(-self.likelihood.third_derivative(self.predictor(f), *self._args()))
 
     def W_entries(self, n: int) -> tuple[Tensor, Tensor]:
@@ -156,7 +157,7 @@ class Term:
         return self._patterns[n]
 
     def W_flat_index(self, n: int) -> Tensor:
-        """:meth:`W_entries` as positions in the flattened ``B x n x n`` batch of ``W`` matrices."""
+        """:meth:`W_entries` as positions in the flattened ``b x n x n`` batch of ``W`` matrices."""
         key = ("flat", n)
         if key not in self._patterns:
             rows, cols = self.W_entries(n)
@@ -174,21 +175,21 @@ class Term:
 
 
 def pairwise_term(likelihood: Any, comparisons: Tensor, mask: Tensor | None = None, **kw) -> Term:
-    """A term on ``f_i - f_j`` for comparisons ``B x p x 2`` (rows ``[i, j]``)."""
+    """A term on ``f_i - f_j`` for comparisons ``b x p x 2`` (rows ``[i, j]``)."""
     return Term(likelihood, comparisons, (1.0, -1.0), mask=mask, **kw)
 
 
 def item_term(likelihood: Any, index: Tensor, target: Tensor | None = None, mask: Tensor | None = None, **kw) -> Term:
-    """A term on ``f_i`` for items ``index`` (``B x q``) with observed values ``target``."""
+    """A term on ``f_i`` for items ``index`` (``b x q``) with observed values ``target``."""
     return Term(likelihood, index.unsqueeze(-1), (1.0,), target=target, mask=mask, **kw)
 
 
 class LikelihoodTerms(NamedTuple):
     """The log-likelihood and its derivatives at one ``f``, per problem."""
 
-    log_lik: Tensor  # B
-    grad: Tensor  # B x n, d log p / d f
-    weights: tuple[Tensor, ...]  # per term, B x m: W = sum_k w_k d_k^T d_k
+    log_lik: PerProblem
+    grad: Latent  # d log p / d f
+    weights: tuple[TermValues, ...]  # per term: W = sum_k w_k d_k^T d_k
 
 
 @dataclass(frozen=True, eq=False)
@@ -214,8 +215,8 @@ class Observations:
         tie_likelihood: Any = None,
         tie_mask: Tensor | None = None,
     ) -> Observations:
-        """Comparisons (``p x 2`` or ``B x p x 2``), ratings (``q`` or ``B x q``, of items
-        ``rating_index``) and ties (``t x 2`` or ``B x t x 2``, scored by ``tie_likelihood``) as
+        """Comparisons (``p x 2`` or ``b x p x 2``), ratings (``q`` or ``b x q``, of items
+        ``rating_index``) and ties (``t x 2`` or ``b x t x 2``, scored by ``tie_likelihood``) as
         terms; empty kinds are left out. A likelihood with ``log_concave = True`` (the ordinal
         ones, :mod:`torchpref.likelihoods.ordinal`) keeps its exact weights under Fisher scoring."""
         batched = comparisons.dim() == 3
@@ -251,7 +252,7 @@ class Observations:
         return sum(t.size for t in self.terms)
 
     def evaluate(self, f: Tensor, fisher: Tensor | None = None) -> LikelihoodTerms:
-        """Log-likelihood, gradient and weights at ``f`` (``B x n``); ``fisher`` as :meth:`Term.evaluate`."""
+        """Log-likelihood, gradient and weights at ``f`` (``b x n``); ``fisher`` as :meth:`Term.evaluate`."""
         ll, grad, weights = f.new_zeros(f.shape[0]), torch.zeros_like(f), []
         for t in self.terms:
             lp, d1, w = t.evaluate(f, fisher)
@@ -261,7 +262,7 @@ class Observations:
 
     def evaluate_whitened(self, a: Tensor, rows: Sequence[Tensor]) -> LikelihoodTerms:
         """:meth:`evaluate` at ``f = L a`` given each term's rows ``D L`` (:meth:`whitened_rows`),
-        with the gradient in ``a``: ``L^T d log p / d f`` (``B x n``)."""
+        with the gradient in ``a``: ``L^T d log p / d f`` (``b x n``)."""
         ll: Tensor | None = None
         grad = torch.zeros_like(a)
         weights = []
@@ -275,7 +276,7 @@ class Observations:
         return LikelihoodTerms(ll, grad, tuple(weights))
 
     def whitened_rows(self, L: Tensor) -> tuple[Tensor, ...] | None:
-        """Each term's rows ``D L`` (``B x m x n``) for ``L`` (``B x n x n``), where forming them
+        """Each term's rows ``D L`` (``b x m x n``) for ``L`` (``b x n x n``), where forming them
         once pays: when :meth:`whitened_hessian` takes the rows' path (``m n^2`` against the
         ``n^3`` of ``L^T (W L)``: up to ``2 n`` observations for a small ``n``, fewer than
         ``n / 2`` for a large one); else ``None``."""
@@ -285,7 +286,7 @@ class Observations:
         return tuple(t.rows(L) for t in self.terms)
 
     def adjoint(self, values: Sequence[Tensor], n: int, like: Tensor) -> Tensor:
-        """``sum over terms and k of x_k d_k`` (``B x n``, dtype and device of ``like``) for
+        """``sum over terms and k of x_k d_k`` (``b x n``, dtype and device of ``like``) for
         per-term values."""
         out = like.new_zeros(self.batch, n)
         for t, x in zip(self.terms, values):
@@ -297,19 +298,19 @@ class Observations:
         return tuple(t.curvature_slope(f) for t in self.terms)
 
     def rows(self, X: Tensor) -> tuple[Tensor, ...]:
-        """Each term's rows ``D X`` (``B x m x k``) for ``X`` (``B x n x k``)."""
+        """Each term's rows ``D X`` (``b x m x k``) for ``X`` (``b x n x k``)."""
         return tuple(t.rows(X) for t in self.terms)
 
     def adjoint_rows(self, values: Sequence[Tensor], n: int, like: Tensor) -> Tensor:
-        """``sum over terms of D^T X`` (``B x n x k``, dtype and device of ``like``) for per-term
-        rows ``X`` (``B x m x k``)."""
+        """``sum over terms of D^T X`` (``b x n x k``, dtype and device of ``like``) for per-term
+        rows ``X`` (``b x m x k``)."""
         out = like.new_zeros(self.batch, n, like.shape[-1])
         for t, X in zip(self.terms, values):
             out = out + t.adjoint_rows(X, n)
         return out
 
     def W_vector(self, weights: Sequence[Tensor], x: Tensor) -> Tensor:
-        """``W x = sum_k w_k d_k (d_k^T x)`` (``B x n``) for ``x`` (``B x n``), from the terms."""
+        """``W x = sum_k w_k d_k (d_k^T x)`` (``b x n``) for ``x`` (``b x n``), from the terms."""
         return self.adjoint([w * t.predictor(x) for t, w in zip(self.terms, weights)], x.shape[-1], like=x)
 
     def W_blocks(self, n: int, weights: Sequence[Tensor]) -> Tensor:
@@ -326,7 +327,7 @@ class Observations:
         return torch.sparse_coo_tensor(index, vals, (N, N), is_coalesced=True, check_invariants=False)
 
     def W_operator(self, n: int, weights: Sequence[Tensor], dense: Tensor | None = None) -> Callable[[Tensor], Tensor]:
-        """``X -> W X`` (``B x n x k`` to ``B x n x k``) with ``W`` formed once for repeated
+        """``X -> W X`` (``b x n x k`` to ``b x n x k``) with ``W`` formed once for repeated
         products: dense for small ``n`` (``dense``, if given, is that matrix), else block-sparse."""
         if not self.terms:
             return torch.zeros_like
@@ -337,11 +338,11 @@ class Observations:
         return lambda X: torch.sparse.mm(W_sparse, X.reshape(-1, X.shape[-1])).reshape(X.shape)
 
     def W_times(self, weights: Sequence[Tensor], X: Tensor) -> Tensor:
-        """``W X`` (``B x n x k``) for ``B x n x k`` ``X``: dense for small ``n``, else block-sparse."""
+        """``W X`` (``b x n x k``) for ``b x n x k`` ``X``: dense for small ``n``, else block-sparse."""
         return self.W_operator(X.shape[-2], weights)(X)
 
     def W_dense(self, n: int, weights: Sequence[Tensor], like: Tensor | None = None) -> Tensor:
-        """``W`` (``B x n x n``, eq. 8) densely, for the evidence's gradient, inspection and tests
+        """``W`` (``b x n x n``, eq. 8) densely, for the evidence's gradient, inspection and tests
         (dtype and device of the weights, or of ``like`` when there are no terms)."""
         ref = weights[0] if weights else like
         W = torch.zeros(
@@ -356,7 +357,7 @@ class Observations:
         return W
 
     def whitened_hessian(self, L: Tensor, weights: Sequence[Tensor], rows: Sequence[Tensor] | None = None) -> Tensor:
-        r"""``B = I + L^T W L`` (``B x n x n``) for ``L`` (``B x n x n``).
+        r"""``B = I + L^T W L`` (``b x n x n``) for ``L`` (``b x n x n``).
 
         Given each term's rows ``D L`` (``rows``, :meth:`whitened_rows`), or with a gradient to
         track, or with few observations per item: ``sum_terms (D L)^T diag(w) (D L)`` (``m n^2``

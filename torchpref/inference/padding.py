@@ -149,7 +149,7 @@ class PaddedData:
         def keep(t: Tensor, mask: Tensor | None) -> Tensor:
             return t[b] if mask is None else t[b][mask[b]]
 
-        ties = None if flat.ties is None else keep(flat.ties, flat.tie_mask)
+        ties = flat.X.new_zeros(0, 2, dtype=torch.long) if flat.ties is None else keep(flat.ties, flat.tie_mask)
         return PreferenceData(
             keep(flat.X, flat.item_mask),
             keep(flat.comparisons, flat.comparison_mask),
@@ -159,14 +159,14 @@ class PaddedData:
         )
 
     def flat(self) -> PaddedData:
-        """The same problems with the batch dimensions flattened into one (``B = prod(batch_shape)``)."""
-        B = self.num_problems
+        """The same problems with the batch dimensions flattened into one (``b = prod(batch_shape)``)."""
+        b = self.num_problems
 
         def f(t: Tensor | None, k: int) -> Tensor | None:
-            return None if t is None else t.reshape(B, *t.shape[t.dim() - k :])
+            return None if t is None else t.reshape(b, *t.shape[t.dim() - k :])
 
         def g(t: Tensor, k: int) -> Tensor:
-            return t.reshape(B, *t.shape[t.dim() - k :])
+            return t.reshape(b, *t.shape[t.dim() - k :])
 
         return PaddedData(
             g(self.X, 2),
@@ -182,8 +182,11 @@ class PaddedData:
 
     def map(self, fn: Callable[[Tensor], Tensor]) -> PaddedData:
         """The same problems with ``fn`` applied to every tensor (e.g. a device move)."""
-        values = {f.name: getattr(self, f.name) for f in fields(self)}
-        return PaddedData(**{k: None if v is None else fn(v) for k, v in values.items()})
+        mapped: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            mapped[f.name] = None if v is None else fn(v)
+        return PaddedData(**mapped)
 
     def with_items(self, X: Tensor) -> PaddedData:
         """The same problems with items ``X`` (e.g. transformed by an input transform)."""
@@ -192,7 +195,7 @@ class PaddedData:
     def observations(
         self, comparison_likelihood: Any, rating_likelihood: Any, tie_likelihood: Any = None
     ) -> Observations:
-        """The observations of the ``B`` flattened problems as likelihood terms."""
+        """The observations of the ``b`` flattened problems as likelihood terms."""
         d = self.flat()
         return Observations.from_data(
             d.comparisons,

@@ -201,7 +201,7 @@ def _choose_model_class(dataset, search_space_digest, specified_model_class=None
 
 
 _ORIGINAL_CHOOSE = _ax_utils.choose_model_class
-_choose_model_class.__wrapped__ = _ORIGINAL_CHOOSE
+setattr(_choose_model_class, "__wrapped__", _ORIGINAL_CHOOSE)  # noqa: B010  # functools' convention
 _lock = threading.Lock()
 _active: list[PreferenceGPOptIn] = []
 

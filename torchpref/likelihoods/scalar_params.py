@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import torch
 from gpytorch.constraints import Interval, Positive
@@ -37,11 +38,12 @@ def weak_load_hook(module: GModule) -> None:
     step leaves them to pile up and to make those passes more frequent. The same function is
     registered instead with the module passed in by torch (held weakly)."""
     hooks = module._load_state_dict_pre_hooks
+    register = module.register_load_state_dict_pre_hook
     for key, wrapped in list(hooks.items()):
         hook = getattr(wrapped, "hook", None)
         if getattr(hook, "__self__", None) is module and getattr(hook, "__func__", None) is _IGNORE_SHAPES:
             del hooks[key]
-            module.register_load_state_dict_pre_hook(_IGNORE_SHAPES)
+            register(_IGNORE_SHAPES)
 
 
 _IGNORE_SHAPES = GModule._load_state_hook_ignore_shapes
@@ -90,7 +92,15 @@ def _raw_value(name: str, value, constraint: Interval, like: Tensor) -> Tensor:
     return raw_value
 
 
-class _ScalarParamsMixin:
+if TYPE_CHECKING:  # the mixin is only ever mixed into a GPyTorch Module
+
+    class _MixinBase(GModule): ...
+
+else:
+    _MixinBase = object
+
+
+class _ScalarParamsMixin(_MixinBase):
     """Positive scalar hyperparameters kept as raw parameters with a constraint and an optional prior."""
 
     def __init__(self, *args, **kwargs):
@@ -104,7 +114,7 @@ class _ScalarParamsMixin:
         ``default`` of :data:`DEFAULT_CONSTRAINTS` if ``None``) and ``prior``."""
         constraint = DEFAULT_CONSTRAINTS[default]() if constraint is None else constraint
         kind, raw_value = getattr(constraint, "_torchpref_shared", False), None
-        if kind and isinstance(value, (int, float)) and not isinstance(value, bool):
+        if isinstance(kind, str) and isinstance(value, (int, float)) and not isinstance(value, bool):
             key = (kind, float(value))
             if key not in _SHARED_RAW_VALUES:
                 with torch.inference_mode(False):  # a normal tensor, as for the shared constraint

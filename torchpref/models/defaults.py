@@ -96,3 +96,17 @@ class PreferenceLikelihood(Module):
         return cls(
             comparison, rating, TieLikelihood(tie_threshold, comparison, learn=learn, tie_threshold_constraint=positive)
         )
+
+
+def preference_likelihood(model: Module) -> PreferenceLikelihood:
+    """``model.likelihood``, typed: a :class:`PreferenceLikelihood` (the model's comparison, rating,
+    tie and strict likelihoods). Raises ``ValueError`` naming the type for any other model, so a
+    selector or acquisition function given, say, a ``PairwiseGP`` says so instead of failing on a
+    missing attribute."""
+    lik = getattr(model, "likelihood", None)
+    if not isinstance(lik, PreferenceLikelihood):
+        raise ValueError(
+            f"this needs a torchpref PreferenceGP (its likelihood holds comparison and rating likelihoods), "
+            f"got a {type(model).__name__} whose likelihood is a {type(lik).__name__}."
+        )
+    return lik

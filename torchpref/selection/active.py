@@ -21,11 +21,12 @@ DEFAULT_COSTS = {"rating": 1.0, "ranking": 1.0}
 
 @dataclass
 class QueryRecord:
-    """One question and its answer."""
+    """One question and its answer: a rating, the chosen row, several rows "equally best", or
+    ``None`` for no preference (:func:`~torchpref.data.queries.record_answer`)."""
 
     step: int
     query: Query
-    answer: float | int
+    answer: float | int | list[int] | None
     cost: float
 
 

@@ -28,10 +28,10 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-from botorch.models.model import Model
 from torch import Tensor
 
-from torchpref.selection.strategies import joint_posterior, joint_samples
+from torchpref.models.defaults import preference_likelihood
+from torchpref.selection.samples import SelectorModel, joint_posterior, joint_samples
 from torchpref.selection.top_profile import ProfileVariancePerEffort, _Moments, _reduction, top_profile
 from torchpref.simulation.raters import EffortModel
 
@@ -138,13 +138,15 @@ class ProfilePerSecond(ProfileVariancePerEffort):
             return sec["rating"]
         return sec["ranking"] * (1.0 if q == self.m else self.effort.ranking(q) / self.effort.ranking(self.m))
 
-    def _prepare(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Tensor, Tensor, Any]:
+    def _prepare(
+        self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Tensor, Tensor, Any]:
         """As :meth:`ProfileVariancePerEffort._prepare`, on this selector's profile (``target``);
         the candidates by the summed variance of their columns."""
         mean, cov = joint_posterior(model, X)
         F, _ = joint_samples(mean, cov, generators, self.num_samples)
         T, S, N = F.shape
-        V, item_of = self._profile(F, max(1, min(N, round(self.top_fraction * N))), model.likelihood.rating)
+        V, item_of = self._profile(F, max(1, min(N, round(self.top_fraction * N))), preference_likelihood(model).rating)
         var = V.var(-2)  # T x C
         cols = var.argsort(-1, descending=True)
         n = max(1, int((var > 0).sum(-1).max()))  # the columns that matter (zero columns add nothing)

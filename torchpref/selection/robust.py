@@ -12,11 +12,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from botorch.models.model import Model
 from torch import Tensor
 
 from torchpref.data.queries import Query
 from torchpref.selection.choosing import query_items, uniform_among
+from torchpref.selection.samples import SelectorModel
 from torchpref.selection.strategies import RandomMixed, Selector
 
 __all__ = ["EpsilonExplore"]
@@ -47,7 +47,7 @@ class EpsilonExplore(Selector):
 
     def select_batch(
         self,
-        model: Model,
+        model: SelectorModel,
         X: Tensor,
         indices: Sequence[Tensor | None],
         step: int,
@@ -62,7 +62,13 @@ class EpsilonExplore(Selector):
         return out
 
     def choose(
-        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+        self,
+        model: SelectorModel,
+        queries: Sequence[Query],
+        *,
+        step: int = 0,
+        num_steps: int = 1,
+        generator: torch.Generator,
     ) -> int:
         if self._explore(generator):
             return uniform_among(query_items(queries), None, generator)

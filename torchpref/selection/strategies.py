@@ -14,11 +14,10 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
-from botorch.models.model import Model
 from torch import Tensor
 
+from torchpref.acquisition.choice_sets import greedy_choice_sets
 from torchpref.acquisition.functions import (
-    greedy_choice_set,
     item_ucb,
     membership_information,
     rating_bin_probabilities,
@@ -26,9 +25,14 @@ from torchpref.acquisition.functions import (
     top_set_membership,
 )
 from torchpref.data.queries import Query, ranking_query, rating_query
-from torchpref.inference.numerics import cholesky_batch
-from torchpref.models.batch import BatchedPreferenceGP
+from torchpref.models.defaults import preference_likelihood
 from torchpref.selection.choosing import QueryRows, choose_by_scores, query_items, ranking_cost, uniform_among
+from torchpref.selection.samples import (  # importable from here too
+    SelectorModel,
+    joint_posterior,
+    joint_samples,
+    sample_scorers,
+)
 
 
 def _ranking_size(m: int) -> int:
@@ -69,14 +73,20 @@ class Selector:
     name = "selector"
 
     def select(
-        self, model: Model, X: Tensor, indices: Tensor | None, step: int, num_steps: int, generator: torch.Generator
+        self,
+        model: SelectorModel,
+        X: Tensor,
+        indices: Tensor | None,
+        step: int,
+        num_steps: int,
+        generator: torch.Generator,
     ) -> Query:
         """The next query for ``model`` among the candidates ``X`` (``N x d``)."""
         return self.select_batch(model, X.unsqueeze(0), [indices], step, num_steps, [generator])[0]
 
     def select_batch(
         self,
-        model: Model,
+        model: SelectorModel,
         X: Tensor,
         indices: Sequence[Tensor | None],
         step: int,
@@ -88,7 +98,7 @@ class Selector:
 
     def choose(
         self,
-        model: Model,
+        model: SelectorModel,
         queries: Sequence[Query],
         *,
         step: int = 0,
@@ -105,15 +115,19 @@ class PerEffortSelector(Selector):
     r"""A selector that values each trial's best rating and best ranking per unit of effort
     (:meth:`values`) and asks the larger (the rating where they are equal)."""
 
+    rating_cost: float
+    ranking_cost: float
+    m: int
+
     def values(
-        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+        self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
     ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
         r"""``(rating rows T, rating values T, ranking rows T x m or None, ranking values T)``,
         values per unit of effort."""
         raise NotImplementedError
 
     def scorers(
-        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+        self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
     ) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
         r"""The value (not per effort) of a rating of each of the rows ``T x R`` and of a ranking of
         each ``T x R x q`` set of rows of the candidates ``X`` (``T x N x d``): two functions to
@@ -127,7 +141,7 @@ class PerEffortSelector(Selector):
 
     def choose(
         self,
-        model: Model,
+        model: SelectorModel,
         queries: Sequence[Query],
         *,
         step: int = 0,
@@ -141,7 +155,7 @@ class PerEffortSelector(Selector):
 
     def select_batch(
         self,
-        model: Model,
+        model: SelectorModel,
         X: Tensor,
         indices: Sequence[Tensor | None],
         step: int,
@@ -165,7 +179,7 @@ class RandomRatings(Selector):
 
     def select_batch(
         self,
-        model: Model,
+        model: SelectorModel,
         X: Tensor,
         indices: Sequence[Tensor | None],
         step: int,
@@ -178,7 +192,13 @@ class RandomRatings(Selector):
         ]
 
     def choose(
-        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+        self,
+        model: SelectorModel,
+        queries: Sequence[Query],
+        *,
+        step: int = 0,
+        num_steps: int = 1,
+        generator: torch.Generator,
     ) -> int:
         """A uniformly random rating query (any query if there is none)."""
         return uniform_among(query_items(queries), "rating", generator)
@@ -194,7 +214,7 @@ class RandomRankings(Selector):
 
     def select_batch(
         self,
-        model: Model,
+        model: SelectorModel,
         X: Tensor,
         indices: Sequence[Tensor | None],
         step: int,
@@ -208,7 +228,13 @@ class RandomRankings(Selector):
         ]
 
     def choose(
-        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+        self,
+        model: SelectorModel,
+        queries: Sequence[Query],
+        *,
+        step: int = 0,
+        num_steps: int = 1,
+        generator: torch.Generator,
     ) -> int:
         """A uniformly random ranking query (any query if there is none)."""
         return uniform_among(query_items(queries), "ranking", generator)
@@ -224,7 +250,7 @@ class RandomMixed(Selector):
 
     def select_batch(
         self,
-        model: Model,
+        model: SelectorModel,
         X: Tensor,
         indices: Sequence[Tensor | None],
         step: int,
@@ -239,7 +265,13 @@ class RandomMixed(Selector):
         return out
 
     def choose(
-        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+        self,
+        model: SelectorModel,
+        queries: Sequence[Query],
+        *,
+        step: int = 0,
+        num_steps: int = 1,
+        generator: torch.Generator,
     ) -> int:
         """A ranking with probability ``p_ranking``, else a rating, uniformly among the queries of
         that kind (any query if there is none)."""
@@ -254,35 +286,6 @@ def _ucb(model, X: Tensor, gamma: float) -> Tensor:
         return item_ucb(model, X, gamma)[0]
 
 
-def joint_posterior(model: Model | BatchedPreferenceGP, X: Tensor) -> tuple[Tensor, Tensor]:
-    """Joint posterior mean ``T x N`` and covariance ``T x N x N`` at ``X`` (``T x N x d``): a
-    :class:`~torchpref.models.batch.BatchedPreferenceGP`'s ``joint``, else (``T = 1``) ``model.posterior``."""
-    if isinstance(model, BatchedPreferenceGP):
-        return model.joint(X)
-    mvn = model.posterior(X).distribution
-    T, N = X.shape[:2]
-    return mvn.mean.reshape(T, N), mvn.covariance_matrix.reshape(T, N, N)
-
-
-def joint_samples(
-    mean: Tensor, cov: Tensor, generators: Sequence[torch.Generator], num_samples: int
-) -> tuple[Tensor, Tensor]:
-    """``T x S x N`` joint samples of ``N(mean, cov)`` (``T x N``, ``T x N x N``; ``S =
-    num_samples``, one ``randn`` draw from each trial's generator) and the std (``T x N``)."""
-    T, N = mean.shape
-    std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
-    jitters = [1e-9 * cov.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)]  # relative, then tenfold
-    for _ in range(7):
-        jitters.append(10 * jitters[-1])
-    L, _, failed = cholesky_batch(cov, torch.stack(jitters))
-    if bool(failed.any()):  # fall back on independent samples
-        L[failed] = torch.diag_embed(std[failed])
-    z = torch.stack(
-        [torch.randn(num_samples, N, generator=g, dtype=mean.dtype, device=mean.device) for g in generators]
-    )
-    return mean.unsqueeze(-2) + z @ L.mT, std
-
-
 class UCBRatings(Selector):
     """Rate the candidate of largest UCB (eq. 12)."""
 
@@ -293,7 +296,7 @@ class UCBRatings(Selector):
 
     def select_batch(
         self,
-        model: Model,
+        model: SelectorModel,
         X: Tensor,
         indices: Sequence[Tensor | None],
         step: int,
@@ -304,7 +307,13 @@ class UCBRatings(Selector):
         return [rating_query(X[b], indices[b], i) for b, i in enumerate(best)]
 
     def choose(
-        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+        self,
+        model: SelectorModel,
+        queries: Sequence[Query],
+        *,
+        step: int = 0,
+        num_steps: int = 1,
+        generator: torch.Generator,
     ) -> int:
         """The rating query of largest UCB (without one: the ranking of largest item UCB)."""
         qr = query_items(queries)
@@ -340,7 +349,7 @@ class UCBC(Selector):
 
     def select_batch(
         self,
-        model: Model,
+        model: SelectorModel,
         X: Tensor,
         indices: Sequence[Tensor | None],
         step: int,
@@ -348,7 +357,7 @@ class UCBC(Selector):
         generators: Sequence[torch.Generator],
     ) -> list[Query]:
         ucb = _ucb(model, X, self.gamma)
-        out = []
+        out: list[Query] = []
         for b, g in enumerate(generators):
             coin = float(torch.rand((), generator=g, dtype=torch.float64))
             if coin >= self.ranking_probability(step, num_steps):
@@ -367,7 +376,13 @@ class UCBC(Selector):
         return out
 
     def choose(
-        self, model: Model, queries: Sequence[Query], *, step: int = 0, num_steps: int = 1, generator: torch.Generator
+        self,
+        model: SelectorModel,
+        queries: Sequence[Query],
+        *,
+        step: int = 0,
+        num_steps: int = 1,
+        generator: torch.Generator,
     ) -> int:
         r"""The coin of :meth:`select`, then, for a rating, the rating query of largest UCB; for a
         ranking, a ranking query drawn with probability proportional to ``exp(max UCB / T_0 + sum
@@ -497,14 +512,14 @@ class InformationPerEffort(Selector):
         return F.unsqueeze(-2) > c.reshape(-1, 1)
 
     def _prepare(
-        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+        self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
     ) -> tuple[Tensor, Tensor, Callable[[Tensor], Tensor], Any]:
         """Joint samples ``F`` (``T x S x N``), the candidates by uncertainty of the target (``T x
         N``), the information function of answer probabilities and the model's likelihood."""
         mean, cov = joint_posterior(model, X)
         F, std = joint_samples(mean, cov, generators, self.num_samples)  # T x S x N
         T, S, N = F.shape
-        lik = model.likelihood
+        lik = preference_likelihood(model)
         ucb = mean + self.gamma * std
         tie = 1e-9 * torch.sigmoid(ucb - ucb.max(-1, keepdim=True).values)
         if self.target in ("top", "top+levels"):
@@ -537,7 +552,7 @@ class InformationPerEffort(Selector):
         return F, order, sample_information, lik
 
     def scorers(
-        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+        self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
     ) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
         """The information of a rating of rows ``T x R`` and of a ranking of rows ``T x R x q`` (not
         per effort; :meth:`PerEffortSelector.scorers`)."""
@@ -549,7 +564,7 @@ class InformationPerEffort(Selector):
 
     def select_batch(
         self,
-        model: Model,
+        model: SelectorModel,
         X: Tensor,
         indices: Sequence[Tensor | None],
         step: int,
@@ -566,31 +581,10 @@ class InformationPerEffort(Selector):
             rating_value = rating_info.max(-1).values / self.rating_cost
             if cand.shape[1] < self.m or self.m < 2:
                 return [rating_query(X[b], indices[b], best_rating[b]) for b in range(T)]
-            chosen, value = greedy_choice_set(Fc, lik.comparison, self.m, info, start=0)
+            chosen, value = greedy_choice_sets(Fc, lik.comparison, self.m, info, start=0)
             ranking = (value / self.ranking_cost > rating_value).tolist()
             rows = cand.gather(1, chosen)  # T x m
         return [
             ranking_query(X[b], indices[b], rows[b]) if ranking[b] else rating_query(X[b], indices[b], best_rating[b])
             for b in range(T)
         ]
-
-
-def sample_scorers(
-    F: Tensor, value: Callable[[Tensor], Tensor], likelihood: Any, num_bins: int
-) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
-    """:meth:`PerEffortSelector.scorers` of a value of answer probabilities (``T x R x S x Y -> T
-    x R``) under joint samples ``F`` (``T x S x N``): a rating's binned answer
-    (:func:`rating_bin_probabilities`), a ranking's choice (the comparison likelihood's
-    ``choice_probabilities``, lapses included)."""
-    T, S, _ = F.shape
-
-    def rating_fn(rows: Tensor) -> Tensor:  # T x R
-        Fr = F.gather(2, rows.unsqueeze(1).expand(T, S, rows.shape[1]))  # T x S x R
-        return value(rating_bin_probabilities(Fr.mT, likelihood.rating, num_bins))
-
-    def ranking_fn(rows: Tensor) -> Tensor:  # T x R x q
-        R, q = rows.shape[1:]
-        Fr = F.gather(2, rows.reshape(T, 1, R * q).expand(T, S, R * q)).reshape(T, S, R, q).transpose(1, 2)
-        return value(likelihood.comparison.choice_probabilities(Fr))
-
-    return rating_fn, ranking_fn

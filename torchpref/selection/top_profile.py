@@ -41,20 +41,15 @@ from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import torch
-from botorch.models.model import Model
 from gpytorch.likelihoods import Likelihood
 from torch import Tensor
 
-from torchpref.acquisition.choice_sets import greedy_choice_set
+from torchpref.acquisition.choice_sets import greedy_choice_sets
 from torchpref.acquisition.functions import rating_bin_probabilities
 from torchpref.acquisition.information import top_set_membership
-from torchpref.selection.strategies import (
-    PerEffortSelector,
-    effort_model,
-    joint_posterior,
-    joint_samples,
-    sample_scorers,
-)
+from torchpref.models.defaults import preference_likelihood
+from torchpref.selection.samples import SelectorModel, joint_posterior, joint_samples, sample_scorers
+from torchpref.selection.strategies import PerEffortSelector, effort_model
 
 __all__ = ["ProfileVariancePerEffort", "profile_variance_reduction", "top_profile"]
 
@@ -181,13 +176,17 @@ class ProfileVariancePerEffort(PerEffortSelector):
         self.num_samples, self.top_fraction = num_samples, top_fraction
         self.num_plausible, self.num_bins, self.clipped = num_plausible, num_bins, clipped
 
-    def _prepare(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Tensor, Tensor, Any]:
+    def _prepare(
+        self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Tensor, Tensor, Any]:
         """Joint samples ``F`` (``T x S x N``), the candidates by profile variance (``T x N``) and the
         value of answer probabilities (``T x R x S x Y -> T x R``)."""
         mean, cov = joint_posterior(model, X)
         F, _ = joint_samples(mean, cov, generators, self.num_samples)
         T, S, N = F.shape
-        V = top_profile(F, max(1, min(N, round(self.top_fraction * N))), model.likelihood.rating, self.clipped)
+        V = top_profile(
+            F, max(1, min(N, round(self.top_fraction * N))), preference_likelihood(model).rating, self.clipped
+        )
         var = V.var(-2)  # T x N
         order = var.argsort(-1, descending=True)
         n = max(1, int((var > 0).sum(-1).max()))  # the items that matter (zero columns add nothing)
@@ -198,20 +197,20 @@ class ProfileVariancePerEffort(PerEffortSelector):
 
         return F, order, value
 
-    def scorers(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Any, Any]:
+    def scorers(self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Any, Any]:
         """The expected reduction of a rating of rows ``T x R`` and of a ranking of rows ``T x R x
         q`` (not per effort; :meth:`~torchpref.selection.strategies.PerEffortSelector.scorers`)."""
         F, _, value = self._prepare(model, X, generators)
         return sample_scorers(F, value, model.likelihood, self.num_bins)
 
     def values(
-        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+        self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
     ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
         r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
         T x m or None, ranking values T)``, values per unit of effort (:meth:`query_cost`)."""
         F, order, value = self._prepare(model, X, generators)
         T, S, N = F.shape
-        lik = model.likelihood
+        lik = preference_likelihood(model)
         K = min(self.num_plausible, N)
         cand = order[:, :K]  # T x K
         Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))  # T x S x K
@@ -221,5 +220,5 @@ class ProfileVariancePerEffort(PerEffortSelector):
         rating_cost, ranking_cost = self.query_cost(1), self.query_cost(self.m)
         if K < max(self.m, 2):
             return rating_row, rating_value / rating_cost, None, torch.full_like(rating_value, -torch.inf)
-        chosen, ranking_value = greedy_choice_set(Fc, lik.comparison, self.m, value)
+        chosen, ranking_value = greedy_choice_sets(Fc, lik.comparison, self.m, value)
         return rating_row, rating_value / rating_cost, cand.gather(1, chosen), ranking_value / ranking_cost

@@ -38,13 +38,14 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-from botorch.models.model import Model
 from gpytorch.likelihoods import Likelihood
 from torch import Tensor
 
 from torchpref.acquisition.functions import choice_probabilities
 from torchpref.acquisition.information import top_set_membership
-from torchpref.selection.strategies import PerEffortSelector, effort_model, joint_posterior, joint_samples
+from torchpref.models.defaults import preference_likelihood
+from torchpref.selection.samples import SelectorModel, joint_posterior, joint_samples
+from torchpref.selection.strategies import PerEffortSelector, effort_model
 
 
 def rating_hessian(F: Tensor, rating_likelihood: Likelihood) -> Tensor:
@@ -212,14 +213,14 @@ class VariancePerEffort(PerEffortSelector):
         g = (up - down) / (2 * h)
         return w, g
 
-    def _prepare(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Any, ...]:
+    def _prepare(self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Any, ...]:
         """``(F, w, g, var, rating_fn, ranking_fn)``: samples, weights, slopes, marginal variances
         and the expected reductions of a rating of rows ``T x R`` and of a ranking of rows ``T x R
         x q`` (not per effort)."""
         mean, cov = joint_posterior(model, X)
         F, _ = joint_samples(mean, cov, generators, self.num_samples)
         T, S, N = F.shape
-        lik = model.likelihood
+        lik = preference_likelihood(model)
         var = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0)
         w, g = self.weights(F, mean, var, lik.rating)
         Fh = F[:, : self.num_hessian_samples]
@@ -241,12 +242,12 @@ class VariancePerEffort(PerEffortSelector):
 
         return F, w, g, var, rating_fn, ranking_fn
 
-    def scorers(self, model: Model, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Any, Any]:
+    def scorers(self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Any, Any]:
         """:meth:`~torchpref.selection.strategies.PerEffortSelector.scorers`: expected reductions."""
         return self._prepare(model, X, generators)[4:]
 
     def values(
-        self, model: Model, X: Tensor, generators: Sequence[torch.Generator]
+        self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
     ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
         r"""Each trial's best rating and ranking: ``(rating rows T, rating values T, ranking rows
         T x m, ranking values T)``, values per unit of effort."""

@@ -2,33 +2,41 @@
 
 from __future__ import annotations
 
+from torchpref.sessions.errors import (
+    SessionFileChanged,
+    SessionFileCorrupt,
+    SessionFileError,
+    SessionFileGone,
+    SessionForkError,
+    SessionMismatchError,
+    SessionReadOnlyError,
+    SessionRepairWarning,
+    SessionSettingsError,
+    SessionVersionError,
+)
 from torchpref.sessions.journal import (
     MAX_FILE_BYTES,
     Journal,
     MemoryJournal,
-    SessionFileChanged,
-    SessionFileGone,
-    SessionForkError,
-    SessionReadOnlyError,
     read_header,
     read_session_file,
 )
-from torchpref.sessions.recorded import SessionSettingsError, describe_model, describe_selector
+from torchpref.sessions.recorded import (
+    describe_model,
+    describe_selector,
+)
 from torchpref.sessions.records import (
     ANSWER_KINDS,
     FORMAT_VERSION,
-    SessionFileCorrupt,
-    SessionFileError,
-    SessionMismatchError,
-    SessionRepairWarning,
-    SessionVersionError,
     check_new_record,
     dumps_settings,
     records_in_force,
     validate_header,
     validate_records,
 )
-from torchpref.sessions.session import PreferenceSession
+from torchpref.sessions.session import (
+    PreferenceSession,
+)
 from torchpref.sessions.settings import (
     MAX_REDRAWS,
     SessionAnswer,

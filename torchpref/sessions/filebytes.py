@@ -9,7 +9,14 @@ import stat
 from pathlib import Path
 from typing import Any
 
-__all__ = ["dropped_path", "file_kind", "fsync_dir", "prefix_digest", "read_fd", "stamp"]
+__all__ = [
+    "dropped_path",
+    "file_kind",
+    "fsync_dir",
+    "prefix_digest",
+    "read_fd",
+    "stamp",
+]
 
 
 def file_kind(mode: int) -> str | None:

@@ -32,15 +32,19 @@ import weakref
 from collections.abc import Callable
 from pathlib import Path
 
+from torchpref.sessions.errors import (
+    SessionFileChanged,
+    SessionFileCorrupt,
+    SessionFileError,
+    SessionFileGone,
+    SessionForkError,
+    SessionReadOnlyError,
+    SessionRepairWarning,
+)
 from torchpref.sessions.filebytes import dropped_path, file_kind, fsync_dir, prefix_digest, read_fd, stamp
 from torchpref.sessions.records import (
     ANSWER_KINDS,
     FORMAT_VERSION,
-    SessionFileCorrupt,
-    SessionFileError,
-    SessionMismatchError,
-    SessionRepairWarning,
-    SessionVersionError,
     check_new_record,
     validate_header,
     validate_records,
@@ -51,39 +55,12 @@ __all__ = [
     "FORMAT_VERSION",
     "Journal",
     "MAX_FILE_BYTES",
-    "SessionFileCorrupt",
-    "SessionFileChanged",
-    "SessionFileError",
-    "SessionFileGone",
-    "SessionForkError",
-    "SessionMismatchError",
-    "SessionReadOnlyError",
-    "SessionRepairWarning",
-    "SessionVersionError",
     "read_session_file",
 ]
 
 MAX_FILE_BYTES = 1 << 30
 """The largest session file opened (1 GiB, some three million answers): a larger one is refused by
 name before it is read (a file of that size is not a session's)."""
-
-
-class SessionFileGone(SessionFileError):
-    """The session file was deleted, moved away or replaced while the session had it open."""
-
-
-class SessionFileChanged(SessionFileError):
-    """Another program shortened, extended or rewrote the open session file in place (an editor,
-    ``rsync --inplace``): its bytes are no longer the records this session acknowledged, so
-    nothing more is written after them."""
-
-
-class SessionForkError(SessionFileError):
-    """A forked child process tried to write to its parent's session."""
-
-
-class SessionReadOnlyError(SessionFileError):
-    """The session file was opened read-only (the process may not write it): answers are refused."""
 
 
 def now() -> str:

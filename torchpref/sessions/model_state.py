@@ -28,6 +28,8 @@ from torch import Tensor
 from torchpref.data.preference_data import PreferenceData, unit_to_likert
 from torchpref.data.queries import RankingQuery, RatingQuery, record_answer
 from torchpref.models.preference_gp import PreferenceGP
+from torchpref.sessions.errors import SessionFileError
+from torchpref.sessions.records import AnswerRecord
 
 __all__ = [
     "MODE_MEMORY",
@@ -87,23 +89,27 @@ def build_data(
     ``m`` is the comparisons ``[j, i]`` for ``i != j`` in order; no preference the ties of every
     two rows in order; a rating the record's value (its level, for an ordinal model).
     """
-    rows: list[list[float]] = []
+    rows: list[tuple[float, ...]] = []
     comparisons: list[list[int]] = []
     ties: list[list[int]] = []
     values: list[float] = []
     rated: list[int] = []
     ends: list[tuple[int, int, int, int]] = []  # after each record: rows, comparisons, ratings, ties
     pos = 1  # row 0 is the anchor
-    for rec in records:
-        items = rec["items"]
+    for rec in map(AnswerRecord.from_json, records):
+        items = rec.items
         m = len(items)
         rows.extend(items)
-        kind = rec["kind"]
+        kind = rec.kind
         if kind == "rating":
-            values.append(rec["value"])
+            if rec.value is None:
+                raise SessionFileError(f"the rating record {rec.seq} has no value.")
+            values.append(rec.value)
             rated.append(pos)
         elif kind == "choice":
-            j = rec["answer"]
+            if not isinstance(rec.answer, int):
+                raise SessionFileError(f"the choice record {rec.seq} has no chosen row: {rec.answer!r:.40}.")
+            j = rec.answer
             comparisons.extend([pos + j, pos + i] for i in range(m) if i != j)
         else:
             ties.extend([pos + a, pos + b] for a in range(m) for b in range(a + 1, m))
@@ -231,9 +237,9 @@ class ModelCache:
     def _replay(self, records: list[dict]) -> PreferenceGP:
         """The reference: a new model told ``records`` one by one through ``record_answer``."""
         model = self._new_model()
-        for rec in records:
-            query = self._model_query(rec["kind"], torch.tensor(rec["items"], dtype=torch.float64))
-            record_answer(model, query, rec["answer"], num_levels=self.num_levels)
+        for rec in map(AnswerRecord.from_json, records):
+            query = self._model_query(rec.kind, torch.tensor(rec.items, dtype=torch.float64))
+            record_answer(model, query, rec.answer, num_levels=self.num_levels)
         return model
 
     def _build(self) -> PreferenceGP:
@@ -251,12 +257,12 @@ class ModelCache:
         data, before = build_data(self._anchor, records[:k], self.transform, model.rating_eps, model.rating_levels)
         model.replace_data(data, f if f is not None and f.numel() == data.n else None)
         self._sizes = {r["seq"]: b for r, b in zip(records[:k], before, strict=True)}
-        for rec in records[k:]:  # after the snapshot: through the live path, as they were told
+        for rec in map(AnswerRecord.from_json, records[k:]):  # after the snapshot: the live path, as told
             b, fb = sizes(model.data), mode(model)
-            query = self._model_query(rec["kind"], torch.tensor(rec["items"], dtype=torch.float64))
-            record_answer(model, query, rec["answer"], num_levels=self.num_levels)
-            self._sizes[rec["seq"]] = b
-            self._keep_mode(rec["seq"], fb)
+            query = self._model_query(rec.kind, torch.tensor(rec.items, dtype=torch.float64))
+            record_answer(model, query, rec.answer, num_levels=self.num_levels)
+            self._sizes[rec.seq] = b
+            self._keep_mode(rec.seq, fb)
         return model
 
     def _snapshot_start(self, records: list[dict]) -> tuple[int, Tensor | None]:

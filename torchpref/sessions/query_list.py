@@ -16,9 +16,16 @@ import torch
 from torch import Tensor
 
 from torchpref.data.queries import Query, RankingQuery, RatingQuery
-from torchpref.sessions.records import SessionMismatchError
+from torchpref.sessions.errors import (
+    SessionMismatchError,
+)
 
-__all__ = ["choose_query", "pool_rows_of", "queries_of_spec", "resumed_queries"]
+__all__ = [
+    "choose_query",
+    "pool_rows_of",
+    "queries_of_spec",
+    "resumed_queries",
+]
 
 QuerySpec = list[list]  # [[kind, row, row, ...], ...]
 

@@ -26,10 +26,11 @@ import torch
 from torch import Tensor
 
 from torchpref.models.preference_gp import PreferenceGP, default_covar_module
-from torchpref.sessions.records import SessionMismatchError
+from torchpref.sessions.errors import (
+    SessionSettingsError,
+)
 
 __all__ = [
-    "SessionSettingsError",
     "describe_model",
     "describe_selector",
     "legacy_model_description",
@@ -44,11 +45,6 @@ MIGRATE = (
     "To resume under other settings anyway (the answers are replayed under them; the posterior and "
     "the next queries will differ from the recorded session's), open it with migrate=True."
 )
-
-
-class SessionSettingsError(SessionMismatchError):
-    """A session file records a model or selector this session does not reproduce (``setting`` is
-    ``"model"`` or ``"selector"``)."""
 
 
 def _tree(module: torch.nn.Module) -> str:

@@ -13,21 +13,25 @@ from __future__ import annotations
 import functools
 import json
 import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 
 from torchpref.data.preference_data import likert_to_unit
+from torchpref.sessions.errors import (
+    SessionFileError,
+    SessionVersionError,
+)
 from torchpref.version import __version__
 
 __all__ = [
     "ANSWER_KINDS",
     "FORMAT_VERSION",
-    "SessionFileCorrupt",
-    "SessionFileError",
-    "SessionMismatchError",
-    "SessionRepairWarning",
-    "SessionVersionError",
+    "AnswerRecord",
+    "Record",
+    "UndoRecord",
+    "parse_record",
     "check_new_record",
     "dumps_settings",
     "records_in_force",
@@ -42,58 +46,119 @@ ANSWER_KINDS = ("rating", "choice", "no_preference")
 """An answer is a rating (of one item), a choice (the best of ``m >= 2``) or no preference."""
 
 
-class SessionFileError(ValueError):
-    """A session file that cannot be used as it is (the message names the file and line)."""
-
-
-class SessionFileCorrupt(SessionFileError):
-    """A line of a session file is incomplete or not a JSON record.
+@dataclass(frozen=True)
+class AnswerRecord:
+    """One ``answer`` line of a session file, typed (``to_json`` gives the line's object).
 
     Attributes:
-        path: the file.
-        line_number: the 1-based number of the bad line.
-        reason: what is wrong with it.
-        repairable: whether ``repair=True`` can fix it (only a bad *last* line: a crash
-            mid-write; a bad line followed by good ones is never dropped).
-        partial: the bad line's bytes.
-        offset: the byte offset where the bad line starts.
+        seq: its sequence number (1, 2, ... over answers and undos).
+        time: when it was written (ISO 8601, UTC).
+        kind: ``"rating"``, ``"choice"`` or ``"no_preference"`` (:data:`ANSWER_KINDS`).
+        items: the items shown, one row each (one row for a rating).
+        answer: a rating's level (or its value in ``[0, 1]`` without levels), the chosen row, or ``None``.
+        value: a rating's value in ``[0, 1]`` (ratings only, else ``None``).
+        query: the question it answered (``{"kind", "step", "pool_indices"}``), or ``None`` out of turn.
+        response_time: seconds from shown to answered where the front end measured them.
+        shown_at, answered_at: when the front end showed the question and got the answer, if it said.
+        v: the record's format version.
     """
 
-    def __init__(self, path: Any, line_number: int, reason: str, repairable: bool, partial: bytes, offset: int):
-        self.path, self.line_number, self.reason = str(path), line_number, reason
-        self.repairable, self.partial, self.offset = repairable, partial, offset
-        fix = (
-            "It looks like a crash in the middle of writing the last answer. To recover, open it with "
-            "repair=True (PreferenceSession(..., repair=True) or PreferenceSession.load(path, repair=True)): "
-            f"the partial line is moved to {self.path}.dropped, the file is truncated to its last complete "
-            "record, and that answer is asked again."
-            if repairable
-            else "The lines after it are valid, so this is not an interrupted write; the file was edited or "
-            "damaged and must be fixed by hand."
+    seq: int
+    time: str
+    kind: str
+    items: tuple[tuple[float, ...], ...]
+    answer: int | float | None
+    value: float | None = None
+    query: dict[str, Any] | None = None
+    response_time: float | None = None
+    shown_at: str | None = None
+    answered_at: str | None = None
+    v: int = FORMAT_VERSION
+    type: str = field(default="answer", init=False)
+
+    @property
+    def step(self) -> int | None:
+        """The query number it answered, or ``None`` if given out of turn."""
+        return None if self.query is None else self.query.get("step")
+
+    @property
+    def pool_indices(self) -> list[int] | None:
+        """The items' rows in the session's pool, where known."""
+        return None if self.query is None else self.query.get("pool_indices")
+
+    def to_json(self) -> dict[str, Any]:
+        """The record as written to the file (the keys and their order of format version 1)."""
+        rec: dict[str, Any] = {"type": "answer", "v": self.v, "seq": self.seq, "time": self.time, "kind": self.kind}
+        rec["items"] = [list(row) for row in self.items]
+        rec["answer"] = self.answer
+        if self.kind == "rating":
+            rec["value"] = self.value
+        rec.update(query=self.query, response_time=self.response_time)
+        rec.update({k: t for k, t in (("shown_at", self.shown_at), ("answered_at", self.answered_at)) if t is not None})
+        return rec
+
+    @classmethod
+    def from_json(
+        cls, rec: dict[str, Any], header: dict[str, Any] | None = None, where: str = "record"
+    ) -> AnswerRecord:
+        """The typed record of a file's ``answer`` object; with the file's ``header``, checked first
+        as when the file is read (:class:`~torchpref.sessions.errors.SessionFileError` naming ``where``
+        and the field)."""
+        c = _Line(where, rec)
+        if rec.get("type") != "answer":
+            c.fail(f"not an answer record: {rec.get('type')!r:.40}")
+        if header is not None:
+            c.integer("seq", lo=1)
+            _check_answer(c, rec, header)
+        return cls(
+            seq=rec["seq"],
+            time=rec["time"],
+            kind=rec["kind"],
+            items=tuple(tuple(float(x) for x in row) for row in rec["items"]),
+            answer=rec.get("answer"),
+            value=rec.get("value"),
+            query=rec.get("query"),
+            response_time=rec.get("response_time"),
+            shown_at=rec.get("shown_at"),
+            answered_at=rec.get("answered_at"),
+            v=rec.get("v", 1),
         )
-        super().__init__(f"session file {self.path}, line {line_number}: {reason}. {fix}")
 
 
-class SessionVersionError(SessionFileError):
-    """The file was written by a newer format version than this library reads."""
+@dataclass(frozen=True)
+class UndoRecord:
+    """One ``undo`` line of a session file: the answer ``undoes`` is withdrawn."""
+
+    seq: int
+    time: str
+    undoes: int
+    v: int = FORMAT_VERSION
+    type: str = field(default="undo", init=False)
+
+    def to_json(self) -> dict[str, Any]:
+        """The record as written to the file."""
+        return {"type": "undo", "v": self.v, "seq": self.seq, "time": self.time, "undoes": self.undoes}
+
+    @classmethod
+    def from_json(cls, rec: dict[str, Any], where: str = "record") -> UndoRecord:
+        """The typed record of a file's ``undo`` object."""
+        c = _Line(where, rec)
+        if rec.get("type") != "undo":
+            c.fail(f"not an undo record: {rec.get('type')!r:.40}")
+        seq, undoes = c.integer("seq", lo=1), c.integer("undoes", lo=1)
+        if not isinstance(rec.get("time"), str):
+            c.fail(f"'time' must be a string, got {rec.get('time')!r:.80}")
+        assert seq is not None and undoes is not None  # required fields: c.integer raised otherwise
+        return cls(seq=seq, time=rec["time"], undoes=undoes, v=rec.get("v", 1))
 
 
-class SessionMismatchError(SessionFileError):
-    """The file was written for other items, dimensions or settings than those given.
-
-    Attributes:
-        setting: the header field that differs (``"dim"``, ``"candidates"``, ``"bounds"``, ...).
-        theirs: the file's value, described.
-        mine: the value given, described.
-    """
-
-    def __init__(self, message: str, setting: str = "", theirs: str = "", mine: str = ""):
-        super().__init__(message)
-        self.setting, self.theirs, self.mine = setting, theirs, mine
+Record = AnswerRecord | UndoRecord
+"""A typed line of a session file after its header."""
 
 
-class SessionRepairWarning(UserWarning):
-    """A partial last line was removed from a session file (``repair=True``)."""
+def parse_record(rec: dict[str, Any]) -> Record:
+    """The typed form of a record already validated (a :attr:`~torchpref.PreferenceSession.records` entry)."""
+    return AnswerRecord.from_json(rec) if rec.get("type") == "answer" else UndoRecord.from_json(rec)
 
 
 class _Line:

@@ -18,7 +18,7 @@ a stream that a restart would lose).
 
 One lock (an ``RLock``) covers each call: taking the next sequence number, the model's update, the
 append and its ``fsync`` happen as one, so a session may be shared by threads. A forked child
-cannot write to its parent's file (:class:`~torchpref.sessions.journal.SessionForkError`).
+cannot write to its parent's file (:class:`~torchpref.sessions.errors.SessionForkError`).
 
 The model is a cache of the file's answers in force: an interrupted or failed update is undone
 exactly (:meth:`~torchpref.PreferenceGP.rollback`), and a model that may not match is rebuilt,
@@ -41,6 +41,7 @@ from torch import Tensor
 from torchpref.data.queries import (
     Candidates,
     FinitePool,
+    InvalidAnswer,
     Query,
     RankingQuery,
     RatingQuery,
@@ -54,25 +55,18 @@ from torchpref.selection.strategies import Selector
 from torchpref.sessions.journal import (
     Journal,
     MemoryJournal,
-    SessionFileChanged,
-    SessionFileGone,
-    SessionForkError,
-    SessionReadOnlyError,
     existing_header,
     now,
     read_session_file,
 )
 from torchpref.sessions.model_state import ModelCache, Sizes, header_digest, mode, sizes, truncate
 from torchpref.sessions.query_list import check_pool_rows, choose_query, pool_rows_of, resumed_queries
-from torchpref.sessions.recorded import SessionSettingsError, describe_model, describe_selector, resume_settings
-from torchpref.sessions.records import (
-    FORMAT_VERSION,
-    SessionFileCorrupt,
-    SessionFileError,
-    SessionMismatchError,
-    SessionRepairWarning,
-    SessionVersionError,
+from torchpref.sessions.recorded import (
+    describe_model,
+    describe_selector,
+    resume_settings,
 )
+from torchpref.sessions.records import FORMAT_VERSION, AnswerRecord, UndoRecord
 from torchpref.sessions.settings import (
     MAX_REDRAWS,
     SessionAnswer,
@@ -92,16 +86,6 @@ __all__ = [
     "FORMAT_VERSION",
     "PreferenceSession",
     "SessionAnswer",
-    "SessionFileCorrupt",
-    "SessionFileError",
-    "SessionFileChanged",
-    "SessionFileGone",
-    "SessionForkError",
-    "SessionMismatchError",
-    "SessionReadOnlyError",
-    "SessionRepairWarning",
-    "SessionSettingsError",
-    "SessionVersionError",
     "default_ranking_size",
     "default_session_model",
     "read_session_file",
@@ -517,6 +501,11 @@ class PreferenceSession(ModelCache):
         items = as_items(query.items, self.dim, "the query's items")
         response_time = as_seconds(response_time)
         times = {k: as_time(v, k) for k, v in (times or {}).items()}
+        if isinstance(answer, (list, tuple)):
+            raise InvalidAnswer(
+                f"a session records one chosen item (or None for no preference), not several equally best "
+                f"ones; got {answer!r:.80}."
+            )
         if isinstance(query, RankingQuery) and items.shape[0] < 2:
             raise ValueError(f"a choice needs at least 2 items shown, got {items.shape[0]}.")
         model = self.model
@@ -525,33 +514,29 @@ class PreferenceSession(ModelCache):
         try:
             with model.rollback():  # on any failure the model is put back exactly
                 value = record_answer(model, self._model_query(query.kind, items), answer, num_levels=self.num_levels)
-                rec = {
-                    "type": "answer",
-                    "v": FORMAT_VERSION,
-                    "seq": self._journal.last_seq + 1,
-                    "time": now(),
-                    "kind": "rating"
-                    if query.kind == "rating"
-                    else ("choice" if value is not None else "no_preference"),
-                    "items": items.tolist(),
-                }
-                if query.kind == "rating":
-                    rec.update(answer=int(answer) if self.num_levels is not None else value, value=value)
-                else:
-                    rec["answer"] = value
-                rec["query"] = info
-                rec["response_time"] = response_time
-                rec.update(times)
-                self._journal.append(rec)
+                rating = query.kind == "rating"
+                rec = AnswerRecord(
+                    seq=self._journal.last_seq + 1,
+                    time=now(),
+                    kind="rating" if rating else ("choice" if value is not None else "no_preference"),
+                    items=tuple(tuple(row) for row in items.tolist()),
+                    answer=int(answer) if rating and self.num_levels is not None else value,
+                    value=value if rating else None,
+                    query=info,
+                    response_time=response_time,
+                    shown_at=times.get("shown_at"),
+                    answered_at=times.get("answered_at"),
+                )
+                self._journal.append(rec.to_json())
         except BaseException:
             self._model_version = self._version
             raise
-        self._sizes[rec["seq"]] = before
-        self._keep_mode(rec["seq"], f_before)
+        self._sizes[rec.seq] = before
+        self._keep_mode(rec.seq, f_before)
         self._version += 1
         self._model_version = self._version
         self._snapshot()
-        return rec["seq"]
+        return rec.seq
 
     def undo(self) -> SessionAnswer:
         """Withdraw the last answer in force (an ``undo`` record is appended; the model goes back
@@ -574,15 +559,7 @@ class PreferenceSession(ModelCache):
                 with model.rollback():
                     if before is not None:
                         truncate(model, before, self._modes.get(last["seq"]))
-                    self._journal.append(
-                        {
-                            "type": "undo",
-                            "v": FORMAT_VERSION,
-                            "seq": self._journal.last_seq + 1,
-                            "time": now(),
-                            "undoes": undone.seq,
-                        }
-                    )
+                    self._journal.append(UndoRecord(self._journal.last_seq + 1, now(), undone.seq).to_json())
             except BaseException:
                 self._model_version = self._version
                 raise

@@ -2,7 +2,7 @@ r"""What a :class:`~torchpref.sessions.session.PreferenceSession` is set up with
 
 :class:`SessionSettings` holds a session's validated settings (candidates, bounds, seed, levels,
 number of queries, names), writes them as the session file's header and checks a resumed file's
-header against them (:class:`~torchpref.sessions.records.SessionMismatchError` naming the setting). Also
+header against them (:class:`~torchpref.sessions.errors.SessionMismatchError` naming the setting). Also
 here: the default model and ranking size of a session, the per-step random stream
 (:func:`step_generator`) and :class:`SessionAnswer`, one answer in force.
 """
@@ -22,8 +22,13 @@ from torch import Tensor
 from torchpref.data.queries import BoxCandidates, Candidates, FinitePool, as_integer
 from torchpref.models.preference_gp import PreferenceGP, default_covar_module
 from torchpref.selection import defaults as selection_defaults
-from torchpref.sessions.journal import now
-from torchpref.sessions.records import FORMAT_VERSION, SessionMismatchError, dumps_settings
+from torchpref.sessions.errors import (
+    SessionMismatchError,
+)
+from torchpref.sessions.journal import (
+    now,
+)
+from torchpref.sessions.records import FORMAT_VERSION, AnswerRecord, dumps_settings
 from torchpref.version import __version__
 
 __all__ = [
@@ -70,20 +75,20 @@ class SessionAnswer:
     response_time: float | None = None
 
     @classmethod
-    def from_record(cls, r: dict) -> SessionAnswer:
-        """The answer of an ``answer`` record of the session file."""
-        q = r.get("query") or {}
-        pool = q.get("pool_indices")
+    def from_record(cls, r: dict | AnswerRecord) -> SessionAnswer:
+        """The answer of an ``answer`` record of the session file (its object or typed record)."""
+        rec = r if isinstance(r, AnswerRecord) else AnswerRecord.from_json(r)
+        pool = rec.pool_indices
         return cls(
-            r["seq"],
-            r["kind"],
-            torch.tensor(r["items"], dtype=torch.float64),
-            r.get("answer"),
-            r.get("value"),
-            q.get("step"),
+            rec.seq,
+            rec.kind,
+            torch.tensor(rec.items, dtype=torch.float64),
+            rec.answer,
+            rec.value,
+            rec.step,
             None if pool is None else tuple(pool),
-            r["time"],
-            r.get("response_time"),
+            rec.time,
+            rec.response_time,
         )
 
 
@@ -272,7 +277,7 @@ class SessionSettings:
         }
 
     def check_header(self, h: dict, path: Any) -> None:
-        """Raise :class:`~torchpref.sessions.records.SessionMismatchError` where the header ``h`` of the file
+        """Raise :class:`~torchpref.sessions.errors.SessionMismatchError` where the header ``h`` of the file
         ``path`` was written with other items, candidates, bounds, seed or levels."""
         if h["dim"] != self.dim:
             raise SessionMismatchError(
@@ -282,12 +287,13 @@ class SessionSettings:
                 str(h["dim"]),
                 str(self.dim),
             )
-        for key, mine in (
+        settings: tuple[tuple[str, Any], ...] = (
             ("candidates", self.spec),
             ("bounds", self.bounds.tolist()),
             ("seed", self.seed),
             ("num_levels", self.num_levels),
-        ):
+        )
+        for key, mine in settings:
             if dumps_settings(h[key]) != dumps_settings(mine):
                 theirs = h[key]
                 if key == "candidates":
