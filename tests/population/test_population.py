@@ -75,7 +75,7 @@ def test_population_of_copies_predicts_the_shared_taste():
     pool = torch.rand(12, 2, generator=g, dtype=D)
     u = pool[:, 0] - pool[:, 1]
     people = []
-    for p in range(15):
+    for _ in range(15):
         idx = torch.randperm(12, generator=g)[:8]
         C = [
             [int(i), int(j)] if u[idx[i]] > u[idx[j]] else [int(j), int(i)]

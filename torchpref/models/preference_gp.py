@@ -216,18 +216,14 @@ class PreferenceGP(Model, GP):
         train_X = pairwise_alias(train_X, datapoints)
         comparison_noise = pairwise_likelihood_noise(likelihood, comparison_noise)
         check_jitter(jitter)
-        reals: dict[str, object] = dict(comparison_noise=comparison_noise, rating_scale=rating_scale)
-        reals.update(rating_precision=rating_precision, tie_threshold=tie_threshold, level_noise=level_noise)
+        reals: dict[str, object] = dict(comparison_noise=comparison_noise, rating_scale=rating_scale, rating_precision=rating_precision, tie_threshold=tie_threshold, level_noise=level_noise)  # fmt: skip
         flags: dict[str, object] = dict(learn_likelihood=learn_likelihood, ties_offered=ties_offered)
-        check_model_arguments(
-            covar_module, input_transform, reals=reals, flags=flags, rating_eps=rating_eps, mean_module=mean_module
-        )
+        check_model_arguments(covar_module, input_transform, reals=reals, flags=flags, rating_eps=rating_eps, mean_module=mean_module)  # fmt: skip
         data = _initial_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
         X = data.train_X if isinstance(data, PreferenceData) else data.X
         check_dtype(X.dtype)
         _warn_dtype(X.dtype)
-        self.covar_module = covar_module if covar_module is not None else default_covar_module(X.shape[-1])
-        self.mean_module = mean_module
+        self.covar_module, self.mean_module = (covar_module if covar_module is not None else default_covar_module(X.shape[-1])), mean_module  # fmt: skip
         self.likelihood = PreferenceLikelihood.create(
             comparison_noise, rating_scale, rating_precision, learn_likelihood, tie_threshold, rating_levels, cut_points, level_noise
         )  # fmt: skip

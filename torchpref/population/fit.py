@@ -120,6 +120,7 @@ def fit_population(
     rating_precision: float = 80.0,
     fit: bool = True,
     max_iter: int = 100,
+    names: Sequence[str] | None = None,
 ) -> Population:
     r"""The population of ``people`` (one :class:`~torchpref.data.preference_data.PreferenceData` each;
     comparisons, ratings and ties, all in the same ``d`` features, items in the unit cube):
@@ -132,6 +133,8 @@ def fit_population(
             :class:`~torchpref.PreferenceGP`'s (ordinal people: ``rating_levels`` from the data).
         fit: optimise the kernels' hyperparameters (L-BFGS on the evidence); ``False`` keeps them.
         max_iter: L-BFGS iterations.
+        names: the features' names (the objective space), kept with the population so that a
+            file of it is refused for items of another space.
 
     Returns:
         a :class:`~torchpref.population.model.Population`.
@@ -140,6 +143,8 @@ def fit_population(
         ValueError: bad people (:func:`check_people`) or settings, naming the value.
     """
     people = check_people(people)
+    if names is not None and len(names) != people[0].train_X.shape[-1]:
+        raise ValueError(f"names must name the {people[0].train_X.shape[-1]} features, got {list(names)}.")
     if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
         raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}.")
     d = people[0].train_X.shape[-1]
@@ -175,5 +180,5 @@ def fit_population(
     stats = dict(people=len(people), items=int(layout.U.shape[0]), answers=sum(p.num_observations for p in people))
     stats.update(evidence=state["evidence"], newton_iterations=state["mode"].iterations)
     return Population.from_mode(
-        kernels.k_m, kernels.k_g, layout.U, state["factors"].L_U, state["mode"], settings, stats
+        kernels.k_m, kernels.k_g, layout.U, state["factors"].L_U, state["mode"], settings, stats, names
     )

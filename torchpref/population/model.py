@@ -29,6 +29,7 @@ class Population:
         S_chol: ``N x N``, Cholesky factor of the Schur complement: ``Cov[a | D] = S^{-1}``.
         settings: the likelihoods' settings a person model is built with.
         stats: people, distinct items, answers, evidence of the fit.
+        names: the features' names (the objective space), if given to the fit.
     """
 
     def __init__(
@@ -41,20 +42,32 @@ class Population:
         S_chol: Tensor,
         settings: dict[str, Any],
         stats: dict[str, Any] | None = None,
+        names: tuple[str, ...] | None = None,
     ):
         self.k_m, self.k_g = k_m, k_g
         self.U, self.alpha, self.L_U, self.S_chol = U, alpha, L_U, S_chol
         self.settings = dict(settings)
         self.stats = dict(stats or {})
+        self.names = None if names is None else tuple(str(n) for n in names)
+        if self.names is not None and len(self.names) != self.dim:
+            raise ValueError(f"names must name the {self.dim} features, got {len(self.names)}: {list(self.names)}.")
 
     @classmethod
     def from_mode(
-        cls, k_m: Kernel, k_g: Kernel, U: Tensor, L_U: Tensor, mode: Mode, settings: dict, stats: dict
+        cls,
+        k_m: Kernel,
+        k_g: Kernel,
+        U: Tensor,
+        L_U: Tensor,
+        mode: Mode,
+        settings: dict,
+        stats: dict,
+        names: Any = None,
     ) -> Population:
         """The population of a solved joint mode (:func:`~torchpref.population.joint.find_mode`)."""
         with torch.no_grad():
             alpha = torch.linalg.solve_triangular(L_U.mT, mode.point.a.unsqueeze(-1), upper=True).squeeze(-1)
-        return cls(k_m, k_g, U, alpha, L_U.detach(), mode.hessian.S_chol.detach(), settings, stats)
+        return cls(k_m, k_g, U, alpha, L_U.detach(), mode.hessian.S_chol.detach(), settings, stats, names)
 
     @property
     def dim(self) -> int:
@@ -65,6 +78,16 @@ class Population:
     def spread(self) -> float:
         """``s^2``: ``k_g``'s outputscale, the between-person variance of the utility."""
         return float(getattr(self.k_g, "outputscale", torch.tensor(float("nan"))).detach())
+
+    def check_space(self, names: tuple[str, ...] | list[str] | None = None, dim: int | None = None) -> None:
+        """Raise a ``ValueError`` naming both when the items' objective space (``dim`` features
+        named ``names``) is not this population's."""
+        if dim is not None and int(dim) != self.dim:
+            raise ValueError(f"this population's objective space has d = {self.dim} features, the items {dim}.")
+        if names is not None and self.names is not None and tuple(names) != self.names:
+            raise ValueError(
+                f"this population was fitted on the objective space {list(self.names)}, not {list(names)}."
+            )
 
     def _A(self) -> Tensor:
         N = self.S_chol.shape[-1]
