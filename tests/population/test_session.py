@@ -1,0 +1,57 @@
+"""``PreferenceSession(..., population=pop)``: a new person starts from the population."""
+
+import json
+
+import pytest
+import torch
+
+import torchpref
+from torchpref.data.preference_data import PreferenceData
+
+D = torch.float64
+
+
+@pytest.fixture(scope="module")
+def pool_and_pop():
+    g = torch.Generator().manual_seed(5)
+    pool = torch.rand(12, 2, generator=g, dtype=D)
+    pool[0] = 0.0
+    pool[1] = 1.0  # the session normalises by the pool's range: the unit cube is the pool's own
+    u = pool[:, 0] - pool[:, 1]
+    people = []
+    for _ in range(10):
+        idx = torch.randperm(12, generator=g)[:6]
+        pairs = [(0, 1), (2, 3), (4, 5), (1, 2)]
+        C = [[i, j] if u[idx[i]] > u[idx[j]] else [j, i] for i, j in pairs]
+        people.append(PreferenceData.create(pool[idx], torch.tensor(C)))
+    return pool, torchpref.fit_population(people, max_iter=5, names=["a", "b"])
+
+
+def test_session_starts_from_the_population(pool_and_pop, tmp_path):
+    pool, pop = pool_and_pop
+    path = tmp_path / "s.jsonl"
+    s = torchpref.PreferenceSession(pool, population=pop, session_file=path, names=["a", "b"])
+    mean, _ = s.predict(pool)
+    expected = pop.person_model(pool).posterior(pool).mean.squeeze(-1).detach()
+    torch.testing.assert_close(mean, expected, rtol=0, atol=1e-9)
+    q = s.ask()
+    s.tell(q, 3 if q.kind == "rating" else 0)
+    s.close()
+    header = json.loads(path.read_text().splitlines()[0])
+    assert header["model"]["mean"].startswith("PopulationMean")
+    assert len(path.read_text()) < 200_000  # large buffers recorded by digest
+    again = torchpref.PreferenceSession(pool, population=pop, session_file=path, names=["a", "b"])
+    assert again.step == 1
+    again.close()
+    with pytest.raises(torchpref.sessions.SessionSettingsError):
+        torchpref.PreferenceSession(pool, session_file=path, names=["a", "b"])
+
+
+def test_session_refuses_a_population_of_another_space(pool_and_pop):
+    pool, pop = pool_and_pop
+    with pytest.raises(ValueError, match="objective space"):
+        torchpref.PreferenceSession(pool, population=pop, names=["price", "time"])
+    with pytest.raises(ValueError, match="not both"):
+        torchpref.PreferenceSession(pool, population=pop, model_factory=pop.person_model)
+    with pytest.raises(ValueError, match="must be a torchpref.Population"):
+        torchpref.PreferenceSession(pool, population="pop.pt")
