@@ -55,3 +55,27 @@ def test_session_refuses_a_population_of_another_space(pool_and_pop):
         torchpref.PreferenceSession(pool, population=pop, model_factory=pop.person_model)
     with pytest.raises(ValueError, match="must be a torchpref.Population"):
         torchpref.PreferenceSession(pool, population="pop.pt")
+
+
+def test_serve_store_starts_each_session_from_the_population(pool_and_pop, tmp_path):
+    pytest.importorskip("starlette", reason="the serve extra (starlette) is not installed")
+    from torchpref.frontends.serve_items import ServeItems
+    from torchpref.frontends.serve_store import SessionStore
+
+    pool, pop = pool_and_pop
+    store = SessionStore(ServeItems(pool, ["a", "b"], None), tmp_path, population=pop)
+    try:
+        sid = store.create()
+        session = store.entry(sid).session
+        mean, _ = session.predict(pool)
+        expected = pop.person_model(pool).posterior(pool).mean.squeeze(-1).detach()
+        torch.testing.assert_close(mean, expected, rtol=0, atol=1e-9)
+    finally:
+        store.close()
+
+
+def test_cli_takes_a_population_file(pool_and_pop, tmp_path):
+    from torchpref.cli import build_parser
+
+    args = build_parser().parse_args(["serve", "--features", "items.csv", "--population", str(tmp_path / "p.pt")])
+    assert args.population == str(tmp_path / "p.pt")
