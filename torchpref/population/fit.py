@@ -17,6 +17,7 @@ import torch
 from gpytorch.kernels import Kernel
 from gpytorch.module import Module
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from torchpref.data.preference_data import PreferenceData
 from torchpref.inference.padding import PaddedData
@@ -121,6 +122,7 @@ def fit_population(
     fit: bool = True,
     max_iter: int = 100,
     names: Sequence[str] | None = None,
+    progress: bool = False,
 ) -> Population:
     r"""The population of ``people`` (one :class:`~torchpref.data.preference_data.PreferenceData` each;
     comparisons, ratings and ties, all in the same ``d`` features, items in the unit cube):
@@ -135,6 +137,7 @@ def fit_population(
         max_iter: L-BFGS iterations.
         names: the features' names (the objective space), kept with the population so that a
             file of it is refused for items of another space.
+        progress: show a progress bar over the evidence evaluations (tqdm).
 
     Returns:
         a :class:`~torchpref.population.model.Population`.
@@ -168,13 +171,17 @@ def fit_population(
     if fit and params:
         opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_change=1e-9)
 
+        bar = tqdm(total=max_iter, desc="fit_population", disable=not progress, mininterval=5)
+
         def closure() -> Tensor:
             opt.zero_grad()
             loss = _objective(kernels, layout, state)
             loss.backward()
+            bar.update()
             return loss
 
         opt.step(closure)
+        bar.close()
     with torch.no_grad():
         _objective(kernels, layout, state)
     stats = dict(people=len(people), items=int(layout.U.shape[0]), answers=sum(p.num_observations for p in people))
