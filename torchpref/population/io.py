@@ -30,7 +30,7 @@ from torchpref.population.model import Population
 
 FORMAT = "torchpref.Population"
 VERSION = 1
-SETTINGS = {
+SETTINGS: dict[str, type | tuple[type, ...]] = {
     "comparison_noise": float,
     "rating_scale": float,
     "rating_precision": float,
