@@ -172,3 +172,23 @@ def test_person_model_refuses_another_dimension():
     pop = fit_population([_person(0)], fit=False)
     with pytest.raises(ValueError, match="d = 2"):
         pop.person_model(torch.rand(3, 4, dtype=D))
+
+
+def test_ordinal_people_and_a_mix_refused():
+    g = torch.Generator().manual_seed(4)
+    people = []
+    for _ in range(4):
+        X = torch.rand(5, 2, generator=g, dtype=D)
+        levels = torch.tensor([5.0, 1.0, 3.0])
+        people.append(
+            PreferenceData.create(X, torch.tensor([[0, 1]]), levels, torch.tensor([0, 1, 2]), rating_levels=5)
+        )
+    pop = fit_population(people, max_iter=3)
+    assert pop.settings["rating_levels"] == 5
+    model = pop.person_model(people[0])
+    assert model.rating_levels == 5
+    with torch.no_grad():
+        assert float(model.expected_level(people[0].train_X[:1])) > float(model.expected_level(people[0].train_X[1:2]))
+    beta = _person(0, ratings=True)
+    with pytest.raises(ValueError, match=r"people\[1\] has rating_levels=None"):
+        fit_population([people[0], beta])
