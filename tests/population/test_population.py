@@ -192,3 +192,22 @@ def test_ordinal_people_and_a_mix_refused():
     beta = _person(0, ratings=True)
     with pytest.raises(ValueError, match=r"people\[1\] has rating_levels=None"):
         fit_population([people[0], beta])
+
+
+def test_person_model_in_botorch_loops():
+    """EUBO, conditioning and batched fantasies work on a person model with its prior mean."""
+    from botorch.acquisition.preference import AnalyticExpectedUtilityOfBestOption
+
+    pop = fit_population([_person(s) for s in range(3)], max_iter=3)
+    person = _person(20)
+    model = pop.person_model(person)
+    eubo = AnalyticExpectedUtilityOfBestOption(pref_model=model)
+    X = torch.rand(4, 2, 2, generator=torch.Generator().manual_seed(3), dtype=D)
+    assert bool(torch.isfinite(eubo(X)).all())
+    new = model.condition_on_observations(X[0], comparisons=torch.tensor([[0, 1]]))
+    assert new.train_X.shape[0] == person.n + 2
+    batched = model.condition_on_observations(X, comparisons=torch.tensor([[0, 1]]).expand(4, 1, 2))
+    mean = batched.posterior(X).mean
+    assert mean.shape == (4, 2, 1) and bool(torch.isfinite(mean).all())
+    one = model.condition_on_observations(X[2], comparisons=torch.tensor([[0, 1]]))
+    torch.testing.assert_close(mean[2], one.posterior(X[2]).mean, rtol=0, atol=1e-6)
