@@ -29,12 +29,14 @@ The posterior of ``u`` is ``N(L_U a, L_U S^{-1} L_U^T)``, so the population's me
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from torchpref.inference.laplace import LaplaceConvergenceWarning
 from torchpref.inference.numerics import NotPSDError, batched_cholesky, cholesky_jittered, default_tolerance
 from torchpref.inference.observations import Observations
 
@@ -221,6 +223,11 @@ def find_mode(layout: Layout, F: Factors, start: tuple[Tensor, Tensor] | None = 
                 return Mode(p, H, fisher, it, 0.5 * dec < 1e-6)
             p = q
         H, fisher, _ = _hessian_at(layout, F, p)
+        warnings.warn(
+            f"Newton's method for the population's joint mode did not converge in {max_iter} iterations",
+            LaplaceConvergenceWarning,
+            stacklevel=2,
+        )
         return Mode(p, H, fisher, max_iter, False)
 
 
