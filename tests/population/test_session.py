@@ -79,3 +79,21 @@ def test_cli_takes_a_population_file(pool_and_pop, tmp_path):
 
     args = build_parser().parse_args(["serve", "--features", "items.csv", "--population", str(tmp_path / "p.pt")])
     assert args.population == str(tmp_path / "p.pt")
+
+
+def test_large_buffers_are_recorded_by_digest():
+    from torchpref.sessions.recorded import RECORDED_VALUES_MAX, describe_model, same_description
+
+    g = torch.Generator().manual_seed(8)
+    people = [
+        PreferenceData.create(torch.rand(40, 2, generator=g, dtype=D), torch.tensor([[0, 1], [2, 3]])) for _ in range(3)
+    ]
+    pop = torchpref.fit_population(people, fit=False)
+    assert pop.U.shape[0] ** 2 > RECORDED_VALUES_MAX
+    X = torch.rand(2, 2, generator=g, dtype=D)
+    a, b = describe_model(pop.person_model(X)), describe_model(pop.person_model(X))
+    big = a["state"]["covar_module.A"]
+    assert "sha256" in big and "values" not in big and big["shape"] == [120, 120]
+    assert same_description(a, b)
+    other = torchpref.fit_population(people[:2], fit=False)
+    assert not same_description(a, describe_model(other.person_model(X)))
