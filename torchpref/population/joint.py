@@ -149,23 +149,45 @@ def factorise(layout: Layout, F: Factors, weights: tuple[Tensor, ...]) -> Hessia
     Raises:
         NotPSDError: a block or the Schur complement is not positive definite.
     """
-    n, N = layout.num_items, F.L_U.shape[-1]
-    W = layout.obs.W_dense(n, weights, like=F.L_P)
-    Hp = F.L_P.mT @ W @ F.L_P
-    Hp = Hp + torch.eye(n, dtype=Hp.dtype, device=Hp.device)
+    C, W, Wt = person_blocks(layout, F.L_P, weights)
+    return Hessian(C, W, schur(F.L_U, scatter_blocks(layout, Wt, F.L_U.shape[-1])))
+
+
+def person_blocks(layout: Layout, L_P: Tensor, weights: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, Tensor]:
+    """Per person ``C = chol(I + L_p^T W_p L_p)``, ``W_p`` and ``W~_p = W_p - W_p L_p H_p^{-1} L_p^T W_p``.
+
+    Raises:
+        NotPSDError: a person's block is not positive definite.
+    """
+    n = layout.num_items
+    W = layout.obs.W_dense(n, weights, like=L_P)
+    Hp = L_P.mT @ W @ L_P + torch.eye(n, dtype=L_P.dtype, device=L_P.device)
     C, info = torch.linalg.cholesky_ex(Hp)
     if bool((info > 0).any()):
         raise NotPSDError("a person's block I + L_p^T W_p L_p is not positive definite")
-    V = torch.linalg.solve_triangular(C, F.L_P.mT @ W, upper=False)  # C^-1 L_p^T W_p
-    Wt = W - V.mT @ V
+    V = torch.linalg.solve_triangular(C, L_P.mT @ W, upper=False)  # C^-1 L_p^T W_p
+    return C, W, W - V.mT @ V
+
+
+def scatter_blocks(layout: Layout, Wt: Tensor, N: int) -> Tensor:
+    """``M = sum_p S_p^T W~_p S_p`` (``N x N``)."""
     flat = (layout.index.unsqueeze(-1) * N + layout.index.unsqueeze(-2)).reshape(-1)
-    M = Wt.new_zeros(N * N).index_add(0, flat, Wt.reshape(-1)).reshape(N, N)
-    S = F.L_U.mT @ M @ F.L_U
+    return Wt.new_zeros(N * N).index_add(0, flat, Wt.reshape(-1)).reshape(N, N)
+
+
+def schur(L_U: Tensor, M: Tensor) -> Tensor:
+    """The Cholesky factor of ``S = I + L_U^T M L_U``.
+
+    Raises:
+        NotPSDError: ``S`` is not positive definite.
+    """
+    N = L_U.shape[-1]
+    S = L_U.mT @ M @ L_U
     S = 0.5 * (S + S.mT) + torch.eye(N, dtype=S.dtype, device=S.device)
     S_chol, info_s = torch.linalg.cholesky_ex(S)
     if bool(info_s > 0):
         raise NotPSDError("the population block (Schur complement) is not positive definite")
-    return Hessian(C, W, S_chol)
+    return S_chol
 
 
 def solve(layout: Layout, F: Factors, H: Hessian, ga: Tensor, gb: Tensor) -> tuple[Tensor, Tensor]:
