@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numbers
 from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
 from typing import Any
 
 import torch
@@ -25,6 +26,7 @@ from torchpref.models.defaults import PreferenceLikelihood, default_covar_module
 from torchpref.population.joint import Factors, Layout, evidence, find_mode
 from torchpref.population.model import Population
 from torchpref.population.prior import _dense
+from torchpref.population.shards import ShardedProblem, shard_layouts, sharded_objective
 
 __all__ = ["fit_population", "check_people", "population_layout"]
 
@@ -106,6 +108,7 @@ def _objective(kernels: _Kernels, layout: Layout, state: dict) -> Tensor:
         F = Factors.build(layout, k_m, k_g, state.get("factors"))
         mode = find_mode(layout, F, state.get("start"))
     state.update(factors=F, start=(mode.point.a, mode.point.b), mode=mode)
+    state.update(L_U=F.L_U, a=mode.point.a, S_chol=mode.hessian.S_chol)
     value = evidence(layout, F.traced(layout, k_m, k_g), mode)
     state["evidence"] = float(value.detach())
     return -(value + kernels.log_prior())
@@ -123,6 +126,8 @@ def fit_population(
     max_iter: int = 100,
     names: Sequence[str] | None = None,
     progress: bool = False,
+    executor: Executor | None = None,
+    shards: int | None = None,
 ) -> Population:
     r"""The population of ``people`` (one :class:`~torchpref.data.preference_data.PreferenceData` each;
     comparisons, ratings and ties, all in the same ``d`` features, items in the unit cube):
@@ -138,6 +143,11 @@ def fit_population(
         names: the features' names (the objective space), kept with the population so that a
             file of it is refused for items of another space.
         progress: show a progress bar over the evidence evaluations (tqdm).
+        executor: a ``concurrent.futures.Executor`` (threads, processes, or Dask's
+            ``Client.get_executor()``): the evidence and its gradient are computed over ``shards``
+            shards of people on it (:mod:`torchpref.population.shards`), the same model as in
+            process to the optimiser's tolerance.
+        shards: the number of shards (default: 2 per worker where the executor says, else 4).
 
     Returns:
         a :class:`~torchpref.population.model.Population`.
@@ -166,6 +176,14 @@ def fit_population(
         (k_m if k_m is not None else default_covar_module(d)), (k_g if k_g is not None else default_covar_module(d))
     ).double()
     layout = population_layout(people, likelihood)
+    objective = _objective
+    if executor is not None:
+        k = shards if shards is not None else 2 * getattr(executor, "_max_workers", 2)
+        if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
+            raise ValueError(f"shards must be a positive integer, got {shards!r}.")
+        U, parts = shard_layouts(people, lambda ps: population_layout(ps, likelihood), int(k))
+        problem = ShardedProblem(U, parts, executor)
+        objective = lambda kern, _, st: sharded_objective(problem, kern, st)  # noqa: E731
     state: dict = {}
     params = [p for p in kernels.parameters() if p.requires_grad]
     if fit and params:
@@ -175,7 +193,7 @@ def fit_population(
 
         def closure() -> Tensor:
             opt.zero_grad()
-            loss = _objective(kernels, layout, state)
+            loss = objective(kernels, layout, state)
             loss.backward()
             bar.update()
             return loss
@@ -183,9 +201,9 @@ def fit_population(
         opt.step(closure)
         bar.close()
     with torch.no_grad():
-        _objective(kernels, layout, state)
+        objective(kernels, layout, state)
     stats = dict(people=len(people), items=int(layout.U.shape[0]), answers=sum(p.num_observations for p in people))
-    stats.update(evidence=state["evidence"], newton_iterations=state["mode"].iterations)
+    stats.update(evidence=state["evidence"])
     return Population.from_mode(
-        kernels.k_m, kernels.k_g, layout.U, state["factors"].L_U, state["mode"], settings, stats, names
+        kernels.k_m, kernels.k_g, layout.U, state["L_U"], state["a"], state["S_chol"], settings, stats, names
     )

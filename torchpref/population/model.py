@@ -10,7 +10,6 @@ from torch import Tensor
 
 from torchpref.data.preference_data import PreferenceData
 from torchpref.models.preference_gp import PreferenceGP
-from torchpref.population.joint import Mode
 from torchpref.population.prior import PopulationCovariance, PopulationMean
 
 
@@ -59,15 +58,17 @@ class Population:
         k_g: Kernel,
         U: Tensor,
         L_U: Tensor,
-        mode: Mode,
+        a: Tensor,
+        S_chol: Tensor,
         settings: dict,
         stats: dict,
         names: Any = None,
     ) -> Population:
-        """The population of a solved joint mode (:func:`~torchpref.population.joint.find_mode`)."""
+        """The population of a solved joint mode (whitened ``a`` of ``m(U) = L_U a``, and the
+        Schur complement's factor ``S_chol``: :func:`~torchpref.population.joint.find_mode`)."""
         with torch.no_grad():
-            alpha = torch.linalg.solve_triangular(L_U.mT, mode.point.a.unsqueeze(-1), upper=True).squeeze(-1)
-        return cls(k_m, k_g, U, alpha, L_U.detach(), mode.hessian.S_chol.detach(), settings, stats, names)
+            alpha = torch.linalg.solve_triangular(L_U.mT, a.detach().unsqueeze(-1), upper=True).squeeze(-1)
+        return cls(k_m, k_g, U, alpha, L_U.detach(), S_chol.detach(), settings, stats, names)
 
     @property
     def dim(self) -> int:
