@@ -15,6 +15,7 @@ cotangent of ``M``), so each shard differentiates its own terms (in ``k_g``, ``u
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
@@ -25,6 +26,7 @@ from gpytorch.kernels import Kernel
 from torch import Tensor
 
 from torchpref.data.preference_data import PreferenceData
+from torchpref.inference.laplace import LaplaceConvergenceWarning
 from torchpref.inference.numerics import NotPSDError, batched_cholesky, cholesky_jittered, default_tolerance
 from torchpref.population.joint import Layout, _person_covariance, _scatter_vector, person_blocks, scatter_blocks, schur
 from torchpref.population.prior import _dense
@@ -186,6 +188,8 @@ def sharded_mode(problem: ShardedProblem, L_U: Tensor, k_g: Kernel, start: Any =
             fisher = True
             hp = problem.points(k_g, L_U @ a, [p["b"] for p in pts], True)[0]
             S_chol = _assemble(L_U, a, hp)[2]
+            if S_chol is None:
+                raise NotPSDError("the population's Fisher-scoring Hessian is not positive definite")
         else:
             hp = pts
         gbs = [p["gb"] for p in pts]
@@ -202,7 +206,16 @@ def sharded_mode(problem: ShardedProblem, L_U: Tensor, k_g: Kernel, start: Any =
                 break
             step *= 0.5
         a, pts, fisher = a + step * da, trial, False
-    return dict(a=a, pts=pts, S_chol=_assemble(L_U, a, pts)[2], fisher=fisher, converged=False)
+    warnings.warn(
+        f"Newton's method for the population's joint mode did not converge in {max_iter} iterations",
+        LaplaceConvergenceWarning,
+        stacklevel=2,
+    )
+    S_chol, fisher = _assemble(L_U, a, pts)[2], False
+    if S_chol is None:
+        pts, fisher = problem.points(k_g, L_U @ a, [p["b"] for p in pts], True)[0], True
+        S_chol = _assemble(L_U, a, pts)[2]
+    return dict(a=a, pts=pts, S_chol=S_chol, fisher=fisher, converged=False)
 
 
 def sharded_objective(problem: ShardedProblem, kernels: Any, state: dict) -> Tensor:
