@@ -114,6 +114,34 @@ def _objective(kernels: _Kernels, layout: Layout, state: dict) -> Tensor:
     return -(value + kernels.log_prior())
 
 
+def _objective_on(people: list[PreferenceData], likelihood: PreferenceLikelihood, executor: Any, shards: Any) -> Any:
+    """:func:`_objective` in process, or over shards of people on ``executor``."""
+    if executor is None:
+        return _objective
+    k = shards if shards is not None else 2 * getattr(executor, "_max_workers", 2)
+    if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
+        raise ValueError(f"shards must be a positive integer, got {shards!r}.")
+    U, parts = shard_layouts(people, lambda ps: population_layout(ps, likelihood), int(k))
+    problem = ShardedProblem(U, parts, executor)
+    return lambda kern, _, st: sharded_objective(problem, kern, st)
+
+
+def _lbfgs(loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, progress: bool) -> None:
+    """Minimise ``loss_fn()`` in ``params`` with L-BFGS (strong Wolfe line search)."""
+    opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_change=1e-9)
+    bar = tqdm(total=max_iter, desc="fit_population", disable=not progress, mininterval=5)
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        bar.update()
+        return loss
+
+    opt.step(closure)
+    bar.close()
+
+
 def fit_population(
     people: Sequence[PreferenceData],
     *,
@@ -176,30 +204,11 @@ def fit_population(
         (k_m if k_m is not None else default_covar_module(d)), (k_g if k_g is not None else default_covar_module(d))
     ).double()
     layout = population_layout(people, likelihood)
-    objective = _objective
-    if executor is not None:
-        k = shards if shards is not None else 2 * getattr(executor, "_max_workers", 2)
-        if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
-            raise ValueError(f"shards must be a positive integer, got {shards!r}.")
-        U, parts = shard_layouts(people, lambda ps: population_layout(ps, likelihood), int(k))
-        problem = ShardedProblem(U, parts, executor)
-        objective = lambda kern, _, st: sharded_objective(problem, kern, st)  # noqa: E731
+    objective = _objective_on(people, likelihood, executor, shards)
     state: dict = {}
     params = [p for p in kernels.parameters() if p.requires_grad]
     if fit and params:
-        opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_change=1e-9)
-
-        bar = tqdm(total=max_iter, desc="fit_population", disable=not progress, mininterval=5)
-
-        def closure() -> Tensor:
-            opt.zero_grad()
-            loss = objective(kernels, layout, state)
-            loss.backward()
-            bar.update()
-            return loss
-
-        opt.step(closure)
-        bar.close()
+        _lbfgs(lambda: objective(kernels, layout, state), params, max_iter, progress)
     with torch.no_grad():
         objective(kernels, layout, state)
     stats = dict(people=len(people), items=int(layout.U.shape[0]), answers=sum(p.num_observations for p in people))

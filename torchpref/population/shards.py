@@ -16,7 +16,7 @@ cotangent of ``M``), so each shard differentiates its own terms (in ``k_g``, ``u
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from typing import Any
@@ -148,7 +148,7 @@ class ShardedProblem:
     shards: list[Layout]
     executor: Executor
 
-    def map(self, fn, *per_shard: Sequence, shared: tuple = ()) -> list:
+    def map(self, fn: Callable[..., Any], *per_shard: Sequence, shared: tuple = ()) -> list:
         futures = [
             self.executor.submit(fn, lay, *(x[i] for x in per_shard), *shared) for i, lay in enumerate(self.shards)
         ]
