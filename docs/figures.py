@@ -111,6 +111,7 @@ for _ds, _short in (("electricity", "elec"), ("rail", "rail")):
 FIGURES["popul_scale_wall"] = Figure("population/population_scale.json", "fit_wall_seconds", "{:.0f}")
 FIGURES["popul_scale_cpu"] = Figure("population/population_scale.json", "fit_cpu_seconds", "{:.0f}")
 FIGURES["popul_scale_answers"] = Figure("population/population_scale.json", "answers", "{:,}")
+FIGURES["popul_scale_proc_wall"] = Figure("population/population_scale_processes.json", "fit_wall_seconds", "{:.0f}")
 FIGURES["popul_scale_spearman"] = Figure("population/population_scale.json", "spearman_mean_vs_truth", "{:.3f}")
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
