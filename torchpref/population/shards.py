@@ -149,12 +149,14 @@ class ShardedProblem:
     executor: Executor
 
     def map(self, fn: Callable[..., Any], *per_shard: Sequence, shared: tuple = ()) -> list:
+        """``fn(layout, per_shard[0][i], ..., *shared)`` for each shard ``i`` on the executor, in order."""
         futures = [
             self.executor.submit(fn, lay, *(x[i] for x in per_shard), *shared) for i, lay in enumerate(self.shards)
         ]
         return [f.result() for f in futures]
 
     def points(self, k_g: Kernel, u: Tensor, b: list | None, fisher: bool) -> tuple[list[dict], bool]:
+        """:func:`shard_point` of every shard, and whether all their blocks were positive definite."""
         bs = b if b is not None else [None] * len(self.shards)
         pts = self.map(shard_point, [k_g] * len(self.shards), [u] * len(self.shards), bs, [fisher] * len(self.shards))
         return pts, all(p["ok"] for p in pts)
