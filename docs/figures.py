@@ -95,6 +95,25 @@ FIGURES: dict[str, Figure] = {
     "fuzz_f32_exceptions": Figure("fuzz.json", "f32.exceptions"),
 }
 
+# a population prior on real people, leave-people-out (benchmarks/studies/population.py), and its scale
+for _ds, _short in (("electricity", "elec"), ("rail", "rail")):
+    for _k in (0, 1, 2, 4, 8):
+        _at = f"summary.{_ds}.{_k}"
+        for _m, _mm in (("population", "pop"), ("own GP", "own"), ("pooled", "pooled")):
+            FIGURES[f"popul_{_short}_{_mm}_k{_k}"] = Figure(
+                "population/population.json", f"{_at}.{_m}.accuracy", "{:.3f}"
+            )
+        for _b, _bb in (("own GP", "own"), ("pooled", "pooled")):
+            FIGURES[f"popul_{_short}_p_{_bb}_k{_k}"] = Figure(
+                "population/population.json", f"{_at}.vs {_b}.p", "{:.2g}"
+            )
+    FIGURES[f"popul_{_short}_people"] = Figure("population/population.json", f"summary.{_ds}.0.people")
+FIGURES["popul_scale_wall"] = Figure("population/population_scale.json", "fit_wall_seconds", "{:.0f}")
+FIGURES["popul_scale_cpu"] = Figure("population/population_scale.json", "fit_cpu_seconds", "{:.0f}")
+FIGURES["popul_scale_answers"] = Figure("population/population_scale.json", "answers", "{:,}")
+FIGURES["popul_scale_proc_wall"] = Figure("population/population_scale_processes.json", "fit_wall_seconds", "{:.0f}")
+FIGURES["popul_scale_spearman"] = Figure("population/population_scale.json", "spearman_mean_vs_truth", "{:.3f}")
+
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 

@@ -31,6 +31,7 @@ LAYERS = [
     "inference",
     "likelihoods",
     "models",
+    "population",
     "acquisition",
     "simulation",
     "selection",

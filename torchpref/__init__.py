@@ -43,6 +43,9 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         PreferenceGP,
         default_covar_module,
     )
+    from torchpref.population.fit import fit_population
+    from torchpref.population.io import load_population, save_population
+    from torchpref.population.model import Population
     from torchpref.selection.active import (
         History,
         QueryRecord,
@@ -117,6 +120,10 @@ _EXPORTS = {
     "PreferenceData": "data.preference_data",
     "PreferenceGP": "models.preference_gp",
     "PreferenceSession": "sessions.session",
+    "Population": "population.model",
+    "fit_population": "population.fit",
+    "save_population": "population.io",
+    "load_population": "population.io",
     "ProfileVariancePerEffort": "selection.top_profile",
     "prepare_ratings": "data.preference_data",
     "QueryInformation": "acquisition.functions",

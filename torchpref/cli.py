@@ -206,6 +206,11 @@ def _serve_parser(sub) -> None:
     sv.add_argument("--image-column", metavar="COLUMN", help="the CSV column naming each item's image file")
     sv.add_argument("--image-dir", metavar="DIR", help="the folder of the images (default: the CSV's folder)")
     sv.add_argument("--sessions", default="torchpref-sessions", help="folder of the session files")
+    sv.add_argument(
+        "--population",
+        metavar="FILE",
+        help="a saved population (torchpref.save_population) each new session starts from (docs/population.md)",
+    )
     sv.add_argument("--queries", type=positive_int, default=14, help="questions per session (default 14)")
     sv.add_argument("--levels", type=positive_int, default=5, help="rating levels 1..K (default 5)")
     sv.add_argument("--no-ties", action="store_true", help="no 'no preference' button")

@@ -385,6 +385,7 @@ def serve(
     max_open: int | None = None,
     idle_close: float = 120.0,
     finished_close: float = 1.0,
+    population: Any = None,
 ) -> None:
     """Serve the answering page until interrupted (Ctrl-C).
 
@@ -411,6 +412,7 @@ def serve(
             once (default: from the descriptor limit, :func:`~torchpref.frontends.serve_pool.default_max_open`),
             each closed after ``idle_close`` seconds without a request (``finished_close`` once
             all its questions are answered) and reopened from its file on the next one.
+        population: a :class:`~torchpref.Population` each new session starts from (docs/population.md).
 
     Raises:
         ServeError: unsafe or impossible network settings. ImportError: the ``serve`` extra is missing.
@@ -422,7 +424,9 @@ def serve(
     sock = listening_socket(host, port)  # a busy port is named before any work
     try:
         limits = PoolLimits(max_open=max_open, idle_close=idle_close, finished_close=finished_close)
-        store = _store(source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun, limits)
+        store = _store(
+            source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun, limits, population
+        )
     except BaseException:
         sock.close()
         raise
@@ -446,11 +450,15 @@ def serve(
 
 
 def _store(
-    source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun, limits=None
+    source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun, limits=None, population=None
 ) -> SessionStore:
     from torchpref.data.queries import FinitePool
 
     if isinstance(source, PreferenceSession):
+        if population is not None:
+            raise ServeError(
+                "a served session has its own model: give population to serve() with items, not a session."
+            )
         pool = source._candidates  # the session's own candidates: queries name their rows
         if not isinstance(pool, FinitePool):
             raise ServeError("a served session's candidates must be a pool of items (N x d), not a box.")
@@ -465,8 +473,9 @@ def _store(
             f"serve() takes a PreferenceSession, an N x d tensor or ServeItems, got {type(source).__name__}."
         )
     return SessionStore(
-        items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties, limits=limits
-    )
+        items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties, limits=limits,
+        population=population,
+    )  # fmt: skip
 
 
 def run(args: Any) -> int:
@@ -479,6 +488,11 @@ def run(args: Any) -> int:
     else:
         print(f"Building the lake scenario (seed {args.seed}; cached after the first time) ...", file=sys.stderr)
         items = lake_items(args.seed)
+    population = None
+    if getattr(args, "population", None) is not None:
+        from torchpref.population.io import load_population
+
+        population = load_population(args.population, dim=items.X.shape[-1], names=items.names)
     serve(
         items,
         sessions=args.sessions,
@@ -493,5 +507,6 @@ def run(args: Any) -> int:
         max_open=args.max_open,
         idle_close=args.idle_close,
         finished_close=args.finished_close,
+        population=population,
     )
     return 0

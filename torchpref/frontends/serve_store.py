@@ -93,6 +93,7 @@ class SessionStore:
         num_levels: int | None = 5,
         ties: bool = True,
         limits: PoolLimits | None = None,
+        population: Any = None,
     ) -> None:
         from torchpref.frontends.serve_plots import Plots
         from torchpref.frontends.serve_pool import SessionPool
@@ -123,6 +124,7 @@ class SessionStore:
             num_levels=num_levels,
             names=items.names,
             metadata={**items.metadata, "front_end": "serve"},
+            population=population,
         )
         self._ranking_size = default_ranking_size(n)
 

@@ -20,7 +20,7 @@ gradient and weight). Its index and target must still be values the likelihood c
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple, Protocol
 
 import torch
@@ -58,6 +58,9 @@ class Term:
         target: ``b x m`` observed values passed to the likelihood after ``eta``, or ``None``.
         mask: ``b x m`` bool, false for padding; ``None``: all observations are real.
         log_concave: the exact weights ``-l''`` are never negative, so Fisher scoring keeps them.
+        offset: ``b x m`` values added to each predictor before the likelihood sees it, or
+            ``None``: ``d_k m`` for a prior mean ``m`` of the items (:meth:`Observations.shifted`),
+            so that the likelihood scores ``d_k (m + g)`` while the solver works on ``g``.
     """
 
     likelihood: TermLikelihood
@@ -66,6 +69,7 @@ class Term:
     target: TermValues | None = None
     mask: TermValues | None = None
     log_concave: bool = False
+    offset: TermValues | None = None
     _patterns: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -133,6 +137,8 @@ class Term:
         ``fisher`` (``b`` bool) swaps in the Fisher weights for those problems; ``eta``: the
         predictors at ``f`` if already computed."""
         eta = self.predictor(f) if eta is None else eta
+        if self.offset is not None:
+            eta = eta + self.offset
         lp, d1, d2 = self.likelihood.derivatives(eta, *self._args())
         w = -d2
         if fisher is not None and not self.log_concave and bool(fisher.any()):
@@ -141,7 +147,8 @@ class Term:
 
     def curvature_slope(self, f: Tensor) -> Tensor:
         """``d w / d eta = -l'''(eta)`` (``b x m``), for the evidence's gradient."""
-        return self._masked(-self.likelihood.third_derivative(self.predictor(f), *self._args()))
+        eta = self.predictor(f) if self.offset is None else self.predictor(f) + self.offset
+        return self._masked(-self.likelihood.third_derivative(eta, *self._args()))
 
     def W_entries(self, n: int) -> tuple[Tensor, Tensor]:
         """``W``'s nonzero pattern over the block-diagonal ``Bn x Bn`` matrix: ``(rows, cols)``
@@ -245,6 +252,17 @@ class Observations:
                 raise ValueError("ties need a tie_likelihood.")
             terms.append(pairwise_term(tie_likelihood, ties, tie_mask, log_concave=True))
         return cls(tuple(terms), comparisons.shape[0])
+
+    def shifted(self, mean: Tensor | None) -> Observations:
+        r"""These observations under a prior mean ``mean`` of the items (``B x n``): each term's
+        :attr:`Term.offset` set to ``D mean`` (replacing any earlier one), so that the likelihood
+        scores ``D (mean + g)`` for the solver's ``g ~ GP(0, K)``. ``None`` removes the offsets
+        (``self`` when there are none). The terms' index patterns are shared, not rebuilt; the
+        offsets carry ``mean``'s gradients (the evidence's gradient in a mean's parameters)."""
+        if mean is None and all(t.offset is None for t in self.terms):
+            return self
+        terms = tuple(replace(t, offset=None if mean is None else t.predictor(mean)) for t in self.terms)
+        return replace(self, terms=terms)
 
     @property
     def num_observations(self) -> int:

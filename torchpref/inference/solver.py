@@ -94,6 +94,7 @@ class PosteriorState:
         previous: PosteriorState | None = None,
         warm_f: Tensor | None = None,
         max_iter: int = 100,
+        mean: Tensor | None = None,
     ) -> PosteriorState:
         """Solve the modes of the problems ``padded`` with prior covariance ``K``.
 
@@ -102,14 +103,20 @@ class PosteriorState:
         modes moved to first order in the new hyperparameters where its data and sizes match, its
         modes where only the sizes match, else ``warm_f`` (``b x n`` or ``None``: zeros); from
         zeros if the warm-started solve fails (a start predicted for hyperparameters far from the
-        previous ones can be far from the new mode)."""
+        previous ones can be far from the new mode).
+
+        ``mean``: the prior mean of the items (``b x n``; ``None``: zero), the one seam of a prior
+        mean: it enters the observations as offsets (:meth:`Observations.shifted`) and the mode,
+        its factors and ``alpha`` are those of the deviation ``g = f - mean ~ GP(0, K)``."""
         with torch.no_grad():
             padded = padded.with_items(padded.X.detach())  # gradients in the items: see ``traced``
             prev_jitter = previous.jitter if (previous is not None and isinstance(previous.jitter, float)) else None
             L, jitter = prior_factor(K.detach(), prev_jitter)
             same_size = previous is not None and previous.mode.f.shape == L.shape[:-1]
             same_data = previous is not None and previous.key.same_observations(key)
-            obs = previous.obs if (previous is not None and same_data) else observations()
+            obs = (previous.obs if (previous is not None and same_data) else observations()).shifted(
+                None if mean is None else mean.detach().reshape(L.shape[:-1])
+            )
             warm: Tensor | tuple[Tensor, Tensor] | None
             if previous is not None and same_data and same_size:
                 warm = (previous.mode.f, predicted_mode(previous.mode.f, previous.pred, L))

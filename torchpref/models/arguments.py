@@ -11,6 +11,7 @@ import numbers
 import torch
 from botorch.models.transforms.input import InputTransform
 from gpytorch.kernels import Kernel
+from gpytorch.means import Mean
 
 
 def _is_flag(value: object) -> bool:
@@ -44,11 +45,12 @@ def check_model_arguments(
     reals: dict[str, object] | None = None,
     flags: dict[str, object] | None = None,
     rating_eps: object = 0.01,
+    mean_module: object = None,
 ) -> None:
     """``covar_module`` a GPyTorch ``Kernel`` or ``None``; ``input_transform`` a BoTorch
     ``InputTransform`` or ``None``; each of ``reals`` (name -> value) a real number (or a
     one-element floating tensor) or ``None``; each of ``flags`` a ``bool``; ``rating_eps`` in
-    ``(0, 0.5)``.
+    ``(0, 0.5)``; ``mean_module`` a GPyTorch ``Mean`` or ``None``.
 
     Raises:
         ValueError: naming the first argument of the wrong type or range.
@@ -62,6 +64,11 @@ def check_model_arguments(
         raise ValueError(
             f"input_transform must be a BoTorch InputTransform (e.g. Normalize(d)) or None, got "
             f"{input_transform!r:.60} ({type(input_transform).__name__})."
+        )
+    if mean_module is not None and not isinstance(mean_module, Mean):
+        raise ValueError(
+            f"mean_module must be a gpytorch Mean (e.g. ConstantMean()) or None, got "
+            f"{mean_module!r:.60} ({type(mean_module).__name__})."
         )
     for name, value in (reals or {}).items():
         if value is not None and not _is_real(value):

@@ -13,7 +13,9 @@ The loaded model solves its mode afresh: its posterior is the saved one's to the
 tolerance (``1e-11`` in log-posterior units in float64, about ``1e-6`` in the posterior mean).
 
 The kernel and input transform are modules, not data: a model with a kernel other than the
-default is loaded by passing one of the same structure (``load_model(path, covar_module=...)``).
+default is loaded by passing one of the same structure (``load_model(path, covar_module=...)``);
+so is a prior mean (``mean_module=...``): a checkpoint of a model with a mean is refused, naming
+the mean's keys, unless one is passed.
 
 A file that cannot be a checkpoint (truncated by a crash, damaged, another kind of file, a pickle
 holding code) or one whose contents are not a checkpoint's raises :class:`CheckpointError`, a
@@ -33,6 +35,7 @@ from typing import Any
 import torch
 from botorch.models.transforms.input import InputTransform
 from gpytorch.kernels import Kernel
+from gpytorch.means import Mean
 
 from torchpref.data.preference_data import DEFAULT_RATING_EPS, PreferenceData
 from torchpref.models.preference_gp import PreferenceGP
@@ -172,6 +175,7 @@ def load_model(
     map_location: str | torch.device | None = None,
     *,
     max_items: int | None = MAX_ITEMS,
+    mean_module: Mean | None = None,
 ) -> PreferenceGP:
     """The model saved by :func:`save_model` (a path, read with ``weights_only=True``) or given as
     a :func:`model_checkpoint` dictionary.
@@ -189,6 +193,8 @@ def load_model(
         covar_module: a kernel of the saved one's structure (default: the default kernel).
         input_transform: an input transform of the saved one's structure, if it had one.
         map_location: passed to ``torch.load``.
+        mean_module: a prior mean of the saved one's structure, if it had one (its parameters and
+            buffers are loaded into it).
         max_items: the most items a checkpoint may hold (default :data:`MAX_ITEMS`, 100,000,
             whose kernel matrix takes 80 GB in float64); ``None``: no bound.
 
@@ -211,7 +217,9 @@ def load_model(
     _check_contents(ck, where, max_items)
     settings = ck["settings"]
     if ck["data"]["train_X"].shape[-1] == 0:  # a prior-only PreferenceGP(None, None): no items, d unknown
-        model = PreferenceGP(None, None, covar_module=covar_module, input_transform=input_transform, **settings)
+        model = PreferenceGP(
+            None, None, covar_module=covar_module, input_transform=input_transform, mean_module=mean_module, **settings
+        )
         model.to(ck["data"]["train_X"].dtype)
     else:
         data = PreferenceData.create(
@@ -227,6 +235,7 @@ def load_model(
             ties=data.ties,
             covar_module=covar_module,
             input_transform=input_transform,
+            mean_module=mean_module,
             **settings,
         )
     _check_fits(model, ck["state_dict"], where)
@@ -353,8 +362,8 @@ def _check_fits(model: PreferenceGP, state_dict: dict[str, Any], where: str) -> 
     missing, unexpected = _key_mismatch(model, state_dict)
     if missing or unexpected:
         raise CheckpointError(
-            f"the saved hyperparameters do not fit this kernel / input transform: missing {missing}, "
-            f"unexpected {unexpected}; pass covar_module / input_transform like the saved ones."
+            f"the saved hyperparameters do not fit this kernel / input transform / mean: missing {missing}, "
+            f"unexpected {unexpected}; pass covar_module / input_transform / mean_module like the saved ones."
         )
     own = model.state_dict()
     for name, value in state_dict.items():

@@ -22,6 +22,7 @@ from botorch.sampling.base import MCSampler
 from botorch.utils.datasets import RankingDataset
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.kernels import Kernel
+from gpytorch.means import Mean
 from gpytorch.mlls import MarginalLogLikelihood
 from gpytorch.models import GP
 from gpytorch.module import Module as GModule
@@ -162,6 +163,12 @@ class PreferenceGP(Model, GP):
             (:attr:`laplace_dtype`); default float64 whatever the model's dtype, so a float32 model
             solves in mixed precision and returns float32 posteriors. ``torch.float32`` solves a
             float32 model natively (docs/precision.md).
+        mean_module: the prior mean of the utility, a GPyTorch ``Mean`` (default ``None``: zero,
+            eq. 1). The utility is ``f = m + g`` with ``g ~ GP(0, k)``: the likelihoods score
+            ``m(X) + g`` and Newton solves for ``g`` (the mean enters the solve only as an offset,
+            :meth:`~torchpref.inference.observations.Observations.shifted`); :meth:`posterior` adds
+            ``m`` back. Its parameters are fitted with the kernel's. A population's person model
+            (:meth:`torchpref.population.Population.person_model`) has one.
 
     Warns:
         InputDataWarning: (BoTorch's) for inputs in a dtype other than float64, and for training
@@ -203,21 +210,21 @@ class PreferenceGP(Model, GP):
         level_noise: float | None = None,
         ties_offered: bool = False,
         laplace_dtype: torch.dtype | None = None,
+        mean_module: Mean | None = None,
     ) -> None:
         super().__init__()
         weak_load_hook(self)
         train_X = pairwise_alias(train_X, datapoints)
         comparison_noise = pairwise_likelihood_noise(likelihood, comparison_noise)
         check_jitter(jitter)
-        reals: dict[str, object] = dict(comparison_noise=comparison_noise, rating_scale=rating_scale)
-        reals.update(rating_precision=rating_precision, tie_threshold=tie_threshold, level_noise=level_noise)
+        reals: dict[str, object] = dict(comparison_noise=comparison_noise, rating_scale=rating_scale, rating_precision=rating_precision, tie_threshold=tie_threshold, level_noise=level_noise)  # fmt: skip
         flags: dict[str, object] = dict(learn_likelihood=learn_likelihood, ties_offered=ties_offered)
-        check_model_arguments(covar_module, input_transform, reals=reals, flags=flags, rating_eps=rating_eps)
+        check_model_arguments(covar_module, input_transform, reals=reals, flags=flags, rating_eps=rating_eps, mean_module=mean_module)  # fmt: skip
         data = _initial_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
         X = data.train_X if isinstance(data, PreferenceData) else data.X
         check_dtype(X.dtype)
         _warn_dtype(X.dtype)
-        self.covar_module = covar_module if covar_module is not None else default_covar_module(X.shape[-1])
+        self.covar_module, self.mean_module = (covar_module if covar_module is not None else default_covar_module(X.shape[-1])), mean_module  # fmt: skip
         self.likelihood = PreferenceLikelihood.create(
             comparison_noise, rating_scale, rating_precision, learn_likelihood, tie_threshold, rating_levels, cut_points, level_noise
         )  # fmt: skip
@@ -343,15 +350,31 @@ class PreferenceGP(Model, GP):
         padded = self._padded().with_items(self._transformed_train_X())
         return padded, padded.prior_covariance(self._kernel(padded.X))
 
+    def _item_mean(self, padded: PaddedData) -> Tensor | None:
+        """The prior mean ``m`` of the problems' (transformed) items, ``B x N`` in
+        :attr:`laplace_dtype` (``None`` for a zero mean): the Laplace solve's offset."""
+        if self.mean_module is None:
+            return None
+        m = self._mean(padded.X)
+        return m.reshape(-1, padded.num_items)
+
+    def _mean(self, X: Tensor) -> Tensor:
+        """``m(X)`` at transformed ``X`` (``... x q x d``): ``... x q`` in :attr:`laplace_dtype`."""
+        mean = cast(Mean, self.mean_module)
+        dtype = solve_dtype(X.dtype, self._laplace_dtype)
+        out = call_in_dtype(mean, dtype, mean.forward, X)
+        return out.expand(X.shape[:-1])
+
     def _state(self, prior: tuple[PaddedData, Tensor] | None = None) -> PosteriorState:
         """The mode and prediction cache for the current hyperparameters and data (cached);
         ``prior``: :meth:`_prior`'s result if already computed (then the kernel is not evaluated again)."""
         fp, structure = cache_key(self)
         key = SolveKey(self._data, fp, structure, self.likelihood)
         if self._cache is None or not self._cache.key.matches(key):
-            if prior is None:
-                with torch.no_grad():
+            with torch.no_grad():
+                if prior is None:
                     prior = self._prior()
+                mean = self._item_mean(prior[0])
             self._cache = PosteriorState.solve(
                 key,
                 *prior,
@@ -359,6 +382,7 @@ class PreferenceGP(Model, GP):
                 previous=self._cache,
                 warm_f=self._warm_f,
                 max_iter=self.max_newton_iter,
+                mean=mean,
             )
         return self._cache
 
@@ -404,7 +428,8 @@ class PreferenceGP(Model, GP):
         padded, K = self._prior()
         state = self._state((padded, K))
         N = padded.num_items
-        value = laplace_evidence(K.reshape(-1, N, N), state.obs, state.mode, L=state.pred.L, jitter=state.jitter)
+        obs = state.obs if self.mean_module is None else state.obs.shifted(self._item_mean(padded))
+        value = laplace_evidence(K.reshape(-1, N, N), obs, state.mode, L=state.pred.L, jitter=state.jitter)
         _check_evidence(value)
         return value.reshape(self.batch_shape).to(padded.X.dtype)
 
@@ -414,8 +439,11 @@ class PreferenceGP(Model, GP):
         a look-ahead acquisition), differentiable in them through the mode (:meth:`PosteriorState.traced`)."""
         state = self._state()
         if torch.is_grad_enabled() and carries_gradients(self._padded()):
-            state = state.traced(*self._prior(), self._observations())
+            padded, K = self._prior()
+            state = state.traced(padded, K, self._observations().shifted(self._item_mean(padded)))
         mean, cov = state.moments(self._kernel, X, diag)
+        if self.mean_module is not None:
+            mean = mean + self._mean(X)
         return mean.to(X.dtype), cov.to(X.dtype)
 
     def forward(self, X: Tensor) -> MultivariateNormal:
@@ -697,7 +725,10 @@ class PreferenceGP(Model, GP):
             f_old = self._state().mode.f[0]
             if new.n > self._data.n:
                 with torch.no_grad():
-                    extra = self.posterior(new.train_X[self._data.n :].unsqueeze(-2)).mean.reshape(-1)
+                    X_new = new.train_X[self._data.n :]
+                    extra = self.posterior(X_new.unsqueeze(-2)).mean.reshape(-1)
+                    if self.mean_module is not None:  # the warm start is of the deviation g = f - m
+                        extra = extra - self._mean(self.transform_inputs(X_new)).to(extra)
                 warm = torch.cat([f_old, extra])
             else:
                 warm = f_old
@@ -813,7 +844,11 @@ class PreferenceGP(Model, GP):
     def utility(self) -> Tensor:
         r"""``batch_shape x n`` posterior-mode utilities of the items (``PairwiseGP.utility``), in
         the model's dtype."""
-        return self.mode.f.reshape(*self.batch_shape, -1).to(self.train_X.dtype)
+        f = self.mode.f.reshape(*self.batch_shape, -1)
+        if self.mean_module is not None:  # the mode is of the deviation g = f - m
+            with torch.no_grad():
+                f = f + self._mean(self._transformed_train_X())
+        return f.to(self.train_X.dtype)
 
     @property
     def has_data(self) -> bool:

@@ -15,6 +15,7 @@ ones that differ from the record raise it too, unless the session is opened with
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import inspect
 import json
@@ -57,12 +58,17 @@ def _number(x: float) -> float | str:
     return x if math.isfinite(x) else repr(x)  # JSON has no inf or nan: "inf", "-inf", "nan"
 
 
+#: Tensors of more elements than this (a population prior's items and factors) are recorded by
+#: their SHA-256, not their values: the header stays small, and a resumed file still checks them.
+RECORDED_VALUES_MAX = 4096
+
+
 def _encode_tensor(t: torch.Tensor) -> dict:
-    return {
-        "dtype": str(t.dtype).replace("torch.", ""),
-        "shape": list(t.shape),
-        "values": [_number(float(v)) for v in t.flatten().tolist()],
-    }
+    head = {"dtype": str(t.dtype).replace("torch.", ""), "shape": list(t.shape)}
+    if t.numel() > RECORDED_VALUES_MAX:
+        data = t.detach().to("cpu", torch.float64).contiguous().numpy().tobytes()
+        return {**head, "sha256": hashlib.sha256(data).hexdigest()}
+    return {**head, "values": [_number(float(v)) for v in t.flatten().tolist()]}
 
 
 def _decode_tensor(spec: dict) -> torch.Tensor:
@@ -87,7 +93,7 @@ def describe_model(model: PreferenceGP) -> dict[str, Any]:
             "laplace_dtype": None if dtype is None else str(dtype).replace("torch.", ""),
         },
         "state": {k: _encode_tensor(v) for k, v in model.state_dict().items() if "prior" not in k},
-    }
+    } | ({} if model.mean_module is None else {"mean": _tree(model.mean_module)})
 
 
 def _jsonable(value) -> bool:

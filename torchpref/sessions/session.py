@@ -78,6 +78,7 @@ from torchpref.sessions.settings import (
     check_callables,
     default_ranking_size,
     default_session_model,
+    population_factory,
     step_generator,
     unrated_rows,
 )
@@ -116,6 +117,7 @@ class PreferenceSession(ModelCache):
         repair: if the file ends in a partial line, report it, move it to ``FILE.dropped`` and
             continue; by default that raises :class:`SessionFileCorrupt`.
         metadata: JSON-serialisable extra settings stored in a new file's header.
+        population: a :class:`~torchpref.Population` a new person starts from (docs/population.md).
         migrate: resume a file under a model or selector other than the one its header records
             (given, or this version's default where the recorded one cannot be rebuilt); by
             default that raises :class:`SessionSettingsError`.
@@ -146,6 +148,7 @@ class PreferenceSession(ModelCache):
         repair: bool = False,
         metadata: dict | None = None,
         migrate: bool = False,
+        population: Any = None,
     ) -> None:
         if candidates is None:
             if queries is None:
@@ -156,6 +159,7 @@ class PreferenceSession(ModelCache):
         self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
         self.num_queries, self.num_levels, self.names = settings.num_queries, settings.num_levels, settings.names
         self._n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
+        model_factory = population_factory(population, model_factory, settings.dim, settings.names)
         check_callables(selector, model_factory)
         self._lock, self._pid = threading.RLock(), os.getpid()
         self._anchor = self.transform(self._pool[:1] if self._pool is not None else self.bounds.mean(0, keepdim=True))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,6 +21,7 @@ from torch import Tensor
 
 from torchpref.data.queries import BoxCandidates, Candidates, FinitePool, as_integer
 from torchpref.models.preference_gp import PreferenceGP, default_covar_module
+from torchpref.population.model import Population
 from torchpref.selection import defaults as selection_defaults
 from torchpref.sessions.errors import (
     SessionMismatchError,
@@ -371,3 +372,21 @@ def check_callables(selector: Any, model_factory: Any) -> None:
         raise TypeError(f"selector must be a Selector (with select(model, candidates, ...)), got {selector!r:.80}.")
     if model_factory is not None and not callable(model_factory):
         raise TypeError(f"model_factory must be callable(X) -> PreferenceGP, got {model_factory!r:.80}.")
+
+
+def population_factory(
+    population: Population | None, model_factory: Callable[[Tensor], PreferenceGP] | None, dim: int, names: Any
+) -> Callable[[Tensor], PreferenceGP] | None:
+    """``model_factory``, or for a ``population`` its :meth:`~torchpref.Population.person_model`.
+
+    Raises:
+        ValueError: both given, a ``population`` that is not one, or of another objective space.
+    """
+    if population is None:
+        return model_factory
+    if not isinstance(population, Population):
+        raise ValueError(f"population must be a torchpref.Population, got {type(population).__name__}.")
+    if model_factory is not None:
+        raise ValueError("give population or model_factory, not both: the population builds the person's model.")
+    population.check_space(names=names, dim=dim)
+    return population.person_model
