@@ -254,7 +254,7 @@ class Observations:
         return cls(tuple(terms), comparisons.shape[0])
 
     def shifted(self, mean: Tensor | None) -> Observations:
-        r"""These observations under a prior mean ``mean`` of the items (``B x n``): each term's
+        r"""These observations under a prior mean ``mean`` of the items (``b x n``): each term's
         :attr:`Term.offset` set to ``D mean`` (replacing any earlier one), so that the likelihood
         scores ``D (mean + g)`` for the solver's ``g ~ GP(0, K)``. ``None`` removes the offsets
         (``self`` when there are none). The terms' index patterns are shared, not rebuilt; the
