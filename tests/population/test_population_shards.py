@@ -84,6 +84,7 @@ def test_sharded_fit_on_processes_is_the_in_process_fit():
     _same_population(here, there, 1e-4)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     importlib.util.find_spec("distributed") is None,
     reason="dask.distributed is not installed (the 'dask' extra): no local Dask cluster to run on",
