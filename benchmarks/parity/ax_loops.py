@@ -44,23 +44,74 @@ RESULTS = Path(__file__).resolve().parents[1] / "results" / "ax"
 PREF = "pairwise_pref_query"
 
 
-def _model_config(model: str, d: int):
+ARMS = ("PreferenceGP", "PairwiseGP", "PreferenceGP_pairwise_priors")
+
+
+def pairwise_gp_kernel_options(d: int) -> dict:
+    """``covar_module_options`` of a ``ScaleKernel`` that is ``PairwiseGP``'s default kernel (issue 32,
+    item 4): lengthscale prior Gamma(2.4, 2.7) (started at its mode), outputscale prior
+    SmoothedBox(0.01, 100) inside the interval [0.005, 200] (started at 1)."""
+    from gpytorch.constraints import GreaterThan, Interval
+    from gpytorch.kernels import RBFKernel
+    from gpytorch.priors import GammaPrior, SmoothedBoxPrior
+
+    ls_prior = GammaPrior(2.4, 2.7)
+    mode = float((ls_prior.concentration - 1) / ls_prior.rate)
+    base = RBFKernel(
+        ard_num_dims=d,
+        lengthscale_prior=ls_prior,
+        lengthscale_constraint=GreaterThan(1e-4, transform=None, initial_value=mode),
+    ).to(torch.float64)
+    return {
+        "base_kernel": base,
+        "outputscale_prior": SmoothedBoxPrior(0.01, 100.0),
+        "outputscale_constraint": Interval(0.005, 200.0, initial_value=1.0),
+    }
+
+
+def _model_config(arm: str, d: int):
+    """The arm's ``ModelConfig``: PreferenceGP as docs/ax.md gives it (``preference_model_config``),
+    PairwiseGP as Ax's tests name it, and PreferenceGP with PairwiseGP's kernel priors."""
     from ax.generators.torch.botorch_modular.surrogate import ModelConfig
     from botorch.models.transforms.input import Normalize
 
-    if model == "PreferenceGP":
-        import torchpref.integrations.ax  # noqa: F401  (registers PreferenceGP with Ax)
-        from torchpref import LaplaceMarginalLogLikelihood as mll
-        from torchpref import PreferenceGP as cls
-    else:
-        from botorch.models.pairwise_gp import PairwiseGP as cls
-        from botorch.models.pairwise_gp import PairwiseLaplaceMarginalLogLikelihood as mll
+    if arm.startswith("PreferenceGP"):
+        import torchpref.integrations.ax as tax
+
+        if arm == "PreferenceGP":
+            return tax.preference_model_config(d)
+        from gpytorch.kernels import ScaleKernel
+
+        return tax.preference_model_config(
+            d, covar_module_class=ScaleKernel, covar_module_options=pairwise_gp_kernel_options(d)
+        )
+    from botorch.models.pairwise_gp import PairwiseGP, PairwiseLaplaceMarginalLogLikelihood
+
     return ModelConfig(
-        botorch_model_class=cls,
-        mll_class=mll,
+        botorch_model_class=PairwiseGP,
+        mll_class=PairwiseLaplaceMarginalLogLikelihood,
         input_transform_classes=[Normalize],
-        input_transform_options={"Normalize": {"d": d}},
+        input_transform_options={"Normalize": {"d": d, "bounds": None, "indices": None}},
     )
+
+
+class _Clock:
+    """Process time of the fits (adapter construction) and of the generation (``gen``)."""
+
+    def __init__(self) -> None:
+        self.fit = self.gen = 0.0
+
+    def adapter(self, make):
+        start = time.process_time()
+        out = make()
+        self.fit += time.process_time() - start
+        return out
+
+    def generate(self, adapter, n: int):
+        start = time.process_time()
+        out = adapter.gen(n=n)
+        self.gen += time.process_time() - start
+        return out
 
 
 def _add_pair(experiment, params_a: dict, params_b: dict, utility) -> None:
@@ -121,26 +172,35 @@ def run_pbo(model: str, seed: int, iters: int, d: int = 3) -> dict:
         a, b = (dict(zip(names, 10 + 20 * rng.random(d), strict=True)) for _ in range(2))
         _add_pair(exp, a, b, utility)
     spec = SurrogateSpec(metric_to_model_configs={PREF: [_model_config(model, d)]})
-    start = time.process_time()
-    for _ in range(iters):
-        adapter = TorchAdapter(
+    clock = _Clock()
+
+    def make():
+        return TorchAdapter(
             experiment=exp,
             generator=BoTorchGenerator(botorch_acqf_class=qExpectedUtilityOfBestOption, surrogate_spec=spec),
             optimization_config=opt,
             fit_tracking_metrics=False,
         )
-        gr = adapter.gen(n=2)
+
+    for _ in range(iters):
+        gr = clock.generate(clock.adapter(make), 2)
         a, b = (arm.parameters for arm in gr.arms)
         _add_pair(exp, a, b, utility)
-    adapter = TorchAdapter(
-        experiment=exp,
-        generator=BoTorchGenerator(botorch_acqf_class=qExpectedUtilityOfBestOption, surrogate_spec=spec),
-        optimization_config=opt,
-        fit_tracking_metrics=False,
-    )
-    x, fitted = _recommended(adapter.generator.surrogate)
-    cpu = time.process_time() - start
-    return {"utility": utility(dict(zip(names, x.tolist(), strict=True))), "cpu_s": cpu, "model": type(fitted).__name__}
+    x, fitted = _recommended(clock.adapter(make).generator.surrogate)
+    return {
+        "utility": utility(dict(zip(names, x.tolist(), strict=True))),
+        **_times(clock),
+        "model": type(fitted).__name__,
+        "outputscale": _outputscale(fitted),
+    }
+
+
+def _times(clock: _Clock) -> dict:
+    return {"cpu_s": clock.fit + clock.gen, "fit_cpu_s": clock.fit, "gen_cpu_s": clock.gen}
+
+
+def _outputscale(model) -> float:
+    return float(model.covar_module.outputscale.detach().reshape(-1)[0])
 
 
 def _bope_problem(rng):
@@ -234,21 +294,27 @@ def run_bope(model: str, seed: int, iters: int) -> dict:
     for _ in range(4):
         pe_query()
     spec = SurrogateSpec(metric_to_model_configs={PREF: [_model_config(model, 2)]})
-    start = time.process_time()
+    clock = _Clock()
     for _ in range(iters):
         pe_query()
         refresh_pe()
-        adapter = TorchAdapter(
-            experiment=bo,
-            data=bo.lookup_data(),
-            generator=BoTorchGenerator(botorch_acqf_class=qLogNoisyExpectedImprovement, surrogate_spec=spec),
-            fit_tracking_metrics=False,
+        adapter = clock.adapter(
+            lambda: TorchAdapter(
+                experiment=bo,
+                data=bo.lookup_data(),
+                generator=BoTorchGenerator(botorch_acqf_class=qLogNoisyExpectedImprovement, surrogate_spec=spec),
+                fit_tracking_metrics=False,
+            )
         )
-        gr = adapter.gen(n=1)
+        gr = clock.generate(adapter, 1)
         evaluate(dict(gr.arms[0].parameters))
     fitted = adapter.generator.surrogate._submodels[(PREF,)]
-    cpu = time.process_time() - start
-    return {"utility": max(scores), "cpu_s": cpu, "model": type(fitted).__name__}
+    return {
+        "utility": max(scores),
+        **_times(clock),
+        "model": type(fitted).__name__,
+        "outputscale": _outputscale(fitted),
+    }
 
 
 def _paired(a: np.ndarray, b: np.ndarray) -> dict:
@@ -262,10 +328,46 @@ def _paired(a: np.ndarray, b: np.ndarray) -> dict:
     return out
 
 
+def _arrays(rows: list[dict], arms, key: str) -> dict:
+    return {m: np.array([r[key] for r in sorted(rows, key=lambda r: r["seed"]) if r["arm"] == m]) for m in arms}
+
+
+def summarize(rows: list[dict], loop: str) -> dict:
+    """Paired comparisons over the seeds every arm named finished: PreferenceGP against PairwiseGP
+    (outcome and CPU) and PreferenceGP's defaults against PairwiseGP's priors (item 4)."""
+    out: dict = {"loop": loop, "comparisons": {}}
+    for a, b in (("PreferenceGP", "PairwiseGP"), ("PreferenceGP", "PreferenceGP_pairwise_priors")):
+        seeds = {r["seed"] for r in rows if r["arm"] == a} & {r["seed"] for r in rows if r["arm"] == b}
+        pair = [r for r in rows if r["seed"] in seeds and r["arm"] in (a, b)]
+        if len(seeds) < 2:
+            continue
+        by = _arrays(pair, (a, b), "utility")
+        cpu = {k: _arrays(pair, (a, b), k) for k in ("cpu_s", "fit_cpu_s", "gen_cpu_s")}
+        out["comparisons"][f"{a} vs {b}"] = {
+            "seeds": sorted(seeds),
+            "n_seeds": len(seeds),
+            "iters": sorted({r["iters"] for r in pair}),
+            "utility_mean": {m: float(v.mean()) for m, v in by.items()},
+            "utility_se": {m: float(v.std(ddof=1) / np.sqrt(len(v))) for m, v in by.items()},
+            "wins_first": int((by[a] > by[b]).sum()),
+            "ties": int((by[a] == by[b]).sum()),
+            "paired_utility": _paired(by[a], by[b]),
+            "cpu_s_mean": {k: {m: float(v.mean()) for m, v in c.items()} for k, c in cpu.items()},
+            "cpu_ratio_second_over_first": {k: float(c[b].sum() / c[a].sum()) for k, c in cpu.items()},
+            "outputscale_median": {m: float(np.median(v)) for m, v in _arrays(pair, (a, b), "outputscale").items()},
+            "load_average_range": [
+                float(min(r["load_before"][0] for r in pair)),
+                float(max(r["load_before"][0] for r in pair)),
+            ],
+        }
+    return out
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--loop", choices=("pbo", "bope"), required=True)
-    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(range(10)), help="seeds run in this process")
+    parser.add_argument("--arms", nargs="+", default=list(ARMS[:2]), choices=ARMS)
     parser.add_argument("--iters", type=int, default=None, help="loop iterations (default: pbo 12, bope 8)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--summarize", action="store_true", help="only summarise the finished runs in *_rows.jsonl")
@@ -277,47 +379,50 @@ def main(argv=None) -> None:
     iters = args.iters or (12 if args.loop == "pbo" else 8)
     run = run_pbo if args.loop == "pbo" else run_bope
     args.out.mkdir(parents=True, exist_ok=True)
-    partial = args.out / f"{args.loop}_rows.jsonl"  # one line per finished run: a killed run keeps its seeds
+    partial = args.out / f"{args.loop}_rows.jsonl"  # one line per finished run, appended: a killed run keeps its seeds
     if not args.summarize:
-        partial.write_text("")
-        for seed in tqdm(range(args.seeds), desc=f"ax {args.loop}"):
-            order = ("PreferenceGP", "PairwiseGP") if seed % 2 == 0 else ("PairwiseGP", "PreferenceGP")
-            for model in order:
-                res = run(model, seed, iters)
-                if res["model"] != model:
-                    raise RuntimeError(f"{model} requested but Ax fitted {res['model']}")
+        for arm in args.arms:  # warm-up, not recorded: the first fit in a process pays for lazy imports
+            run(arm, 10_000, 1)
+        for seed in tqdm(args.seeds, desc=f"ax {args.loop}"):
+            k = seed % len(args.arms)  # the order rotates with the seed
+            for arm in args.arms[k:] + args.arms[:k]:
+                load = os.getloadavg()
+                res = run(arm, seed, iters)
+                if res["model"] != arm.split("_")[0]:
+                    raise RuntimeError(f"{arm} requested but Ax fitted {res['model']}")
+                row = {
+                    "seed": seed,
+                    "arm": arm,
+                    "iters": iters,
+                    **res,
+                    "load_before": load,
+                    "load_after": os.getloadavg(),
+                }
                 with open(partial, "a") as f:
-                    f.write(json.dumps({"seed": seed, "arm": model, "iters": iters, **res}) + "\n")
+                    f.write(json.dumps(row) + "\n")
     rows = [json.loads(line) for line in partial.read_text().splitlines() if line.strip()]
-    done = {r["seed"] for r in rows if r["arm"] == "PreferenceGP"} & {
-        r["seed"] for r in rows if r["arm"] == "PairwiseGP"
-    }
-    rows = [r for r in rows if r["seed"] in done]  # complete pairs only
-    iters = rows[0]["iters"] if rows else iters
-    by = {
-        m: np.array([r["utility"] for r in sorted(rows, key=lambda r: r["seed"]) if r["arm"] == m])
-        for m in ("PreferenceGP", "PairwiseGP")
-    }
-    cpu = {m: np.array([r["cpu_s"] for r in sorted(rows, key=lambda r: r["seed"]) if r["arm"] == m]) for m in by}
-    summary = {
-        "loop": args.loop,
-        "seeds": len(done),
-        "iters": iters,
-        "load_average": os.getloadavg(),
-        "utility_mean": {m: float(v.mean()) for m, v in by.items()},
-        "utility_se": {m: float(v.std(ddof=1) / np.sqrt(len(v))) for m, v in by.items()},
-        "cpu_s_mean": {m: float(v.mean()) for m, v in cpu.items()},
-        "cpu_ratio_pairwise_over_preference": float(cpu["PairwiseGP"].sum() / cpu["PreferenceGP"].sum()),
-        "paired_utility": _paired(by["PreferenceGP"], by["PairwiseGP"]),
-        "rows": rows,
-    }
-    (args.out / f"{args.loop}.json").write_text(json.dumps(summary, indent=1))
+    summary = summarize(rows, args.loop)
+    summary.update(cpu_count=os.cpu_count(), threads=1, rows=rows)
+    from torchpref.experiments.results import write_json
+
+    root = Path(__file__).resolve().parents[2]
+    write_json(
+        args.out / f"{args.loop}.json",
+        summary,
+        measured="user",
+        sources=[__file__, root / "torchpref" / "integrations" / "ax.py"],
+    )
     with open(args.out / f"{args.loop}.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=["seed", "arm", "model", "iters", "utility", "cpu_s"])
+        fields = ["seed", "arm", "model", "iters", "utility", "cpu_s", "fit_cpu_s", "gen_cpu_s", "outputscale"]
+        w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
-        w.writerows(rows)
-    _plot(by, cpu, args.out / f"{args.loop}.png", args.loop)
-    print(json.dumps({k: v for k, v in summary.items() if k != "rows"}, indent=1))
+        w.writerows(sorted(rows, key=lambda r: (r["seed"], r["arm"])))
+    main_pair = summary["comparisons"].get("PreferenceGP vs PairwiseGP")
+    if main_pair:
+        pair = [r for r in rows if r["seed"] in main_pair["seeds"]]
+        arms = ("PreferenceGP", "PairwiseGP")
+        _plot(_arrays(pair, arms, "utility"), _arrays(pair, arms, "cpu_s"), args.out / f"{args.loop}.png", args.loop)
+    print(json.dumps(summary["comparisons"], indent=1))
 
 
 def _plot(by, cpu, path: Path, loop: str) -> None:
