@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import os
 import time
@@ -220,7 +221,7 @@ def _bope_problem(rng):
     return outcomes, g
 
 
-def run_bope(model: str, seed: int, iters: int) -> dict:
+def run_bope(model: str, seed: int, iters: int, pe_step: str = "random", pe_initial: int = 4) -> dict:
     from ax.adapter.torch import TorchAdapter
     from ax.core import Arm, GeneratorRun
     from ax.core.auxiliary import AuxiliaryExperiment, AuxiliaryExperimentPurpose
@@ -291,12 +292,13 @@ def run_bope(model: str, seed: int, iters: int) -> dict:
 
     for _ in range(6):
         evaluate({f"x{i}": float(10 + 20 * rng.random()) for i in range(1, 5)})
-    for _ in range(4):
+    for _ in range(pe_initial):
         pe_query()
     spec = SurrogateSpec(metric_to_model_configs={PREF: [_model_config(model, 2)]})
     clock = _Clock()
     for _ in range(iters):
-        pe_query()
+        if pe_step == "random":
+            pe_query()
         refresh_pe()
         adapter = clock.adapter(
             lambda: TorchAdapter(
@@ -308,6 +310,11 @@ def run_bope(model: str, seed: int, iters: int) -> dict:
         )
         gr = clock.generate(adapter, 1)
         evaluate(dict(gr.arms[0].parameters))
+        if pe_step == "eubo":
+            start = time.process_time()
+            ya, yb = _eubo_zeta_pair(adapter, metrics)
+            clock.gen += time.process_time() - start
+            _add_pair(pe, ya, yb, lambda p: g([p[m] for m in metrics]))
     fitted = adapter.generator.surrogate._submodels[(PREF,)]
     return {
         "utility": max(scores),
@@ -315,6 +322,30 @@ def run_bope(model: str, seed: int, iters: int) -> dict:
         "model": type(fitted).__name__,
         "outputscale": _outputscale(fitted),
     }
+
+
+def _eubo_zeta_pair(adapter, metrics: list[str]) -> tuple[dict, dict]:
+    """BOPE's preference-exploration step (EUBO-zeta, Lin et al. 2022): the pair of designs whose
+    predicted outcomes maximise ``qExpectedUtilityOfBestOption(pref_model, outcome_model)``, the
+    outcome model one fixed posterior sample of the outcome GPs (BoTorch's
+    BOPE mode, as Ax's ``botorch_acqf_options={"pref_model": ...}`` builds it), optimised with Ax's
+    default restarts and raw samples; returns the two outcome vectors (posterior means) shown to the
+    decision maker. The models are those the adapter just fitted."""
+    from botorch.acquisition.preference import qExpectedUtilityOfBestOption
+    from botorch.models.deterministic import FixedSingleSampleModel
+    from botorch.models.model import ModelList
+    from botorch.optim import optimize_acqf
+
+    models = adapter.generator.surrogate._submodels
+    outcome_model = ModelList(*[models[(m,)] for m in metrics])
+    # the BOPE tutorial's outcome model for EUBO-zeta: one fixed posterior sample (a deterministic model)
+    sample = FixedSingleSampleModel(model=outcome_model)
+    acqf = qExpectedUtilityOfBestOption(pref_model=models[(PREF,)], outcome_model=sample)
+    bounds = torch.tensor([[10.0] * 4, [30.0] * 4], dtype=torch.float64)
+    X, _ = optimize_acqf(acqf, bounds, q=2, num_restarts=20, raw_samples=1024)
+    with torch.no_grad():
+        Y = outcome_model.posterior(X).mean
+    return tuple(dict(zip(metrics, map(float, y), strict=True)) for y in Y)  # type: ignore[return-value]
 
 
 def _paired(a: np.ndarray, b: np.ndarray) -> dict:
@@ -370,6 +401,11 @@ def main(argv=None) -> None:
     parser.add_argument("--arms", nargs="+", default=list(ARMS[:2]), choices=ARMS)
     parser.add_argument("--iters", type=int, default=None, help="loop iterations (default: pbo 12, bope 8)")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument(
+        "--pe", choices=("random", "eubo"), default="random", help="BOPE's PE step: a random pair, or EUBO-zeta"
+    )
+    parser.add_argument("--pe-initial", type=int, default=4, help="BOPE: comparisons before the loop")
+    parser.add_argument("--tag", default="", help="suffix of the result files (bope_eubo, ...)")
     parser.add_argument("--summarize", action="store_true", help="only summarise the finished runs in *_rows.jsonl")
     args = parser.parse_args(argv)
     from tqdm import tqdm
@@ -377,9 +413,10 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore")
     iters = args.iters or (12 if args.loop == "pbo" else 8)
-    run = run_pbo if args.loop == "pbo" else run_bope
+    run = run_pbo if args.loop == "pbo" else functools.partial(run_bope, pe_step=args.pe, pe_initial=args.pe_initial)
+    stem = args.loop + args.tag
     args.out.mkdir(parents=True, exist_ok=True)
-    partial = args.out / f"{args.loop}_rows.jsonl"  # one line per finished run, appended: a killed run keeps its seeds
+    partial = args.out / f"{stem}_rows.jsonl"  # one line per finished run, appended: a killed run keeps its seeds
     if not args.summarize:
         for arm in args.arms:  # warm-up, not recorded: the first fit in a process pays for lazy imports
             run(arm, 10_000, 1)
@@ -402,17 +439,23 @@ def main(argv=None) -> None:
                     f.write(json.dumps(row) + "\n")
     rows = [json.loads(line) for line in partial.read_text().splitlines() if line.strip()]
     summary = summarize(rows, args.loop)
-    summary.update(cpu_count=os.cpu_count(), threads=1, rows=rows)
+    summary.update(
+        cpu_count=os.cpu_count(),
+        threads=1,
+        pe_step=args.pe if args.loop == "bope" else None,
+        pe_initial=args.pe_initial if args.loop == "bope" else None,
+        rows=rows,
+    )
     from torchpref.experiments.results import write_json
 
     root = Path(__file__).resolve().parents[2]
     write_json(
-        args.out / f"{args.loop}.json",
+        args.out / f"{stem}.json",
         summary,
         measured="user",
         sources=[__file__, root / "torchpref" / "integrations" / "ax.py"],
     )
-    with open(args.out / f"{args.loop}.csv", "w", newline="") as f:
+    with open(args.out / f"{stem}.csv", "w", newline="") as f:
         fields = ["seed", "arm", "model", "iters", "utility", "cpu_s", "fit_cpu_s", "gen_cpu_s", "outputscale"]
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
@@ -421,7 +464,7 @@ def main(argv=None) -> None:
     if main_pair:
         pair = [r for r in rows if r["seed"] in main_pair["seeds"]]
         arms = ("PreferenceGP", "PairwiseGP")
-        _plot(_arrays(pair, arms, "utility"), _arrays(pair, arms, "cpu_s"), args.out / f"{args.loop}.png", args.loop)
+        _plot(_arrays(pair, arms, "utility"), _arrays(pair, arms, "cpu_s"), args.out / f"{stem}.png", args.loop)
     print(json.dumps(summary["comparisons"], indent=1))
 
 

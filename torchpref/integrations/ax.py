@@ -46,11 +46,13 @@ from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, Prefere
 
 __all__ = [
     "RATING_METRICS_OPTION",
+    "Y_TRANSFORMS",
     "PreferenceGPOptIn",
     "is_preference_model_class",
     "laplace_mll_class",
     "preference_model_config",
     "rating_inputs",
+    "rating_metric_names",
     "use_preference_gp",
 ]
 
@@ -58,6 +60,9 @@ __all__ = [
 #: The ``ModelConfig.model_options`` key naming the rating metrics whose data a
 #: ``PreferenceGP`` takes as ratings (a list of metric names).
 RATING_METRICS_OPTION = "rating_metrics"
+
+#: Ax's default Y transforms (``ax.adapter.registry.Y_trans``), which rescale ratings.
+Y_TRANSFORMS = "Derelativize, Winsorize, BilogY, StandardizeY"
 
 # MLL classes Ax puts in a ModelConfig by default or for PairwiseGP: all mean "the model's evidence"
 _READ_AS_LAPLACE = (ExactMarginalLogLikelihood, PairwiseLaplaceMarginalLogLikelihood)
@@ -122,8 +127,10 @@ def rating_inputs(
         bad = ~(torch.isfinite(Y) & (Y >= 0) & (Y <= 1))
         if bool(bad.any()):
             raise ValueError(
-                f"rating metric {name!r}: ratings must be in [0, 1], got {Y[bad][:3].tolist()}; Ax's Y "
-                "transforms (Standardize, ...) must not apply to it (docs/ax.md)."
+                f"rating metric {name!r}: ratings must be in [0, 1], got {Y[bad][:3].tolist()}. If the ratings "
+                f"you attached are in [0, 1], one of Ax's Y transforms rescaled them (its default {Y_TRANSFORMS}): "
+                "give the adapter no Y transform, e.g. transforms=[] (TorchAdapter) or generator_kwargs="
+                "{'transforms': []} (GenerationStep), as torchpref.integrations.ax_recipes' strategies do."
             )
         for x, y in zip(X, Y, strict=True):
             same = (items == x).all(-1).nonzero()
@@ -139,39 +146,77 @@ def rating_inputs(
     return items, torch.stack(ratings), torch.tensor(index, dtype=long, device=train_X.device)
 
 
+def rating_metric_names(options: dict) -> list[str]:
+    """The metric names ``options[RATING_METRICS_OPTION]`` gives (removed from ``options``).
+
+    Raises:
+        ValueError: not a list (or tuple) of strings, a bare string included, or a name given twice.
+    """
+    wanted = options.pop(RATING_METRICS_OPTION, None)
+    if wanted is None:
+        return []
+    if isinstance(wanted, str) or not isinstance(wanted, list | tuple) or not all(isinstance(n, str) for n in wanted):
+        hint = f": write [{wanted!r}]" if isinstance(wanted, str) else ""
+        raise ValueError(
+            f"model_options[{RATING_METRICS_OPTION!r}] must be a list of metric names, got {wanted!r}{hint}."
+        )
+    twice = sorted({n for n in wanted if list(wanted).count(n) > 1})
+    if twice:
+        raise ValueError(
+            f"model_options[{RATING_METRICS_OPTION!r}] names {twice} more than once: each of their ratings would "
+            "be counted once per name; name each rating metric once."
+        )
+    return list(wanted)
+
+
+class _RatingsOnly(PreferenceGP):
+    """Ax's base input constructor's view of a ``PreferenceGP`` fitted to a rating metric's own data:
+    its inputs start with no items; :func:`rating_inputs` adds the rated arms."""
+
+    @classmethod
+    def construct_inputs(cls, training_data: Any, **kwargs: Any) -> dict[str, Any]:  # type: ignore[override]
+        return {"train_X": training_data.X[:0], **kwargs}
+
+
 def _preference_inputs(botorch_model_class, model_config, dataset, search_space_digest, surrogate) -> dict:
     """Ax's model inputs for a ``PreferenceGP``: its own base constructor's with no outcome
-    transform, plus the ratings of the metrics ``model_options["rating_metrics"]`` names (from the
-    surrogate's training data)."""
+    transform, plus ratings. The metric modelled is the preference metric (a ``RankingDataset``:
+    comparisons) or a rating metric (any other dataset: its values are ratings in ``[0, 1]``); the
+    metrics ``model_options["rating_metrics"]`` names add their ratings (from the surrogate's
+    training data)."""
     options = dict(model_config.model_options or {})
-    wanted = options.pop(RATING_METRICS_OPTION, None) or []
-    if isinstance(wanted, str):
-        wanted = [wanted]
-    if wanted and not isinstance(dataset, RankingDataset):
+    wanted = rating_metric_names(options)
+    name = dataset.outcome_names[0]
+    own = [] if isinstance(dataset, RankingDataset) else [dataset]  # a rating metric modelled by itself
+    if name in wanted:
         raise ValueError(
-            f"model_options[{RATING_METRICS_OPTION!r}] is for the preference metric's PreferenceGP; "
-            f"metric {dataset.outcome_names[0]!r} is not a preference metric (its data are not rankings)."
+            f"metric {name!r} is named in model_options[{RATING_METRICS_OPTION!r}] of its own model: "
+            + (
+                "its values are the model's ratings already (they would count twice); leave it out."
+                if own
+                else "it is the preference metric (comparisons), not a rating metric."
+            )
         )
     # no outcome transform: the utility has no observed scale (Ax drops it for PairwiseGP alike)
     config = dataclasses.replace(model_config, model_options=options, outcome_transform_classes=None)
     inputs = _ax_surrogate._submodel_input_constructor_base(
-        botorch_model_class,
+        _RatingsOnly if own else botorch_model_class,
         model_config=config,
         dataset=dataset,
         search_space_digest=search_space_digest,
         surrogate=surrogate,
     )
-    if not wanted:
+    if not wanted and not own:
         return inputs
     by_name = {d.outcome_names[0]: d for d in surrogate.training_data if not isinstance(d, RankingDataset)}
-    missing = [name for name in wanted if name not in by_name]
+    missing = [n for n in wanted if n not in by_name]
     if missing:
         raise ValueError(
             f"rating metrics {missing} have no data in this fit (the surrogate holds {sorted(by_name)}): a rating "
             "metric must be modelled by the adapter (an objective, a constraint, or a tracking metric with "
             "fit_tracking_metrics=True)."
         )
-    items, ratings, index = rating_inputs(inputs["train_X"], [by_name[name] for name in wanted])
+    items, ratings, index = rating_inputs(inputs["train_X"], own + [by_name[n] for n in wanted])
     inputs.update(train_X=items, ratings=ratings, rating_index=index)
     return inputs
 
