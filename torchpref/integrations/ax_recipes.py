@@ -28,6 +28,7 @@ from torchpref.integrations.ax import RATING_METRICS_OPTION, preference_model_co
 __all__ = [
     "PREFERENCE_METRIC",
     "add_comparison",
+    "add_rating",
     "bope_experiments",
     "next_pair",
     "pbo_best_point",
@@ -123,6 +124,29 @@ def add_comparison(experiment: Experiment, a: dict, b: dict, a_preferred: bool) 
     return trial
 
 
+def add_rating(experiment: Experiment, parameters: dict, rating: float, metric: str = "rating") -> Any:
+    """Record one rating in ``[0, 1]`` of the arm ``parameters`` as a completed one-arm trial of
+    ``metric`` (added to the experiment as a tracking metric if it is not one of its metrics).
+    Returns the trial.
+
+    Raises:
+        ValueError: a rating outside ``[0, 1]`` or not finite, named with its metric.
+    """
+    from ax.core import Arm, GeneratorRun
+    from ax.core.metric import Metric
+
+    value = float(rating)
+    if not 0.0 <= value <= 1.0:  # NaN fails too
+        raise ValueError(f"rating metric {metric!r}: a rating must be in [0, 1], got {rating!r}.")
+    if metric not in experiment.metrics:
+        experiment.add_metric(Metric(name=metric))
+    trial = experiment.new_batch_trial(generator_run=GeneratorRun([Arm(parameters=dict(parameters))]))
+    trial.attach_batch_trial_data(raw_data={trial.arms[0].name: {metric: (value, 0.0)}})
+    trial.mark_running(no_runner_required=True)
+    trial.mark_completed()
+    return trial
+
+
 def next_pair(experiment: Experiment, generation_strategy: GenerationStrategy) -> Any:
     """The next PBO query: a two-arm batch trial from ``generation_strategy`` (``gen(n=2)``), marked
     running. Answer it with :func:`record_preference`. (Ax's ``Client.get_next_trials`` makes
@@ -179,7 +203,6 @@ def _strategy(name: str, initial_trials: int, seed: int | None, generator_kwargs
         num_trials=initial_trials,
         min_trials_observed=initial_trials,
         generator_kwargs={"seed": seed},
-        use_all_trials_in_exp=True,  # comparisons already recorded count towards the initial ones
     )
     botorch = GenerationStep(generator=Generators.BOTORCH_MODULAR, num_trials=-1, generator_kwargs=generator_kwargs)
     return GenerationStrategy(name=name, nodes=[sobol, botorch])
