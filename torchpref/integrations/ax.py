@@ -174,7 +174,7 @@ class _RatingsOnly(PreferenceGP):
     its inputs start with no items; :func:`rating_inputs` adds the rated arms."""
 
     @classmethod
-    def construct_inputs(cls, training_data: Any, **kwargs: Any) -> dict[str, Any]:  # type: ignore[override]
+    def construct_inputs(cls, training_data: Any, **kwargs: Any) -> dict[str, Any]:
         return {"train_X": training_data.X[:0], **kwargs}
 
 
