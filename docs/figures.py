@@ -93,6 +93,132 @@ FIGURES: dict[str, Figure] = {
     "fuzz_problems": Figure("fuzz.json", "problems", "{:,}"),
     "fuzz_f64_exceptions": Figure("fuzz.json", "f64.exceptions"),
     "fuzz_f32_exceptions": Figure("fuzz.json", "f32.exceptions"),
+    # Ax's PBO and BOPE loops, PreferenceGP against PairwiseGP and against PairwiseGP's priors
+    # (benchmarks/parity/ax_loops.py, issue 32)
+    "ax_pbo_seeds": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.n_seeds", "{}"),
+    "ax_pbo_cpu_ratio": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.cpu_s", "{:.2f}×"
+    ),
+    "ax_pbo_fit_ratio": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s", "{:.2f}×"
+    ),
+    "ax_pbo_gen_ratio": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s", "{:.2f}×"
+    ),
+    "ax_pbo_cpu_pref": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP", "{:.1f} s"
+    ),
+    "ax_pbo_cpu_pair": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP", "{:.1f} s"
+    ),
+    "ax_pbo_u_pref": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.utility_mean.PreferenceGP", "{:.4f}"
+    ),
+    "ax_pbo_u_pair": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.utility_mean.PairwiseGP", "{:.4f}"),
+    "ax_pbo_wins": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.wins_first", "{}"),
+    "ax_pbo_p_worse": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.paired_utility.worse_one_sided_p", "{:.2f}"
+    ),
+    "ax_pbo_p_t": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.paired_utility.t_p", "{:.2f}"),
+    "ax_pbo_os_pref": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.outputscale_median.PreferenceGP", "{:.1f}"
+    ),
+    "ax_pbo_os_pair": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.outputscale_median.PairwiseGP", "{:.1f}"
+    ),
+    "ax_pbo_load_lo": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.load_average_range.0", "{:.1f}"),
+    "ax_pbo_load_hi": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.load_average_range.1", "{:.1f}"),
+    "ax_pbo_prior_seeds": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.n_seeds", "{}"
+    ),
+    "ax_pbo_prior_u": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.utility_mean.PreferenceGP_pairwise_priors",
+        "{:.4f}",
+    ),
+    "ax_pbo_prior_u_pref": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.utility_mean.PreferenceGP", "{:.4f}"
+    ),
+    "ax_pbo_prior_wins": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.wins_first", "{}"
+    ),
+    "ax_pbo_prior_ties": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.ties", "{}"),
+    "ax_pbo_prior_p_t": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.paired_utility.t_p", "{:.2f}"
+    ),
+    "ax_pbo_prior_os": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.outputscale_median.PreferenceGP_pairwise_priors",
+        "{:.1f}",
+    ),
+    "ax_pbo_prior_cpu_ratio": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_seeds": Figure("ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.n_seeds", "{}"),
+    "ax_bope_cpu_ratio": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.cpu_s", "{:.2f}×"
+    ),
+    "ax_bope_fit_ratio": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s", "{:.2f}×"
+    ),
+    "ax_bope_gen_ratio": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s", "{:.2f}×"
+    ),
+    "ax_bope_cpu_pref": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP", "{:.1f} s"
+    ),
+    "ax_bope_cpu_pair": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP", "{:.1f} s"
+    ),
+    "ax_bope_u_pref": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.utility_mean.PreferenceGP", "{:.4f}"
+    ),
+    "ax_bope_u_pair": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.utility_mean.PairwiseGP", "{:.4f}"
+    ),
+    "ax_bope_wins": Figure("ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.wins_first", "{}"),
+    "ax_bope_p_worse": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.paired_utility.worse_one_sided_p", "{:.2f}"
+    ),
+    "ax_bope_p_t": Figure("ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.paired_utility.t_p", "{:.2f}"),
+    "ax_bope_os_pref": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.outputscale_median.PreferenceGP", "{:.1f}"
+    ),
+    "ax_bope_os_pair": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.outputscale_median.PairwiseGP", "{:.1f}"
+    ),
+    "ax_bope_load_lo": Figure("ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.load_average_range.0", "{:.1f}"),
+    "ax_bope_load_hi": Figure("ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.load_average_range.1", "{:.1f}"),
+    "ax_bope_prior_seeds": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.n_seeds", "{}"
+    ),
+    "ax_bope_prior_u": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.utility_mean.PreferenceGP_pairwise_priors",
+        "{:.4f}",
+    ),
+    "ax_bope_prior_u_pref": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.utility_mean.PreferenceGP", "{:.4f}"
+    ),
+    "ax_bope_prior_wins": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.wins_first", "{}"
+    ),
+    "ax_bope_prior_ties": Figure("ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.ties", "{}"),
+    "ax_bope_prior_p_t": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.paired_utility.t_p", "{:.2f}"
+    ),
+    "ax_bope_prior_os": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.outputscale_median.PreferenceGP_pairwise_priors",
+        "{:.1f}",
+    ),
+    "ax_bope_prior_cpu_ratio": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
 }
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
