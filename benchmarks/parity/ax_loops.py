@@ -1,12 +1,14 @@
-"""Ax's preferential-BO (PBO) and BOPE loops with PreferenceGP and with PairwiseGP (issue 21).
+"""Ax's preferential-BO (PBO) and BOPE loops with PreferenceGP and with PairwiseGP (issues 21, 32).
 
 Both loops are built as Ax's own tests build them (ax/adapter/tests/test_torch_adapter.py:
 ``test_pairwise_preference_generator`` for PBO, ``test_fitting_auxiliary_experiment_dataset``
 for BOPE): a ``TorchAdapter`` over an ``Experiment`` whose preference data are two-arm batch
 trials of the ``pairwise_pref_query`` metric, the model named in
 ``SurrogateSpec(metric_to_model_configs={pairwise_pref_query: [ModelConfig(...)]})`` (with
-``Normalize``), and the only line that differs between the two arms of the comparison is the
-``ModelConfig``'s model and MLL class.
+``Normalize``); the only line that differs between the arms is that ``ModelConfig``: docs/ax.md's
+``tax.preference_model_config(d)`` ("PreferenceGP"), Ax's ``PairwiseGP`` config ("PairwiseGP"),
+and ``PreferenceGP`` with ``PairwiseGP``'s kernel priors ("PreferenceGP_pairwise_priors", issue
+32's prior question).
 
 * PBO: ``d = 3`` parameters in Ax's test bounds ``[10, 30]``; a hidden utility
   ``-||(x - 10) / 20 - c||^2`` (``c`` drawn per seed); 4 random pairs, then ``--iters`` pairs
@@ -16,15 +18,19 @@ trials of the ``pairwise_pref_query`` metric, the model named in
   experiment carries the PE experiment as Ax's ``PE_EXPERIMENT`` auxiliary experiment and a
   ``PreferenceOptimizationConfig``, so Ax builds ``LearnedObjective(preference model)`` and
   generates with ``qLogNoisyExpectedImprovement`` under it. Each iteration adds one preference
-  query (two observed outcome vectors drawn at random, compared by ``g``: not Ax's EUBO-zeta
-  PE step) and one BO candidate; the outcome is ``g(f(x))`` of the best arm found.
+  query and one BO candidate; the outcome is ``g(f(x))`` of the best arm found. The query is two
+  observed outcome vectors drawn at random (``--pe random``) or BOPE's EUBO-zeta pair
+  (``--pe eubo``); ``--pe-initial`` comparisons come before the loop.
 
-CPU time is process time (``time.process_time``) of each whole loop, Ax included, one thread;
-the two models run interleaved per seed (the order alternating), so machine load affects both
-alike. Results: ``benchmarks/results/ax/{pbo,bope}.json``, ``.csv`` and ``.png``.
+CPU time is process time (``time.process_time``), one thread, of the fits (the adapters'
+construction) and of the generation (``gen``, and the EUBO-zeta step); each process runs every
+arm once first, unrecorded (lazy imports), then, per seed, the arms in an order rotating with the
+seed. Each finished run is appended to ``<loop>_rows.jsonl`` at once; the summary (paired tests,
+CPU ratios) is written stamped to ``benchmarks/results/ax/<loop>.json``, ``.csv`` and ``.png``.
+One seed per process (as the committed results were run):
 
-    python benchmarks/parity/ax_loops.py --loop pbo --seeds 10
-    python benchmarks/parity/ax_loops.py --loop bope --seeds 10
+    python benchmarks/parity/ax_loops.py --loop pbo --seeds 3 --arms PreferenceGP PairwiseGP
+    python benchmarks/parity/ax_loops.py --loop pbo --summarize
 """
 
 from __future__ import annotations
