@@ -14,12 +14,15 @@ from __future__ import annotations
 
 from typing import Any
 
-from ax.adapter.registry import Generators
-from ax.core.experiment import Experiment
-from ax.generation_strategy.generation_node import GenerationStep
-from ax.generation_strategy.generation_strategy import GenerationStrategy
-from ax.generators.torch.botorch_modular.surrogate import SurrogateSpec
-from ax.utils.common.constants import Keys
+try:
+    from ax.adapter.registry import Generators
+    from ax.core.experiment import Experiment
+    from ax.generation_strategy.generation_node import GenerationStep
+    from ax.generation_strategy.generation_strategy import GenerationStrategy
+    from ax.generators.torch.botorch_modular.surrogate import SurrogateSpec
+    from ax.utils.common.constants import Keys
+except ImportError as err:  # pragma: no cover - exercised where Ax is absent
+    raise ImportError("torchpref.integrations.ax_recipes needs Ax (ax-platform): pip install 'torchpref[ax]'") from err
 from botorch.acquisition.logei import qLogNoisyExpectedImprovement
 from botorch.acquisition.preference import qExpectedUtilityOfBestOption
 
