@@ -263,9 +263,11 @@ class PreferenceGPOptIn:
 
     @property
     def active(self) -> bool:
+        """Whether this opt-in is still in effect (not undone)."""
         return any(h is self for h in _active)
 
     def undo(self) -> None:
+        """End this opt-in; Ax's own ``choose_model_class`` is back once no opt-in is active."""
         with _lock:
             if not self.active:
                 return
