@@ -5,10 +5,11 @@ Both loops are built as Ax's own tests build them (ax/adapter/tests/test_torch_a
 for BOPE): a ``TorchAdapter`` over an ``Experiment`` whose preference data are two-arm batch
 trials of the ``pairwise_pref_query`` metric, the model named in
 ``SurrogateSpec(metric_to_model_configs={pairwise_pref_query: [ModelConfig(...)]})`` (with
-``Normalize``); the only line that differs between the arms is that ``ModelConfig``: docs/ax.md's
-``tax.preference_model_config(d)`` ("PreferenceGP"), Ax's ``PairwiseGP`` config ("PairwiseGP"),
-and ``PreferenceGP`` with ``PairwiseGP``'s kernel priors ("PreferenceGP_pairwise_priors", issue
-32's prior question).
+``Normalize``); the only line that differs between the arms is that ``ModelConfig``:
+``PreferenceGP`` with torchpref's own kernel priors ("PreferenceGP"), Ax's ``PairwiseGP`` config
+("PairwiseGP"), and ``PreferenceGP`` with ``PairwiseGP``'s kernel priors
+("PreferenceGP_pairwise_priors": docs/ax.md's ``tax.preference_model_config(d)``, the default
+inside Ax since issue 32's prior decision).
 
 * PBO: ``d = 3`` parameters in Ax's test bounds ``[10, 30]``; a hidden utility
   ``-||(x - 10) / 20 - c||^2`` (``c`` drawn per seed); 4 random pairs, then ``--iters`` pairs
@@ -54,31 +55,13 @@ PREF = "pairwise_pref_query"
 ARMS = ("PreferenceGP", "PairwiseGP", "PreferenceGP_pairwise_priors")
 
 
-def pairwise_gp_kernel_options(d: int) -> dict:
-    """``covar_module_options`` of a ``ScaleKernel`` that is ``PairwiseGP``'s default kernel (issue 32,
-    item 4): lengthscale prior Gamma(2.4, 2.7) (started at its mode), outputscale prior
-    SmoothedBox(0.01, 100) inside the interval [0.005, 200] (started at 1)."""
-    from gpytorch.constraints import GreaterThan, Interval
-    from gpytorch.kernels import RBFKernel
-    from gpytorch.priors import GammaPrior, SmoothedBoxPrior
-
-    ls_prior = GammaPrior(2.4, 2.7)
-    mode = float((ls_prior.concentration - 1) / ls_prior.rate)
-    base = RBFKernel(
-        ard_num_dims=d,
-        lengthscale_prior=ls_prior,
-        lengthscale_constraint=GreaterThan(1e-4, transform=None, initial_value=mode),
-    ).to(torch.float64)
-    return {
-        "base_kernel": base,
-        "outputscale_prior": SmoothedBoxPrior(0.01, 100.0),
-        "outputscale_constraint": Interval(0.005, 200.0, initial_value=1.0),
-    }
-
-
 def _model_config(arm: str, d: int):
-    """The arm's ``ModelConfig``: PreferenceGP as docs/ax.md gives it (``preference_model_config``),
-    PairwiseGP as Ax's tests name it, and PreferenceGP with PairwiseGP's kernel priors."""
+    """The arm's ``ModelConfig``: ``PreferenceGP`` with torchpref's own kernel priors ("PreferenceGP"),
+    ``PreferenceGP`` as docs/ax.md gives it, ``tax.preference_model_config(d)``, whose kernel is
+    ``PairwiseGP``'s since issue 32's prior decision ("PreferenceGP_pairwise_priors"; the committed
+    rows of this arm were run before that decision with the same kernel given as
+    ``covar_module_class=ScaleKernel`` and ``covar_module_options``), and ``PairwiseGP`` as Ax's
+    tests name it."""
     from ax.generators.torch.botorch_modular.surrogate import ModelConfig
     from botorch.models.transforms.input import Normalize
 
@@ -86,12 +69,8 @@ def _model_config(arm: str, d: int):
         import torchpref.integrations.ax as tax
 
         if arm == "PreferenceGP":
-            return tax.preference_model_config(d)
-        from gpytorch.kernels import ScaleKernel
-
-        return tax.preference_model_config(
-            d, covar_module_class=ScaleKernel, covar_module_options=pairwise_gp_kernel_options(d)
-        )
+            return tax.preference_model_config(d, model_options={tax.KERNEL_PRIORS_OPTION: "preference_gp"})
+        return tax.preference_model_config(d)
     from botorch.models.pairwise_gp import PairwiseGP, PairwiseLaplaceMarginalLogLikelihood
 
     return ModelConfig(

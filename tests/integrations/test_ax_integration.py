@@ -94,7 +94,9 @@ def test_metric_to_model_configs_fits_preference_gp():
     assert isinstance(model.input_transform, Normalize)
     assert model.comparisons.shape == (4, 2)
     # fitted: the Laplace evidence went up from the default hyperparameters'
-    fresh = PreferenceGP(model.train_X, model.comparisons, input_transform=Normalize(2))
+    fresh = PreferenceGP(
+        model.train_X, model.comparisons, covar_module=tax.pairwise_gp_kernel(2), input_transform=Normalize(2)
+    )
     assert float(LaplaceMarginalLogLikelihood(model)()) > float(LaplaceMarginalLogLikelihood(fresh)()) - 1e-9
 
 
@@ -142,7 +144,7 @@ def test_use_preference_gp_and_undo():
         explicit = SurrogateSpec(metric_to_model_configs={PREF: [ModelConfig(botorch_model_class=PairwiseGP)]})
         assert isinstance(_preference_model(_adapter(exp, explicit)), PairwiseGP)
         # the model Ax fitted is fitted: the Laplace evidence went up from the default hyperparameters'
-        fresh = PreferenceGP(model.train_X, model.comparisons)
+        fresh = PreferenceGP(model.train_X, model.comparisons, covar_module=tax.pairwise_gp_kernel(2))
         assert float(LaplaceMarginalLogLikelihood(model)()) > float(LaplaceMarginalLogLikelihood(fresh)()) - 1e-9
     finally:
         handle.undo()
@@ -254,3 +256,44 @@ def test_rating_inputs_reuse_rows():
     items, ratings, index = tax.rating_inputs(X, [ds])
     assert items.shape == (3, 2) and torch.equal(items[2], ds.X[1])
     assert index.tolist() == [1, 2] and torch.allclose(ratings, torch.tensor([0.2, 0.7], dtype=torch.float64))
+
+
+def test_kernel_priors_inside_ax():
+    """Inside Ax, PreferenceGP gets PairwiseGP's kernel priors by default (docs/decisions.md), and
+    then fits the hyperparameters PairwiseGP fits (same probit, same Laplace evidence, same priors);
+    model_options={"kernel_priors": "preference_gp"} keeps torchpref's own; anything else is refused."""
+    from gpytorch.priors import GammaPrior, LogNormalPrior, SmoothedBoxPrior
+
+    exp = _experiment()
+    spec = SurrogateSpec(metric_to_model_configs={PREF: [tax.preference_model_config(2)]})
+    model = _preference_model(_adapter(exp, spec))
+    assert isinstance(model.covar_module.base_kernel.lengthscale_prior, GammaPrior)
+    assert isinstance(model.covar_module.outputscale_prior, SmoothedBoxPrior)
+    pairwise_spec = SurrogateSpec(
+        metric_to_model_configs={
+            PREF: [
+                ModelConfig(
+                    botorch_model_class=PairwiseGP,
+                    input_transform_classes=[Normalize],
+                    input_transform_options={"Normalize": {"d": 2, "bounds": None, "indices": None}},
+                )
+            ]
+        }
+    )
+    reference = _preference_model(_adapter(exp, pairwise_spec))
+    assert isinstance(reference, PairwiseGP)
+    assert float(model.covar_module.outputscale) == pytest.approx(float(reference.covar_module.outputscale), rel=1e-3)
+    assert torch.allclose(
+        model.covar_module.base_kernel.lengthscale, reference.covar_module.base_kernel.lengthscale, rtol=1e-3
+    )
+    own = tax.preference_model_config(2, model_options={tax.KERNEL_PRIORS_OPTION: "preference_gp"})
+    model = _preference_model(_adapter(exp, SurrogateSpec(metric_to_model_configs={PREF: [own]})))
+    assert isinstance(model.covar_module.base_kernel.lengthscale_prior, LogNormalPrior)
+    with tax.use_preference_gp():  # Ax's default path: PairwiseGP's priors too
+        model = _preference_model(_adapter(exp, SurrogateSpec()))
+        assert isinstance(model.covar_module.outputscale_prior, SmoothedBoxPrior)
+    bad = tax.preference_model_config(2, model_options={tax.KERNEL_PRIORS_OPTION: "gamma"})
+    with pytest.raises(ValueError, match="kernel_priors.*must be one of.*'gamma'"):
+        _adapter(exp, SurrogateSpec(metric_to_model_configs={PREF: [bad]}))
+    with pytest.raises(ValueError, match="d must be a positive int"):
+        tax.pairwise_gp_kernel(0)

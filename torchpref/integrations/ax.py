@@ -40,16 +40,21 @@ from botorch.fit import fit_gpytorch_mll
 from botorch.models.pairwise_gp import PairwiseGP, PairwiseLaplaceMarginalLogLikelihood
 from botorch.models.transforms.input import Normalize
 from botorch.utils.datasets import RankingDataset, SupervisedDataset
+from gpytorch.constraints import GreaterThan, Interval
+from gpytorch.kernels import RBFKernel, ScaleKernel
 from gpytorch.mlls import ExactMarginalLogLikelihood
+from gpytorch.priors import GammaPrior, SmoothedBoxPrior
 
 from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
 
 __all__ = [
+    "KERNEL_PRIORS_OPTION",
     "RATING_METRICS_OPTION",
     "Y_TRANSFORMS",
     "PreferenceGPOptIn",
     "is_preference_model_class",
     "laplace_mll_class",
+    "pairwise_gp_kernel",
     "preference_model_config",
     "rating_inputs",
     "rating_metric_names",
@@ -60,6 +65,13 @@ __all__ = [
 #: The ``ModelConfig.model_options`` key naming the rating metrics whose data a
 #: ``PreferenceGP`` takes as ratings (a list of metric names).
 RATING_METRICS_OPTION = "rating_metrics"
+
+#: The ``ModelConfig.model_options`` key choosing the kernel priors of a ``PreferenceGP`` built by
+#: Ax when its ``ModelConfig`` names no ``covar_module_class``: ``"pairwise_gp"`` (the default
+#: inside Ax: :func:`pairwise_gp_kernel`, docs/decisions.md) or ``"preference_gp"`` (torchpref's
+#: own default kernel, as outside Ax).
+KERNEL_PRIORS_OPTION = "kernel_priors"
+_KERNEL_PRIORS = ("pairwise_gp", "preference_gp")
 
 #: Ax's default Y transforms (``ax.adapter.registry.Y_trans``), which rescale ratings.
 Y_TRANSFORMS = "Derelativize, Winsorize, BilogY, StandardizeY"
@@ -146,6 +158,35 @@ def rating_inputs(
     return items, torch.stack(ratings), torch.tensor(index, dtype=long, device=train_X.device)
 
 
+def pairwise_gp_kernel(d: int) -> ScaleKernel:
+    """``PairwiseGP``'s default kernel for ``d`` inputs (float64): an ARD RBF kernel with a
+    Gamma(2.4, 2.7) lengthscale prior (lengthscales above 1e-4, started at the prior's mode) in a
+    ``ScaleKernel`` with a SmoothedBox(0.01, 100) outputscale prior (outputscale in [0.005, 200],
+    started at 1). Inside Ax, ``PreferenceGP`` is built with it by default (docs/decisions.md)."""
+    if not isinstance(d, int) or isinstance(d, bool) or d < 1:
+        raise ValueError(f"d must be a positive int (the number of inputs), got {d!r}.")
+    ls_prior = GammaPrior(2.4, 2.7)
+    mode = float((ls_prior.concentration - 1) / ls_prior.rate)
+    base = RBFKernel(
+        ard_num_dims=d,
+        lengthscale_prior=ls_prior,
+        lengthscale_constraint=GreaterThan(1e-4, transform=None, initial_value=mode),
+    )
+    kernel = ScaleKernel(
+        base,
+        outputscale_prior=SmoothedBoxPrior(0.01, 100.0),
+        outputscale_constraint=Interval(0.005, 200.0, initial_value=1.0),
+    )
+    return kernel.to(torch.float64)
+
+
+def _kernel_priors(options: dict) -> str:
+    priors = options.pop(KERNEL_PRIORS_OPTION, "pairwise_gp")
+    if priors not in _KERNEL_PRIORS:
+        raise ValueError(f"model_options[{KERNEL_PRIORS_OPTION!r}] must be one of {_KERNEL_PRIORS}, got {priors!r}.")
+    return priors
+
+
 def rating_metric_names(options: dict) -> list[str]:
     """The metric names ``options[RATING_METRICS_OPTION]`` gives (removed from ``options``).
 
@@ -186,6 +227,7 @@ def _preference_inputs(botorch_model_class, model_config, dataset, search_space_
     training data)."""
     options = dict(model_config.model_options or {})
     wanted = rating_metric_names(options)
+    priors = _kernel_priors(options)
     name = dataset.outcome_names[0]
     own = [] if isinstance(dataset, RankingDataset) else [dataset]  # a rating metric modelled by itself
     if name in wanted:
@@ -206,6 +248,8 @@ def _preference_inputs(botorch_model_class, model_config, dataset, search_space_
         search_space_digest=search_space_digest,
         surrogate=surrogate,
     )
+    if model_config.covar_module_class is None and priors == "pairwise_gp":
+        inputs["covar_module"] = pairwise_gp_kernel(int(inputs["train_X"].shape[-1]))
     if not wanted and not own:
         return inputs
     by_name = {d.outcome_names[0]: d for d in surrogate.training_data if not isinstance(d, RankingDataset)}
