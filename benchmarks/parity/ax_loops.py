@@ -348,11 +348,19 @@ def _arrays(rows: list[dict], arms, key: str) -> dict:
     return {m: np.array([r[key] for r in sorted(rows, key=lambda r: r["seed"]) if r["arm"] == m]) for m in arms}
 
 
+#: The paired comparisons summarised: the documented config (PairwiseGP's kernel priors) and
+#: PreferenceGP with torchpref's own priors, each against PairwiseGP, and the two priors (item 4).
+COMPARISONS = (
+    ("PreferenceGP_pairwise_priors", "PairwiseGP"),
+    ("PreferenceGP", "PairwiseGP"),
+    ("PreferenceGP", "PreferenceGP_pairwise_priors"),
+)
+
+
 def summarize(rows: list[dict], loop: str) -> dict:
-    """Paired comparisons over the seeds every arm named finished: PreferenceGP against PairwiseGP
-    (outcome and CPU) and PreferenceGP's defaults against PairwiseGP's priors (item 4)."""
+    """Paired comparisons (:data:`COMPARISONS`) over the seeds both arms of each finished."""
     out: dict = {"loop": loop, "comparisons": {}}
-    for a, b in (("PreferenceGP", "PairwiseGP"), ("PreferenceGP", "PreferenceGP_pairwise_priors")):
+    for a, b in COMPARISONS:
         seeds = {r["seed"] for r in rows if r["arm"] == a} & {r["seed"] for r in rows if r["arm"] == b}
         pair = [r for r in rows if r["seed"] in seeds and r["arm"] in (a, b)]
         if len(seeds) < 2:
@@ -445,12 +453,12 @@ def main(argv=None) -> None:
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
         w.writerows(sorted(rows, key=lambda r: (r["seed"], r["arm"])))
-    main_pair = summary["comparisons"].get("PreferenceGP vs PairwiseGP")
+    arms = COMPARISONS[0]
+    main_pair = summary["comparisons"].get(f"{arms[0]} vs {arms[1]}")
     if main_pair:
         pair = [r for r in rows if r["seed"] in main_pair["seeds"]]
-        arms = ("PreferenceGP", "PairwiseGP")
         _plot(_arrays(pair, arms, "utility"), _arrays(pair, arms, "cpu_s"), args.out / f"{stem}.png", args.loop)
-    print(json.dumps(summary["comparisons"], indent=1))
+    print(json.dumps({k: v["n_seeds"] for k, v in summary["comparisons"].items()}, indent=1))
 
 
 def _plot(by, cpu, path: Path, loop: str) -> None:
@@ -459,14 +467,16 @@ def _plot(by, cpu, path: Path, loop: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(8, 3.2))
+    a, b = by
+    labels = ["PreferenceGP\n(documented config)" if a == COMPARISONS[0][0] else a, b]
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3.4))
     for ax, data, label in ((axes[0], by, "true utility of the recommendation"), (axes[1], cpu, "CPU s per loop")):
-        for i in range(len(data["PreferenceGP"])):
-            ax.plot([1, 2], [data["PreferenceGP"][i], data["PairwiseGP"][i]], color="0.7", lw=0.8)
-        ax.boxplot([data["PreferenceGP"], data["PairwiseGP"]])
-        ax.set_xticks([1, 2], ["PreferenceGP", "PairwiseGP"])
+        for i in range(len(data[a])):
+            ax.plot([1, 2], [data[a][i], data[b][i]], color="0.7", lw=0.8)
+        ax.boxplot([data[a], data[b]])
+        ax.set_xticks([1, 2], labels)
         ax.set_ylabel(label)
-    fig.suptitle(f"Ax {loop.upper()} loop, {len(by['PreferenceGP'])} seeds (paired)")
+    fig.suptitle(f"Ax {loop.upper()} loop, {len(by[a])} seeds (paired)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
