@@ -5,11 +5,11 @@ Both loops are built as Ax's own tests build them (ax/adapter/tests/test_torch_a
 for BOPE): a ``TorchAdapter`` over an ``Experiment`` whose preference data are two-arm batch
 trials of the ``pairwise_pref_query`` metric, the model named in
 ``SurrogateSpec(metric_to_model_configs={pairwise_pref_query: [ModelConfig(...)]})`` (with
-``Normalize``); the only line that differs between the arms is that ``ModelConfig``:
-``PreferenceGP`` with torchpref's own kernel priors ("PreferenceGP"), Ax's ``PairwiseGP`` config
-("PairwiseGP"), and ``PreferenceGP`` with ``PairwiseGP``'s kernel priors
-("PreferenceGP_pairwise_priors": docs/ax.md's ``tax.preference_model_config(d)``, the default
-inside Ax since issue 32's prior decision).
+``Normalize``); the only line that differs between the arms is that ``ModelConfig``: docs/ax.md's
+``tax.preference_model_config(d)`` ("PreferenceGP"), Ax's ``PairwiseGP`` config ("PairwiseGP"),
+and ``PreferenceGP`` with ``PairwiseGP``'s kernel priors ("PreferenceGP_pairwise_priors", issue
+32's prior question). A run that raises (a failed fit) is recorded with its error and left out of
+the summary, which counts it.
 
 * PBO: ``d = 3`` parameters in Ax's test bounds ``[10, 30]``; a hidden utility
   ``-||(x - 10) / 20 - c||^2`` (``c`` drawn per seed); 4 random pairs, then ``--iters`` pairs
@@ -56,12 +56,11 @@ ARMS = ("PreferenceGP", "PairwiseGP", "PreferenceGP_pairwise_priors")
 
 
 def _model_config(arm: str, d: int):
-    """The arm's ``ModelConfig``: ``PreferenceGP`` with torchpref's own kernel priors ("PreferenceGP"),
-    ``PreferenceGP`` as docs/ax.md gives it, ``tax.preference_model_config(d)``, whose kernel is
-    ``PairwiseGP``'s since issue 32's prior decision ("PreferenceGP_pairwise_priors"; the committed
-    rows of this arm were run before that decision with the same kernel given as
-    ``covar_module_class=ScaleKernel`` and ``covar_module_options``), and ``PairwiseGP`` as Ax's
-    tests name it."""
+    """The arm's ``ModelConfig``: ``PreferenceGP`` as docs/ax.md gives it,
+    ``tax.preference_model_config(d)`` (torchpref's kernel priors; "PreferenceGP"), ``PreferenceGP``
+    with ``PairwiseGP``'s kernel priors (``model_options={"kernel_priors": "pairwise_gp"}``; the
+    committed rows of this arm were run with the same kernel given as ``covar_module_class=ScaleKernel``
+    and ``covar_module_options``), and ``PairwiseGP`` as Ax's tests name it."""
     from ax.generators.torch.botorch_modular.surrogate import ModelConfig
     from botorch.models.transforms.input import Normalize
 
@@ -69,8 +68,8 @@ def _model_config(arm: str, d: int):
         import torchpref.integrations.ax as tax
 
         if arm == "PreferenceGP":
-            return tax.preference_model_config(d, model_options={tax.KERNEL_PRIORS_OPTION: "preference_gp"})
-        return tax.preference_model_config(d)
+            return tax.preference_model_config(d)
+        return tax.preference_model_config(d, model_options={tax.KERNEL_PRIORS_OPTION: "pairwise_gp"})
     from botorch.models.pairwise_gp import PairwiseGP, PairwiseLaplaceMarginalLogLikelihood
 
     return ModelConfig(
@@ -348,18 +347,19 @@ def _arrays(rows: list[dict], arms, key: str) -> dict:
     return {m: np.array([r[key] for r in sorted(rows, key=lambda r: r["seed"]) if r["arm"] == m]) for m in arms}
 
 
-#: The paired comparisons summarised: the documented config (PairwiseGP's kernel priors) and
-#: PreferenceGP with torchpref's own priors, each against PairwiseGP, and the two priors (item 4).
+#: The paired comparisons summarised: the documented config and PreferenceGP with PairwiseGP's
+#: kernel priors, each against PairwiseGP, and the two priors (item 4).
 COMPARISONS = (
-    ("PreferenceGP_pairwise_priors", "PairwiseGP"),
     ("PreferenceGP", "PairwiseGP"),
+    ("PreferenceGP_pairwise_priors", "PairwiseGP"),
     ("PreferenceGP", "PreferenceGP_pairwise_priors"),
 )
 
 
 def summarize(rows: list[dict], loop: str) -> dict:
     """Paired comparisons (:data:`COMPARISONS`) over the seeds both arms of each finished."""
-    out: dict = {"loop": loop, "comparisons": {}}
+    out: dict = {"loop": loop, "comparisons": {}, "failed_runs": [r for r in rows if "error" in r]}
+    rows = [r for r in rows if "error" not in r]
     for a, b in COMPARISONS:
         seeds = {r["seed"] for r in rows if r["arm"] == a} & {r["seed"] for r in rows if r["arm"] == b}
         pair = [r for r in rows if r["seed"] in seeds and r["arm"] in (a, b)]
@@ -417,7 +417,10 @@ def main(argv=None) -> None:
             k = seed % len(args.arms)  # the order rotates with the seed
             for arm in args.arms[k:] + args.arms[:k]:
                 load = os.getloadavg()
-                res = run(arm, seed, iters)
+                try:
+                    res = run(arm, seed, iters)
+                except Exception as err:  # a failed fit: recorded, and the other arms still run
+                    res = {"error": f"{type(err).__name__}: {err}"[:300], "model": arm.split("_")[0]}
                 if res["model"] != arm.split("_")[0]:
                     raise RuntimeError(f"{arm} requested but Ax fitted {res['model']}")
                 row = {
@@ -468,7 +471,7 @@ def _plot(by, cpu, path: Path, loop: str) -> None:
     import matplotlib.pyplot as plt
 
     a, b = by
-    labels = ["PreferenceGP\n(documented config)" if a == COMPARISONS[0][0] else a, b]
+    labels = [a, b]
     fig, axes = plt.subplots(1, 2, figsize=(8, 3.4))
     for ax, data, label in ((axes[0], by, "true utility of the recommendation"), (axes[1], cpu, "CPU s per loop")):
         for i in range(len(data[a])):

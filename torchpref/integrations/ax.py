@@ -67,9 +67,9 @@ __all__ = [
 RATING_METRICS_OPTION = "rating_metrics"
 
 #: The ``ModelConfig.model_options`` key choosing the kernel priors of a ``PreferenceGP`` built by
-#: Ax when its ``ModelConfig`` names no ``covar_module_class``: ``"pairwise_gp"`` (the default
-#: inside Ax: :func:`pairwise_gp_kernel`, docs/decisions.md) or ``"preference_gp"`` (torchpref's
-#: own default kernel, as outside Ax).
+#: Ax when its ``ModelConfig`` names no ``covar_module_class``: ``"preference_gp"`` (the default:
+#: torchpref's own kernel, as outside Ax; docs/decisions.md) or ``"pairwise_gp"``
+#: (:func:`pairwise_gp_kernel`, ``PairwiseGP``'s).
 KERNEL_PRIORS_OPTION = "kernel_priors"
 _KERNEL_PRIORS = ("pairwise_gp", "preference_gp")
 
@@ -162,7 +162,8 @@ def pairwise_gp_kernel(d: int) -> ScaleKernel:
     """``PairwiseGP``'s default kernel for ``d`` inputs (float64): an ARD RBF kernel with a
     Gamma(2.4, 2.7) lengthscale prior (lengthscales above 1e-4, started at the prior's mode) in a
     ``ScaleKernel`` with a SmoothedBox(0.01, 100) outputscale prior (outputscale in [0.005, 200],
-    started at 1). Inside Ax, ``PreferenceGP`` is built with it by default (docs/decisions.md)."""
+    started at 1). Inside Ax, ``model_options={"kernel_priors": "pairwise_gp"}`` builds ``PreferenceGP``
+    with it (docs/decisions.md: its outputscale prior is a wall at 100 where a fit can fail)."""
     if not isinstance(d, int) or isinstance(d, bool) or d < 1:
         raise ValueError(f"d must be a positive int (the number of inputs), got {d!r}.")
     ls_prior = GammaPrior(2.4, 2.7)
@@ -181,7 +182,7 @@ def pairwise_gp_kernel(d: int) -> ScaleKernel:
 
 
 def _kernel_priors(options: dict) -> str:
-    priors = options.pop(KERNEL_PRIORS_OPTION, "pairwise_gp")
+    priors = options.pop(KERNEL_PRIORS_OPTION, "preference_gp")
     if priors not in _KERNEL_PRIORS:
         raise ValueError(f"model_options[{KERNEL_PRIORS_OPTION!r}] must be one of {_KERNEL_PRIORS}, got {priors!r}.")
     return priors
