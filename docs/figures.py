@@ -93,103 +93,103 @@ FIGURES: dict[str, Figure] = {
     "fuzz_problems": Figure("fuzz.json", "problems", "{:,}"),
     "fuzz_f64_exceptions": Figure("fuzz.json", "f64.exceptions"),
     "fuzz_f32_exceptions": Figure("fuzz.json", "f32.exceptions"),
-    # Ax's loops: the documented config (PreferenceGP with PairwiseGP's kernel priors) against PairwiseGP
-    "ax_pbo_doc_seeds": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.n_seeds", "{}"),
-    "ax_pbo_doc_cpu_ratio": Figure(
+    # Ax's loops: PreferenceGP with PairwiseGP's kernel priors against PairwiseGP
+    "ax_pbo_pp_seeds": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.n_seeds", "{}"),
+    "ax_pbo_pp_cpu_ratio": Figure(
         "ax/pbo.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.cpu_s",
         "{:.2f}×",
     ),
-    "ax_pbo_doc_fit_ratio": Figure(
+    "ax_pbo_pp_fit_ratio": Figure(
         "ax/pbo.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s",
         "{:.2f}×",
     ),
-    "ax_pbo_doc_gen_ratio": Figure(
+    "ax_pbo_pp_gen_ratio": Figure(
         "ax/pbo.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s",
         "{:.2f}×",
     ),
-    "ax_pbo_doc_cpu_pref": Figure(
+    "ax_pbo_pp_cpu_pref": Figure(
         "ax/pbo.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP_pairwise_priors",
         "{:.1f} s",
     ),
-    "ax_pbo_doc_cpu_pair": Figure(
+    "ax_pbo_pp_cpu_pair": Figure(
         "ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP", "{:.1f} s"
     ),
-    "ax_pbo_doc_u_pref": Figure(
+    "ax_pbo_pp_u_pref": Figure(
         "ax/pbo.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.utility_mean.PreferenceGP_pairwise_priors",
         "{:.4f}",
     ),
-    "ax_pbo_doc_u_pair": Figure(
+    "ax_pbo_pp_u_pair": Figure(
         "ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.utility_mean.PairwiseGP", "{:.4f}"
     ),
-    "ax_pbo_doc_wins": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.wins_first", "{}"),
-    "ax_pbo_doc_ties": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.ties", "{}"),
-    "ax_pbo_doc_p_worse": Figure(
+    "ax_pbo_pp_wins": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.wins_first", "{}"),
+    "ax_pbo_pp_ties": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.ties", "{}"),
+    "ax_pbo_pp_p_worse": Figure(
         "ax/pbo.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.paired_utility.worse_one_sided_p",
         "{:.2f}",
     ),
-    "ax_pbo_doc_p_t": Figure(
+    "ax_pbo_pp_p_t": Figure(
         "ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.paired_utility.t_p", "{:.2f}"
     ),
-    "ax_pbo_doc_load_lo": Figure(
+    "ax_pbo_pp_load_lo": Figure(
         "ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.load_average_range.0", "{:.1f}"
     ),
-    "ax_pbo_doc_load_hi": Figure(
+    "ax_pbo_pp_load_hi": Figure(
         "ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.load_average_range.1", "{:.1f}"
     ),
-    "ax_bope_doc_seeds": Figure("ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.n_seeds", "{}"),
-    "ax_bope_doc_cpu_ratio": Figure(
+    "ax_bope_pp_seeds": Figure("ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.n_seeds", "{}"),
+    "ax_bope_pp_cpu_ratio": Figure(
         "ax/bope.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.cpu_s",
         "{:.2f}×",
     ),
-    "ax_bope_doc_fit_ratio": Figure(
+    "ax_bope_pp_fit_ratio": Figure(
         "ax/bope.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s",
         "{:.2f}×",
     ),
-    "ax_bope_doc_gen_ratio": Figure(
+    "ax_bope_pp_gen_ratio": Figure(
         "ax/bope.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s",
         "{:.2f}×",
     ),
-    "ax_bope_doc_cpu_pref": Figure(
+    "ax_bope_pp_cpu_pref": Figure(
         "ax/bope.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP_pairwise_priors",
         "{:.1f} s",
     ),
-    "ax_bope_doc_cpu_pair": Figure(
+    "ax_bope_pp_cpu_pair": Figure(
         "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP", "{:.1f} s"
     ),
-    "ax_bope_doc_u_pref": Figure(
+    "ax_bope_pp_u_pref": Figure(
         "ax/bope.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.utility_mean.PreferenceGP_pairwise_priors",
         "{:.4f}",
     ),
-    "ax_bope_doc_u_pair": Figure(
+    "ax_bope_pp_u_pair": Figure(
         "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.utility_mean.PairwiseGP", "{:.4f}"
     ),
-    "ax_bope_doc_wins": Figure(
+    "ax_bope_pp_wins": Figure(
         "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.wins_first", "{}"
     ),
-    "ax_bope_doc_ties": Figure("ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.ties", "{}"),
-    "ax_bope_doc_p_worse": Figure(
+    "ax_bope_pp_ties": Figure("ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.ties", "{}"),
+    "ax_bope_pp_p_worse": Figure(
         "ax/bope.json",
         "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.paired_utility.worse_one_sided_p",
         "{:.2f}",
     ),
-    "ax_bope_doc_p_t": Figure(
+    "ax_bope_pp_p_t": Figure(
         "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.paired_utility.t_p", "{:.2f}"
     ),
-    "ax_bope_doc_load_lo": Figure(
+    "ax_bope_pp_load_lo": Figure(
         "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.load_average_range.0", "{:.1f}"
     ),
-    "ax_bope_doc_load_hi": Figure(
+    "ax_bope_pp_load_hi": Figure(
         "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.load_average_range.1", "{:.1f}"
     ),
     # Ax's PBO and BOPE loops, PreferenceGP against PairwiseGP and against PairwiseGP's priors
