@@ -52,24 +52,42 @@ RESULTS = Path(__file__).resolve().parents[1] / "results" / "ax"
 PREF = "pairwise_pref_query"
 
 
-ARMS = ("PreferenceGP", "PairwiseGP", "PreferenceGP_pairwise_priors")
+ARMS = ("PreferenceGP", "PairwiseGP", "PreferenceGP_pairwise_priors", "PreferenceGP_pairwise_box")
+
+
+def _exact_pairwise_kernel_options(d: int) -> dict:
+    """``covar_module_options`` of a ``ScaleKernel`` that is exactly ``PairwiseGP``'s default kernel
+    (outputscale constraint up to 200)."""
+    from gpytorch.constraints import Interval
+
+    import torchpref.integrations.ax as tax
+
+    kernel = tax.pairwise_gp_kernel(d)
+    return {
+        "base_kernel": kernel.base_kernel,
+        "outputscale_prior": kernel.outputscale_prior,
+        "outputscale_constraint": Interval(0.005, 200.0, initial_value=1.0),
+    }
 
 
 def _model_config(arm: str, d: int):
-    """The arm's ``ModelConfig``: ``PreferenceGP`` as docs/ax.md gives it,
-    ``tax.preference_model_config(d)`` (torchpref's kernel priors; "PreferenceGP"), ``PreferenceGP``
-    with ``PairwiseGP``'s kernel priors (``model_options={"kernel_priors": "pairwise_gp"}``; the
-    committed rows of this arm were run with the same kernel given as ``covar_module_class=ScaleKernel``
-    and ``covar_module_options``), and ``PairwiseGP`` as Ax's tests name it."""
+    """The arm's ``ModelConfig``: ``PreferenceGP`` with torchpref's kernel priors ("PreferenceGP"),
+    with ``PairwiseGP``'s kernel exactly ("PreferenceGP_pairwise_priors"), with
+    ``tax.pairwise_gp_kernel`` (``PairwiseGP``'s priors, outputscale held at most 100;
+    "PreferenceGP_pairwise_box"), and ``PairwiseGP`` as Ax's tests name it."""
     from ax.generators.torch.botorch_modular.surrogate import ModelConfig
     from botorch.models.transforms.input import Normalize
 
     if arm.startswith("PreferenceGP"):
         import torchpref.integrations.ax as tax
 
-        if arm == "PreferenceGP":
-            return tax.preference_model_config(d)
-        return tax.preference_model_config(d, model_options={tax.KERNEL_PRIORS_OPTION: "pairwise_gp"})
+        if arm == "PreferenceGP_pairwise_priors":
+            from gpytorch.kernels import ScaleKernel
+
+            options = _exact_pairwise_kernel_options(d)
+            return tax.preference_model_config(d, covar_module_class=ScaleKernel, covar_module_options=options)
+        priors = "pairwise_gp" if arm == "PreferenceGP_pairwise_box" else "preference_gp"
+        return tax.preference_model_config(d, model_options={tax.KERNEL_PRIORS_OPTION: priors})
     from botorch.models.pairwise_gp import PairwiseGP, PairwiseLaplaceMarginalLogLikelihood
 
     return ModelConfig(
@@ -350,8 +368,10 @@ def _arrays(rows: list[dict], arms, key: str) -> dict:
 #: The paired comparisons summarised: the documented config and PreferenceGP with PairwiseGP's
 #: kernel priors, each against PairwiseGP, and the two priors (item 4).
 COMPARISONS = (
+    ("PreferenceGP_pairwise_box", "PairwiseGP"),
     ("PreferenceGP", "PairwiseGP"),
     ("PreferenceGP_pairwise_priors", "PairwiseGP"),
+    ("PreferenceGP", "PreferenceGP_pairwise_box"),
     ("PreferenceGP", "PreferenceGP_pairwise_priors"),
 )
 

@@ -161,8 +161,10 @@ def rating_inputs(
 def pairwise_gp_kernel(d: int) -> ScaleKernel:
     """``PairwiseGP``'s default kernel for ``d`` inputs (float64): an ARD RBF kernel with a
     Gamma(2.4, 2.7) lengthscale prior (lengthscales above 1e-4, started at the prior's mode) in a
-    ``ScaleKernel`` with a SmoothedBox(0.01, 100) outputscale prior (outputscale in [0.005, 200],
-    started at 1). Inside Ax, ``model_options={"kernel_priors": "pairwise_gp"}`` builds ``PreferenceGP``
+    ``ScaleKernel`` with a SmoothedBox(0.01, 100) outputscale prior, started at 1, with one change:
+    the outputscale is held in [0.005, 100] (``PairwiseGP``'s constraint reaches 200, but its prior
+    is a wall 0.01 wide at 100 on which L-BFGS-B's line search fails when the evidence climbs to
+    it: docs/decisions.md). Inside Ax, ``model_options={"kernel_priors": "pairwise_gp"}`` builds ``PreferenceGP``
     with it (docs/decisions.md: its outputscale prior is a wall at 100 where a fit can fail)."""
     if not isinstance(d, int) or isinstance(d, bool) or d < 1:
         raise ValueError(f"d must be a positive int (the number of inputs), got {d!r}.")
@@ -176,7 +178,7 @@ def pairwise_gp_kernel(d: int) -> ScaleKernel:
     kernel = ScaleKernel(
         base,
         outputscale_prior=SmoothedBoxPrior(0.01, 100.0),
-        outputscale_constraint=Interval(0.005, 200.0, initial_value=1.0),
+        outputscale_constraint=Interval(0.005, 100.0, initial_value=1.0),
     )
     return kernel.to(torch.float64)
 
