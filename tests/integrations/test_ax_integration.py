@@ -299,3 +299,31 @@ def test_kernel_priors_inside_ax():
         _adapter(exp, SurrogateSpec(metric_to_model_configs={PREF: [bad]}))
     with pytest.raises(ValueError, match="d must be a positive int"):
         tax.pairwise_gp_kernel(0)
+
+
+def test_pairwise_gp_kernel_fits_where_the_wall_stopped_it():
+    """BOPE seed 2's first preference fit (9 outcome vectors, 9 noiseless comparisons): with
+    PairwiseGP's exact kernel (outputscale up to 200) every L-BFGS-B restart stopped "ABNORMAL" on
+    the SmoothedBox prior's wall at 100; pairwise_gp_kernel holds the outputscale at most 100 and
+    the fit succeeds, at the wall."""
+    from botorch.fit import fit_gpytorch_mll
+
+    X = torch.tensor(
+        [
+            [0.540955675406233, 0.2929559393924536],
+            [0.7728255352131905, 0.683471514627593],
+            [0.8421514948203525, 0.7738835343882678],
+            [0.6637348770923923, 0.6364518911241861],
+            [0.8881720348223809, 0.5359749883582827],
+            [0.5830898457359502, 0.8431066873268755],
+            [0.7879904268583646, 0.8028414777769275],
+            [0.841759514362164, 0.7912818399956677],
+            [0.7378533846363313, 0.7177974156801414],
+        ],
+        dtype=torch.float64,
+    )
+    C = torch.tensor([[1, 0], [2, 0], [3, 4], [2, 3], [2, 3], [2, 5], [2, 1], [6, 2], [7, 8]])
+    model = PreferenceGP(X, C, covar_module=tax.pairwise_gp_kernel(2), input_transform=Normalize(2))
+    fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+    outputscale = float(model.covar_module.outputscale)
+    assert 50.0 < outputscale <= 100.0
