@@ -6,10 +6,11 @@ for BOPE): a ``TorchAdapter`` over an ``Experiment`` whose preference data are t
 trials of the ``pairwise_pref_query`` metric, the model named in
 ``SurrogateSpec(metric_to_model_configs={pairwise_pref_query: [ModelConfig(...)]})`` (with
 ``Normalize``); the only line that differs between the arms is that ``ModelConfig``: docs/ax.md's
-``tax.preference_model_config(d)`` ("PreferenceGP"), Ax's ``PairwiseGP`` config ("PairwiseGP"),
-and ``PreferenceGP`` with ``PairwiseGP``'s kernel priors ("PreferenceGP_pairwise_priors", issue
-32's prior question). A run that raises (a failed fit) is recorded with its error and left out of
-the summary, which counts it.
+``tax.preference_model_config(d)`` ("PreferenceGP_pairwise_box": ``PairwiseGP``'s kernel priors,
+outputscale at most 100, the default inside Ax since issue 32's prior decision), ``PreferenceGP``
+with torchpref's own priors ("PreferenceGP"), with ``PairwiseGP``'s kernel exactly
+("PreferenceGP_pairwise_priors"), and Ax's ``PairwiseGP`` config ("PairwiseGP"). A run that raises
+(a failed fit) is recorded with its error and left out of the summary, which counts it.
 
 * PBO: ``d = 3`` parameters in Ax's test bounds ``[10, 30]``; a hidden utility
   ``-||(x - 10) / 20 - c||^2`` (``c`` drawn per seed); 4 random pairs, then ``--iters`` pairs

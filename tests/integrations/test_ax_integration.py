@@ -144,7 +144,7 @@ def test_use_preference_gp_and_undo():
         explicit = SurrogateSpec(metric_to_model_configs={PREF: [ModelConfig(botorch_model_class=PairwiseGP)]})
         assert isinstance(_preference_model(_adapter(exp, explicit)), PairwiseGP)
         # the model Ax fitted is fitted: the Laplace evidence went up from the default hyperparameters'
-        fresh = PreferenceGP(model.train_X, model.comparisons)
+        fresh = PreferenceGP(model.train_X, model.comparisons, covar_module=tax.pairwise_gp_kernel(2))
         assert float(LaplaceMarginalLogLikelihood(model)()) > float(LaplaceMarginalLogLikelihood(fresh)()) - 1e-9
     finally:
         handle.undo()
@@ -259,22 +259,15 @@ def test_rating_inputs_reuse_rows():
 
 
 def test_kernel_priors_inside_ax():
-    """Inside Ax, PreferenceGP keeps torchpref's kernel priors by default (docs/decisions.md), also
-    on the opt-in's default path; model_options={"kernel_priors": "pairwise_gp"} gives PairwiseGP's
-    kernel, with which it fits the hyperparameters PairwiseGP fits (the same probit, the same
-    Laplace evidence, the same priors: an independent reference); anything else is refused."""
+    """Inside Ax, PreferenceGP gets PairwiseGP's kernel priors by default (docs/decisions.md), on
+    the opt-in's default path too, and then fits the hyperparameters PairwiseGP fits (the same
+    probit, the same Laplace evidence, the same priors: an independent reference);
+    model_options={"kernel_priors": "preference_gp"} keeps torchpref's own; anything else is refused."""
     from gpytorch.priors import GammaPrior, LogNormalPrior, SmoothedBoxPrior
 
     exp = _experiment()
     spec = SurrogateSpec(metric_to_model_configs={PREF: [tax.preference_model_config(2)]})
     model = _preference_model(_adapter(exp, spec))
-    assert isinstance(model.covar_module.base_kernel.lengthscale_prior, LogNormalPrior)
-    assert isinstance(model.covar_module.outputscale_prior, GammaPrior)
-    with tax.use_preference_gp():
-        model = _preference_model(_adapter(exp, SurrogateSpec()))
-        assert isinstance(model.covar_module.base_kernel.lengthscale_prior, LogNormalPrior)
-    pairwise_priors = tax.preference_model_config(2, model_options={tax.KERNEL_PRIORS_OPTION: "pairwise_gp"})
-    model = _preference_model(_adapter(exp, SurrogateSpec(metric_to_model_configs={PREF: [pairwise_priors]})))
     assert isinstance(model.covar_module.base_kernel.lengthscale_prior, GammaPrior)
     assert isinstance(model.covar_module.outputscale_prior, SmoothedBoxPrior)
     pairwise_spec = SurrogateSpec(
@@ -294,6 +287,13 @@ def test_kernel_priors_inside_ax():
     assert torch.allclose(
         model.covar_module.base_kernel.lengthscale, reference.covar_module.base_kernel.lengthscale, rtol=1e-3
     )
+    with tax.use_preference_gp():
+        model = _preference_model(_adapter(exp, SurrogateSpec()))
+        assert isinstance(model.covar_module.outputscale_prior, SmoothedBoxPrior)
+    own = tax.preference_model_config(2, model_options={tax.KERNEL_PRIORS_OPTION: "preference_gp"})
+    model = _preference_model(_adapter(exp, SurrogateSpec(metric_to_model_configs={PREF: [own]})))
+    assert isinstance(model.covar_module.base_kernel.lengthscale_prior, LogNormalPrior)
+    assert isinstance(model.covar_module.outputscale_prior, GammaPrior)
     bad = tax.preference_model_config(2, model_options={tax.KERNEL_PRIORS_OPTION: "gamma"})
     with pytest.raises(ValueError, match="kernel_priors.*must be one of.*'gamma'"):
         _adapter(exp, SurrogateSpec(metric_to_model_configs={PREF: [bad]}))

@@ -67,9 +67,9 @@ __all__ = [
 RATING_METRICS_OPTION = "rating_metrics"
 
 #: The ``ModelConfig.model_options`` key choosing the kernel priors of a ``PreferenceGP`` built by
-#: Ax when its ``ModelConfig`` names no ``covar_module_class``: ``"preference_gp"`` (the default:
-#: torchpref's own kernel, as outside Ax; docs/decisions.md) or ``"pairwise_gp"``
-#: (:func:`pairwise_gp_kernel`, ``PairwiseGP``'s).
+#: Ax when its ``ModelConfig`` names no ``covar_module_class``: ``"pairwise_gp"`` (the default
+#: inside Ax: :func:`pairwise_gp_kernel`, ``PairwiseGP``'s priors; docs/decisions.md) or
+#: ``"preference_gp"`` (torchpref's own default kernel, as outside Ax).
 KERNEL_PRIORS_OPTION = "kernel_priors"
 _KERNEL_PRIORS = ("pairwise_gp", "preference_gp")
 
@@ -164,8 +164,7 @@ def pairwise_gp_kernel(d: int) -> ScaleKernel:
     ``ScaleKernel`` with a SmoothedBox(0.01, 100) outputscale prior, started at 1, with one change:
     the outputscale is held in [0.005, 100] (``PairwiseGP``'s constraint reaches 200, but its prior
     is a wall 0.01 wide at 100 on which L-BFGS-B's line search fails when the evidence climbs to
-    it: docs/decisions.md). Inside Ax, ``model_options={"kernel_priors": "pairwise_gp"}`` builds ``PreferenceGP``
-    with it (docs/decisions.md: its outputscale prior is a wall at 100 where a fit can fail)."""
+    it: docs/decisions.md). Inside Ax, ``PreferenceGP`` is built with it by default."""
     if not isinstance(d, int) or isinstance(d, bool) or d < 1:
         raise ValueError(f"d must be a positive int (the number of inputs), got {d!r}.")
     ls_prior = GammaPrior(2.4, 2.7)
@@ -184,7 +183,7 @@ def pairwise_gp_kernel(d: int) -> ScaleKernel:
 
 
 def _kernel_priors(options: dict) -> str:
-    priors = options.pop(KERNEL_PRIORS_OPTION, "preference_gp")
+    priors = options.pop(KERNEL_PRIORS_OPTION, "pairwise_gp")
     if priors not in _KERNEL_PRIORS:
         raise ValueError(f"model_options[{KERNEL_PRIORS_OPTION!r}] must be one of {_KERNEL_PRIORS}, got {priors!r}.")
     return priors
