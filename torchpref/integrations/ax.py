@@ -11,8 +11,10 @@ function is replaced; ``ModelConfig`` stays Ax's class):
   model it does not know (``ExactMarginalLogLikelihood``) and ``PairwiseLaplaceMarginalLogLikelihood``
   are read as it;
 * ``submodel_input_constructor``: Ax's own inputs, with no outcome transform (the utility has no
-  observed scale, as for ``PairwiseGP``), plus the ratings of the metrics
-  ``model_options["rating_metrics"]`` names, as ``ratings=`` / ``rating_index=`` (docs/ax.md).
+  observed scale, as for ``PairwiseGP``), ``PairwiseGP``'s kernel priors unless the config names a
+  kernel (:func:`pairwise_gp_kernel`; ``model_options["kernel_priors"]``), plus the ratings of the
+  metrics ``model_options["rating_metrics"]`` names, as ``ratings=`` / ``rating_index=``, or, for a
+  rating metric modelled by ``PreferenceGP`` itself, its own values as ratings (docs/ax.md).
 
 With that, ``ModelConfig(botorch_model_class=PreferenceGP, ...)`` in ``metric_to_model_configs``
 works. Ax's *defaults* still build ``PairwiseGP`` until :func:`use_preference_gp` is called: it
@@ -337,7 +339,8 @@ def use_preference_gp() -> PreferenceGPOptIn:
     ``SurrogateSpec(model_configs=[...])`` for the outcome metrics), of BOPE's preference model, and
     of ``get_preference_adapter`` (whose own ``PairwiseGP`` config never reaches the preference
     metric), so of BOPE's utility trace and best point (``ax.service.utils.best_point``). After
-    this call the class filled is ``PreferenceGP`` (with the Laplace MLL, no outcome transform;
+    this call the class filled is ``PreferenceGP`` (with the Laplace MLL, no outcome transform,
+    ``PairwiseGP``'s kernel priors;
     ``PairwiseGP`` named explicitly in a ``ModelConfig`` is still built). It rebinds one function,
     ``ax.generators.torch.botorch_modular.utils.choose_model_class``, to a wrapper of Ax's own
     (nothing changes at import); the handle's ``undo()`` restores it::
