@@ -251,6 +251,79 @@ FIGURES: dict[str, Figure] = {
         "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.cpu_ratio_second_over_first.cpu_s",
         "{:.2f}×",
     ),
+    # Ax's loops: the documented config and PairwiseGP in the same processes, on a quieter machine
+    "ax_pbo_sp_seeds": Figure(
+        "ax/pbo_same_process.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.n_seeds", "{}"
+    ),
+    "ax_pbo_sp_cpu_ratio": Figure(
+        "ax/pbo_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_sp_fit_ratio": Figure(
+        "ax/pbo_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_sp_gen_ratio": Figure(
+        "ax/pbo_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_sp_cpu_pref": Figure(
+        "ax/pbo_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP_pairwise_box",
+        "{:.1f} s",
+    ),
+    "ax_pbo_sp_cpu_pair": Figure(
+        "ax/pbo_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP",
+        "{:.1f} s",
+    ),
+    "ax_pbo_sp_load_lo": Figure(
+        "ax/pbo_same_process.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.0", "{:.1f}"
+    ),
+    "ax_pbo_sp_load_hi": Figure(
+        "ax/pbo_same_process.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.1", "{:.1f}"
+    ),
+    "ax_bope_sp_seeds": Figure(
+        "ax/bope_same_process.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.n_seeds", "{}"
+    ),
+    "ax_bope_sp_cpu_ratio": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_sp_fit_ratio": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_sp_gen_ratio": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_sp_cpu_pref": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP_pairwise_box",
+        "{:.1f} s",
+    ),
+    "ax_bope_sp_cpu_pair": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP",
+        "{:.1f} s",
+    ),
+    "ax_bope_sp_load_lo": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.0",
+        "{:.1f}",
+    ),
+    "ax_bope_sp_load_hi": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.1",
+        "{:.1f}",
+    ),
     # Ax's loops: PreferenceGP with PairwiseGP's kernel priors against PairwiseGP
     "ax_pbo_pp_seeds": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.n_seeds", "{}"),
     "ax_pbo_pp_cpu_ratio": Figure(
