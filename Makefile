@@ -94,12 +94,13 @@ upstream-tests:
 	  tar xzf .cache/upstream/bofire-0.5.0.tar.gz -C .cache/upstream bofire-0.5.0/tests )
 
 # `make test-integrations`: torchpref[ax] and torchpref[bofire], each with the library's own tests
-# of its preference path run with PreferenceGP (tests/parity/test_upstream_suites.py).
+# of its preference path run with PreferenceGP (tests/parity/test_upstream_suites.py) and the
+# recipes of docs/ax.md (tests/integrations/test_ax_recipes.py). Not in CI: docs/install.md says why.
 test-integrations:
 	$(PY) -m venv .venv-ax
 	.venv-ax/bin/pip install --quiet "torch==2.13.0"
 	.venv-ax/bin/pip install --quiet -e ".[ax]" pytest scipy pyfakefs
-	.venv-ax/bin/python -m pytest -q -rs tests/integrations/test_ax_integration.py tests/parity/test_upstream_suites.py -k "not bofire"
+	.venv-ax/bin/python -m pytest -q -rs tests/integrations/test_ax_integration.py tests/integrations/test_ax_recipes.py tests/parity/test_upstream_suites.py -k "not bofire"
 	$(PY) -m venv .venv-bofire
 	.venv-bofire/bin/pip install --quiet "torch==2.13.0"
 	.venv-bofire/bin/pip install --quiet -e ".[bofire]" pytest scipy

@@ -93,6 +93,462 @@ FIGURES: dict[str, Figure] = {
     "fuzz_problems": Figure("fuzz.json", "problems", "{:,}"),
     "fuzz_f64_exceptions": Figure("fuzz.json", "f64.exceptions"),
     "fuzz_f32_exceptions": Figure("fuzz.json", "f32.exceptions"),
+    # Ax's loops: the documented config (tax.pairwise_gp_kernel's priors, outputscale <= 100) against
+    # PairwiseGP, and torchpref's own priors against it
+    "ax_pbo_box_seeds": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.n_seeds", "{}"),
+    "ax_pbo_box_cpu_ratio": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_box_fit_ratio": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_box_gen_ratio": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_box_cpu_pref": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP_pairwise_box",
+        "{:.1f} s",
+    ),
+    "ax_pbo_box_cpu_pair": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP", "{:.1f} s"
+    ),
+    "ax_pbo_box_u_pref": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.utility_mean.PreferenceGP_pairwise_box",
+        "{:.4f}",
+    ),
+    "ax_pbo_box_u_pair": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.utility_mean.PairwiseGP", "{:.4f}"
+    ),
+    "ax_pbo_box_wins": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.wins_first", "{}"),
+    "ax_pbo_box_ties": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.ties", "{}"),
+    "ax_pbo_box_p_t": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.paired_utility.t_p", "{:.2f}"
+    ),
+    "ax_pbo_box_p_worse": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.paired_utility.worse_one_sided_p", "{:.2f}"
+    ),
+    "ax_pbo_box_os": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.outputscale_median.PreferenceGP_pairwise_box",
+        "{:.1f}",
+    ),
+    "ax_pbo_box_load_lo": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.0", "{:.1f}"
+    ),
+    "ax_pbo_box_load_hi": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.1", "{:.1f}"
+    ),
+    "ax_pbo_own_box_seeds": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.n_seeds", "{}"
+    ),
+    "ax_pbo_own_box_u_own": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.utility_mean.PreferenceGP", "{:.4f}"
+    ),
+    "ax_pbo_own_box_u_box": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.utility_mean.PreferenceGP_pairwise_box",
+        "{:.4f}",
+    ),
+    "ax_pbo_own_box_wins": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.wins_first", "{}"
+    ),
+    "ax_pbo_own_box_p_t": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.paired_utility.t_p", "{:.2f}"
+    ),
+    "ax_pbo_own_box_p_worse": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.paired_utility.worse_one_sided_p",
+        "{:.2f}",
+    ),
+    "ax_pbo_own_box_cpu_ratio": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_box_seeds": Figure("ax/bope.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.n_seeds", "{}"),
+    "ax_bope_box_cpu_ratio": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_box_fit_ratio": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_box_gen_ratio": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_box_cpu_pref": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP_pairwise_box",
+        "{:.1f} s",
+    ),
+    "ax_bope_box_cpu_pair": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP", "{:.1f} s"
+    ),
+    "ax_bope_box_u_pref": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.utility_mean.PreferenceGP_pairwise_box",
+        "{:.4f}",
+    ),
+    "ax_bope_box_u_pair": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.utility_mean.PairwiseGP", "{:.4f}"
+    ),
+    "ax_bope_box_wins": Figure("ax/bope.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.wins_first", "{}"),
+    "ax_bope_box_ties": Figure("ax/bope.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.ties", "{}"),
+    "ax_bope_box_p_t": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.paired_utility.t_p", "{:.2f}"
+    ),
+    "ax_bope_box_p_worse": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.paired_utility.worse_one_sided_p", "{:.2f}"
+    ),
+    "ax_bope_box_os": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.outputscale_median.PreferenceGP_pairwise_box",
+        "{:.1f}",
+    ),
+    "ax_bope_box_load_lo": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.0", "{:.1f}"
+    ),
+    "ax_bope_box_load_hi": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.1", "{:.1f}"
+    ),
+    "ax_bope_own_box_seeds": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.n_seeds", "{}"
+    ),
+    "ax_bope_own_box_u_own": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.utility_mean.PreferenceGP", "{:.4f}"
+    ),
+    "ax_bope_own_box_u_box": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.utility_mean.PreferenceGP_pairwise_box",
+        "{:.4f}",
+    ),
+    "ax_bope_own_box_wins": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.wins_first", "{}"
+    ),
+    "ax_bope_own_box_p_t": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.paired_utility.t_p", "{:.2f}"
+    ),
+    "ax_bope_own_box_p_worse": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.paired_utility.worse_one_sided_p",
+        "{:.2f}",
+    ),
+    "ax_bope_own_box_cpu_ratio": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_box.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    # Ax's loops: the documented config and PairwiseGP in the same processes, on a quieter machine
+    "ax_pbo_sp_seeds": Figure(
+        "ax/pbo_same_process.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.n_seeds", "{}"
+    ),
+    "ax_pbo_sp_cpu_ratio": Figure(
+        "ax/pbo_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_sp_fit_ratio": Figure(
+        "ax/pbo_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_sp_gen_ratio": Figure(
+        "ax/pbo_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_sp_cpu_pref": Figure(
+        "ax/pbo_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP_pairwise_box",
+        "{:.1f} s",
+    ),
+    "ax_pbo_sp_cpu_pair": Figure(
+        "ax/pbo_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP",
+        "{:.1f} s",
+    ),
+    "ax_pbo_sp_load_lo": Figure(
+        "ax/pbo_same_process.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.0", "{:.1f}"
+    ),
+    "ax_pbo_sp_load_hi": Figure(
+        "ax/pbo_same_process.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.1", "{:.1f}"
+    ),
+    "ax_bope_sp_seeds": Figure(
+        "ax/bope_same_process.json", "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.n_seeds", "{}"
+    ),
+    "ax_bope_sp_cpu_ratio": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_sp_fit_ratio": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_sp_gen_ratio": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_sp_cpu_pref": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP_pairwise_box",
+        "{:.1f} s",
+    ),
+    "ax_bope_sp_cpu_pair": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP",
+        "{:.1f} s",
+    ),
+    "ax_bope_sp_load_lo": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.0",
+        "{:.1f}",
+    ),
+    "ax_bope_sp_load_hi": Figure(
+        "ax/bope_same_process.json",
+        "comparisons.PreferenceGP_pairwise_box vs PairwiseGP.load_average_range.1",
+        "{:.1f}",
+    ),
+    # Ax's loops: PreferenceGP with PairwiseGP's kernel priors against PairwiseGP
+    "ax_pbo_pp_seeds": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.n_seeds", "{}"),
+    "ax_pbo_pp_cpu_ratio": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_pp_fit_ratio": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_pp_gen_ratio": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_pbo_pp_cpu_pref": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP_pairwise_priors",
+        "{:.1f} s",
+    ),
+    "ax_pbo_pp_cpu_pair": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP", "{:.1f} s"
+    ),
+    "ax_pbo_pp_u_pref": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.utility_mean.PreferenceGP_pairwise_priors",
+        "{:.4f}",
+    ),
+    "ax_pbo_pp_u_pair": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.utility_mean.PairwiseGP", "{:.4f}"
+    ),
+    "ax_pbo_pp_wins": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.wins_first", "{}"),
+    "ax_pbo_pp_ties": Figure("ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.ties", "{}"),
+    "ax_pbo_pp_p_worse": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.paired_utility.worse_one_sided_p",
+        "{:.2f}",
+    ),
+    "ax_pbo_pp_p_t": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.paired_utility.t_p", "{:.2f}"
+    ),
+    "ax_pbo_pp_load_lo": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.load_average_range.0", "{:.1f}"
+    ),
+    "ax_pbo_pp_load_hi": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.load_average_range.1", "{:.1f}"
+    ),
+    "ax_bope_pp_seeds": Figure("ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.n_seeds", "{}"),
+    "ax_bope_pp_cpu_ratio": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_pp_fit_ratio": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_pp_gen_ratio": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_pp_cpu_pref": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP_pairwise_priors",
+        "{:.1f} s",
+    ),
+    "ax_bope_pp_cpu_pair": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP", "{:.1f} s"
+    ),
+    "ax_bope_pp_u_pref": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.utility_mean.PreferenceGP_pairwise_priors",
+        "{:.4f}",
+    ),
+    "ax_bope_pp_u_pair": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.utility_mean.PairwiseGP", "{:.4f}"
+    ),
+    "ax_bope_pp_wins": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.wins_first", "{}"
+    ),
+    "ax_bope_pp_ties": Figure("ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.ties", "{}"),
+    "ax_bope_pp_p_worse": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.paired_utility.worse_one_sided_p",
+        "{:.2f}",
+    ),
+    "ax_bope_pp_p_t": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.paired_utility.t_p", "{:.2f}"
+    ),
+    "ax_bope_pp_load_lo": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.load_average_range.0", "{:.1f}"
+    ),
+    "ax_bope_pp_load_hi": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP_pairwise_priors vs PairwiseGP.load_average_range.1", "{:.1f}"
+    ),
+    # Ax's PBO and BOPE loops, PreferenceGP against PairwiseGP and against PairwiseGP's priors
+    # (benchmarks/parity/ax_loops.py, issue 32)
+    "ax_pbo_seeds": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.n_seeds", "{}"),
+    "ax_pbo_cpu_ratio": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.cpu_s", "{:.2f}×"
+    ),
+    "ax_pbo_fit_ratio": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s", "{:.2f}×"
+    ),
+    "ax_pbo_gen_ratio": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s", "{:.2f}×"
+    ),
+    "ax_pbo_cpu_pref": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP", "{:.1f} s"
+    ),
+    "ax_pbo_cpu_pair": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP", "{:.1f} s"
+    ),
+    "ax_pbo_u_pref": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.utility_mean.PreferenceGP", "{:.4f}"
+    ),
+    "ax_pbo_u_pair": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.utility_mean.PairwiseGP", "{:.4f}"),
+    "ax_pbo_wins": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.wins_first", "{}"),
+    "ax_pbo_p_worse": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.paired_utility.worse_one_sided_p", "{:.2f}"
+    ),
+    "ax_pbo_p_t": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.paired_utility.t_p", "{:.2f}"),
+    "ax_pbo_os_pref": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.outputscale_median.PreferenceGP", "{:.1f}"
+    ),
+    "ax_pbo_os_pair": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.outputscale_median.PairwiseGP", "{:.1f}"
+    ),
+    "ax_pbo_load_lo": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.load_average_range.0", "{:.1f}"),
+    "ax_pbo_load_hi": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PairwiseGP.load_average_range.1", "{:.1f}"),
+    "ax_pbo_prior_seeds": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.n_seeds", "{}"
+    ),
+    "ax_pbo_prior_u": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.utility_mean.PreferenceGP_pairwise_priors",
+        "{:.4f}",
+    ),
+    "ax_pbo_prior_u_pref": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.utility_mean.PreferenceGP", "{:.4f}"
+    ),
+    "ax_pbo_prior_wins": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.wins_first", "{}"
+    ),
+    "ax_pbo_prior_ties": Figure("ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.ties", "{}"),
+    "ax_pbo_prior_p_t": Figure(
+        "ax/pbo.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.paired_utility.t_p", "{:.2f}"
+    ),
+    "ax_pbo_prior_os": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.outputscale_median.PreferenceGP_pairwise_priors",
+        "{:.1f}",
+    ),
+    "ax_pbo_prior_cpu_ratio": Figure(
+        "ax/pbo.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
+    "ax_bope_seeds": Figure("ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.n_seeds", "{}"),
+    "ax_bope_cpu_ratio": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.cpu_s", "{:.2f}×"
+    ),
+    "ax_bope_fit_ratio": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.fit_cpu_s", "{:.2f}×"
+    ),
+    "ax_bope_gen_ratio": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_ratio_second_over_first.gen_cpu_s", "{:.2f}×"
+    ),
+    "ax_bope_cpu_pref": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_s_mean.cpu_s.PreferenceGP", "{:.1f} s"
+    ),
+    "ax_bope_cpu_pair": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.cpu_s_mean.cpu_s.PairwiseGP", "{:.1f} s"
+    ),
+    "ax_bope_u_pref": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.utility_mean.PreferenceGP", "{:.4f}"
+    ),
+    "ax_bope_u_pair": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.utility_mean.PairwiseGP", "{:.4f}"
+    ),
+    "ax_bope_wins": Figure("ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.wins_first", "{}"),
+    "ax_bope_p_worse": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.paired_utility.worse_one_sided_p", "{:.2f}"
+    ),
+    "ax_bope_p_t": Figure("ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.paired_utility.t_p", "{:.2f}"),
+    "ax_bope_os_pref": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.outputscale_median.PreferenceGP", "{:.1f}"
+    ),
+    "ax_bope_os_pair": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.outputscale_median.PairwiseGP", "{:.1f}"
+    ),
+    "ax_bope_load_lo": Figure("ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.load_average_range.0", "{:.1f}"),
+    "ax_bope_load_hi": Figure("ax/bope.json", "comparisons.PreferenceGP vs PairwiseGP.load_average_range.1", "{:.1f}"),
+    "ax_bope_prior_seeds": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.n_seeds", "{}"
+    ),
+    "ax_bope_prior_u": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.utility_mean.PreferenceGP_pairwise_priors",
+        "{:.4f}",
+    ),
+    "ax_bope_prior_u_pref": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.utility_mean.PreferenceGP", "{:.4f}"
+    ),
+    "ax_bope_prior_wins": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.wins_first", "{}"
+    ),
+    "ax_bope_prior_ties": Figure("ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.ties", "{}"),
+    "ax_bope_prior_p_t": Figure(
+        "ax/bope.json", "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.paired_utility.t_p", "{:.2f}"
+    ),
+    "ax_bope_prior_os": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.outputscale_median.PreferenceGP_pairwise_priors",
+        "{:.1f}",
+    ),
+    "ax_bope_prior_cpu_ratio": Figure(
+        "ax/bope.json",
+        "comparisons.PreferenceGP vs PreferenceGP_pairwise_priors.cpu_ratio_second_over_first.cpu_s",
+        "{:.2f}×",
+    ),
 }
 
 # a population prior on real people, leave-people-out (benchmarks/studies/population.py), and its scale

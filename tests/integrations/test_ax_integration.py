@@ -94,7 +94,9 @@ def test_metric_to_model_configs_fits_preference_gp():
     assert isinstance(model.input_transform, Normalize)
     assert model.comparisons.shape == (4, 2)
     # fitted: the Laplace evidence went up from the default hyperparameters'
-    fresh = PreferenceGP(model.train_X, model.comparisons, input_transform=Normalize(2))
+    fresh = PreferenceGP(
+        model.train_X, model.comparisons, covar_module=tax.pairwise_gp_kernel(2), input_transform=Normalize(2)
+    )
     assert float(LaplaceMarginalLogLikelihood(model)()) > float(LaplaceMarginalLogLikelihood(fresh)()) - 1e-9
 
 
@@ -142,7 +144,7 @@ def test_use_preference_gp_and_undo():
         explicit = SurrogateSpec(metric_to_model_configs={PREF: [ModelConfig(botorch_model_class=PairwiseGP)]})
         assert isinstance(_preference_model(_adapter(exp, explicit)), PairwiseGP)
         # the model Ax fitted is fitted: the Laplace evidence went up from the default hyperparameters'
-        fresh = PreferenceGP(model.train_X, model.comparisons)
+        fresh = PreferenceGP(model.train_X, model.comparisons, covar_module=tax.pairwise_gp_kernel(2))
         assert float(LaplaceMarginalLogLikelihood(model)()) > float(LaplaceMarginalLogLikelihood(fresh)()) - 1e-9
     finally:
         handle.undo()
@@ -254,3 +256,74 @@ def test_rating_inputs_reuse_rows():
     items, ratings, index = tax.rating_inputs(X, [ds])
     assert items.shape == (3, 2) and torch.equal(items[2], ds.X[1])
     assert index.tolist() == [1, 2] and torch.allclose(ratings, torch.tensor([0.2, 0.7], dtype=torch.float64))
+
+
+def test_kernel_priors_inside_ax():
+    """Inside Ax, PreferenceGP gets PairwiseGP's kernel priors by default (docs/decisions.md), on
+    the opt-in's default path too, and then fits the hyperparameters PairwiseGP fits (the same
+    probit, the same Laplace evidence, the same priors: an independent reference);
+    model_options={"kernel_priors": "preference_gp"} keeps torchpref's own; anything else is refused."""
+    from gpytorch.priors import GammaPrior, LogNormalPrior, SmoothedBoxPrior
+
+    exp = _experiment()
+    spec = SurrogateSpec(metric_to_model_configs={PREF: [tax.preference_model_config(2)]})
+    model = _preference_model(_adapter(exp, spec))
+    assert isinstance(model.covar_module.base_kernel.lengthscale_prior, GammaPrior)
+    assert isinstance(model.covar_module.outputscale_prior, SmoothedBoxPrior)
+    pairwise_spec = SurrogateSpec(
+        metric_to_model_configs={
+            PREF: [
+                ModelConfig(
+                    botorch_model_class=PairwiseGP,
+                    input_transform_classes=[Normalize],
+                    input_transform_options={"Normalize": {"d": 2, "bounds": None, "indices": None}},
+                )
+            ]
+        }
+    )
+    reference = _preference_model(_adapter(exp, pairwise_spec))
+    assert isinstance(reference, PairwiseGP)
+    assert float(model.covar_module.outputscale) == pytest.approx(float(reference.covar_module.outputscale), rel=1e-3)
+    assert torch.allclose(
+        model.covar_module.base_kernel.lengthscale, reference.covar_module.base_kernel.lengthscale, rtol=1e-3
+    )
+    with tax.use_preference_gp():
+        model = _preference_model(_adapter(exp, SurrogateSpec()))
+        assert isinstance(model.covar_module.outputscale_prior, SmoothedBoxPrior)
+    own = tax.preference_model_config(2, model_options={tax.KERNEL_PRIORS_OPTION: "preference_gp"})
+    model = _preference_model(_adapter(exp, SurrogateSpec(metric_to_model_configs={PREF: [own]})))
+    assert isinstance(model.covar_module.base_kernel.lengthscale_prior, LogNormalPrior)
+    assert isinstance(model.covar_module.outputscale_prior, GammaPrior)
+    bad = tax.preference_model_config(2, model_options={tax.KERNEL_PRIORS_OPTION: "gamma"})
+    with pytest.raises(ValueError, match="kernel_priors.*must be one of.*'gamma'"):
+        _adapter(exp, SurrogateSpec(metric_to_model_configs={PREF: [bad]}))
+    with pytest.raises(ValueError, match="d must be a positive int"):
+        tax.pairwise_gp_kernel(0)
+
+
+def test_pairwise_gp_kernel_fits_where_the_wall_stopped_it():
+    """BOPE seed 2's first preference fit (9 outcome vectors, 9 noiseless comparisons): with
+    PairwiseGP's exact kernel (outputscale up to 200) every L-BFGS-B restart stopped "ABNORMAL" on
+    the SmoothedBox prior's wall at 100; pairwise_gp_kernel holds the outputscale at most 100 and
+    the fit succeeds, at the wall."""
+    from botorch.fit import fit_gpytorch_mll
+
+    X = torch.tensor(
+        [
+            [0.540955675406233, 0.2929559393924536],
+            [0.7728255352131905, 0.683471514627593],
+            [0.8421514948203525, 0.7738835343882678],
+            [0.6637348770923923, 0.6364518911241861],
+            [0.8881720348223809, 0.5359749883582827],
+            [0.5830898457359502, 0.8431066873268755],
+            [0.7879904268583646, 0.8028414777769275],
+            [0.841759514362164, 0.7912818399956677],
+            [0.7378533846363313, 0.7177974156801414],
+        ],
+        dtype=torch.float64,
+    )
+    C = torch.tensor([[1, 0], [2, 0], [3, 4], [2, 3], [2, 3], [2, 5], [2, 1], [6, 2], [7, 8]])
+    model = PreferenceGP(X, C, covar_module=tax.pairwise_gp_kernel(2), input_transform=Normalize(2))
+    fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+    outputscale = float(model.covar_module.outputscale)
+    assert 50.0 < outputscale <= 100.0

@@ -11,8 +11,10 @@ function is replaced; ``ModelConfig`` stays Ax's class):
   model it does not know (``ExactMarginalLogLikelihood``) and ``PairwiseLaplaceMarginalLogLikelihood``
   are read as it;
 * ``submodel_input_constructor``: Ax's own inputs, with no outcome transform (the utility has no
-  observed scale, as for ``PairwiseGP``), plus the ratings of the metrics
-  ``model_options["rating_metrics"]`` names, as ``ratings=`` / ``rating_index=`` (docs/ax.md).
+  observed scale, as for ``PairwiseGP``), ``PairwiseGP``'s kernel priors unless the config names a
+  kernel (:func:`pairwise_gp_kernel`; ``model_options["kernel_priors"]``), plus the ratings of the
+  metrics ``model_options["rating_metrics"]`` names, as ``ratings=`` / ``rating_index=``, or, for a
+  rating metric modelled by ``PreferenceGP`` itself, its own values as ratings (docs/ax.md).
 
 With that, ``ModelConfig(botorch_model_class=PreferenceGP, ...)`` in ``metric_to_model_configs``
 works. Ax's *defaults* still build ``PairwiseGP`` until :func:`use_preference_gp` is called: it
@@ -40,17 +42,24 @@ from botorch.fit import fit_gpytorch_mll
 from botorch.models.pairwise_gp import PairwiseGP, PairwiseLaplaceMarginalLogLikelihood
 from botorch.models.transforms.input import Normalize
 from botorch.utils.datasets import RankingDataset, SupervisedDataset
+from gpytorch.constraints import GreaterThan, Interval
+from gpytorch.kernels import RBFKernel, ScaleKernel
 from gpytorch.mlls import ExactMarginalLogLikelihood
+from gpytorch.priors import GammaPrior, SmoothedBoxPrior
 
 from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
 
 __all__ = [
+    "KERNEL_PRIORS_OPTION",
     "RATING_METRICS_OPTION",
+    "Y_TRANSFORMS",
     "PreferenceGPOptIn",
     "is_preference_model_class",
     "laplace_mll_class",
+    "pairwise_gp_kernel",
     "preference_model_config",
     "rating_inputs",
+    "rating_metric_names",
     "use_preference_gp",
 ]
 
@@ -58,6 +67,16 @@ __all__ = [
 #: The ``ModelConfig.model_options`` key naming the rating metrics whose data a
 #: ``PreferenceGP`` takes as ratings (a list of metric names).
 RATING_METRICS_OPTION = "rating_metrics"
+
+#: The ``ModelConfig.model_options`` key choosing the kernel priors of a ``PreferenceGP`` built by
+#: Ax when its ``ModelConfig`` names no ``covar_module_class``: ``"pairwise_gp"`` (the default
+#: inside Ax: :func:`pairwise_gp_kernel`, ``PairwiseGP``'s priors; docs/decisions.md) or
+#: ``"preference_gp"`` (torchpref's own default kernel, as outside Ax).
+KERNEL_PRIORS_OPTION = "kernel_priors"
+_KERNEL_PRIORS = ("pairwise_gp", "preference_gp")
+
+#: Ax's default Y transforms (``ax.adapter.registry.Y_trans``), which rescale ratings.
+Y_TRANSFORMS = "Derelativize, Winsorize, BilogY, StandardizeY"
 
 # MLL classes Ax puts in a ModelConfig by default or for PairwiseGP: all mean "the model's evidence"
 _READ_AS_LAPLACE = (ExactMarginalLogLikelihood, PairwiseLaplaceMarginalLogLikelihood)
@@ -122,8 +141,10 @@ def rating_inputs(
         bad = ~(torch.isfinite(Y) & (Y >= 0) & (Y <= 1))
         if bool(bad.any()):
             raise ValueError(
-                f"rating metric {name!r}: ratings must be in [0, 1], got {Y[bad][:3].tolist()}; Ax's Y "
-                "transforms (Standardize, ...) must not apply to it (docs/ax.md)."
+                f"rating metric {name!r}: ratings must be in [0, 1], got {Y[bad][:3].tolist()}. If the ratings "
+                f"you attached are in [0, 1], one of Ax's Y transforms rescaled them (its default {Y_TRANSFORMS}): "
+                "give the adapter no Y transform, e.g. transforms=[] (TorchAdapter) or generator_kwargs="
+                "{'transforms': []} (GenerationStep), as torchpref.integrations.ax_recipes' strategies do."
             )
         for x, y in zip(X, Y, strict=True):
             same = (items == x).all(-1).nonzero()
@@ -139,39 +160,111 @@ def rating_inputs(
     return items, torch.stack(ratings), torch.tensor(index, dtype=long, device=train_X.device)
 
 
+def pairwise_gp_kernel(d: int) -> ScaleKernel:
+    """``PairwiseGP``'s default kernel for ``d`` inputs (float64): an ARD RBF kernel with a
+    Gamma(2.4, 2.7) lengthscale prior (lengthscales above 1e-4, started at the prior's mode) in a
+    ``ScaleKernel`` with a SmoothedBox(0.01, 100) outputscale prior, started at 1, with one change:
+    the outputscale is held in [0.005, 100] (``PairwiseGP``'s constraint reaches 200, but its prior
+    is a wall 0.01 wide at 100 on which L-BFGS-B's line search fails when the evidence climbs to
+    it: docs/decisions.md). Inside Ax, ``PreferenceGP`` is built with it by default."""
+    if not isinstance(d, int) or isinstance(d, bool) or d < 1:
+        raise ValueError(f"d must be a positive int (the number of inputs), got {d!r}.")
+    ls_prior = GammaPrior(2.4, 2.7)
+    mode = float((ls_prior.concentration - 1) / ls_prior.rate)
+    base = RBFKernel(
+        ard_num_dims=d,
+        lengthscale_prior=ls_prior,
+        lengthscale_constraint=GreaterThan(1e-4, transform=None, initial_value=mode),
+    )
+    kernel = ScaleKernel(
+        base,
+        outputscale_prior=SmoothedBoxPrior(0.01, 100.0),
+        outputscale_constraint=Interval(0.005, 100.0, initial_value=1.0),
+    )
+    return kernel.to(torch.float64)
+
+
+def _kernel_priors(options: dict) -> str:
+    priors = options.pop(KERNEL_PRIORS_OPTION, "pairwise_gp")
+    if priors not in _KERNEL_PRIORS:
+        raise ValueError(f"model_options[{KERNEL_PRIORS_OPTION!r}] must be one of {_KERNEL_PRIORS}, got {priors!r}.")
+    return priors
+
+
+def rating_metric_names(options: dict) -> list[str]:
+    """The metric names ``options[RATING_METRICS_OPTION]`` gives (removed from ``options``).
+
+    Raises:
+        ValueError: not a list (or tuple) of strings, a bare string included, or a name given twice.
+    """
+    wanted = options.pop(RATING_METRICS_OPTION, None)
+    if wanted is None:
+        return []
+    if isinstance(wanted, str) or not isinstance(wanted, list | tuple) or not all(isinstance(n, str) for n in wanted):
+        hint = f": write [{wanted!r}]" if isinstance(wanted, str) else ""
+        raise ValueError(
+            f"model_options[{RATING_METRICS_OPTION!r}] must be a list of metric names, got {wanted!r}{hint}."
+        )
+    twice = sorted({n for n in wanted if list(wanted).count(n) > 1})
+    if twice:
+        raise ValueError(
+            f"model_options[{RATING_METRICS_OPTION!r}] names {twice} more than once: each of their ratings would "
+            "be counted once per name; name each rating metric once."
+        )
+    return list(wanted)
+
+
+class _RatingsOnly(PreferenceGP):
+    """Ax's base input constructor's view of a ``PreferenceGP`` fitted to a rating metric's own data:
+    its inputs start with no items; :func:`rating_inputs` adds the rated arms."""
+
+    @classmethod
+    def construct_inputs(cls, training_data: Any, **kwargs: Any) -> dict[str, Any]:
+        return {"train_X": training_data.X[:0], **kwargs}
+
+
 def _preference_inputs(botorch_model_class, model_config, dataset, search_space_digest, surrogate) -> dict:
     """Ax's model inputs for a ``PreferenceGP``: its own base constructor's with no outcome
-    transform, plus the ratings of the metrics ``model_options["rating_metrics"]`` names (from the
-    surrogate's training data)."""
+    transform, plus ratings. The metric modelled is the preference metric (a ``RankingDataset``:
+    comparisons) or a rating metric (any other dataset: its values are ratings in ``[0, 1]``); the
+    metrics ``model_options["rating_metrics"]`` names add their ratings (from the surrogate's
+    training data)."""
     options = dict(model_config.model_options or {})
-    wanted = options.pop(RATING_METRICS_OPTION, None) or []
-    if isinstance(wanted, str):
-        wanted = [wanted]
-    if wanted and not isinstance(dataset, RankingDataset):
+    wanted = rating_metric_names(options)
+    priors = _kernel_priors(options)
+    name = dataset.outcome_names[0]
+    own = [] if isinstance(dataset, RankingDataset) else [dataset]  # a rating metric modelled by itself
+    if name in wanted:
         raise ValueError(
-            f"model_options[{RATING_METRICS_OPTION!r}] is for the preference metric's PreferenceGP; "
-            f"metric {dataset.outcome_names[0]!r} is not a preference metric (its data are not rankings)."
+            f"metric {name!r} is named in model_options[{RATING_METRICS_OPTION!r}] of its own model: "
+            + (
+                "its values are the model's ratings already (they would count twice); leave it out."
+                if own
+                else "it is the preference metric (comparisons), not a rating metric."
+            )
         )
     # no outcome transform: the utility has no observed scale (Ax drops it for PairwiseGP alike)
     config = dataclasses.replace(model_config, model_options=options, outcome_transform_classes=None)
     inputs = _ax_surrogate._submodel_input_constructor_base(
-        botorch_model_class,
+        _RatingsOnly if own else botorch_model_class,
         model_config=config,
         dataset=dataset,
         search_space_digest=search_space_digest,
         surrogate=surrogate,
     )
-    if not wanted:
+    if model_config.covar_module_class is None and priors == "pairwise_gp":
+        inputs["covar_module"] = pairwise_gp_kernel(int(inputs["train_X"].shape[-1]))
+    if not wanted and not own:
         return inputs
     by_name = {d.outcome_names[0]: d for d in surrogate.training_data if not isinstance(d, RankingDataset)}
-    missing = [name for name in wanted if name not in by_name]
+    missing = [n for n in wanted if n not in by_name]
     if missing:
         raise ValueError(
             f"rating metrics {missing} have no data in this fit (the surrogate holds {sorted(by_name)}): a rating "
             "metric must be modelled by the adapter (an objective, a constraint, or a tracking metric with "
             "fit_tracking_metrics=True)."
         )
-    items, ratings, index = rating_inputs(inputs["train_X"], [by_name[name] for name in wanted])
+    items, ratings, index = rating_inputs(inputs["train_X"], own + [by_name[n] for n in wanted])
     inputs.update(train_X=items, ratings=ratings, rating_index=index)
     return inputs
 
@@ -218,9 +311,11 @@ class PreferenceGPOptIn:
 
     @property
     def active(self) -> bool:
+        """Whether this opt-in is still in effect (not undone)."""
         return any(h is self for h in _active)
 
     def undo(self) -> None:
+        """End this opt-in; Ax's own ``choose_model_class`` is back once no opt-in is active."""
         with _lock:
             if not self.active:
                 return
@@ -244,7 +339,8 @@ def use_preference_gp() -> PreferenceGPOptIn:
     ``SurrogateSpec(model_configs=[...])`` for the outcome metrics), of BOPE's preference model, and
     of ``get_preference_adapter`` (whose own ``PairwiseGP`` config never reaches the preference
     metric), so of BOPE's utility trace and best point (``ax.service.utils.best_point``). After
-    this call the class filled is ``PreferenceGP`` (with the Laplace MLL, no outcome transform;
+    this call the class filled is ``PreferenceGP`` (with the Laplace MLL, no outcome transform,
+    ``PairwiseGP``'s kernel priors;
     ``PairwiseGP`` named explicitly in a ``ModelConfig`` is still built). It rebinds one function,
     ``ax.generators.torch.botorch_modular.utils.choose_model_class``, to a wrapper of Ax's own
     (nothing changes at import); the handle's ``undo()`` restores it::
