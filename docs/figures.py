@@ -67,6 +67,10 @@ FIGURES: dict[str, Figure] = {
     "api_checks_pairwisegp": Figure("botorch_api_counts.json", "summary.PairwiseGP.passed"),
     # speed against PairwiseGP and botorch-rust at n = 500 (benchmarks/speed/speed_pairwise.py)
     "speed_fit_500_pairwisegp": Figure(_SPEED, "ratio_pairwisegp@task=fit,n=500", "{:.1f}×"),
+    "speed_fit_20_rust": Figure(_SPEED, "ratio_botorch_rust@task=fit,n=20", "{:.2f}×"),
+    "speed_fit_50_rust": Figure(_SPEED, "ratio_botorch_rust@task=fit,n=50", "{:.1f}×"),
+    "speed_mode_20_rust": Figure(_SPEED, "ratio_botorch_rust@task=mode,n=20", "{:.2f}×"),
+    "speed_eubo_20_rust": Figure(_SPEED, "ratio_botorch_rust@task=eubo,n=20", "{:.2f}×"),
     "speed_fit_500_rust": Figure(_SPEED, "ratio_botorch_rust@task=fit,n=500", "{:.1f}×"),
     "speed_posterior_500_pairwisegp": Figure(_SPEED, "ratio_pairwisegp@task=posterior,n=500", "{:,.0f}×"),
     "speed_posterior_500_rust": Figure(_SPEED, "ratio_botorch_rust@task=posterior,n=500", "{:,.0f}×"),
