@@ -574,6 +574,12 @@ FIGURES["popul_scale_answers"] = Figure("population/population_scale.json", "ans
 FIGURES["popul_scale_proc_wall"] = Figure("population/population_scale_processes.json", "fit_wall_seconds", "{:.0f}")
 FIGURES["popul_scale_spearman"] = Figure("population/population_scale.json", "spearman_mean_vs_truth", "{:.3f}")
 
+# the quiet speed run's table (docs/speed.md): each task and size against each peer
+for _task in ("mode", "fit", "posterior", "eubo"):
+    for _n in (20, 50, 100, 200, 500):
+        for _col, _peer in (("ratio_pairwisegp", "pgp"), ("ratio_botorch_rust", "rust")):
+            FIGURES[f"speedq_{_task}_{_n}_{_peer}"] = Figure(_SPEED, f"{_col}@task={_task},n={_n}", "{:,.2f}×")
+
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 

@@ -89,10 +89,16 @@ def main() -> int:
     if args.executor == "none":
         pop = torchpref.fit_population(people, max_iter=args.max_iter, progress=True)
     else:
+        import multiprocessing
         from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
-        pool = ThreadPoolExecutor if args.executor == "threads" else ProcessPoolExecutor
-        with pool(args.workers) as ex:
+        spawn = {"mp_context": multiprocessing.get_context("spawn")}  # forked children can deadlock in torch
+        ex = (
+            ThreadPoolExecutor(args.workers)
+            if args.executor == "threads"
+            else ProcessPoolExecutor(args.workers, **spawn)
+        )
+        with ex:
             pop = torchpref.fit_population(
                 people, max_iter=args.max_iter, progress=True, executor=ex, shards=args.shards
             )

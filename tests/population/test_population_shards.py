@@ -2,6 +2,7 @@
 fitted model as in process (threads here; processes and a local Dask cluster where available)."""
 
 import importlib.util
+import multiprocessing
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
 import pytest
@@ -79,9 +80,15 @@ def test_sharded_fit_on_threads_is_the_in_process_fit():
 def test_sharded_fit_on_processes_is_the_in_process_fit():
     people = _people()
     here = fit_population(people, max_iter=10)
-    with ProcessPoolExecutor(2) as ex:
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as ex:
         there = fit_population(people, max_iter=10, executor=ex, shards=2)
     _same_population(here, there, 1e-4)
+
+
+def test_a_forking_process_pool_is_refused_by_name():
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork")) as ex:
+        with pytest.raises(ValueError, match="spawn"):
+            fit_population(_people(), max_iter=1, executor=ex)
 
 
 @pytest.mark.slow

@@ -114,10 +114,22 @@ def _objective(kernels: _Kernels, layout: Layout, state: dict) -> Tensor:
     return -(value + kernels.log_prior())
 
 
+def _refuse_fork(executor: Any) -> None:
+    """A process pool that forks is refused by name: a child forked from a process whose torch
+    has started its thread pools can deadlock in its first factorisation (seen in a test run)."""
+    context = getattr(executor, "_mp_context", None)  # concurrent.futures.ProcessPoolExecutor's
+    if context is not None and context.get_start_method() == "fork":
+        raise ValueError(
+            "a ProcessPoolExecutor that forks can deadlock in torch's threads; give it "
+            "mp_context=multiprocessing.get_context('spawn') (or 'forkserver')."
+        )
+
+
 def _objective_on(people: list[PreferenceData], likelihood: PreferenceLikelihood, executor: Any, shards: Any) -> Any:
     """:func:`_objective` in process, or over shards of people on ``executor``."""
     if executor is None:
         return _objective
+    _refuse_fork(executor)
     k = shards if shards is not None else 2 * getattr(executor, "_max_workers", 2)
     if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
         raise ValueError(f"shards must be a positive integer, got {shards!r}.")
@@ -174,7 +186,8 @@ def fit_population(
         executor: a ``concurrent.futures.Executor`` (threads, processes, or Dask's
             ``Client.get_executor()``): the evidence and its gradient are computed over ``shards``
             shards of people on it (:mod:`torchpref.population.shards`), the same model as in
-            process to the optimiser's tolerance.
+            process to the optimiser's tolerance. A process pool must spawn, not fork
+            (``mp_context=multiprocessing.get_context("spawn")``): a forking one is refused.
         shards: the number of shards (default: 2 per worker where the executor says, else 4).
 
     Returns:
