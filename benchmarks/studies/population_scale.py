@@ -119,7 +119,7 @@ def main() -> int:
         load_average_end=[round(x, 2) for x in load1],
         cpu_count=os.cpu_count(),
         threads=torch.get_num_threads(),
-        note="measured nice'd on a shared 2-core machine under other sessions' load; not a quiet-machine figure",
+        note="2 cores; the load averages at the start and the end say what else ran (above about 1.5: other jobs)",
     )
     from torchpref.experiments.results import write_json
 
