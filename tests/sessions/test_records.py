@@ -96,3 +96,19 @@ def test_invalid_answers_are_one_error_and_record_nothing():
         assert isinstance(err.value, ValueError) and repr(answer)[:3] in str(err.value)
     assert s.records == [] and s.model.data.num_observations == 0
     assert torchpref.InvalidAnswer is InvalidAnswer
+
+
+def test_the_session_errors_stay_importable_from_their_old_modules():
+    import torchpref.sessions as package
+    from torchpref.sessions import errors, journal, recorded, records, session
+
+    for name in errors.__all__:
+        assert getattr(package, name) is getattr(errors, name)
+        assert getattr(session, name) is getattr(errors, name)  # every error, as before
+    for module, names in (
+        (records, ("SessionFileError", "SessionFileCorrupt", "SessionVersionError", "SessionMismatchError")),
+        (journal, ("SessionFileGone", "SessionFileChanged", "SessionForkError", "SessionReadOnlyError")),
+        (recorded, ("SessionSettingsError",)),
+    ):
+        for name in names:
+            assert getattr(module, name) is getattr(errors, name)

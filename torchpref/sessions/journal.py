@@ -32,14 +32,16 @@ import weakref
 from collections.abc import Callable
 from pathlib import Path
 
-from torchpref.sessions.errors import (
+from torchpref.sessions.errors import (  # noqa: F401  (the errors stay importable from here, as before)
     SessionFileChanged,
     SessionFileCorrupt,
     SessionFileError,
     SessionFileGone,
     SessionForkError,
+    SessionMismatchError,
     SessionReadOnlyError,
     SessionRepairWarning,
+    SessionVersionError,
 )
 from torchpref.sessions.filebytes import dropped_path, file_kind, fsync_dir, prefix_digest, read_fd, stamp
 from torchpref.sessions.records import (

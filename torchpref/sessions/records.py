@@ -19,8 +19,11 @@ from typing import Any
 import torch
 
 from torchpref.data.preference_data import likert_to_unit
-from torchpref.sessions.errors import (
+from torchpref.sessions.errors import (  # noqa: F401  (the errors stay importable from here, as before)
+    SessionFileCorrupt,
     SessionFileError,
+    SessionMismatchError,
+    SessionRepairWarning,
     SessionVersionError,
 )
 from torchpref.version import __version__

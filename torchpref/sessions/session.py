@@ -52,6 +52,18 @@ from torchpref.models.preference_gp import PreferenceGP
 from torchpref.selection.choosing import query_items
 from torchpref.selection.defaults import default_selector
 from torchpref.selection.strategies import Selector
+from torchpref.sessions.errors import (  # noqa: F401  (the errors stay importable from here, as before)
+    SessionFileChanged,
+    SessionFileCorrupt,
+    SessionFileError,
+    SessionFileGone,
+    SessionForkError,
+    SessionMismatchError,
+    SessionReadOnlyError,
+    SessionRepairWarning,
+    SessionSettingsError,
+    SessionVersionError,
+)
 from torchpref.sessions.journal import (
     Journal,
     MemoryJournal,
