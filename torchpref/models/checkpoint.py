@@ -29,6 +29,7 @@ import os
 import pickle
 import stat
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -95,7 +96,14 @@ def model_checkpoint(model: PreferenceGP) -> dict[str, Any]:
 
 def save_model(model: PreferenceGP, path: str | os.PathLike) -> None:
     """Write :func:`model_checkpoint` to ``path`` atomically: a failed save leaves any old file
-    at ``path`` as it was.
+    at ``path`` as it was (:func:`save_atomically`)."""
+    save_atomically(lambda: model_checkpoint(model), path, "save_model")
+
+
+def save_atomically(make: Callable[[], Any], path: str | os.PathLike, what: str) -> None:
+    """``torch.save`` of ``make()`` to ``path`` atomically (a temporary file beside it, flushed and
+    renamed): a failed save leaves any old file at ``path`` as it was. ``what`` names the caller in
+    errors.
 
     A symbolic link at ``path`` is written through: its target is replaced and the link kept. A new
     file gets the permissions ``open`` would give it (``0o666`` less the umask); a file replaced
@@ -105,10 +113,10 @@ def save_model(model: PreferenceGP, path: str | os.PathLike) -> None:
     if path.is_symlink():
         path = Path(os.path.realpath(path))  # the link's final target (which may not exist yet)
     if path.is_dir():
-        raise ValueError(f"{path} is a directory; give save_model a file name.")
+        raise ValueError(f"{path} is a directory; give {what} a file name.")
     if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot save to {path}: the folder {path.parent} does not exist.")
-    ck = model_checkpoint(model)
+    ck = make()
     mode = _file_mode(path)
     fd, tmp = tempfile.mkstemp(prefix=_temporary_prefix(path.name), suffix=".tmp", dir=path.parent)
     try:

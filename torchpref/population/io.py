@@ -17,14 +17,12 @@ from __future__ import annotations
 import hashlib
 import io
 import os
-import tempfile
-from pathlib import Path
 from typing import Any
 
 import torch
 from gpytorch.kernels import Kernel
 
-from torchpref.models.checkpoint import CheckpointError, _read
+from torchpref.models.checkpoint import CheckpointError, _read, save_atomically
 from torchpref.models.defaults import default_covar_module
 from torchpref.population.model import Population
 
@@ -62,23 +60,9 @@ def population_checkpoint(pop: Population) -> dict[str, Any]:
 
 
 def save_population(pop: Population, path: str | os.PathLike) -> None:
-    """Write :func:`population_checkpoint` to ``path`` atomically (a temporary file, fsynced, renamed)."""
-    path = Path(path)
-    if path.is_dir():
-        raise ValueError(f"{path} is a directory; give save_population a file name.")
-    if not path.parent.is_dir():
-        raise FileNotFoundError(f"cannot save to {path}: the folder {path.parent} does not exist.")
-    ck = population_checkpoint(pop)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            torch.save(ck, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write :func:`population_checkpoint` to ``path`` atomically, as :func:`~torchpref.save_model`
+    writes a model (a temporary file, flushed, renamed; a symbolic link written through)."""
+    save_atomically(lambda: population_checkpoint(pop), path, "save_population")
 
 
 def _check_tensors(t: Any, where: str) -> None:
