@@ -169,20 +169,28 @@ def chol_solve(M, b):
 
 
 @njit(cache=True)
-def evaluate(L, a, C, s):
-    """``(Psi, grad Psi, weights, log p)`` at the whitened point ``a`` for comparisons ``C`` (``m x 2``)."""
-    f = L @ a
-    n, m = a.shape[0], C.shape[0]
+def comparison_terms(f, C, s):
+    """``(log p, d log p / d f, weights w, d w / d eta)`` of the comparisons ``C`` (``m x 2``) at ``f``."""
+    n, m = f.shape[0], C.shape[0]
     gf = np.zeros(n)
     w = np.empty(m)
+    dw = np.empty(m)
     ll = 0.0
     for k in range(m):
         i, j = C[k, 0], C[k, 1]
-        lp, d1, wk, _ = probit(f[i] - f[j], s)
+        lp, d1, wk, dwk = probit(f[i] - f[j], s)
         ll += lp
         gf[i] += d1
         gf[j] -= d1
         w[k] = wk
+        dw[k] = dwk
+    return ll, gf, w, dw
+
+
+@njit(cache=True)
+def evaluate(L, a, C, s):
+    """``(Psi, grad Psi, weights, log p)`` at the whitened point ``a`` for comparisons ``C`` (``m x 2``)."""
+    ll, gf, w, _ = comparison_terms(L @ a, C, s)
     grad = L.T @ gf - a
     return ll - 0.5 * (a @ a), grad, w, ll
 
@@ -283,17 +291,7 @@ def evidence(L, C, s, a, M, w):
     gradient in ``K``, ``G = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``
     (:func:`torchpref.inference.laplace.laplace_evidence`)."""
     n, m = L.shape[0], C.shape[0]
-    f = L @ a
-    ll = 0.0
-    g = np.zeros(n)
-    dw = np.empty(m)
-    for k in range(m):
-        i, j = C[k, 0], C[k, 1]
-        lp, d1, _, dwk = probit(f[i] - f[j], s)
-        ll += lp
-        g[i] += d1
-        g[j] -= d1
-        dw[k] = dwk
+    ll, g, _, dw = comparison_terms(L @ a, C, s)
     V = np.linalg.solve(M, np.ascontiguousarray(L.T))  # M^-1 L^T: Sigma = V^T V
     Sigma = V.T @ V
     h = np.zeros(n)

@@ -203,7 +203,7 @@ def probit_scale(obs: Observations) -> float | None:
     lik = term.likelihood
     if not known_probit(lik) or term.coef != (1.0, -1.0) or term.target is not None:
         return None
-    if getattr(term, "offset", None) is not None:  # a prior mean (a population's): the torch solver's
+    if term.offset is not None:  # a prior mean (a population's): the torch solver's
         return None
     if term.mask is not None and not bool(term.mask.all()):
         return None
