@@ -181,10 +181,10 @@ def _start_model(family: Family, condition: str, x0s: list[torch.Tensor], firsts
         rating_scale=settings["rating_scale"],
         rating_precision=settings["rating_precision"],
     )
-    datas = [m.data for m in models]
-    if not all(isinstance(d, PreferenceData) for d in datas):
+    datas = [m.data for m in models if isinstance(m.data, PreferenceData)]
+    if len(datas) != len(models):
         raise ValueError("the suite's trial models must each be one problem (PreferenceData), not batched.")
-    return BatchedPreferenceGP(template, [d for d in datas if isinstance(d, PreferenceData)])
+    return BatchedPreferenceGP(template, datas)
 
 
 def _suite_metrics(eval_X: torch.Tensor, f_true: torch.Tensor, u_true: torch.Tensor):
