@@ -27,6 +27,8 @@ import math
 import numpy as np
 from numba import njit
 
+from torchpref.inference.step_rule import STEP_RULE
+
 OK, NOT_PD, NOT_FINITE, NOT_CONVERGED = 0, 1, 2, 3
 #: kernel kinds: GPyTorch's RBF, and Matern with nu = 1/2, 3/2, 5/2
 RBF, MATERN12, MATERN32, MATERN52 = 0, 1, 2, 3
@@ -34,9 +36,11 @@ RBF, MATERN12, MATERN32, MATERN52 = 0, 1, 2, 3
 NO_PRIOR, LOG_NORMAL, GAMMA = 0, 1, 2
 
 LOG_2PI_HALF = 0.5 * math.log(2.0 * math.pi)
-ARMIJO = 1e-4  # as torchpref.inference.newton
-MIN_STEP = 1e-12
-STUCK_TOL = 1e-6
+# the step rule of every Newton loop (numba freezes these module globals when it compiles)
+ARMIJO = STEP_RULE.armijo
+SHRINK = STEP_RULE.shrink
+MIN_STEP = STEP_RULE.min_step
+STUCK_TOL = STEP_RULE.stuck_tol
 ROUNDOFF = 100.0 * 2.220446049250313e-16  # ROUNDOFF_EPS eps (float64)
 
 
@@ -226,7 +230,7 @@ def line_search(L, C, s, a, psi, grad, w, ll, step, dec):
         psi_t, grad_t, w_t, ll_t = evaluate(L, trial, C, s)
         if np.isfinite(psi_t) and psi_t >= psi + ARMIJO * t * dec:
             return trial, psi_t, grad_t, w_t, ll_t, True
-        t *= 0.5
+        t *= SHRINK
         if t <= MIN_STEP:
             return a, psi, grad, w, ll, False
 

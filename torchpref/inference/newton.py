@@ -31,9 +31,7 @@ from torchpref.inference.numerics import NotPSDError, roundoff_floor
 from torchpref.inference.observations import Observations
 from torchpref.inference.shapes import Latent, Matrices, PerProblem, ProblemMask, TermValues
 
-ARMIJO = 1e-4  # sufficient increase: Psi(a + t s) >= Psi(a) + ARMIJO t grad^T s
-MIN_STEP = 1e-12  # backtracking gives up below this step length
-STUCK_TOL = 1e-6  # half-decrement below which a problem with no ascent left counts as converged
+from torchpref.inference.step_rule import STEP_RULE
 
 
 @dataclass(frozen=True)
@@ -185,14 +183,14 @@ class Problem:
         t, pending, new = 1.0, active, point
         while True:
             trial = self.evaluate(point.a + t * step)
-            passed = (torch.isfinite(trial.psi) & (trial.psi >= point.psi + ARMIJO * t * decrement)).tolist()
+            passed = (torch.isfinite(trial.psi) & (trial.psi >= point.psi + STEP_RULE.armijo * t * decrement)).tolist()
             ok = [p and (a or f) for p, a, f in zip(pending, passed, full or passed)]
             new = _pick(trial, ok, new)
             pending = [p and not o for p, o in zip(pending, ok)]
             if not any(pending):
                 return new, pending
-            t *= 0.5
-            if t <= MIN_STEP:
+            t *= STEP_RULE.shrink
+            if t <= STEP_RULE.min_step:
                 return new, pending
 
 
@@ -276,7 +274,7 @@ def newton_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], opts: 
     prob = Problem(L, obs)
     point = prob.start(starts)
     b = L.shape[0]
-    tol, stuck_tol = _in_dtype(opts.tol, L.dtype), _in_dtype(STUCK_TOL, L.dtype)
+    tol, stuck_tol = _in_dtype(opts.tol, L.dtype), _in_dtype(STEP_RULE.stuck_tol, L.dtype)
     active, converged, has_factor = [True] * b, [False] * b, [False] * b
     decrement = [math.inf] * b
     newton_dec = decrement  # the decrement of each problem's last factorisation

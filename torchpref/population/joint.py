@@ -39,6 +39,7 @@ from torch import Tensor
 from torchpref.inference.laplace import LaplaceConvergenceWarning
 from torchpref.inference.numerics import NotPSDError, batched_cholesky, cholesky_jittered, default_tolerance
 from torchpref.inference.observations import Observations
+from torchpref.inference.step_rule import STEP_RULE
 
 #: ``kernel(X1, X2)``: a dense prior covariance.
 KernelFn = Callable[[Tensor, Tensor], Tensor]
@@ -235,14 +236,11 @@ def find_mode(layout: Layout, F: Factors, start: tuple[Tensor, Tensor] | None = 
             dec = float((p.ga * da).sum() + (p.gb * db).sum())
             if 0.5 * dec < tol:
                 return Mode(p, H, fisher, it, True)
-            step = 1.0
-            while step > 1e-12:
-                q = evaluate(layout, F, p.a + step * da, p.b + step * db)
-                if bool(torch.isfinite(q.psi)) and float(q.psi) >= float(p.psi) + 1e-4 * step * dec:
-                    break
-                step *= 0.5
-            else:
-                return Mode(p, H, fisher, it, 0.5 * dec < 1e-6)
+            q = STEP_RULE.backtrack(
+                lambda t: evaluate(layout, F, p.a + t * da, p.b + t * db), lambda q: float(q.psi), float(p.psi), dec
+            )
+            if q is None:
+                return Mode(p, H, fisher, it, 0.5 * dec < STEP_RULE.stuck_tol)
             p = q
         H, fisher, _ = _hessian_at(layout, F, p)
         warnings.warn(

@@ -27,6 +27,7 @@ from torch import Tensor
 
 from torchpref.data.preference_data import PreferenceData
 from torchpref.inference.laplace import LaplaceConvergenceWarning
+from torchpref.inference.step_rule import STEP_RULE
 from torchpref.inference.numerics import NotPSDError, batched_cholesky, cholesky_jittered, default_tolerance
 from torchpref.population.joint import Layout, _person_covariance, _scatter_vector, person_blocks, scatter_blocks, schur
 from torchpref.population.prior import _dense
@@ -199,15 +200,15 @@ def sharded_mode(problem: ShardedProblem, L_U: Tensor, k_g: Kernel, start: Any =
         dec = float((ga * da).sum() + sum((g * d).sum() for g, d in zip(gbs, dbs)))
         if 0.5 * dec < tol:
             return dict(a=a, pts=hp, S_chol=S_chol, fisher=fisher, converged=True)
-        step = 1.0
-        while step > 1e-12:
-            trial_b = [p["b"] + step * d for p, d in zip(pts, dbs)]
-            trial = problem.points(k_g, L_U @ (a + step * da), trial_b, False)[0]
-            psi_t = sum(t["psi"] for t in trial) - 0.5 * ((a + step * da) ** 2).sum()
-            if bool(torch.isfinite(psi_t)) and float(psi_t) >= float(psi) + 1e-4 * step * dec:
-                break
-            step *= 0.5
-        a, pts, fisher = a + step * da, trial, False
+
+        def trial(t: float, a: Tensor = a, pts: list = pts, da: Tensor = da, dbs: list = dbs) -> tuple:
+            moved = problem.points(k_g, L_U @ (a + t * da), [p["b"] + t * d for p, d in zip(pts, dbs)], False)[0]
+            return a + t * da, moved, sum(m["psi"] for m in moved) - 0.5 * ((a + t * da) ** 2).sum()
+
+        taken = STEP_RULE.backtrack(trial, lambda q: float(q[2]), float(psi), dec)
+        if taken is None:
+            return dict(a=a, pts=hp, S_chol=S_chol, fisher=fisher, converged=0.5 * dec < STEP_RULE.stuck_tol)
+        a, pts, fisher = taken[0], taken[1], False
     warnings.warn(
         f"Newton's method for the population's joint mode did not converge in {max_iter} iterations",
         LaplaceConvergenceWarning,
