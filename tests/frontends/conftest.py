@@ -10,7 +10,7 @@ def served(tmp_path):
     """A store of 24 random items (8 questions a session), its client, and one new session's id."""
     pytest.importorskip("starlette", reason="the serve extra (starlette) is not installed")
     pytest.importorskip("httpx", reason="starlette's test client needs httpx")
-    from torchpref.frontends.serve_store import SessionStore
+    from torchpref.frontends.serve.store import SessionStore
 
     store = SessionStore(random_items(), tmp_path / "sessions", num_queries=8)
     client = serve_client(store)

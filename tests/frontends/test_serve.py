@@ -24,9 +24,9 @@ with warnings.catch_warnings():  # starlette's note that a later httpx is prefer
     warnings.simplefilter("ignore")
 
 from torchpref.data.features import FeaturesError
-from torchpref.frontends.serve import ServeError, _check_network
-from torchpref.frontends.serve_items import items_from_csv
-from torchpref.frontends.serve_store import SessionStore, make_qid
+from torchpref.frontends.serve.app import ServeError, _check_network
+from torchpref.frontends.serve.items import items_from_csv
+from torchpref.frontends.serve.store import SessionStore, make_qid
 from torchpref.sessions.session import PreferenceSession
 from torchpref.testing.serve import random_items as _items
 from torchpref.testing.serve import serve_client as _client
@@ -333,7 +333,7 @@ def test_a_session_from_python_with_a_render_function(tmp_path):
         return fig
 
     session = PreferenceSession(X, session_file=tmp_path / "mine.session.jsonl", num_queries=3)
-    from torchpref.frontends.serve import _store
+    from torchpref.frontends.serve.app import _store
 
     store = _store(session, render, None, None, None, 3, 0, 5, True, "design")
     c = _client(store)
@@ -350,7 +350,7 @@ def test_a_session_from_python_with_a_render_function(tmp_path):
 def test_missing_extra_is_named(monkeypatch):
     import sys
 
-    from torchpref.frontends import serve as serve_module
+    from torchpref.frontends.serve import app as serve_module
 
     monkeypatch.setitem(sys.modules, "uvicorn", None)
     with pytest.raises(ImportError, match=r"torchpref\[serve\]"):
@@ -372,7 +372,7 @@ def test_cli_refuses_unsafe_or_incomplete_settings(tmp_path, capsys):
 
 def test_lazy_export():
     import torchpref
-    from torchpref.frontends.serve import serve
+    from torchpref.frontends.serve.app import serve
 
     assert torchpref.serve is serve
 
@@ -456,7 +456,7 @@ def test_serve_from_python_in_a_process(tmp_path):
 def test_ratings_in_the_unit_interval(tmp_path):
     """A served session without levels (``num_levels=None``): the page's slider sends a number in
     [0, 1], anything else is refused."""
-    from torchpref.frontends.serve import _store
+    from torchpref.frontends.serve.app import _store
     from torchpref.selection.strategies import UCBRatings
 
     session = PreferenceSession(

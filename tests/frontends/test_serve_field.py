@@ -24,10 +24,10 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
 
 import torchpref.sessions.journal as journal
-from torchpref.frontends import serve as serve_module
-from torchpref.frontends.serve import ServeError, create_app, listening_socket
-from torchpref.frontends.serve_items import ServeItems
-from torchpref.frontends.serve_store import SessionStore
+from torchpref.frontends.serve import app as serve_module
+from torchpref.frontends.serve.app import ServeError, create_app, listening_socket
+from torchpref.frontends.serve.items import ServeItems
+from torchpref.frontends.serve.store import SessionStore
 from torchpref.testing.serve import random_items as _items
 from torchpref.testing.serve import serve_client as _client
 
@@ -162,7 +162,7 @@ def _serve_in_thread(app):
 
 
 def test_slow_clients_are_cut_off(tmp_path, monkeypatch):
-    import torchpref.frontends.serve_net as serve_net
+    import torchpref.frontends.serve.net as serve_net
 
     monkeypatch.setattr(serve_net, "HEADER_TIMEOUT_S", 0.5)
     monkeypatch.setattr(serve_module, "BODY_TIMEOUT_S", 0.5)

@@ -1,4 +1,4 @@
-"""Pictures off the answer path (:mod:`torchpref.frontends.serve_plots`): an answer is
+"""Pictures off the answer path (:mod:`torchpref.frontends.serve.plots`): an answer is
 acknowledged while a slow summary plot or item picture is being drawn; summary plots are drawn in
 a worker process (the same PNG as drawn here), cached and started when the last question is
 answered; a question's pictures are started before the browser asks for them."""
@@ -17,10 +17,10 @@ pytest.importorskip("matplotlib", reason="the plots need matplotlib")
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
 
-from torchpref.frontends.serve_plot_worker import draw_utility
-from torchpref.frontends.serve_plots import ProcessDrawer
-from torchpref.frontends.serve_store import SessionStore
-from torchpref.frontends.serve_summary import utility_data
+from torchpref.frontends.serve.plot_worker import draw_utility
+from torchpref.frontends.serve.plots import ProcessDrawer
+from torchpref.frontends.serve.store import SessionStore
+from torchpref.frontends.serve.summary import utility_data
 from torchpref.testing.serve import random_items as _items
 from torchpref.testing.serve import serve_client as _client
 
@@ -157,7 +157,7 @@ def test_a_questions_pictures_are_drawn_before_they_are_asked_for(tmp_path):
 
 
 def test_without_a_worker_process_the_plot_is_drawn_in_its_thread(tmp_path, monkeypatch):
-    import torchpref.frontends.serve_plots as plots
+    import torchpref.frontends.serve.plots as plots
 
     monkeypatch.setattr(plots, "WORKER_SCRIPT", tmp_path / "missing.py")  # the process starts and ends at once
     store = SessionStore(_items(), tmp_path / "s", num_queries=4)

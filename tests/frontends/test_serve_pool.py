@@ -1,5 +1,5 @@
 """``torchpref serve``'s sessions as a bounded cache over their files
-(:mod:`torchpref.frontends.serve_pool`): closed when idle, finished or over the limit, reopened
+(:mod:`torchpref.frontends.serve.pool`): closed when idle, finished or over the limit, reopened
 with the same answers, next question and posterior; a new participant refused with 503 and
 ``Retry-After`` (one log line) when descriptors or memory run out, and accepted again after."""
 
@@ -20,7 +20,7 @@ pytest.importorskip("httpx", reason="starlette's test client needs httpx")
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
 
-from torchpref.frontends.serve_pool import (
+from torchpref.frontends.serve.pool import (
     FD_MARGIN,
     MAX_OPEN_CAP,
     PoolLimits,
@@ -29,7 +29,7 @@ from torchpref.frontends.serve_pool import (
     quiet_resource_errors,
     resource_error,
 )
-from torchpref.frontends.serve_store import SessionStore
+from torchpref.frontends.serve.store import SessionStore
 from torchpref.testing.serve import random_items
 from torchpref.testing.serve import serve_client as _client
 

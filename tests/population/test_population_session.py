@@ -59,8 +59,8 @@ def test_session_refuses_a_population_of_another_space(pool_and_pop):
 
 def test_serve_store_starts_each_session_from_the_population(pool_and_pop, tmp_path):
     pytest.importorskip("starlette", reason="the serve extra (starlette) is not installed")
-    from torchpref.frontends.serve_items import ServeItems
-    from torchpref.frontends.serve_store import SessionStore
+    from torchpref.frontends.serve.items import ServeItems
+    from torchpref.frontends.serve.store import SessionStore
 
     pool, pop = pool_and_pop
     store = SessionStore(ServeItems(pool, ["a", "b"], None), tmp_path, population=pop)

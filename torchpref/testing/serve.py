@@ -19,8 +19,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from torchpref.frontends.serve_items import ServeItems
-    from torchpref.frontends.serve_store import SessionStore
+    from torchpref.frontends.serve.items import ServeItems
+    from torchpref.frontends.serve.store import SessionStore
 
 CHROMIUM = os.environ.get("TORCHPREF_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -41,10 +41,10 @@ TEST_BASE_URL = "http://127.0.0.1:8000"  # the in-process test client's address 
 
 def random_items(n: int = 24, d: int = 3, seed: int = 0, **kwargs: Any) -> ServeItems:
     """``n`` seeded random items in ``[0, 1]^d`` with objectives ``f0, f1, ...`` as
-    :class:`~torchpref.frontends.serve_items.ServeItems` (``kwargs``: its other arguments)."""
+    :class:`~torchpref.frontends.serve.items.ServeItems` (``kwargs``: its other arguments)."""
     import torch
 
-    from torchpref.frontends.serve_items import ServeItems
+    from torchpref.frontends.serve.items import ServeItems
 
     g = torch.Generator().manual_seed(seed)
     return ServeItems(torch.rand(n, d, generator=g, dtype=torch.float64), [f"f{k}" for k in range(d)], **kwargs)
@@ -55,7 +55,7 @@ def serve_client(store: SessionStore, **kwargs: Any) -> Any:
     e.g. ``token``, ``allowed_hosts``), at :data:`TEST_BASE_URL`; needs the ``serve`` extra and httpx."""
     import warnings
 
-    from torchpref.frontends.serve import create_app
+    from torchpref.frontends.serve.app import create_app
 
     with warnings.catch_warnings():  # starlette's note that a later httpx is preferred
         warnings.simplefilter("ignore")

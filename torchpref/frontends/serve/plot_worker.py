@@ -1,5 +1,5 @@
 r"""The summary plot of ``torchpref serve``, drawn from plain numbers, and the worker process that
-draws it (:class:`~torchpref.frontends.serve_plots.Plots` starts it).
+draws it (:class:`~torchpref.frontends.serve.plots.Plots` starts it).
 
 This file imports neither torch nor the rest of torchpref: run by its path
 (``python serve_plot_worker.py``) it is a small process of its own (matplotlib and NumPy), at a

@@ -37,7 +37,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-from torchpref.frontends.serve_errors import AnswerRefused
+from torchpref.frontends.serve.errors import AnswerRefused
 
 __all__ = [
     "PoolEntry",

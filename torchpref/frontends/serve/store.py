@@ -35,16 +35,16 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from torchpref.data.queries import InvalidAnswer, Query, RankingQuery, RatingQuery
-from torchpref.frontends.serve_errors import AnswerRefused
-from torchpref.frontends.serve_items import ServeItems
+from torchpref.frontends.serve.errors import AnswerRefused
+from torchpref.frontends.serve.items import ServeItems
 from torchpref.selection.strategies import UCBC
 from torchpref.sessions.errors import SessionFileError
 from torchpref.sessions.records import AnswerRecord, parse_record, records_in_force
 from torchpref.sessions.session import PreferenceSession, default_ranking_size
 
 if TYPE_CHECKING:
-    from torchpref.frontends.serve_pool import PoolEntry as _Entry
-    from torchpref.frontends.serve_pool import PoolLimits
+    from torchpref.frontends.serve.pool import PoolEntry as _Entry
+    from torchpref.frontends.serve.pool import PoolLimits
 
 __all__ = ["AnswerRefused", "MAX_RESPONSE_TIME", "SID_PATTERN", "SessionStore", "make_qid"]
 
@@ -72,13 +72,13 @@ class SessionStore:
     """The participants' sessions over one pool of items.
 
     Args:
-        items: the pool and its pictures (:class:`~torchpref.frontends.serve_items.ServeItems`).
+        items: the pool and its pictures (:class:`~torchpref.frontends.serve.items.ServeItems`).
         directory: where the session files are (created if missing); ``None`` with ``session``.
         session: serve only this session (built in Python), under the id ``sid``; no new ones.
         sid: the id of ``session`` (default: its file's name before ``.session.jsonl``, or ``session``).
         num_queries, seed, num_levels, ties: settings of each new session (``ties``: offer "no preference").
         limits: how many sessions stay open and for how long
-            (:class:`~torchpref.frontends.serve_pool.PoolLimits`; closed ones reopen from their files).
+            (:class:`~torchpref.frontends.serve.pool.PoolLimits`; closed ones reopen from their files).
     """
 
     def __init__(
@@ -95,8 +95,8 @@ class SessionStore:
         limits: PoolLimits | None = None,
         population: Any = None,
     ) -> None:
-        from torchpref.frontends.serve_plots import Plots
-        from torchpref.frontends.serve_pool import SessionPool
+        from torchpref.frontends.serve.plots import Plots
+        from torchpref.frontends.serve.pool import SessionPool
 
         self.items, self.ties = items, bool(ties)
         self.pool = SessionPool(self._open_checked, limits)
@@ -464,7 +464,7 @@ def _times(body: dict) -> dict[str, str]:
 
 
 def _resource_error(exc: BaseException) -> bool:
-    from torchpref.frontends.serve_pool import resource_error
+    from torchpref.frontends.serve.pool import resource_error
 
     return resource_error(exc)
 

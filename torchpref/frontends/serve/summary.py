@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from torchpref.frontends.serve_items import ServeItems
+from torchpref.frontends.serve.items import ServeItems
 
 __all__ = ["axes_from_query", "summary_context", "utility_data", "utility_plot"]
 
@@ -27,7 +27,7 @@ def axes_from_query(items: ServeItems, query: Mapping[str, str]) -> tuple[int, i
     Raises:
         AnswerRefused: (400) a number that is not an objective's column.
     """
-    from torchpref.frontends.serve_store import AnswerRefused
+    from torchpref.frontends.serve.errors import AnswerRefused
 
     d = items.X.shape[1]
     out = []
@@ -88,7 +88,7 @@ def summary_context(store: Any, entry: Any, query: Mapping[str, str]) -> dict[st
 
 def utility_data(items: ServeItems, session: Any, x: int, y: int) -> dict[str, Any]:
     """The numbers the summary plot of objectives ``x`` and ``y`` is drawn from (plain lists: the
-    plot is drawn in a worker process, :func:`~torchpref.frontends.serve_plot_worker.draw_utility`).
+    plot is drawn in a worker process, :func:`~torchpref.frontends.serve.plot_worker.draw_utility`).
     Call with the session's lock held; it takes the posterior over the pool (a few milliseconds)."""
     X = items.X
     data: dict[str, Any] = {
@@ -113,6 +113,6 @@ def utility_data(items: ServeItems, session: Any, x: int, y: int) -> dict[str, A
 
 def utility_plot(items: ServeItems, session: Any, x: int, y: int) -> bytes:
     """A PNG of the learned utility over objectives ``x`` and ``y`` (see the module), drawn here."""
-    from torchpref.frontends.serve_plot_worker import draw_utility
+    from torchpref.frontends.serve.plot_worker import draw_utility
 
     return draw_utility(utility_data(items, session, x, y))

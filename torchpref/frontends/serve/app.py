@@ -15,7 +15,7 @@ best items, downloads of the session file, the answers as CSV and the model chec
 An answer is acknowledged only once it is in the session file (fsynced:
 :class:`~torchpref.PreferenceSession`); the page measures the seconds from showing a question to
 its answer and the journal keeps them (``response_time``). Stale, repeated and foreign answers
-are refused by :class:`~torchpref.frontends.serve_store.SessionStore`.
+are refused by :class:`~torchpref.frontends.serve.store.SessionStore`.
 
 Safe by default: it binds 127.0.0.1 and answers only requests whose ``Host`` is this machine's
 loopback name (no DNS rebinding); another interface needs ``allow_remote=True`` and a token
@@ -39,8 +39,8 @@ from typing import Any
 
 from torch import Tensor
 
-from torchpref.frontends.serve_items import ServeItems, items_from_csv, lake_items
-from torchpref.frontends.serve_net import (  # noqa: F401  (HEADER_TIMEOUT_S, MAX_CONNECTIONS: re-exported)
+from torchpref.frontends.serve.items import ServeItems, items_from_csv, lake_items
+from torchpref.frontends.serve.net import (  # noqa: F401  (HEADER_TIMEOUT_S, MAX_CONNECTIONS: re-exported)
     HEADER_TIMEOUT_S,
     MAX_CONNECTIONS,
     ServeError,
@@ -49,7 +49,7 @@ from torchpref.frontends.serve_net import (  # noqa: F401  (HEADER_TIMEOUT_S, MA
     listening_socket,
     uvicorn_server,
 )
-from torchpref.frontends.serve_store import AnswerRefused, SessionStore
+from torchpref.frontends.serve.store import AnswerRefused, SessionStore
 from torchpref.sessions.session import PreferenceSession
 
 __all__ = ["ServeError", "create_app", "run", "serve"]
@@ -91,7 +91,7 @@ def create_app(store: SessionStore, *, token: str | None = None, allowed_hosts: 
     """The ASGI application over ``store`` (Starlette, wrapped in the Host / token / headers guard).
 
     Args:
-        store: the sessions (:class:`~torchpref.frontends.serve_store.SessionStore`).
+        store: the sessions (:class:`~torchpref.frontends.serve.store.SessionStore`).
         token: if given, every request must carry it (``?token=`` once, then a cookie).
         allowed_hosts: the host names a request's ``Host`` may name (default: the loopback names);
             ``["*"]`` for any (only with a token).
@@ -115,7 +115,7 @@ def create_app(store: SessionStore, *, token: str | None = None, allowed_hosts: 
         Route("/s/{sid}/summary", h.wrap(h.summary)),
         Route("/s/{sid}/utility.png", h.wrap(h.utility_png)),
         Route("/s/{sid}/download/{what}", h.wrap(h.download)),
-        Mount("/static", StaticFiles(directory=HERE / "serve_static"), name="static"),
+        Mount("/static", StaticFiles(directory=HERE / "static"), name="static"),
     ]
     app = Starlette(routes=routes)
     app.state.store = store
@@ -132,7 +132,7 @@ class _Handlers:
         import jinja2
 
         self.store = store
-        self.env = jinja2.Environment(loader=jinja2.FileSystemLoader(HERE / "serve_templates"), autoescape=True)
+        self.env = jinja2.Environment(loader=jinja2.FileSystemLoader(HERE / "templates"), autoescape=True)
 
     def page(self, name: str, status: int = 200, headers: dict | None = None, **ctx):
         from starlette.responses import HTMLResponse
@@ -227,7 +227,7 @@ class _Handlers:
         return JSONResponse(await run_in_threadpool(self.store.undo, request.path_params["sid"], body))
 
     def summary(self, request):
-        from torchpref.frontends.serve_summary import summary_context
+        from torchpref.frontends.serve.summary import summary_context
 
         entry = self.store.entry(request.path_params["sid"])
         with entry.lock:
@@ -238,7 +238,7 @@ class _Handlers:
     def utility_png(self, request):
         from starlette.responses import Response
 
-        from torchpref.frontends.serve_summary import axes_from_query
+        from torchpref.frontends.serve.summary import axes_from_query
 
         x, y = axes_from_query(self.store.items, request.query_params)
         png = self.store.plots.utility_png(self.store, request.path_params["sid"], x, y)  # drawn by a worker
@@ -393,7 +393,7 @@ def serve(
         source: a :class:`~torchpref.PreferenceSession` over a pool (served as the one session:
             its settings and file are used; no new sessions), an ``N x d`` tensor of items (each
             visitor a new session in ``sessions``), or a
-            :class:`~torchpref.frontends.serve_items.ServeItems`.
+            :class:`~torchpref.frontends.serve.items.ServeItems`.
         render: ``render(item, index) -> picture`` (PNG/JPEG/GIF bytes, a matplotlib Figure, a
             Path or None) for each item's picture.
         names, labels, noun: the objectives' and items' names, and what an item is called.
@@ -408,8 +408,8 @@ def serve(
             sessions of different people run in parallel threads (5-10x faster answers than
             torch's default on a loaded 2-core machine, docs/serve.md).
         max_open, idle_close, finished_close: sessions are a bounded cache over their files
-            (:class:`~torchpref.frontends.serve_pool.SessionPool`): at most ``max_open`` open at
-            once (default: from the descriptor limit, :func:`~torchpref.frontends.serve_pool.default_max_open`),
+            (:class:`~torchpref.frontends.serve.pool.SessionPool`): at most ``max_open`` open at
+            once (default: from the descriptor limit, :func:`~torchpref.frontends.serve.pool.default_max_open`),
             each closed after ``idle_close`` seconds without a request (``finished_close`` once
             all its questions are answered) and reopened from its file on the next one.
         population: a :class:`~torchpref.Population` each new session starts from (docs/population.md).
@@ -418,7 +418,7 @@ def serve(
         ServeError: unsafe or impossible network settings. ImportError: the ``serve`` extra is missing.
     """
     _require()
-    from torchpref.frontends.serve_pool import PoolLimits, quiet_resource_errors
+    from torchpref.frontends.serve.pool import PoolLimits, quiet_resource_errors
 
     token = _check_network(host, port, allow_remote, token)
     sock = listening_socket(host, port)  # a busy port is named before any work

@@ -4,16 +4,16 @@ are drawn by workers of their own, cached, and started before the page asks for 
 * **The summary plot** (``/s/SID/utility.png``): its numbers (the posterior over the pool, a few
   milliseconds) are taken under the session's lock; the drawing (hundreds of milliseconds of
   matplotlib) happens in a separate, lower-priority process
-  (:mod:`~torchpref.frontends.serve_plot_worker`), so it holds neither the session's lock nor
+  (:mod:`~torchpref.frontends.serve.plot_worker`), so it holds neither the session's lock nor
   the server's interpreter lock. One thread feeds that process, one job at a time. Plots are
   cached by session, number of records and axes (:data:`SUMMARY_CACHE` of them), and a session's
   plot is started as soon as its last question is answered, before the summary page asks.
   Where no process can be started, the plot is drawn in that thread instead (under
-  :data:`~torchpref.frontends.serve_items.PLOT_LOCK`), still outside any answer's request.
+  :data:`~torchpref.frontends.serve.items.PLOT_LOCK`), still outside any answer's request.
 * **Items' pictures** (``/picture/I``): drawn by a thread of their own (a render function written
   in Python cannot be sent to another process), at a lower priority on Linux; the pictures of a
   question are started when the question is computed, before the browser asks for them, and
-  kept (:class:`~torchpref.frontends.serve_items.ServeItems` caches them).
+  kept (:class:`~torchpref.frontends.serve.items.ServeItems` caches them).
 
 An answer's request never waits for either worker: it only puts a job in a queue.
 """
@@ -33,7 +33,7 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
-from torchpref.frontends.serve_items import PLOT_LOCK, ServeItems
+from torchpref.frontends.serve.items import PLOT_LOCK, ServeItems
 
 __all__ = ["DRAW_TIMEOUT", "Plots", "ProcessDrawer", "SUMMARY_CACHE", "Worker"]
 
@@ -46,7 +46,7 @@ DRAW_TIMEOUT = 120.0
 QUEUE_LIMIT = 256
 """Jobs waiting at most in a worker; a pre-render beyond it is skipped (it is drawn when asked for)."""
 
-WORKER_SCRIPT = Path(__file__).with_name("serve_plot_worker.py")
+WORKER_SCRIPT = Path(__file__).with_name("plot_worker.py")
 
 IDLE_EXIT = 30.0
 """Seconds a worker's thread waits for a job before it ends (the next job starts another)."""
@@ -144,7 +144,7 @@ def _lower_priority(nice: int) -> None:
 
 
 class ProcessDrawer:
-    """The summary plot drawn in a process of its own (:mod:`~torchpref.frontends.serve_plot_worker`),
+    """The summary plot drawn in a process of its own (:mod:`~torchpref.frontends.serve.plot_worker`),
     started on first use and again if it dies or takes longer than ``timeout`` seconds."""
 
     def __init__(self, timeout: float = DRAW_TIMEOUT):
@@ -263,7 +263,7 @@ def _receive(proc: subprocess.Popen, timeout: float) -> tuple[str, Any]:
 
 
 def _draw_here(data: dict) -> bytes:
-    from torchpref.frontends.serve_plot_worker import draw_utility
+    from torchpref.frontends.serve.plot_worker import draw_utility
 
     with PLOT_LOCK:
         return draw_utility(data)
@@ -320,7 +320,7 @@ class Plots:
             pass
 
     def _draw(self, store: Any, sid: str, x: int, y: int) -> bytes:
-        from torchpref.frontends.serve_summary import utility_data
+        from torchpref.frontends.serve.summary import utility_data
 
         entry = store.entry(sid)
         with entry.lock:  # the numbers only: milliseconds
