@@ -26,7 +26,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
         unit_to_likert,
     )
     from torchpref.data.queries import BoxCandidates, FinitePool, InvalidAnswer, RankingQuery, RatingQuery
-    from torchpref.frontends.serve.app import serve
+    from torchpref.frontends.serve import serve
     from torchpref.inference.fast_path import fast_path
     from torchpref.inference.laplace import LaplaceConvergenceWarning
     from torchpref.inference.numerics import JitterWarning, LaplaceNumericalError, NotPSDError
