@@ -1,6 +1,6 @@
 """The package's layout stays as docs/architecture.md describes it: subpackages by stage, each
 importing only the stages below it (any import, at module level or inside a function), no import
-cycle among the modules (module-level imports), no module over 600 lines (one exception, :data:`LONG_MODULES`) and no function over 60 lines of code (ruff-formatted),
+cycle among the modules (module-level imports), no module over 600 lines (the exceptions: :data:`LONG_MODULES`) and no function over 60 lines of code (ruff-formatted),
 and the lake world (``torchpref/lake/``) imports nothing of learning (the model, the loop, the
 selectors, the metrics) from the rest of the package."""
 
@@ -13,7 +13,8 @@ PACKAGE = Path(torchpref.__file__).parent
 MAX_MODULE_LINES = 600  # a guard against files that should be split, not a goal (formatted by ruff)
 #: One class, one file, as BoTorch keeps ``PairwiseGP`` in ``pairwise_gp.py``: the model's data,
 #: predictives and BoTorch interface are one class, not mixins split by a size rule (issue 35).
-LONG_MODULES = {"models/preference_gp.py": 1200}
+# one class in one file: PreferenceGP, and PreferenceSession (its file, its model cache and its query list)
+LONG_MODULES = {"models/preference_gp.py": 1200, "sessions/session.py": 900}
 MAX_FUNCTION_LINES = 60  # code lines: the docstring does not count
 
 # What a module of torchpref/lake/ may import from the rest of torchpref: the data conventions

@@ -8,7 +8,6 @@ from pathlib import Path
 import pytest
 import torch
 
-import torchpref.sessions.model_state as model_state
 import torchpref.sessions.session as session_mod
 from torchpref import RandomRankings
 from torchpref.sessions.errors import SessionSettingsError
@@ -96,7 +95,6 @@ def test_undo_goes_back_to_the_earlier_model_without_replaying(tmp_path, monkeyp
         s.tell(q, answer(q))
     calls = []
     monkeypatch.setattr(session_mod, "record_answer", lambda *a, **k: calls.append(1))
-    monkeypatch.setattr(model_state, "record_answer", lambda *a, **k: calls.append(1))
     for before in reversed(states):
         s.undo()
         for a, b in zip(posterior(s.model, Z), before, strict=True):
@@ -115,13 +113,13 @@ def test_resume_replays_at_most_the_answers_after_the_snapshot(tmp_path, monkeyp
     live = posterior(s.model, s.transform(X))
     s.close()
     snapshot_path(path).write_bytes(snap)
-    real, calls = model_state.record_answer, []
+    real, calls = session_mod.record_answer, []
 
     def counting(*args, **kwargs):
         calls.append(1)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(model_state, "record_answer", counting)
+    monkeypatch.setattr(session_mod, "record_answer", counting)
     r = PreferenceSession.load(path)
     assert len(calls) == 3
     for a, b in zip(posterior(r.model, r.transform(X)), live, strict=True):

@@ -30,7 +30,6 @@ from torch import Tensor
 from torchpref.inference.numerics import NotPSDError, roundoff_floor
 from torchpref.inference.observations import Observations
 from torchpref.inference.shapes import Latent, Matrices, PerProblem, ProblemMask, TermValues
-
 from torchpref.inference.step_rule import STEP_RULE
 
 

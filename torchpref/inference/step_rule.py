@@ -42,7 +42,9 @@ class StepRule:
         """Whether length ``t`` gives a finite ``Psi`` with the sufficient increase."""
         return math.isfinite(psi_new) and psi_new >= psi + self.armijo * t * decrement
 
-    def backtrack(self, trial: Callable[[float], T], psi_of: Callable[[T], float], psi: float, decrement: float) -> T | None:
+    def backtrack(
+        self, trial: Callable[[float], T], psi_of: Callable[[T], float], psi: float, decrement: float
+    ) -> T | None:
         """The first accepted trial point ``trial(t)`` over :meth:`lengths`, or ``None`` if none is."""
         for t in self.lengths():
             point = trial(t)

@@ -236,9 +236,11 @@ def find_mode(layout: Layout, F: Factors, start: tuple[Tensor, Tensor] | None = 
             dec = float((p.ga * da).sum() + (p.gb * db).sum())
             if 0.5 * dec < tol:
                 return Mode(p, H, fisher, it, True)
-            q = STEP_RULE.backtrack(
-                lambda t: evaluate(layout, F, p.a + t * da, p.b + t * db), lambda q: float(q.psi), float(p.psi), dec
-            )
+
+            def trial(t: float, p: Point = p, da: Tensor = da, db: Tensor = db) -> Point:
+                return evaluate(layout, F, p.a + t * da, p.b + t * db)
+
+            q = STEP_RULE.backtrack(trial, lambda q: float(q.psi), float(p.psi), dec)
             if q is None:
                 return Mode(p, H, fisher, it, 0.5 * dec < STEP_RULE.stuck_tol)
             p = q

@@ -27,8 +27,8 @@ from torch import Tensor
 
 from torchpref.data.preference_data import PreferenceData
 from torchpref.inference.laplace import LaplaceConvergenceWarning
-from torchpref.inference.step_rule import STEP_RULE
 from torchpref.inference.numerics import NotPSDError, batched_cholesky, cholesky_jittered, default_tolerance
+from torchpref.inference.step_rule import STEP_RULE
 from torchpref.population.joint import Layout, _person_covariance, _scatter_vector, person_blocks, scatter_blocks, schur
 from torchpref.population.prior import _dense
 

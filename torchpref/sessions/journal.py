@@ -47,7 +47,10 @@ from torchpref.sessions.filebytes import dropped_path, file_kind, fsync_dir, pre
 from torchpref.sessions.records import (
     ANSWER_KINDS,
     FORMAT_VERSION,
+    AnswerRecord,
+    Record,
     check_new_record,
+    parse_record,
     validate_header,
     validate_records,
 )
@@ -234,7 +237,9 @@ class Journal:
             continue; by default that raises :class:`SessionFileCorrupt`.
 
     Attributes:
-        header, records: the file's header and its records, in order.
+        header: the file's header (a validated JSON object).
+        records: the records after it, in order, typed once when the file is read
+            (:class:`~torchpref.sessions.records.AnswerRecord` / :class:`~torchpref.sessions.records.UndoRecord`).
         in_force: the answer records not undone, by sequence number, oldest first (kept up to date).
         last_seq: the last record's sequence number (0 for none).
         read_only: the file could not be opened for writing; :meth:`append` raises
@@ -249,7 +254,7 @@ class Journal:
 
     def __init__(self, path: str | os.PathLike[str], new_header: Callable[[], dict] | None, *, repair: bool = False):
         self.path = Path(path)
-        self._fd: int | None = None
+        self._fd: int | None = None  # None once closed (or, in a forked child, let go of)
         self._lock = threading.Lock()
         self._pid = os.getpid()
         self._broken: str | None = None  # why the file may be longer than its acknowledged records
@@ -262,10 +267,11 @@ class Journal:
             self._fd, self.read_only = _open(self.path, os.O_RDONLY), True
         try:
             if self.read_only:  # a shared lock: no writer while we read
-                _lock(self._fd, self.path, True)
+                _lock(self._file(), self.path, True)
             else:
-                _lock(self._fd, self.path)  # before reading: no writer slips in between
-            self.header, self.records = self._read(repair)
+                _lock(self._file(), self.path)  # before reading: no writer slips in between
+            self.header, raw = self._read(repair)
+            self.records: list[Record] = [parse_record(r) for r in raw]  # validated by _read: typed once
             if self.header is None and new_header is not None:
                 if self.read_only:
                     raise SessionReadOnlyError(f"session file {self.path} is empty and cannot be written.")
@@ -273,22 +279,28 @@ class Journal:
                 self._write_or_undo(_encode(header), 0)
                 fsync_dir(self.path)
                 self.header = header
-            st = os.fstat(self._fd)
+            st = os.fstat(self._file())
             self._ident, self._size = (st.st_dev, st.st_ino), st.st_size
-            self._digest = prefix_digest(self._fd, self._size)  # of the acknowledged bytes
+            self._digest = prefix_digest(self._file(), self._size)  # of the acknowledged bytes
             self._stamp = stamp(st)
         except BaseException:
             os.close(self._fd)
             self._fd = None
             raise
-        self.in_force: dict[int, dict] = {}
+        self.in_force: dict[int, AnswerRecord] = {}
         for rec in self.records:
             _account(self.in_force, rec)
-        self.last_seq = self.records[-1]["seq"] if self.records else 0
+        self.last_seq = self.records[-1].seq if self.records else 0
         _OPEN.add(self)
 
+    def _file(self) -> int:
+        """The open descriptor (:class:`SessionFileError` once the journal is closed)."""
+        if self._fd is None:
+            raise SessionFileError(f"session file {self.path} is closed.")
+        return self._fd
+
     def _read(self, repair: bool) -> tuple[dict | None, list[dict]]:
-        data = read_fd(self._fd, _checked_size(self._fd, self.path))
+        data = read_fd(self._file(), _checked_size(self._file(), self.path))
         try:
             header, records, newline_missing = _parse(self.path, data)
         except SessionFileCorrupt as err:
@@ -313,8 +325,8 @@ class Journal:
             f.write(err.partial + b"\n")
             f.flush()
             os.fsync(f.fileno())
-        os.ftruncate(self._fd, err.offset)
-        os.fsync(self._fd)
+        os.ftruncate(self._file(), err.offset)
+        os.fsync(self._file())
         what = (
             "an incomplete header (the file was being created when its write failed; it holds no answer)"
             if half_header
@@ -326,8 +338,8 @@ class Journal:
         )
 
     def _write(self, data: bytes) -> None:
-        _write_all(self._fd, data)
-        os.fsync(self._fd)
+        _write_all(self._file(), data)
+        os.fsync(self._file())
 
     def _write_or_undo(self, data: bytes, size: int) -> None:
         """Write ``data`` after the file's first ``size`` bytes, fsynced; on any failure truncate back."""
@@ -342,8 +354,8 @@ class Journal:
         the journal refuses further writes until it can (:meth:`_heal`)."""
         for _ in range(100):
             try:
-                os.ftruncate(self._fd, size)
-                os.fsync(self._fd)
+                os.ftruncate(self._file(), size)
+                os.fsync(self._file())
                 self._broken = None
                 return
             except KeyboardInterrupt:  # a second Ctrl-C mid-rollback: finish the rollback first
@@ -355,10 +367,10 @@ class Journal:
 
     def _heal(self) -> None:
         """Bring the file back to its acknowledged size after a failed rollback, or refuse by name."""
-        if os.fstat(self._fd).st_size < self._size:  # shortened since: never pad it with zeros
+        if os.fstat(self._file()).st_size < self._size:  # shortened since: never pad it with zeros
             self._check_unchanged()
         self._truncate(self._size)
-        if self._broken is None and os.fstat(self._fd).st_size == self._size:
+        if self._broken is None and os.fstat(self._file()).st_size == self._size:
             return
         raise SessionFileError(
             f"session file {self.path}: {self._broken or 'its size changed'}; no answer is written until it is "
@@ -373,14 +385,14 @@ class Journal:
         Raises:
             SessionFileChanged: shortened, extended or rewritten in place by another program.
         """
-        st = os.fstat(self._fd)
+        st = os.fstat(self._file())
         if st.st_size == self._size and stamp(st) == self._stamp:
             return
         if st.st_size < self._size:
             why = f"shortened from {self._size:,} to {st.st_size:,} bytes"
         elif st.st_size > self._size:
             why = f"extended from {self._size:,} to {st.st_size:,} bytes"
-        elif prefix_digest(self._fd, self._size).digest() != self._digest.digest():
+        elif prefix_digest(self._file(), self._size).digest() != self._digest.digest():
             why = "rewritten in place (its bytes differ from the records this session wrote)"
         else:
             self._stamp = stamp(st)  # touched, not changed
@@ -396,7 +408,7 @@ class Journal:
         """The path still names the open file (not deleted, moved away or replaced)."""
         try:
             st = os.stat(self.path)
-            same = (st.st_dev, st.st_ino) == self._ident and os.fstat(self._fd).st_nlink > 0
+            same = (st.st_dev, st.st_ino) == self._ident and os.fstat(self._file()).st_nlink > 0
         except OSError:
             same = False
         if not same:
@@ -420,7 +432,7 @@ class Journal:
                 "answers cannot be saved; copy the file somewhere writable to go on."
             )
 
-    def append(self, record: dict) -> None:
+    def append(self, record: Record) -> None:
         """Append ``record`` (fsynced) and add it to :attr:`records`; on any failure,
         ``BaseException`` included, the file is truncated back and :attr:`records` is as it was.
 
@@ -434,15 +446,18 @@ class Journal:
                 self._heal()  # our own failed rollback: the file may be longer than acknowledged
             self._check_unchanged()
             self._check_same_file()
+            if self.header is None:
+                raise SessionFileError(f"session file {self.path} has no header: no record can follow.")
+            line = record.to_json()
             check_new_record(
                 f"session file {self.path}, line {len(self.records) + 2}",
                 self.header,
                 None,
-                record,
+                line,
                 last_seq=self.last_seq,
                 in_force=self.in_force,
             )
-            data = _encode(record)
+            data = _encode(line)
             self._write_or_undo(data, self._size)
             try:
                 self._check_same_file()  # deleted while writing: not acknowledged
@@ -451,9 +466,9 @@ class Journal:
                 raise
             self._size += len(data)
             self._digest.update(data)
-            self._stamp = stamp(os.fstat(self._fd))
+            self._stamp = stamp(os.fstat(self._file()))
             self.records.append(record)
-            self.last_seq = record["seq"]
+            self.last_seq = record.seq
             _account(self.in_force, record)
 
     def _forked(self) -> None:
@@ -482,12 +497,12 @@ class Journal:
         self.close()
 
 
-def _account(in_force: dict[int, dict], rec: dict) -> None:
+def _account(in_force: dict[int, AnswerRecord], rec: Record) -> None:
     """Update the answers in force by one record (an answer joins, an undo removes its target)."""
-    if rec["type"] == "answer":
-        in_force[rec["seq"]] = rec
+    if isinstance(rec, AnswerRecord):
+        in_force[rec.seq] = rec
     else:
-        in_force.pop(rec["undoes"], None)
+        in_force.pop(rec.undoes, None)
 
 
 class MemoryJournal:
@@ -497,18 +512,20 @@ class MemoryJournal:
     read_only = False
 
     def __init__(self, header: dict):
-        self.path, self.header, self.records = None, header, []
-        self.in_force: dict[int, dict] = {}
+        self.path, self.header = None, header
+        self.records: list[Record] = []
+        self.in_force: dict[int, AnswerRecord] = {}
         self.last_seq = 0
 
     def check_writable(self) -> None:
         """Always writable (a forked child has its own copy of the records)."""
 
-    def append(self, record: dict) -> None:
+    def append(self, record: Record) -> None:
         """Check ``record`` and add it."""
-        check_new_record("session (no file)", self.header, None, record, last_seq=self.last_seq, in_force=self.in_force)
+        line = record.to_json()
+        check_new_record("session (no file)", self.header, None, line, last_seq=self.last_seq, in_force=self.in_force)
         self.records.append(record)
-        self.last_seq = record["seq"]
+        self.last_seq = record.seq
         _account(self.in_force, record)
 
     def close(self) -> None:
@@ -544,7 +561,7 @@ def existing_header(path: Path, repair: bool = False) -> dict:
     explained, or repaired with ``repair``, by the journal), else ``SessionFileError``."""
     header = read_header(path)
     if header is None:
-        with Journal(path, lambda: None, repair=repair) as journal:  # type: ignore[return-value]
+        with Journal(path, None, repair=repair) as journal:
             header = journal.header
     if header is None:
         raise SessionFileError(f"session file {path} is empty: create the session with PreferenceSession(...).")

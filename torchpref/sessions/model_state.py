@@ -19,21 +19,20 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from torchpref.data.preference_data import PreferenceData, unit_to_likert
-from torchpref.data.queries import RankingQuery, RatingQuery, record_answer
 from torchpref.models.preference_gp import PreferenceGP
 from torchpref.sessions.errors import SessionFileError
 from torchpref.sessions.records import AnswerRecord
 
 __all__ = [
     "MODE_MEMORY",
-    "ModelCache",
     "REPLAY_LIMIT",
     "Sizes",
     "build_data",
@@ -56,8 +55,18 @@ class Sizes(NamedTuple):
     ties: int
 
 
-def sizes(data: PreferenceData) -> Sizes:
-    """The sizes of ``data``."""
+def session_data(model: PreferenceGP) -> PreferenceData:
+    """A session model's data: one problem's :class:`~torchpref.data.preference_data.PreferenceData`
+    (a session never holds a batch of problems)."""
+    data = model.data
+    if not isinstance(data, PreferenceData):
+        raise TypeError(f"a session's model holds one problem's data, not {type(data).__name__}.")
+    return data
+
+
+def sizes(model: PreferenceGP) -> Sizes:
+    """The sizes of ``model``'s data."""
+    data = session_data(model)
     return Sizes(data.n, data.comparisons.shape[0], data.ratings.shape[0], data.ties.shape[0])
 
 
@@ -79,7 +88,11 @@ def _unique_in_order(Z: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def build_data(
-    anchor: Tensor, records: list[dict], transform: Any, rating_eps: float, rating_levels: int | None
+    anchor: Tensor,
+    records: list[AnswerRecord],
+    transform: Callable[[Tensor], Tensor],
+    rating_eps: float,
+    rating_levels: int | None,
 ) -> tuple[PreferenceData, list[Sizes]]:
     """The data of a model built on ``anchor`` (``1 x d``) that was told the answer ``records``
     (in force, oldest first; items mapped by ``transform``), and its sizes before each.
@@ -96,7 +109,7 @@ def build_data(
     rated: list[int] = []
     ends: list[tuple[int, int, int, int]] = []  # after each record: rows, comparisons, ratings, ties
     pos = 1  # row 0 is the anchor
-    for rec in map(AnswerRecord.from_json, records):
+    for rec in records:
         items = rec.items
         m = len(items)
         rows.extend(items)
@@ -148,7 +161,7 @@ def truncate(model: PreferenceGP, before: Sizes, f: Tensor | None = None) -> Non
     """Take ``model`` back to its data of sizes ``before`` (a prefix of its data), the mode
     started from ``f`` (the mode it had then: Newton stops at once, and the model is bitwise the
     earlier one) or else from the current mode's first entries; on failure the model is as it was."""
-    d = model.data
+    d = session_data(model)
     n, p, r, t = before
     prefix = PreferenceData(
         d.train_X[:n], d.comparisons[:p], d.ratings[:r], d.rating_index[:r], d.ties[:t], d.rating_levels
@@ -221,88 +234,3 @@ MODE_MEMORY = 4_000_000
 """How many floats of earlier posterior modes a session keeps for exact undos (32 MB in float64:
 some 40,000 answers' worth on a pool of 100 items); an older answer's undo starts Newton from the
 current mode instead (the posterior then agrees to Newton's tolerance)."""
-
-
-class ModelCache:
-    """The model side of :class:`~torchpref.sessions.session.PreferenceSession`: building the model
-    of the answers in force (from the mode snapshot where there is one), the reference replay, and
-    the earlier modes kept for exact undos. Relies on the session's ``_journal``, ``_anchor``,
-    ``transform``, ``_new_model``, ``num_levels``, ``path`` and ``_digest``."""
-
-    def _model_query(self, kind: str, items: Tensor):
-        """A query of ``kind`` (``"rating"`` or not) on ``items`` (``m x d``), in the model's coordinates."""
-        Z = self.transform(items)
-        return RatingQuery(Z[0]) if kind == "rating" else RankingQuery(Z)
-
-    def _replay(self, records: list[dict]) -> PreferenceGP:
-        """The reference: a new model told ``records`` one by one through ``record_answer``."""
-        model = self._new_model()
-        for rec in map(AnswerRecord.from_json, records):
-            query = self._model_query(rec.kind, torch.tensor(rec.items, dtype=torch.float64))
-            record_answer(model, query, rec.answer, num_levels=self.num_levels)
-        return model
-
-    def _build(self) -> PreferenceGP:
-        """A new model of the answers in force: the data of those the file's mode snapshot covers
-        built in one pass, Newton started from the snapshot's mode, and the few answers after it
-        replayed through the live path; without a usable snapshot, every answer's data in one pass
-        and the mode solved once (the same data as :meth:`_replay`'s; the mode to Newton's tolerance)."""
-        model = self._new_model()
-        records = self._active
-        d = model.data
-        self._sizes, self._modes, self._mode_floats = {}, {}, 0
-        if not records or not (d.n == 1 and d.num_observations == 0 and model.batch_shape == torch.Size([])):
-            return self._replay(records) if records else model
-        k, f = self._snapshot_start(records)
-        data, before = build_data(self._anchor, records[:k], self.transform, model.rating_eps, model.rating_levels)
-        model.replace_data(data, f if f is not None and f.numel() == data.n else None)
-        self._sizes = {r["seq"]: b for r, b in zip(records[:k], before, strict=True)}
-        for rec in map(AnswerRecord.from_json, records[k:]):  # after the snapshot: the live path, as told
-            b, fb = sizes(model.data), mode(model)
-            query = self._model_query(rec.kind, torch.tensor(rec.items, dtype=torch.float64))
-            record_answer(model, query, rec.answer, num_levels=self.num_levels)
-            self._sizes[rec.seq] = b
-            self._keep_mode(rec.seq, fb)
-        return model
-
-    def _snapshot_start(self, records: list[dict]) -> tuple[int, Tensor | None]:
-        """``(k, f)``: the file's mode snapshot covers the first ``k`` answers in force, with mode
-        ``f``; ``(len(records), None)`` where there is no usable snapshot."""
-        none = (len(records), None)
-        snap = read_snapshot(self.path) if self.path is not None else None
-        if snap is None or snap[0].get("header") != self._digest:
-            return none
-        meta, f = snap
-        later, all_records = 0, self._journal.records
-        for rec in reversed(all_records):  # the records after the snapshot: answers only, a few
-            if rec["seq"] <= meta.get("seq", -1):
-                break
-            if rec["type"] != "answer" or later == REPLAY_LIMIT:
-                return none
-            later += 1
-        at = len(all_records) - later - 1
-        stamp = all_records[at]["time"] if at >= 0 else None
-        k = len(records) - later
-        if meta.get("in_force") != k or meta.get("time") != stamp or (at < 0 and meta.get("seq") != 0):
-            return none
-        return k, f
-
-    def _snapshot(self) -> None:
-        """Keep the current mode beside the file (a resume starts there)."""
-        if self.path is not None and not self._journal.read_only and self._model is not None:
-            last = self._journal.records[-1] if self._journal.records else None
-            meta = {
-                "seq": last["seq"] if last else 0,
-                "time": last["time"] if last else None,
-                "in_force": len(self._journal.in_force),
-                "header": self._digest,
-            }
-            write_snapshot(self.path, meta, mode(self._model))
-
-    def _keep_mode(self, seq: int, f: Tensor) -> None:
-        """Keep the mode before answer ``seq`` for its undo, forgetting the oldest beyond MODE_MEMORY floats."""
-        self._modes[seq] = f
-        self._mode_floats += f.numel()
-        while self._mode_floats > MODE_MEMORY and len(self._modes) > 1:
-            oldest = next(iter(self._modes))
-            self._mode_floats -= self._modes.pop(oldest).numel()

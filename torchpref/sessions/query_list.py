@@ -21,7 +21,7 @@ from torchpref.sessions.errors import (
 )
 
 __all__ = [
-    "choose_query",
+    "check_pool_rows",
     "pool_rows_of",
     "queries_of_spec",
     "resumed_queries",
@@ -89,25 +89,6 @@ def resumed_queries(header: dict, given: bool, mine: QuerySpec | None, path: Any
             str(mine)[:80],
         )
     return theirs
-
-
-def choose_query(session: Any, spec: QuerySpec, step: int, gen: torch.Generator) -> Query:
-    """The session's selector's choice among the queries of ``spec`` not yet answered (all of them
-    once every one is), in the caller's coordinates with pool rows."""
-    asked = {
-        (q["kind"], tuple(sorted(q["pool_indices"])))
-        for r in session._active
-        if (q := r.get("query")) is not None and q.get("pool_indices") is not None
-    }
-    offered = queries_of_spec([q for q in spec if (q[0], tuple(sorted(q[1:]))) not in asked] or spec, session._pool)
-    mine: list[Query] = [
-        RatingQuery(session.transform(q.items)[0])
-        if isinstance(q, RatingQuery)
-        else RankingQuery(session.transform(q.items))
-        for q in offered
-    ]
-    i = session.selector.choose(session.model, mine, step=step, num_steps=session.num_queries, generator=gen)
-    return offered[i]
 
 
 def check_pool_rows(pool: Tensor | None, items: Tensor, rows: list[int]) -> None:

@@ -21,12 +21,14 @@ import inspect
 import json
 import math
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
 from torchpref.models.preference_gp import PreferenceGP, default_covar_module
+from torchpref.selection.strategies import Selector
 from torchpref.sessions.errors import (
     SessionSettingsError,
 )
@@ -46,6 +48,10 @@ MIGRATE = (
     "To resume under other settings anyway (the answers are replayed under them; the posterior and "
     "the next queries will differ from the recorded session's), open it with migrate=True."
 )
+
+
+ModelFactory = Callable[[Tensor], PreferenceGP]
+"""Builds a session's model from its anchor item (``1 x d``)."""
 
 
 def _tree(module: torch.nn.Module) -> str:
@@ -280,18 +286,29 @@ def legacy_selector_description(num_pool_items: int | None) -> dict[str, Any]:
     }
 
 
-def resume_settings(session: Any, header: dict, selector: Any, model_factory: Any, migrate: bool) -> tuple[Any, Any]:
-    """``(selector, model_factory)`` for ``session`` resuming a file with ``header``: the recorded
-    ones (or the file's release's defaults where it records none) when none are given, else those
-    given, checked to be the same.
+def resume_settings(
+    header: dict,
+    *,
+    path: Path | None,
+    dim: int,
+    num_pool_items: int | None,
+    current: tuple[Selector, ModelFactory],
+    given: tuple[Selector | None, ModelFactory | None],
+    new_model: Callable[[], PreferenceGP],
+    migrate: bool,
+) -> tuple[Selector, ModelFactory]:
+    """``(selector, model_factory)`` for a session resuming the file ``path`` with ``header``: the
+    recorded ones (or the file's release's defaults where it records none) when none are ``given``,
+    else those given, checked to be the same. ``current`` are the session's before the file was
+    read, ``new_model()`` builds the session's model of no answers (to compare with the record).
 
     Raises:
         SessionSettingsError: they differ, or this version cannot build the recorded ones
             (unless ``migrate``: then the given ones, or this version's defaults).
     """
-    path, chosen_selector, factory = session.path, session.selector, session.model_factory
-    rec_sel = header.get("selector") or legacy_selector_description(session._n_pool)
-    rec_model = header.get("model") or legacy_model_description(session.dim)
+    (chosen_selector, factory), (selector, model_factory) = current, given
+    rec_sel = header.get("selector") or legacy_selector_description(num_pool_items)
+    rec_model = header.get("model") or legacy_model_description(dim)
     if selector is None:
         rebuilt = recorded_selector(rec_sel)
         if rebuilt is not None:
@@ -301,11 +318,11 @@ def resume_settings(session: Any, header: dict, selector: Any, model_factory: An
             raise settings_error(path, "selector", rec_sel, mine, "this version cannot build it")
     elif not same_description(describe_selector(selector), rec_sel) and not migrate:
         raise settings_error(path, "selector", rec_sel, describe_selector(selector), "another selector was given")
-    mine = describe_model(session._new_model())
+    mine = describe_model(new_model())
     if same_description(mine, rec_model):
         return chosen_selector, factory
     if model_factory is None:
-        rebuilt = recorded_model_factory(rec_model, session.dim)
+        rebuilt = recorded_model_factory(rec_model, dim)
         if rebuilt is not None:
             return chosen_selector, rebuilt
     if not migrate:

@@ -13,8 +13,9 @@ from __future__ import annotations
 import functools
 import json
 import math
+from collections.abc import Container
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NoReturn
 
 import torch
 
@@ -49,7 +50,7 @@ ANSWER_KINDS = ("rating", "choice", "no_preference")
 """An answer is a rating (of one item), a choice (the best of ``m >= 2``) or no preference."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class AnswerRecord:
     """One ``answer`` line of a session file, typed (``to_json`` gives the line's object).
 
@@ -83,6 +84,11 @@ class AnswerRecord:
     def step(self) -> int | None:
         """The query number it answered, or ``None`` if given out of turn."""
         return None if self.query is None else self.query.get("step")
+
+    @property
+    def query_kind(self) -> str | None:
+        """The kind of question it answered (``"rating"`` or ``"ranking"``), or ``None`` out of turn."""
+        return None if self.query is None else self.query.get("kind")
 
     @property
     def pool_indices(self) -> list[int] | None:
@@ -128,7 +134,7 @@ class AnswerRecord:
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class UndoRecord:
     """One ``undo`` line of a session file: the answer ``undoes`` is withdrawn."""
 
@@ -170,20 +176,19 @@ class _Line:
     def __init__(self, where: str, rec: dict):
         self.where, self.rec = where, rec
 
-    def fail(self, msg: str, error: type = SessionFileError):
+    def fail(self, msg: str, error: type[Exception] = SessionFileError) -> NoReturn:
         raise error(f"{self.where}: {msg}.")
 
-    def get(self, key: str, required: bool = True):
+    def get(self, key: str, required: bool = True) -> Any:
         if key not in self.rec:
             if required:
                 self.fail(f"the {self.rec.get('type')} record has no {key!r}")
             return None
         return self.rec[key]
 
-    def integer(self, key: str, lo: int | None = None, hi: int | None = None, optional: bool = False) -> int | None:
-        v = self.get(key, required=not optional)
-        if v is None and optional:
-            return None
+    def integer(self, key: str, lo: int | None = None, hi: int | None = None) -> int:
+        """The required integer ``key`` in ``lo..hi``."""
+        v = self.get(key)
         if not isinstance(v, int) or isinstance(v, bool) or (lo is not None and v < lo) or (hi is not None and v > hi):
             rng = f" in {lo}..{hi}" if hi is not None else (f" >= {lo}" if lo is not None else "")
             self.fail(f"{key!r} must be an integer{rng}, got {v!r:.80}")
@@ -299,7 +304,8 @@ def _check_query(c: _Line, q, kind: str, m: int, header: dict) -> None:
     want = "rating" if kind == "rating" else "ranking"
     if q.get("kind") != want:
         c.fail(f"a {kind} answers a {want} query, not {q.get('kind')!r:.80}")
-    _Line(c.where, q).integer("step", lo=0, optional=True)
+    if q.get("step") is not None:  # null (or absent) for an answer given out of turn
+        _Line(c.where, q).integer("step", lo=0)
     idx = q.get("pool_indices")
     if idx is None:
         return
@@ -318,12 +324,12 @@ def _check_query(c: _Line, q, kind: str, m: int, header: dict) -> None:
 def validate_records(path: Any, header: dict, records: list[dict], first_line: int = 2) -> None:
     """Check every record after the header: format version, sequence numbers, answer schema,
     undo targets. Raises :class:`SessionFileError` (or :class:`SessionVersionError`) naming the line."""
-    last_seq, active = 0, set()
+    last_seq, active = 0, set[int]()
     for i, rec in enumerate(records, start=first_line):
         last_seq = _check_record(_Line(f"session file {path}, line {i}", rec), header, last_seq, active)
 
 
-def _check_record(c: _Line, header: dict, last_seq: int, active, update: bool = True) -> int:
+def _check_record(c: _Line, header: dict, last_seq: int, active: Container[int], update: bool = True) -> int:
     """Check one record after those with sequence numbers up to ``last_seq`` and answers
     ``active`` in force (a set, updated; or, with ``update=False``, any container, read only);
     returns its sequence number."""
@@ -341,7 +347,7 @@ def _check_record(c: _Line, header: dict, last_seq: int, active, update: bool = 
         c.fail(f"sequence number {seq} does not follow {last_seq}")
     if rec["type"] == "answer":
         _check_answer(c, rec, header)
-        if update:
+        if update and isinstance(active, set):
             active.add(seq)
     elif rec["type"] == "undo":
         if not isinstance(rec.get("time"), str):
@@ -349,7 +355,7 @@ def _check_record(c: _Line, header: dict, last_seq: int, active, update: bool = 
         undoes = rec.get("undoes")
         if not isinstance(undoes, int) or isinstance(undoes, bool) or undoes not in active:
             c.fail(f"undo of {undoes!r:.80}, not an answer in force")
-        if update:
+        if update and isinstance(active, set):
             active.discard(undoes)
     else:
         c.fail(f"unknown record type {rec['type']!r:.80}")
@@ -362,14 +368,14 @@ def check_new_record(
     records: list[dict] | None,
     record: dict,
     *,
-    last_seq: int | None = None,
-    in_force: set[int] | None = None,
+    last_seq: int = 0,
+    in_force: Container[int] | None = None,
 ) -> None:
     """Check ``record`` as the next one after ``records`` (before it is written: the file never
     gets a record it could not read back). ``last_seq`` and ``in_force`` (the sequence numbers of
     the answers in force, any container) given instead of ``records`` make it constant-time."""
     if in_force is None:
-        in_force = {r["seq"] for r in records_in_force(records)}
+        in_force = {r["seq"] for r in records_in_force(records or [])}
         last_seq = records[-1]["seq"] if records else 0
     _check_record(_Line(where, record), header, last_seq, in_force, update=False)
 

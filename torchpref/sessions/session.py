@@ -71,14 +71,25 @@ from torchpref.sessions.journal import (
     now,
     read_session_file,
 )
-from torchpref.sessions.model_state import ModelCache, Sizes, header_digest, mode, sizes, truncate
-from torchpref.sessions.query_list import check_pool_rows, choose_query, pool_rows_of, resumed_queries
+from torchpref.sessions.model_state import (
+    MODE_MEMORY,
+    REPLAY_LIMIT,
+    Sizes,
+    build_data,
+    header_digest,
+    mode,
+    read_snapshot,
+    sizes,
+    truncate,
+    write_snapshot,
+)
+from torchpref.sessions.query_list import QuerySpec, check_pool_rows, pool_rows_of, queries_of_spec, resumed_queries
 from torchpref.sessions.recorded import (
     describe_model,
     describe_selector,
     resume_settings,
 )
-from torchpref.sessions.records import FORMAT_VERSION, AnswerRecord, UndoRecord
+from torchpref.sessions.records import FORMAT_VERSION, AnswerRecord, Record, UndoRecord
 from torchpref.sessions.settings import (
     MAX_REDRAWS,
     SessionAnswer,
@@ -106,7 +117,7 @@ __all__ = [
 ]
 
 
-class PreferenceSession(ModelCache):
+class PreferenceSession:
     r"""Ask queries, take answers, keep the model current; optionally persisted to a file.
 
     Args:
@@ -143,6 +154,8 @@ class PreferenceSession(ModelCache):
         >>> q = s.ask()
         >>> s.tell(q, 4 if q.kind == "rating" else 0)
     """
+
+    _journal: Journal | MemoryJournal  # set by _open_journal; absent only if opening failed
 
     def __init__(
         self,
@@ -187,7 +200,6 @@ class PreferenceSession(ModelCache):
         self.selector = selector if selector is not None else default_selector(self._n_pool)
         self._queries = self._query_list(queries, selector)
         self.model_factory = model_factory if model_factory is not None else default_session_model
-        self._journal: Journal | MemoryJournal | None = None
         self.path = None if session_file is None else Path(session_file)
         try:
             self._open_journal(metadata, repair, queries is not None, selector, model_factory, migrate)
@@ -211,12 +223,22 @@ class PreferenceSession(ModelCache):
             self._journal = MemoryJournal(header)
             return
         self._journal = Journal(self.path, new_header, repair=repair)
-        self._digest = header_digest(self._journal.header)
+        file_header = self._journal.header
+        if file_header is None:  # new_header() was called: not reached
+            raise SessionFileError(f"session file {self.path} has no header.")
+        self._digest = header_digest(file_header)
         if not created:  # resumed: the file's settings must be this session's
-            self._settings.check_header(self._journal.header, self.path)
-            self._queries = resumed_queries(self._journal.header, gave_queries, self._queries, self.path)
+            self._settings.check_header(file_header, self.path)
+            self._queries = resumed_queries(file_header, gave_queries, self._queries, self.path)
             self.selector, self.model_factory = resume_settings(
-                self, self._journal.header, selector, model_factory, migrate
+                file_header,
+                path=self.path,
+                dim=self.dim,
+                num_pool_items=self._n_pool,
+                current=(self.selector, self.model_factory),
+                given=(selector, model_factory),
+                new_model=self._new_model,
+                migrate=migrate,
             )
 
     def _new_header(self, metadata: dict | None) -> dict:
@@ -228,7 +250,7 @@ class PreferenceSession(ModelCache):
             header["queries"] = self._queries
         return header
 
-    def _query_list(self, queries: Sequence[Query] | None, selector: Selector | None) -> list | None:
+    def _query_list(self, queries: Sequence[Query] | None, selector: Selector | None) -> QuerySpec | None:
         """The queries as ``[kind, pool rows...]`` (:mod:`torchpref.sessions.query_list`), checked."""
         if queries is None:
             return None
@@ -312,19 +334,11 @@ class PreferenceSession(ModelCache):
         with self._lock:
             yield
 
-    @property
-    def _records(self) -> list[dict]:
-        return self._journal.records
-
-    @property
-    def _in_force(self) -> dict[int, dict]:
-        return self._journal.in_force
-
-    @property
-    def _active(self) -> list[dict]:
+    def _active(self) -> list[AnswerRecord]:
+        """The answer records in force, oldest first."""
         return list(self._journal.in_force.values())
 
-    def _last_in_force(self) -> dict | None:
+    def _last_in_force(self) -> AnswerRecord | None:
         force = self._journal.in_force
         return force[next(reversed(force))] if force else None
 
@@ -365,9 +379,7 @@ class PreferenceSession(ModelCache):
             if self._pool is not None:
                 X = self._pool
             else:
-                seen = [
-                    torch.tensor(r["items"], dtype=torch.float64) for r in self._active if r["kind"] != "no_preference"
-                ]
+                seen = [torch.tensor(r.items, dtype=torch.float64) for r in self._active() if r.kind != "no_preference"]
                 if not seen:
                     raise ValueError("no items rated or compared yet: best_item needs a pool or some answers.")
                 X = torch.cat(seen).unique(dim=0)
@@ -389,13 +401,27 @@ class PreferenceSession(ModelCache):
     def history(self) -> list[SessionAnswer]:
         """The answers in force, oldest first."""
         with self._guarded():
-            return [SessionAnswer.from_record(r) for r in self._active]
+            return [SessionAnswer.from_record(r) for r in self._active()]
 
     @property
     def records(self) -> list[dict]:
-        """Every record written (answers, including undone ones, and undos), as in the file."""
+        """Every record written (answers, including undone ones, and undos), as the file's JSON
+        objects (:meth:`typed_records` for the typed ones)."""
         with self._guarded():
-            return list(self._records)
+            return [r.to_json() for r in self._journal.records]
+
+    @property
+    def typed_records(self) -> list[Record]:
+        """Every record written, typed (:class:`~torchpref.sessions.records.AnswerRecord` /
+        :class:`~torchpref.sessions.records.UndoRecord`), oldest first."""
+        with self._guarded():
+            return list(self._journal.records)
+
+    @property
+    def in_force_seqs(self) -> frozenset[int]:
+        """The sequence numbers of the answers in force (not undone)."""
+        with self._guarded():
+            return frozenset(self._journal.in_force)
 
     @property
     def read_only(self) -> bool:
@@ -410,7 +436,7 @@ class PreferenceSession(ModelCache):
             if self._pending is not None and self._pending[0] == step:
                 return self._pending[1]
             last_rec = self._last_in_force()
-            last = sorted(last_rec["items"]) if last_rec is not None else None
+            last = sorted(last_rec.items) if last_rec is not None else None
             for attempt in range(MAX_REDRAWS + 1):  # not the items just answered about again (small pools)
                 query = self._select(step, attempt)
                 if sorted(query.items.tolist()) != last:
@@ -422,19 +448,19 @@ class PreferenceSession(ModelCache):
         """The selector's query ``step`` (its ``attempt``-th draw), in the caller's coordinates."""
         gen = step_generator(self.seed, step, attempt)
         if self._queries is not None:
-            return choose_query(self, self._queries, step, gen)
+            return self._choose_from_list(self._queries, step, gen)
         X, idx = self._candidates.draw(gen)
         rows = torch.arange(X.shape[0])  # a pool draws each distinct item once (FinitePool)
         q = self.selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)
         if isinstance(q, RatingQuery) and idx is not None:  # never a second rating while unrated items are left
-            keep = unrated_rows(idx, self._journal.in_force.values(), int(q.index), getattr(self.selector, "m", 2))
+            keep = unrated_rows(idx, self._journal.in_force.values(), _row(q), getattr(self.selector, "m", 2))
             if keep is not None:
                 X, idx = X[keep], idx[keep]
                 q = self.selector.select(self.model, self.transform(X), rows[: len(keep)], step, self.num_queries, gen)
         if isinstance(q, RatingQuery):
-            r = int(q.index)
+            r = _row(q)
             return RatingQuery(X[r], None if idx is None else int(idx[r]))
-        rr = list(q.indices)
+        rr = _rows(q)
         return RankingQuery(X[rr], None if idx is None else tuple(int(idx[r]) for r in rr))
 
     def tell(
@@ -472,14 +498,13 @@ class PreferenceSession(ModelCache):
                     "answer about the same items: tell_rating, tell_choice or tell_no_preference."
                 )
             pending = self._pending is not None and self._pending[1] is query and self._pending[0] == self.step
-            rows = [query.index] if isinstance(query, RatingQuery) else query.indices
-            info = {
-                "kind": query.kind,
-                "step": self.step if pending else None,
-                "pool_indices": None if rows is None or rows[0] is None else [int(i) for i in rows],
-            }
-            if info["pool_indices"] is not None:
-                check_pool_rows(self._pool, as_items(query.items, self.dim, "the query's items"), info["pool_indices"])
+            if isinstance(query, RatingQuery):
+                pool_rows = None if query.index is None else [int(query.index)]
+            else:
+                pool_rows = None if query.indices is None else [int(i) for i in query.indices]
+            if pool_rows is not None:
+                check_pool_rows(self._pool, as_items(query.items, self.dim, "the query's items"), pool_rows)
+            info = {"kind": query.kind, "step": self.step if pending else None, "pool_indices": pool_rows}
             times = {"shown_at": shown_at, "answered_at": answered_at}
             seq = self._tell(query, answer, info, response_time, {k: v for k, v in times.items() if v is not None})
             self._answered = (seq, query)
@@ -525,11 +550,12 @@ class PreferenceSession(ModelCache):
         if isinstance(query, RankingQuery) and items.shape[0] < 2:
             raise ValueError(f"a choice needs at least 2 items shown, got {items.shape[0]}.")
         model = self.model
-        before, f_before = sizes(model.data), mode(model)
+        before, f_before = sizes(model), mode(model)
         self._model_version = -1  # in flux: rebuilt from the file if this neither completes nor rolls back
         try:
             with model.rollback():  # on any failure the model is put back exactly
                 value = record_answer(model, self._model_query(query.kind, items), answer, num_levels=self.num_levels)
+                assert not isinstance(value, list)  # one chosen item: several equally best were refused above
                 rating = query.kind == "rating"
                 rec = AnswerRecord(
                     seq=self._journal.last_seq + 1,
@@ -543,7 +569,7 @@ class PreferenceSession(ModelCache):
                     shown_at=times.get("shown_at"),
                     answered_at=times.get("answered_at"),
                 )
-                self._journal.append(rec.to_json())
+                self._journal.append(rec)
         except BaseException:
             self._model_version = self._version
             raise
@@ -569,21 +595,127 @@ class PreferenceSession(ModelCache):
                 raise ValueError("nothing to undo: no answers in force.")
             undone = SessionAnswer.from_record(last)
             model = self.model
-            before = self._sizes.get(last["seq"])
+            before = self._sizes.get(last.seq)
             self._model_version = -1
             try:
                 with model.rollback():
                     if before is not None:
-                        truncate(model, before, self._modes.get(last["seq"]))
-                    self._journal.append(UndoRecord(self._journal.last_seq + 1, now(), undone.seq).to_json())
+                        truncate(model, before, self._modes.get(last.seq))
+                    self._journal.append(UndoRecord(self._journal.last_seq + 1, now(), undone.seq))
             except BaseException:
                 self._model_version = self._version
                 raise
-            self._sizes.pop(last["seq"], None)
-            f = self._modes.pop(last["seq"], None)
+            self._sizes.pop(last.seq, None)
+            f = self._modes.pop(last.seq, None)
             self._mode_floats -= 0 if f is None else f.numel()
             self._version += 1
             if before is not None:
                 self._model_version = self._version  # else rebuilt at its next use
                 self._snapshot()
             return undone
+
+    def _choose_from_list(self, spec: QuerySpec, step: int, gen: torch.Generator) -> Query:
+        """The selector's choice among the listed queries ``spec`` not yet answered (all of them
+        once every one is), in the caller's coordinates with pool rows."""
+        pool = self._pool
+        assert pool is not None  # a query list needs a finite pool (checked when it was given)
+        asked = {(r.query_kind, tuple(sorted(r.pool_indices))) for r in self._active() if r.pool_indices is not None}
+        offered = queries_of_spec([q for q in spec if (q[0], tuple(sorted(q[1:]))) not in asked] or spec, pool)
+        mine: list[Query] = [self._model_query(q.kind, torch.as_tensor(q.items)) for q in offered]
+        i = self.selector.choose(self.model, mine, step=step, num_steps=self.num_queries, generator=gen)
+        return offered[i]
+
+    # ------------------------------------------------------------ model cache
+    # The model is a cache of the answers in force (module docstring): built from the file's mode
+    # snapshot where there is one, with the earlier modes kept for exact undos.
+    def _model_query(self, kind: str, items: Tensor) -> Query:
+        """A query of ``kind`` (``"rating"`` or not) on ``items`` (``m x d``), in the model's coordinates."""
+        Z = self.transform(items)
+        return RatingQuery(Z[0]) if kind == "rating" else RankingQuery(Z)
+
+    def _replay(self, records: list[AnswerRecord]) -> PreferenceGP:
+        """The reference: a new model told ``records`` one by one through ``record_answer``."""
+        model = self._new_model()
+        for rec in records:
+            query = self._model_query(rec.kind, torch.tensor(rec.items, dtype=torch.float64))
+            record_answer(model, query, rec.answer, num_levels=self.num_levels)
+        return model
+
+    def _build(self) -> PreferenceGP:
+        """A new model of the answers in force: the data of those the file's mode snapshot covers
+        built in one pass, Newton started from the snapshot's mode, and the few answers after it
+        replayed through the live path; without a usable snapshot, every answer's data in one pass
+        and the mode solved once (the same data as :meth:`_replay`'s; the mode to Newton's tolerance)."""
+        model = self._new_model()
+        records = self._active()
+        d = model.data
+        self._sizes, self._modes, self._mode_floats = {}, {}, 0
+        if not records or not (d.n == 1 and d.num_observations == 0 and model.batch_shape == torch.Size([])):
+            return self._replay(records) if records else model
+        k, f = self._snapshot_start(records)
+        data, before = build_data(self._anchor, records[:k], self.transform, model.rating_eps, model.rating_levels)
+        model.replace_data(data, f if f is not None and f.numel() == data.n else None)
+        self._sizes = {r.seq: b for r, b in zip(records[:k], before, strict=True)}
+        for rec in records[k:]:  # after the snapshot: the live path, as told
+            b, fb = sizes(model), mode(model)
+            query = self._model_query(rec.kind, torch.tensor(rec.items, dtype=torch.float64))
+            record_answer(model, query, rec.answer, num_levels=self.num_levels)
+            self._sizes[rec.seq] = b
+            self._keep_mode(rec.seq, fb)
+        return model
+
+    def _snapshot_start(self, records: list[AnswerRecord]) -> tuple[int, Tensor | None]:
+        """``(k, f)``: the file's mode snapshot covers the first ``k`` answers in force, with mode
+        ``f``; ``(len(records), None)`` where there is no usable snapshot."""
+        none = (len(records), None)
+        snap = read_snapshot(self.path) if self.path is not None else None
+        if snap is None or snap[0].get("header") != self._digest:
+            return none
+        meta, f = snap
+        later, all_records = 0, self._journal.records
+        for rec in reversed(all_records):  # the records after the snapshot: answers only, a few
+            if rec.seq <= meta.get("seq", -1):
+                break
+            if not isinstance(rec, AnswerRecord) or later == REPLAY_LIMIT:
+                return none
+            later += 1
+        at = len(all_records) - later - 1
+        stamp = all_records[at].time if at >= 0 else None
+        k = len(records) - later
+        if meta.get("in_force") != k or meta.get("time") != stamp or (at < 0 and meta.get("seq") != 0):
+            return none
+        return k, f
+
+    def _snapshot(self) -> None:
+        """Keep the current mode beside the file (a resume starts there)."""
+        if self.path is not None and not self._journal.read_only and self._model is not None:
+            last = self._journal.records[-1] if self._journal.records else None
+            meta = {
+                "seq": last.seq if last else 0,
+                "time": last.time if last else None,
+                "in_force": len(self._journal.in_force),
+                "header": self._digest,
+            }
+            write_snapshot(self.path, meta, mode(self._model))
+
+    def _keep_mode(self, seq: int, f: Tensor) -> None:
+        """Keep the mode before answer ``seq`` for its undo, forgetting the oldest beyond MODE_MEMORY floats."""
+        self._modes[seq] = f
+        self._mode_floats += f.numel()
+        while self._mode_floats > MODE_MEMORY and len(self._modes) > 1:
+            oldest = next(iter(self._modes))
+            self._mode_floats -= self._modes.pop(oldest).numel()
+
+
+def _row(query: RatingQuery) -> int:
+    """The candidate row a selector's rating query names (selectors always name it)."""
+    if query.index is None:
+        raise ValueError(f"the selector returned a rating query without its candidate row: {query!r:.80}.")
+    return int(query.index)
+
+
+def _rows(query: RankingQuery) -> list[int]:
+    """The candidate rows a selector's ranking query names (selectors always name them)."""
+    if query.indices is None:
+        raise ValueError(f"the selector returned a ranking query without its candidate rows: {query!r:.80}.")
+    return [int(i) for i in query.indices]

@@ -308,7 +308,7 @@ class SessionSettings:
                 )
 
 
-def unrated_rows(pool_rows: Tensor, in_force: Iterable[dict], chosen: int, m: int) -> Tensor | None:
+def unrated_rows(pool_rows: Tensor, in_force: Iterable[AnswerRecord], chosen: int, m: int) -> Tensor | None:
     """Where a selector chose to ask for a rating of ``pool_rows[chosen]``, an item that already has
     a rating in force: the positions of the candidates with none, to choose among instead (as long
     as at least ``max(2, m)`` are left: a ranking of ``m`` can still be asked); else ``None``.
@@ -317,11 +317,7 @@ def unrated_rows(pool_rows: Tensor, in_force: Iterable[dict], chosen: int, m: in
     their first answer, which the model would count as independent evidence, and the question is
     better spent on an item with no rating (docs/sessions.md).
     """
-    rated = {
-        rec["query"]["pool_indices"][0]
-        for rec in in_force
-        if rec["kind"] == "rating" and (rec.get("query") or {}).get("pool_indices")
-    }
+    rated = {rec.pool_indices[0] for rec in in_force if rec.kind == "rating" and rec.pool_indices}
     if int(pool_rows[chosen]) not in rated:
         return None
     keep = [k for k, i in enumerate(pool_rows.tolist()) if int(i) not in rated]

@@ -39,7 +39,7 @@ from torchpref.frontends.serve.errors import AnswerRefused
 from torchpref.frontends.serve.items import ServeItems
 from torchpref.selection.strategies import UCBC
 from torchpref.sessions.errors import SessionFileError
-from torchpref.sessions.records import AnswerRecord, parse_record, records_in_force
+from torchpref.sessions.records import AnswerRecord
 from torchpref.sessions.session import PreferenceSession, default_ranking_size
 
 if TYPE_CHECKING:
@@ -326,16 +326,16 @@ class SessionStore:
         """The answer names another question than the current one: a repeat of the last answer
         (acknowledged again), or refused."""
         qid = body.get("qid")
-        records = entry.session.records
+        records = entry.session.typed_records
         try:
             position = int(str(qid).split(".")[0])
         except ValueError:
             position = -1
         if 0 <= position < len(records):
-            rec = parse_record(records[position])
+            rec = records[position]
             asked = isinstance(rec, AnswerRecord) and rec.step is not None
             if isinstance(rec, AnswerRecord) and asked and qid == make_qid(entry.sid, position, rec.items):
-                in_force = rec.seq in _in_force_seqs(entry.session)
+                in_force = rec.seq in entry.session.in_force_seqs
                 if in_force and position == len(records) - 1:
                     # the retry's answer is checked as the first try's was (3.0 or true is not 3 or 1)
                     answer = self._checked_answer(entry, _asked(rec), body.get("answer"))
@@ -371,11 +371,11 @@ class SessionStore:
         rating value, response time (seconds), whether it is in force."""
         entry = self.entry(sid)
         with entry.lock:
-            records, active = entry.session.records, _in_force_seqs(entry.session)
+            records, active = entry.session.typed_records, entry.session.in_force_seqs
         buf = io.StringIO()
         w = csv.writer(buf)
         w.writerow(["seq", "time", "kind", "step", "items", "answer", "chosen", "value", "response_time", "in_force"])
-        for r in map(parse_record, records):
+        for r in records:
             if not isinstance(r, AnswerRecord):
                 continue
             rows = r.pool_indices
@@ -467,11 +467,6 @@ def _resource_error(exc: BaseException) -> bool:
     from torchpref.frontends.serve.pool import resource_error
 
     return resource_error(exc)
-
-
-def _in_force_seqs(session: PreferenceSession) -> set[int]:
-    """The sequence numbers of the session's answers in force."""
-    return {r["seq"] for r in records_in_force(session.records)}
 
 
 def _is_int(v: Any) -> bool:
