@@ -36,6 +36,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.models.batch import BatchedPreferenceGP
     from torchpref.models.calibration import calibrate_person, fit_person
     from torchpref.models.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
+    from torchpref.models.defaults import LikelihoodSettings
     from torchpref.models.pairwise_interface import TrainDataMismatchError, UnsupportedLikelihoodError
     from torchpref.models.preference_gp import (
         PAPER_FIG4_SETTINGS,
@@ -108,6 +109,7 @@ _EXPORTS = {
     "JitterWarning": "inference.numerics",
     "LaplaceConvergenceWarning": "inference.laplace",
     "LaplaceMarginalLogLikelihood": "models.preference_gp",
+    "LikelihoodSettings": "models.defaults",
     "latent_ucb": "acquisition.functions",
     "likert_to_unit": "data.preference_data",
     "NotPSDError": "inference.numerics",

@@ -5,6 +5,7 @@ from __future__ import annotations
 from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.models.calibration import calibrate_person, fit_person
 from torchpref.models.checkpoint import CheckpointError, load_model, model_checkpoint, save_model
+from torchpref.models.defaults import LikelihoodSettings
 from torchpref.models.kernels import FixedRBFKernel, fixed_rbf_kernel
 from torchpref.models.pairwise_interface import TrainDataMismatchError, UnsupportedLikelihoodError
 from torchpref.models.preference_gp import (
@@ -19,6 +20,7 @@ __all__ = [
     'CheckpointError',
     'FixedRBFKernel',
     'LaplaceMarginalLogLikelihood',
+    'LikelihoodSettings',
     'PAPER_FIG4_SETTINGS',
     'PreferenceGP',
     'TrainDataMismatchError',

@@ -4,6 +4,8 @@ and the likelihood module (``model.likelihood``) it builds from them."""
 from __future__ import annotations
 
 import math
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
 
 from gpytorch.constraints import GreaterThan
 from gpytorch.kernels import RBFKernel, ScaleKernel
@@ -19,6 +21,7 @@ from torchpref.likelihoods.ordinal import (
 )
 from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood, PairwiseProbitLikelihood
 from torchpref.likelihoods.scalar_params import shared_constraint, weak_load_hook
+from torchpref.models.arguments import check_model_arguments
 
 #: The likelihood settings of the paper's Fig. 4 (``sigma_R``, ``sigma_B``, ``nu``), for runs that
 #: reproduce the paper: ``PreferenceGP(X, ..., **PAPER_FIG4_SETTINGS)`` (docs/botorch.md).
@@ -95,6 +98,85 @@ class PreferenceLikelihood(Module):
             rating = OrdinalRatingLikelihood(int(rating_levels), cut_points, level_noise, learn=learn)
         return cls(
             comparison, rating, TieLikelihood(tie_threshold, comparison, learn=learn, tie_threshold_constraint=positive)
+        )
+
+
+@dataclass(frozen=True)
+class LikelihoodSettings:
+    r"""The settings of a model's answer likelihoods, in one object:
+    ``PreferenceGP(X, C, likelihood=LikelihoodSettings(comparison_noise=0.1))``. The same names are
+    accepted as keyword arguments of :class:`~torchpref.models.preference_gp.PreferenceGP`
+    (``PreferenceGP(X, C, comparison_noise=0.1)``), which builds this object from them.
+
+    Attributes:
+        comparison_noise: ``sigma_R`` of eq. 3 (default 1.0: BoTorch's ``PairwiseGP`` probit
+            ``Phi((f_i - f_j) / sqrt 2)``; the paper's Fig. 4 used 0.1, :data:`PAPER_FIG4_SETTINGS`).
+        rating_scale: ``sigma_B`` of eq. 7 (default 1.0, as Fig. 4).
+        rating_precision: ``nu`` of eqs. 5-6 (default 80, as Fig. 4).
+        learn_likelihood: make the likelihood parameters trainable (default: fixed, as in the
+            paper; with comparisons only, ``comparison_noise`` and the outputscale are not
+            separately identifiable).
+        tie_threshold: ``tau`` of the tie likelihood (default 0.1).
+        cut_points: the ordinal likelihood's ``K - 1`` cut points (default
+            :func:`~torchpref.likelihoods.ordinal.default_cut_points`, the Beta link's bin edges).
+        level_noise: the ordinal likelihood's ``sigma``; default ``sqrt(pi) sigma_B / sqrt(nu + 1)``.
+
+    Raises:
+        ValueError: a setting of the wrong type or range, naming it.
+    """
+
+    comparison_noise: float = 1.0
+    rating_scale: float = 1.0
+    rating_precision: float = 80.0
+    learn_likelihood: bool = False
+    tie_threshold: float = 0.1
+    cut_points: Tensor | None = None
+    level_noise: float | None = None
+
+    def __post_init__(self) -> None:
+        reals = {k: v for k, v in asdict(self).items() if k not in ("learn_likelihood", "cut_points")}
+        check_model_arguments(reals=reals, flags={"learn_likelihood": self.learn_likelihood})
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        """The settings' names (also :class:`~torchpref.models.preference_gp.PreferenceGP`'s keywords)."""
+        return tuple(f.name for f in fields(cls))
+
+    @classmethod
+    def of(cls, likelihood: Any, keywords: dict[str, Any]) -> LikelihoodSettings:
+        """The settings of ``PreferenceGP(..., likelihood=likelihood, **keywords)``: ``likelihood`` a
+        :class:`LikelihoodSettings` (``keywords`` then override its fields), ``None``, or
+        ``PairwiseGP``'s comparison likelihood (BoTorch's or torchpref's probit: its ``sigma_R``).
+
+        Raises:
+            TypeError: a keyword that is not a setting (naming it and the settings).
+            ValueError: see :func:`~torchpref.models.pairwise_interface.pairwise_likelihood_noise`.
+        """
+        from torchpref.models.pairwise_interface import pairwise_likelihood_noise
+
+        unknown = sorted(set(keywords) - set(cls.names()))
+        if unknown:
+            raise TypeError(
+                f"PreferenceGP got unexpected keyword argument(s) {', '.join(unknown)}; its likelihood "
+                f"settings are {', '.join(cls.names())} (torchpref.LikelihoodSettings)."
+            )
+        if isinstance(likelihood, LikelihoodSettings):
+            return replace(likelihood, **keywords) if keywords else likelihood
+        noise = pairwise_likelihood_noise(likelihood, keywords.pop("comparison_noise", None))
+        return cls(comparison_noise=noise, **keywords)
+
+    def create(self, rating_levels: int | None = None) -> PreferenceLikelihood:
+        """The model's likelihood module (:class:`PreferenceLikelihood`) for ratings on ``[0, 1]``
+        (Beta) or, with ``rating_levels``, levels ``1..K`` (ordinal)."""
+        return PreferenceLikelihood.create(
+            self.comparison_noise,
+            self.rating_scale,
+            self.rating_precision,
+            self.learn_likelihood,
+            self.tie_threshold,
+            rating_levels,
+            self.cut_points,
+            self.level_noise,
         )
 
 

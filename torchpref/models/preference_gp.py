@@ -22,6 +22,7 @@ from botorch.sampling.base import MCSampler
 from botorch.utils.datasets import RankingDataset
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.kernels import Kernel
+from gpytorch.likelihoods import Likelihood
 from gpytorch.means import Mean
 from gpytorch.mlls import MarginalLogLikelihood
 from gpytorch.models import GP
@@ -42,6 +43,7 @@ from torchpref.models.arguments import check_model_arguments
 from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS: re-exported)
     MIN_LENGTHSCALE,
     PAPER_FIG4_SETTINGS,
+    LikelihoodSettings,
     PreferenceLikelihood,
     default_covar_module,
 )
@@ -54,7 +56,6 @@ from torchpref.models.pairwise_interface import (
     _condition_prior_only,
     check_jitter,
     pairwise_alias,
-    pairwise_likelihood_noise,
     prior_only_data,
     ranking_comparisons,
 )
@@ -129,36 +130,30 @@ class PreferenceGP(Model, GP):
         input_transform: a BoTorch input transform (e.g. ``Normalize``), applied to ``train_X``
             and to every input of :meth:`posterior` (positional here as in ``PairwiseGP``). A
             prior-only model takes one too; its bounds are learned from the first data.
-        datapoints: ``PairwiseGP``'s name for ``train_X`` (give one of them).
-        likelihood: ``PairwiseGP``'s argument: BoTorch's ``PairwiseProbitLikelihood`` (eq. 3 with
+        likelihood: the answer likelihoods' settings, a
+            :class:`~torchpref.models.defaults.LikelihoodSettings` (``sigma_R``, ``sigma_B``, ``nu``,
+            whether they are learned, the tie threshold, the ordinal cut points and noise); or
+            ``PairwiseGP``'s argument: BoTorch's ``PairwiseProbitLikelihood`` (eq. 3 with
             ``sigma_R = 1``, the default) or torchpref's
             :class:`~torchpref.likelihoods.pairwise_beta.PairwiseProbitLikelihood` (its ``sigma_R``);
             any other (``PairwiseLogitLikelihood``) raises
             :class:`~torchpref.models.pairwise_interface.UnsupportedLikelihoodError`.
+        **likelihood_settings: the fields of :class:`~torchpref.models.defaults.LikelihoodSettings`
+            as keywords (``comparison_noise=0.1``, ``rating_scale``, ``rating_precision``,
+            ``learn_likelihood``, ``tie_threshold``, ``cut_points``, ``level_noise``), overriding
+            ``likelihood``'s; any other keyword is a ``TypeError`` naming it.
+        datapoints: ``PairwiseGP``'s name for ``train_X`` (give one of them).
         jitter: ``PairwiseGP``'s argument, accepted and not used: a kernel matrix is jittered only
             when its Cholesky factorisation fails, relative to its diagonal and dtype.
-        comparison_noise: ``sigma_R`` of eq. 3 (default 1.0, or ``likelihood``'s: BoTorch's ``PairwiseGP`` probit
-            ``Phi((f_i - f_j) / sqrt 2)``, which keeps EUBO-style loops from re-asking compared
-            pairs; the paper's Fig. 4 used 0.1, see :data:`PAPER_FIG4_SETTINGS`).
-        rating_scale: ``sigma_B`` of eq. 7 (default 1.0, as Fig. 4).
-        rating_precision: ``nu`` of eqs. 5-6 (default 80, as Fig. 4).
-        learn_likelihood: make the three likelihood parameters trainable (default: fixed, as in
-            the paper; with comparisons only, ``comparison_noise`` and the outputscale are not
-            separately identifiable).
         rating_eps: where exact 0 / 1 ratings are moved to.
         max_newton_iter: iteration budget of the mode finder (at least 1).
         ties: ``t x 2`` long, rows ``[i, j]``: "no preference" between items ``i`` and ``j``
             (:class:`~torchpref.likelihoods.ordinal.TieLikelihood`).
         rating_levels: ``K``: the ratings are levels ``1..K``, scored by the ordinal likelihood
             (:class:`~torchpref.likelihoods.ordinal.OrdinalRatingLikelihood`) instead of the Beta one.
-        tie_threshold: ``tau`` of the tie likelihood (default 0.1).
-        cut_points: the ordinal likelihood's ``K - 1`` cut points (default
-            :func:`~torchpref.likelihoods.ordinal.default_cut_points`, the Beta link's bin edges).
         ties_offered: "no preference" was an allowed answer to the comparisons, which are then
             scored ``Phi((f_i - f_j - tau) / (sqrt 2 sigma_R))`` (the tie's ordered probit) instead
             of eq. 3 (a forced choice); needed to learn ``tau``. Default ``False``.
-        level_noise: the ordinal likelihood's ``sigma``; default ``sqrt(pi) sigma_B / sqrt(nu + 1)``,
-            the Beta likelihood's rating noise at mid-scale in latent units (0.197 at the defaults).
         laplace_dtype: the dtype the kernel matrices and the Laplace problem are computed in
             (:attr:`laplace_dtype`); default float64 whatever the model's dtype, so a float32 model
             solves in mixed precision and returns float32 posteriors. ``torch.float32`` solves a
@@ -194,40 +189,37 @@ class PreferenceGP(Model, GP):
         covar_module: Kernel | None = None,
         input_transform: InputTransform | None = None,
         *,
-        datapoints: Tensor | None = None,
-        likelihood: Any = None,
-        jitter: float | None = None,
-        comparison_noise: float | None = None,
-        rating_scale: float = 1.0,
-        rating_precision: float = 80.0,
-        learn_likelihood: bool = False,
-        rating_eps: float = DEFAULT_RATING_EPS,
-        max_newton_iter: int = 100,
+        likelihood: LikelihoodSettings | Likelihood | None = None,
+        mean_module: Mean | None = None,
         ties: Tensor | None = None,
         rating_levels: int | None = None,
-        tie_threshold: float = 0.1,
-        cut_points: Tensor | None = None,
-        level_noise: float | None = None,
         ties_offered: bool = False,
+        rating_eps: float = DEFAULT_RATING_EPS,
+        max_newton_iter: int = 100,
         laplace_dtype: torch.dtype | None = None,
-        mean_module: Mean | None = None,
+        datapoints: Tensor | None = None,
+        jitter: float | None = None,
+        **likelihood_settings: Any,
     ) -> None:
         super().__init__()
         weak_load_hook(self)
         train_X = pairwise_alias(train_X, datapoints)
-        comparison_noise = pairwise_likelihood_noise(likelihood, comparison_noise)
+        settings = LikelihoodSettings.of(likelihood, likelihood_settings)
         check_jitter(jitter)
-        reals: dict[str, object] = dict(comparison_noise=comparison_noise, rating_scale=rating_scale, rating_precision=rating_precision, tie_threshold=tie_threshold, level_noise=level_noise)  # fmt: skip
-        flags: dict[str, object] = dict(learn_likelihood=learn_likelihood, ties_offered=ties_offered)
-        check_model_arguments(covar_module, input_transform, reals=reals, flags=flags, rating_eps=rating_eps, mean_module=mean_module)  # fmt: skip
+        check_model_arguments(
+            covar_module,
+            input_transform,
+            flags={"ties_offered": ties_offered},
+            rating_eps=rating_eps,
+            mean_module=mean_module,
+        )
         data = _initial_data(train_X, comparisons, ratings, rating_index, rating_eps, ties, rating_levels)
         X = data.train_X if isinstance(data, PreferenceData) else data.X
         check_dtype(X.dtype)
         _warn_dtype(X.dtype)
-        self.covar_module, self.mean_module = (covar_module if covar_module is not None else default_covar_module(X.shape[-1])), mean_module  # fmt: skip
-        self.likelihood = PreferenceLikelihood.create(
-            comparison_noise, rating_scale, rating_precision, learn_likelihood, tie_threshold, rating_levels, cut_points, level_noise
-        )  # fmt: skip
+        self.covar_module = covar_module if covar_module is not None else default_covar_module(X.shape[-1])
+        self.mean_module = mean_module
+        self.likelihood = settings.create(rating_levels)
         self._rating_levels = None if rating_levels is None else int(rating_levels)
         self.ties_offered = bool(ties_offered)
         if input_transform is not None:
