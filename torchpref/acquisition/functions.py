@@ -149,7 +149,7 @@ class QueryInformation(AcquisitionFunction):
         if isinstance(lik, OrdinalRatingLikelihood):  # a level: H[E_f P(k | f)] - E_f H[P(k | f)]
             P = lik(f).probs  # b x H x K
             return (entropy((w.unsqueeze(-1) * P).sum(-2)) - (w * entropy(P)).sum(-1)).clamp_min(0)
-        _, _, nu, a, b = lik._shape(f)
+        a, b = lik.beta_parameters(f)
         # far-out quadrature nodes can underflow a Beta shape to 0; its entropy term has weight ~0
         tiny = torch.finfo(f.dtype).tiny
         beta = Beta(a.clamp_min(tiny), b.clamp_min(tiny), validate_args=False)

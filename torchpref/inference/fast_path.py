@@ -207,7 +207,7 @@ def probit_scale(obs: Observations) -> float | None:
         return None
     if term.mask is not None and not bool(term.mask.all()):
         return None
-    return float(lik._scale())  # type: ignore[attr-defined]
+    return float(lik.scale)  # type: ignore[attr-defined]
 
 
 def mode_applies(L: Tensor, obs: Observations) -> bool:

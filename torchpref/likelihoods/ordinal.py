@@ -82,13 +82,13 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
         interval probability (:func:`torchpref.inference.numerics.normal_interval` with bounds
         ``+-tau - eta`` and scale ``s``); the second derivative is never positive."""
         tau = self.tie_threshold
-        lp, d1, d2 = normal_interval(tau - eta, -tau - eta, self.comparison._scale())
+        lp, d1, d2 = normal_interval(tau - eta, -tau - eta, self.comparison.scale)
         return lp, d1, d2
 
     def third_derivative(self, eta: Tensor) -> Tensor:
         """``d^3 log p / d eta^3``, elementwise (for the evidence's gradient)."""
         tau = self.tie_threshold
-        return normal_interval(tau - eta, -tau - eta, self.comparison._scale(), third=True)[3]
+        return normal_interval(tau - eta, -tau - eta, self.comparison.scale, third=True)[3]
 
     def fisher(self, eta: Tensor) -> Tensor:
         """Negative second derivative; already non-negative (log-concave)."""
@@ -147,12 +147,12 @@ class StrictPreferenceLikelihood(Likelihood):
 
     def derivatives(self, eta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(log p, d log p / d eta, d^2 log p / d eta^2)``, elementwise."""
-        lp, d1, d2 = normal_interval(*self._bounds(eta), self.tie.comparison._scale())
+        lp, d1, d2 = normal_interval(*self._bounds(eta), self.tie.comparison.scale)
         return lp, d1, d2
 
     def third_derivative(self, eta: Tensor) -> Tensor:
         """``d^3 log p / d eta^3``, elementwise (for the evidence's gradient)."""
-        return normal_interval(*self._bounds(eta), self.tie.comparison._scale(), third=True)[3]
+        return normal_interval(*self._bounds(eta), self.tie.comparison.scale, third=True)[3]
 
     def fisher(self, eta: Tensor) -> Tensor:
         """Negative second derivative; already non-negative (log-concave)."""

@@ -100,7 +100,9 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
     #: (which may change its derivatives) is solved by the torch solver unless it says so too
     compiled_kind = "probit"
 
-    def _scale(self) -> Tensor:
+    @property
+    def scale(self) -> Tensor:
+        """The probit's scale ``sqrt(2) sigma_R``: ``P(i > j) = Phi((f_i - f_j) / scale)`` (eq. 3)."""
         return SQRT2 * self.comparison_noise
 
     def forward(self, function_samples: Tensor, comparisons: Tensor) -> Bernoulli:
@@ -114,11 +116,11 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
             A Bernoulli of batch shape ``... x p``.
         """
         eta = function_samples[..., comparisons[:, 0]] - function_samples[..., comparisons[:, 1]]
-        return Bernoulli(probs=torch.special.ndtr(eta / self._scale()))
+        return Bernoulli(probs=torch.special.ndtr(eta / self.scale))
 
     def log_prob(self, eta: Tensor) -> Tensor:
         """``log p`` of each comparison given its predictor ``eta = f_preferred - f_other``."""
-        return log_ndtr(eta / self._scale())
+        return log_ndtr(eta / self.scale)
 
     def derivatives(self, eta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         r"""``(log p, d log p / d eta, d^2 log p / d eta^2)``, elementwise.
@@ -127,7 +129,7 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
         ``d/d eta = r / s`` and ``d^2/d eta^2 = -r (z + r) / s^2`` (always negative: the
         probit is log-concave).
         """
-        s = self._scale()
+        s = self.scale
         z = eta / s
         log_cdf = log_ndtr(z)
         r = inv_mills(z, log_cdf)
@@ -136,7 +138,7 @@ class PairwiseProbitLikelihood(_ScalarParamsMixin, Likelihood):
     def third_derivative(self, eta: Tensor) -> Tensor:
         r"""``d^3 log p / d eta^3 = -r (1 - (z + r)(z + 2 r)) / s^3``, elementwise (how fast the
         curvature changes; the evidence's gradient needs it)."""
-        s = self._scale()
+        s = self.scale
         z = eta / s
         r = inv_mills(z)
         return -r * (1 - (z + r) * (z + 2 * r)) / s**3
@@ -248,9 +250,11 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         c, t = self._link(eta)
         return c, t, self.rating_precision, log_ndtr(t), log_ndtr(-t)
 
-    def _shape(self, eta: Tensor):
-        c, t, nu, log_mu, log_1mmu = self._log_shape(eta)
-        return c, t, nu, nu * torch.exp(log_mu), nu * torch.exp(log_1mmu)
+    def beta_parameters(self, eta: Tensor) -> tuple[Tensor, Tensor]:
+        r"""The Beta's ``(alpha, beta) = (nu mu, nu (1 - mu))`` of a rating at latent ``eta``
+        (eqs. 5-7), computed through ``log mu`` so that neither underflows to a NaN."""
+        _, _, nu, log_mu, log_1mmu = self._log_shape(eta)
+        return nu * torch.exp(log_mu), nu * torch.exp(log_1mmu)
 
     def _parts(self, eta: Tensor, u: Tensor):
         r"""``log p`` (with ``lgamma(a) = lgamma(a + 1) - log a``, ``log a = log nu + log mu``), the
@@ -316,7 +320,8 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         ``(mu' / mu)^2 + (mu' / (1 - mu))^2 + nu^2 (psi'(a + 1) + psi'(b + 1)) mu'^2``, where
         ``mu' / mu = phi(t) / (c Phi(t))`` is an inverse Mills ratio: finite where ``mu`` rounds
         to 0 or 1 (the direct form is ``inf * 0 = NaN`` there)."""
-        c, t, nu, a, b = self._shape(eta)
+        c, t, nu, log_mu, log_1mmu = self._log_shape(eta)
+        a, b = nu * torch.exp(log_mu), nu * torch.exp(log_1mmu)
         dmu = normal_pdf(t) / c
         return (
             (inv_mills(t) / c) ** 2

@@ -198,7 +198,7 @@ class LapseProbitLikelihood(PairwiseProbitLikelihood):
     lapse_rate = scalar_parameter("lapse_rate", "``eps``: the probability that a comparison is a coin flip.")
 
     def _parts(self, eta: Tensor):
-        s = self._scale()
+        s = self.scale
         z = eta / s
         eps = self.lapse_rate
         log_keep = torch.log1p(-eps)
@@ -211,7 +211,7 @@ class LapseProbitLikelihood(PairwiseProbitLikelihood):
         values, ``p x 2`` comparisons -> batch ``... x p``)."""
         eta = function_samples[..., comparisons[:, 0]] - function_samples[..., comparisons[:, 1]]
         eps = self.lapse_rate
-        return Bernoulli(probs=eps / 2 + (1 - eps) * torch.special.ndtr(eta / self._scale()))
+        return Bernoulli(probs=eps / 2 + (1 - eps) * torch.special.ndtr(eta / self.scale))
 
     def log_prob(self, eta: Tensor) -> Tensor:
         """``log p`` of each comparison given ``eta = f_preferred - f_other``."""

@@ -134,7 +134,7 @@ def _probit_scale(model: Any, data: PreferenceData) -> float | None:
         return None
     if not known_probit(lik) or not data.comparisons.shape[0]:
         return None
-    return float(lik._scale())
+    return float(lik.scale)
 
 
 def compiled_problem(mll: Any) -> CompiledFit | None:

@@ -334,6 +334,19 @@ class PreferenceSession:
         with self._lock:
             yield
 
+    @property
+    def candidates(self) -> Candidates:
+        """The session's candidates (a :class:`~torchpref.FinitePool` or a
+        :class:`~torchpref.BoxCandidates`); a pool's queries name its rows."""
+        return self._candidates
+
+    def reference_model(self) -> PreferenceGP:
+        """A new model told the answers in force one by one through
+        :func:`~torchpref.data.queries.record_answer`: the reference that :attr:`model` (built
+        in one pass, from the mode snapshot, or updated answer by answer) equals to Newton's tolerance."""
+        with self._guarded():
+            return self._replay(self._active())
+
     def _active(self) -> list[AnswerRecord]:
         """The answer records in force, oldest first."""
         return list(self._journal.in_force.values())

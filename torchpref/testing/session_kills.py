@@ -173,7 +173,6 @@ def one_run(path: Path, run: int, mode: str, seed: int, rng: random.Random) -> d
 
 def check_file(path: Path, acked: list[float], undone: list[float]) -> dict:
     """The final checks on one file (see the module docstring)."""
-    from torchpref.sessions.records import AnswerRecord
     from torchpref.sessions.session import PreferenceSession, read_session_file
 
     with warnings.catch_warnings():
@@ -188,7 +187,7 @@ def check_file(path: Path, acked: list[float], undone: list[float]) -> dict:
     undone_in_file = [by_seq[r["undoes"]] for r in records if r["type"] == "undo"]
     undo_lost = sorted(set(undone) - set(undone_in_file))
     X = s.transform(make_pool())
-    ref = s._replay([r for r in s.typed_records if isinstance(r, AnswerRecord) and r.seq in s.in_force_seqs])
+    ref = s.reference_model()
     with torch.no_grad():
         diff = float((s.model.posterior(X.unsqueeze(-2)).mean - ref.posterior(X.unsqueeze(-2)).mean).abs().max())
     s.close()

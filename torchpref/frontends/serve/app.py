@@ -459,7 +459,7 @@ def _store(
             raise ServeError(
                 "a served session has its own model: give population to serve() with items, not a session."
             )
-        pool = source._candidates  # the session's own candidates: queries name their rows
+        pool = source.candidates  # the session's own candidates: queries name their rows
         if not isinstance(pool, FinitePool):
             raise ServeError("a served session's candidates must be a pool of items (N x d), not a box.")
         items = ServeItems(pool.X, list(names or source.names or []), labels, render=render, noun=noun)
