@@ -333,9 +333,9 @@ def test_a_session_from_python_with_a_render_function(tmp_path):
         return fig
 
     session = PreferenceSession(X, session_file=tmp_path / "mine.session.jsonl", num_queries=3)
-    from torchpref.frontends.serve.app import _store
+    from torchpref.frontends.serve.app import NewSessions, PoolLimits, ServeItemsSpec, _store
 
-    store = _store(session, render, None, None, None, 3, 0, 5, True, "design")
+    store = _store(session, ServeItemsSpec(render, noun="design"), "unused", NewSessions(3, 0, 5), PoolLimits())
     c = _client(store)
     assert store.sids == ["mine"] and c.post("/api/new", json={}).status_code == 403
     st = c.get("/s/mine/state").json()
@@ -456,13 +456,13 @@ def test_serve_from_python_in_a_process(tmp_path):
 def test_ratings_in_the_unit_interval(tmp_path):
     """A served session without levels (``num_levels=None``): the page's slider sends a number in
     [0, 1], anything else is refused."""
-    from torchpref.frontends.serve.app import _store
+    from torchpref.frontends.serve.app import NewSessions, PoolLimits, ServeItemsSpec, _store
     from torchpref.selection.strategies import UCBRatings
 
     session = PreferenceSession(
         _items().X, selector=UCBRatings(), num_levels=None, session_file=tmp_path / "unit.session.jsonl"
     )
-    store = _store(session, None, None, None, None, 3, 0, None, True, "item")
+    store = _store(session, ServeItemsSpec(), "unused", NewSessions(3, 0, None), PoolLimits())
     c = _client(store)
     st = c.get("/s/unit/state").json()
     assert st["question"]["kind"] == "rating" and st["question"]["levels"] is None
@@ -484,3 +484,21 @@ def test_command_line_names_the_missing_extra(tmp_path, monkeypatch, capsys):
     assert main(["serve", "--features", str(csv_path), "--sessions", str(tmp_path / "s")]) == MISSING_EXTRA
     assert 'pip install "torchpref[serve]"' in capsys.readouterr().err
     assert not (tmp_path / "s").exists()  # checked before any work
+
+
+def test_serve_settings_are_grouped_and_keywords_override_them():
+    from torchpref.frontends.serve.app import Listen, NewSessions, PoolLimits, _grouped
+
+    new, listen, limits = _grouped(
+        {"num_queries": 6, "port": 0, "max_open": 3}, NewSessions(seed=4), Listen(host="localhost"), None
+    )
+    assert (new.num_queries, new.seed, new.ties) == (6, 4, True)
+    assert (listen.host, listen.port) == ("localhost", 0)
+    assert limits == PoolLimits(max_open=3)
+    with pytest.raises(TypeError, match="num_querys"):
+        _grouped({"num_querys": 6}, None, None, None)
+
+
+def test_session_store_names_an_unknown_setting(tmp_path):
+    with pytest.raises(TypeError, match="seeed.*NewSessions"):
+        SessionStore(_items(), tmp_path, seeed=3)

@@ -136,6 +136,9 @@ class LikelihoodSettings:
     def __post_init__(self) -> None:
         reals = {k: v for k, v in asdict(self).items() if k not in ("learn_likelihood", "cut_points")}
         check_model_arguments(reals=reals, flags={"learn_likelihood": self.learn_likelihood})
+        for name, value in reals.items():
+            if value is not None and not float(value) > 0:
+                raise ValueError(f"{name} must be positive, got {float(value)}.")
 
     @classmethod
     def names(cls) -> tuple[str, ...]:

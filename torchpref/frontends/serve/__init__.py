@@ -13,6 +13,8 @@ The pieces, each imported only by the ones after it:
 
 from __future__ import annotations
 
-from torchpref.frontends.serve.app import ServeError, create_app, run, serve
+from torchpref.frontends.serve.app import Listen, ServeError, create_app, run, serve
+from torchpref.frontends.serve.pool import PoolLimits
+from torchpref.frontends.serve.store import NewSessions
 
-__all__ = ["ServeError", "create_app", "run", "serve"]
+__all__ = ["Listen", "NewSessions", "PoolLimits", "ServeError", "create_app", "run", "serve"]

@@ -34,6 +34,7 @@ import secrets
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -49,10 +50,11 @@ from torchpref.frontends.serve.net import (  # noqa: F401  (HEADER_TIMEOUT_S, MA
     listening_socket,
     uvicorn_server,
 )
-from torchpref.frontends.serve.store import AnswerRefused, SessionStore
+from torchpref.frontends.serve.pool import PoolLimits
+from torchpref.frontends.serve.store import AnswerRefused, NewSessions, SessionStore
 from torchpref.sessions.session import PreferenceSession
 
-__all__ = ["ServeError", "create_app", "run", "serve"]
+__all__ = ["Listen", "NewSessions", "PoolLimits", "ServeError", "ServeItemsSpec", "create_app", "run", "serve"]
 
 HERE = Path(__file__).parent
 MAX_BODY = 4096
@@ -364,28 +366,55 @@ def _check_network(host: str, port: int, allow_remote: bool, token: str | None) 
     return token
 
 
+@dataclass(frozen=True)
+class Listen:
+    """Where :func:`serve` listens: ``host`` and ``port`` (``port=0``: a free one); another host
+    than the loopback needs ``allow_remote=True`` and a ``token`` (one is made and printed if not
+    given)."""
+
+    host: str = "127.0.0.1"
+    port: int = 8000
+    allow_remote: bool = False
+    token: str | None = None
+
+
+def _grouped(
+    settings: dict[str, Any], new: NewSessions | None, listen: Listen | None, limits: PoolLimits | None
+) -> tuple[NewSessions, Listen, PoolLimits]:
+    """:func:`serve`'s keyword settings sorted into their groups, each overriding the group given.
+
+    Raises:
+        TypeError: a keyword of no group, naming it.
+    """
+    groups: list[Any] = [NewSessions, Listen, PoolLimits]
+    given: list[Any] = [new, listen, limits]
+    out = []
+    for cls, group in zip(groups, given, strict=True):
+        names = {f.name for f in fields(cls)}
+        mine = {k: settings.pop(k) for k in list(settings) if k in names}
+        out.append(replace(group if group is not None else cls(), **mine))
+    if settings:
+        raise TypeError(
+            f"serve() got unexpected keyword argument(s) {', '.join(sorted(settings))}; its settings are "
+            "those of NewSessions, Listen and PoolLimits."
+        )
+    return out[0], out[1], out[2]
+
+
 def serve(
     source: PreferenceSession | Tensor | ServeItems,
     *,
     render: Callable | None = None,
     names: list[str] | None = None,
     labels: list[str] | None = None,
-    sessions: str | Path = "torchpref-sessions",
-    num_queries: int = 14,
-    seed: int = 0,
-    num_levels: int | None = 5,
-    ties: bool = True,
-    host: str = "127.0.0.1",
-    port: int = 8000,
-    allow_remote: bool = False,
-    token: str | None = None,
     noun: str = "item",
-    ready: Callable[[str], None] | None = None,
+    sessions: str | Path = "torchpref-sessions",
+    new: NewSessions | None = None,
+    listen: Listen | None = None,
+    limits: PoolLimits | None = None,
     threads: int | None = 1,
-    max_open: int | None = None,
-    idle_close: float = 120.0,
-    finished_close: float = 1.0,
-    population: Any = None,
+    ready: Callable[[str], None] | None = None,
+    **settings: Any,
 ) -> None:
     """Serve the answering page until interrupted (Ctrl-C).
 
@@ -398,38 +427,38 @@ def serve(
             Path or None) for each item's picture.
         names, labels, noun: the objectives' and items' names, and what an item is called.
         sessions: the folder of the session files.
-        num_queries, seed, num_levels, ties: each new session's settings.
-        host, port: where to listen (``port=0``: a free one); another host than the loopback
-            needs ``allow_remote=True`` and a token (one is made and printed if not given).
-        ready: called with the page's URL once the server accepts connections (from a thread of
-            its own, so it may itself request the page).
+        new: each new session's settings (:class:`~torchpref.frontends.serve.store.NewSessions`:
+            ``num_queries``, ``seed``, ``num_levels``, ``ties``, ``population``).
+        listen: where to listen (:class:`Listen`: ``host``, ``port``, ``allow_remote``, ``token``).
+        limits: sessions are a bounded cache over their files
+            (:class:`~torchpref.frontends.serve.pool.PoolLimits`: at most ``max_open`` open at once,
+            default from the descriptor limit; each closed after ``idle_close`` seconds without a
+            request, ``finished_close`` once all its questions are answered, and reopened from its
+            file on the next one).
         threads: torch's intra-op threads while serving (:func:`torch.set_num_threads`, restored
             after; ``None``: left as they are). One is fastest for a session's small matrices, and
             sessions of different people run in parallel threads (5-10x faster answers than
             torch's default on a loaded 2-core machine, docs/serve.md).
-        max_open, idle_close, finished_close: sessions are a bounded cache over their files
-            (:class:`~torchpref.frontends.serve.pool.SessionPool`): at most ``max_open`` open at
-            once (default: from the descriptor limit, :func:`~torchpref.frontends.serve.pool.default_max_open`),
-            each closed after ``idle_close`` seconds without a request (``finished_close`` once
-            all its questions are answered) and reopened from its file on the next one.
-        population: a :class:`~torchpref.Population` each new session starts from (docs/population.md).
+        ready: called with the page's URL once the server accepts connections (from a thread of
+            its own, so it may itself request the page).
+        **settings: any field of the three groups as a keyword (``num_queries=6``, ``port=0``,
+            ``max_open=100``), overriding the group's; any other keyword is a ``TypeError``.
 
     Raises:
         ServeError: unsafe or impossible network settings. ImportError: the ``serve`` extra is missing.
     """
     _require()
-    from torchpref.frontends.serve.pool import PoolLimits, quiet_resource_errors
+    from torchpref.frontends.serve.pool import quiet_resource_errors
 
-    token = _check_network(host, port, allow_remote, token)
-    sock = listening_socket(host, port)  # a busy port is named before any work
+    new, listen, limits = _grouped(dict(settings), new, listen, limits)
+    token = _check_network(listen.host, listen.port, listen.allow_remote, listen.token)
+    sock = listening_socket(listen.host, listen.port)  # a busy port is named before any work
     try:
-        limits = PoolLimits(max_open=max_open, idle_close=idle_close, finished_close=finished_close)
-        store = _store(
-            source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun, limits, population
-        )
+        store = _store(source, ServeItemsSpec(render, names, labels, noun), sessions, new, limits)
     except BaseException:
         sock.close()
         raise
+    host = listen.host
     hosts = ["*"] if not _is_loopback(host) else [*LOOPBACK_NAMES, _shown_host(host)]
     app = create_app(store, token=token, allowed_hosts=hosts)
     import torch
@@ -449,33 +478,47 @@ def serve(
         torch.set_num_threads(before)
 
 
+@dataclass(frozen=True)
+class ServeItemsSpec:
+    """How :func:`serve` shows items given as a tensor or a session: their pictures, names and labels."""
+
+    render: Callable | None = None
+    names: list[str] | None = None
+    labels: list[str] | None = None
+    noun: str = "item"
+
+
 def _store(
-    source, render, names, labels, sessions, num_queries, seed, num_levels, ties, noun, limits=None, population=None
+    source: PreferenceSession | Tensor | ServeItems,
+    shown: ServeItemsSpec,
+    sessions: str | Path,
+    new: NewSessions,
+    limits: PoolLimits,
 ) -> SessionStore:
+    """The store serving ``source`` (one session, or new ones in the folder ``sessions``)."""
     from torchpref.data.queries import FinitePool
 
     if isinstance(source, PreferenceSession):
-        if population is not None:
+        if new.population is not None:
             raise ServeError(
                 "a served session has its own model: give population to serve() with items, not a session."
             )
         pool = source.candidates  # the session's own candidates: queries name their rows
         if not isinstance(pool, FinitePool):
             raise ServeError("a served session's candidates must be a pool of items (N x d), not a box.")
-        items = ServeItems(pool.X, list(names or source.names or []), labels, render=render, noun=noun)
-        return SessionStore(items, session=source, ties=ties, limits=limits)
+        items = ServeItems(
+            pool.X, list(shown.names or source.names or []), shown.labels, render=shown.render, noun=shown.noun
+        )
+        return SessionStore(items, session=source, ties=new.ties, limits=limits)
     if isinstance(source, ServeItems):
         items = source
     elif isinstance(source, Tensor):
-        items = ServeItems(source, names, labels, render=render, noun=noun)
+        items = ServeItems(source, list(shown.names or []), shown.labels, render=shown.render, noun=shown.noun)
     else:
         raise TypeError(
             f"serve() takes a PreferenceSession, an N x d tensor or ServeItems, got {type(source).__name__}."
         )
-    return SessionStore(
-        items, sessions, num_queries=num_queries, seed=seed, num_levels=num_levels, ties=ties, limits=limits,
-        population=population,
-    )  # fmt: skip
+    return SessionStore(items, sessions, new=new, limits=limits)
 
 
 def run(args: Any) -> int:
@@ -496,17 +539,8 @@ def run(args: Any) -> int:
     serve(
         items,
         sessions=args.sessions,
-        num_queries=args.queries,
-        seed=args.seed,
-        num_levels=args.levels,
-        ties=not args.no_ties,
-        host=args.host,
-        port=args.port,
-        allow_remote=args.allow_remote,
-        token=args.token,
-        max_open=args.max_open,
-        idle_close=args.idle_close,
-        finished_close=args.finished_close,
-        population=population,
+        new=NewSessions(args.queries, args.seed, args.levels, not args.no_ties, population),
+        listen=Listen(args.host, args.port, args.allow_remote, args.token),
+        limits=PoolLimits(max_open=args.max_open, idle_close=args.idle_close, finished_close=args.finished_close),
     )
     return 0

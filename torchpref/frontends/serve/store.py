@@ -29,6 +29,7 @@ import re
 import secrets
 import threading
 import warnings
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -37,6 +38,7 @@ import torch
 from torchpref.data.queries import InvalidAnswer, Query, RankingQuery, RatingQuery
 from torchpref.frontends.serve.errors import AnswerRefused
 from torchpref.frontends.serve.items import ServeItems
+from torchpref.population.model import Population
 from torchpref.selection.strategies import UCBC
 from torchpref.sessions.errors import SessionFileError
 from torchpref.sessions.records import AnswerRecord
@@ -62,6 +64,39 @@ pictures decoded and when it was answered."""
 LEVEL_WORDS = {1: "unacceptable", 2: "poor", 3: "fair", 4: "good", 5: "excellent"}
 
 
+@dataclass(frozen=True)
+class NewSessions:
+    """The settings of each new participant's session (:class:`SessionStore`, :func:`~torchpref.serve`).
+
+    Attributes:
+        num_queries: the questions each participant is asked.
+        seed: the sessions' seed (each session's queries draw from it and its number).
+        num_levels: ratings on a ``1..K`` scale (``None``: ``[0, 1]``).
+        ties: offer "no preference" in the best-of-m questions.
+        population: a :class:`~torchpref.Population` each new session starts from (docs/population.md).
+    """
+
+    num_queries: int = 14
+    seed: int = 0
+    num_levels: int | None = 5
+    ties: bool = True
+    population: Population | None = None
+
+    @classmethod
+    def of(cls, given: NewSessions | None, keywords: dict[str, Any], where: str) -> NewSessions:
+        """``given`` (default: the defaults) with ``keywords`` (this class's fields) overriding it.
+
+        Raises:
+            TypeError: a keyword that is not a field, naming ``where`` and the fields.
+        """
+        names = [f.name for f in fields(cls)]
+        unknown = sorted(set(keywords) - set(names))
+        if unknown:
+            raise TypeError(f"{where} got unexpected keyword argument(s) {', '.join(unknown)}; "
+                            f"each new session's settings are {', '.join(names)} (NewSessions).")  # fmt: skip
+        return replace(given if given is not None else cls(), **keywords)
+
+
 def make_qid(sid: str, position: int, items: list | None) -> str:
     """The id of the question asked in session ``sid`` after ``position`` records, on ``items``."""
     digest = hashlib.sha256(json.dumps([sid, position, items]).encode()).hexdigest()[:16]
@@ -76,7 +111,8 @@ class SessionStore:
         directory: where the session files are (created if missing); ``None`` with ``session``.
         session: serve only this session (built in Python), under the id ``sid``; no new ones.
         sid: the id of ``session`` (default: its file's name before ``.session.jsonl``, or ``session``).
-        num_queries, seed, num_levels, ties: settings of each new session (``ties``: offer "no preference").
+        new: each new session's settings (:class:`NewSessions`); its fields are also accepted as
+            keywords (``num_queries=6``), overriding it.
         limits: how many sessions stay open and for how long
             (:class:`~torchpref.frontends.serve.pool.PoolLimits`; closed ones reopen from their files).
     """
@@ -88,17 +124,15 @@ class SessionStore:
         *,
         session: PreferenceSession | None = None,
         sid: str | None = None,
-        num_queries: int = 14,
-        seed: int = 0,
-        num_levels: int | None = 5,
-        ties: bool = True,
+        new: NewSessions | None = None,
         limits: PoolLimits | None = None,
-        population: Any = None,
+        **new_settings: Any,
     ) -> None:
         from torchpref.frontends.serve.plots import Plots
         from torchpref.frontends.serve.pool import SessionPool
 
-        self.items, self.ties = items, bool(ties)
+        new = NewSessions.of(new, new_settings, "SessionStore")
+        self.items, self.ties, self.new = items, bool(new.ties), new
         self.pool = SessionPool(self._open_checked, limits)
         self.plots = Plots(items)
         self._lock = threading.Lock()
@@ -116,15 +150,15 @@ class SessionStore:
                 raise ValueError("give a directory for the session files (or one session).")
             self.directory = Path(directory)
             self.directory.mkdir(parents=True, exist_ok=True)
-            self.num_levels = num_levels
+            self.num_levels = new.num_levels
         n = torch.unique(items.X, dim=0).shape[0]
         self._kwargs = dict(
-            seed=seed,
-            num_queries=num_queries,
-            num_levels=num_levels,
+            seed=new.seed,
+            num_queries=new.num_queries,
+            num_levels=new.num_levels,
             names=items.names,
             metadata={**items.metadata, "front_end": "serve"},
-            population=population,
+            population=new.population,
         )
         self._ranking_size = default_ranking_size(n)
 
