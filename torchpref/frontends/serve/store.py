@@ -340,21 +340,23 @@ class SessionStore:
             return self.state(entry)
 
     def _checked_answer(self, entry: _Entry, q: Query, answer: Any) -> Any:
-        """The JSON ``answer`` to ``q`` as the session takes it; raises
-        :class:`~torchpref.data.queries.InvalidAnswer`. The query's own validation decides, after
-        what only JSON adds: a level is a JSON integer (``3.0`` is not level 3, so a retry sent as
-        ``3.0`` is not taken for the answer ``3``), and "no preference" only where it is offered."""
+        """The JSON ``answer`` to ``q``, checked only for what JSON adds (raising
+        :class:`~torchpref.data.queries.InvalidAnswer`): a level or a chosen option is a JSON
+        integer (``3.0`` is not level 3, so a retry sent as ``3.0`` is not taken for the answer
+        ``3``), and "no preference" only where it is offered. Its range is the session's to check, once
+        (:meth:`~torchpref.PreferenceSession.tell` through the query's own validation)."""
         if isinstance(q, RankingQuery):
             if answer is None and not self.ties:
                 raise InvalidAnswer("'no preference' is not offered here: pick one option.")
-            return q.validate_answer(answer, no_preference=True)
-        k = entry.session.num_levels
-        if k is not None:
-            if not _is_int(answer):
-                raise InvalidAnswer(f"a rating must be a whole level in 1..{k}, got {answer!r:.40}.")
-            q.validate_answer(answer, k)
+            if answer is not None and not _is_int(answer):
+                raise InvalidAnswer(
+                    f"a choice must be the chosen option's number (a JSON integer), got {answer!r:.40}."
+                )
             return answer
-        return q.validate_answer(answer)
+        k = entry.session.num_levels
+        if k is not None and not _is_int(answer):
+            raise InvalidAnswer(f"a rating must be a whole level in 1..{k}, got {answer!r:.40}.")
+        return answer
 
     def _not_current(self, entry: _Entry, body: dict) -> dict:
         """The answer names another question than the current one: a repeat of the last answer
