@@ -212,6 +212,12 @@ def _serve_parser(sub) -> None:
         help="a saved population (torchpref.save_population) each new session starts from (docs/population.md)",
     )
     sv.add_argument("--queries", type=positive_int, default=14, help="questions per session (default 14)")
+    sv.add_argument(
+        "--question-list",
+        metavar="FILE",
+        help="ask only these questions (the format of elicit's --question-list: one per line, the items' "
+        "0-based row numbers, comma-separated; one row: rate it, several: pick the best of them)",
+    )
     sv.add_argument("--levels", type=positive_int, default=5, help="rating levels 1..K (default 5)")
     sv.add_argument("--no-ties", action="store_true", help="no 'no preference' button")
     sv.add_argument("--seed", type=int, default=0, help="seed of new sessions (and of the lake; default 0)")

@@ -502,3 +502,27 @@ def test_serve_settings_are_grouped_and_keywords_override_them():
 def test_session_store_names_an_unknown_setting(tmp_path):
     with pytest.raises(TypeError, match="seeed.*NewSessions"):
         SessionStore(_items(), tmp_path, seeed=3)
+
+
+def test_serve_asks_only_from_a_question_list(tmp_path):
+    """``serve --question-list``: every new session asks from the list (and resumes with it)."""
+    from torchpref.sessions.query_list import read_question_list
+
+    items = _items()
+    qfile = tmp_path / "q.txt"
+    qfile.write_text("0, 1, 2\n3\n4, 5\n6\n")
+    queries = tuple(read_question_list(qfile, items.X))
+    allowed = [sorted([0, 1, 2]), [3], sorted([4, 5]), [6]]
+    store = SessionStore(items, tmp_path / "s", num_queries=4, queries=queries)
+    c = _client(store)
+    sid = c.post("/api/new", json={}).json()["sid"]
+    for _ in range(4):
+        st = c.get(f"/s/{sid}/state").json()
+        shown = sorted(o["index"] for o in st["question"]["options"])
+        assert shown in allowed, shown
+        assert (
+            c.post(f"/s/{sid}/answer", json={"qid": st["qid"], "answer": _answer_for(st["question"])}).status_code
+            == 200
+        )
+    header = json.loads(store.path(sid).read_text().splitlines()[0])
+    assert sorted(sorted(q[1:]) for q in header["queries"]) == sorted(allowed)

@@ -30,9 +30,10 @@ import torch
 from torch import Tensor
 
 from torchpref.data.features import FeaturesError, printable, read_features_csv
-from torchpref.data.queries import Query, RankingQuery, RatingQuery, first_unique_rows
+from torchpref.data.queries import Query, RankingQuery, first_unique_rows
 from torchpref.selection.defaults import default_selector
 from torchpref.sessions.errors import SessionFileCorrupt, SessionFileError, SessionMismatchError
+from torchpref.sessions.query_list import read_question_list
 from torchpref.sessions.session import PreferenceSession, read_session_file
 
 if TYPE_CHECKING:
@@ -331,30 +332,9 @@ def _open_session(
 
 
 def question_list(path: str | None, X: torch.Tensor) -> list[Query] | None:
-    """The questions of ``--question-list``: per line, comma-separated 0-based rows of ``X`` (one:
-    a rating, several: a best-of). ``None`` without a file.
-
-    Raises:
-        SessionFileError: a line that is not row numbers of ``X`` (naming it).
-    """
-    if path is None:
-        return None
-    out: list[Query] = []
-    for n, line in enumerate(Path(path).read_text().splitlines(), start=1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        try:
-            rows = [int(t) for t in line.replace(";", ",").split(",") if t.strip()]
-            if not rows or not all(0 <= r < X.shape[0] for r in rows) or len(set(rows)) != len(rows):
-                raise ValueError
-        except ValueError:
-            raise SessionFileError(
-                f"{path} line {n}: {line.strip()!r:.60} is not distinct row numbers 0..{X.shape[0] - 1}."
-            ) from None
-        out.append(RatingQuery(X[rows[0]]) if len(rows) == 1 else RankingQuery(X[rows]))
-    if not out:
-        raise SessionFileError(f"{path} lists no questions.")
-    return out
+    """The questions of ``--question-list`` (:func:`~torchpref.sessions.query_list.read_question_list`),
+    ``None`` without a file."""
+    return None if path is None else read_question_list(path, X)
 
 
 def _file_seed(path: Path | None) -> int | None:

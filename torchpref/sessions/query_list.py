@@ -9,18 +9,19 @@ its kind and pool rows (``"queries"``), so a resumed session asks from the same 
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from torchpref.data.files import read_regular_text
 from torchpref.data.queries import Query, RankingQuery, RatingQuery
-from torchpref.sessions.errors import (
-    SessionMismatchError,
-)
+from torchpref.sessions.errors import SessionFileError, SessionMismatchError
 
 __all__ = [
+    "read_question_list",
     "check_pool_rows",
     "pool_rows_of",
     "queries_of_spec",
@@ -99,3 +100,35 @@ def check_pool_rows(pool: Tensor | None, items: Tensor, rows: list[int]) -> None
             f"the query's items are not this session's pool rows {rows}: a query of another "
             "session, or one edited after ask()."
         )
+
+
+def read_question_list(path: str | os.PathLike[str], X: Tensor) -> list[Query]:
+    """The questions of a question-list file (``elicit``'s and ``serve``'s ``--question-list``):
+    per line, comma-separated 0-based rows of ``X`` (one: a rating, several: a best-of); blank
+    lines and lines starting with ``#`` are skipped.
+
+    Raises:
+        FileNotFoundError: no such file.
+        SessionFileError: not a regular file (a FIFO is refused without blocking), too large, or a
+            line that is not distinct row numbers of ``X`` (naming it).
+    """
+    try:
+        text = read_regular_text(path, "question list", max_bytes=8 * 2**20)
+    except ValueError as err:
+        raise SessionFileError(str(err)) from None
+    out: list[Query] = []
+    for n, line in enumerate(text.splitlines(), start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        try:
+            rows = [int(t) for t in line.replace(";", ",").split(",") if t.strip()]
+            if not rows or not all(0 <= r < X.shape[0] for r in rows) or len(set(rows)) != len(rows):
+                raise ValueError
+        except ValueError:
+            raise SessionFileError(
+                f"{path} line {n}: {line.strip()!r:.60} is not distinct row numbers 0..{X.shape[0] - 1}."
+            ) from None
+        out.append(RatingQuery(X[rows[0]]) if len(rows) == 1 else RankingQuery(X[rows]))
+    if not out:
+        raise SessionFileError(f"{path} lists no questions.")
+    return out

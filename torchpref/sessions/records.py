@@ -253,10 +253,37 @@ def validate_header(path: Any, h: dict) -> None:
     if not isinstance(spec, dict) or spec.get("kind") not in ("pool", "box"):
         c.fail(f"candidates must be {{'kind': 'pool' or 'box', ...}}, got {spec!r:.120}")
     if spec["kind"] == "pool":
-        c.matrix(spec.get("items"), "candidates' items", dim)
+        pool = c.matrix(spec.get("items"), "candidates' items", dim)
     else:
         c.bounds(spec.get("bounds"), "candidates' bounds", dim)
         _Line(c.where, spec).integer("num", lo=1)
+        pool = None
+    if h.get("queries") is not None:
+        _check_question_list(c, h["queries"], pool)
+
+
+def _check_question_list(c: _Line, queries: Any, pool: list | None) -> None:
+    """A header's ``"queries"``: a non-empty list of ``["rating", row]`` or ``["ranking", row,
+    row, ...]``, rows of the pool, distinct items within a question."""
+    if pool is None:
+        c.fail("a question list ('queries') needs a pool of candidates, not a box")
+    if not isinstance(queries, list) or not queries:
+        c.fail(f"'queries' must be a non-empty list of questions, got {queries!r:.80}")
+    n = len(pool)
+    for i, q in enumerate(queries):
+        rows = q[1:] if isinstance(q, list) else []
+        ok = (
+            isinstance(q, list)
+            and q[:1] in (["rating"], ["ranking"])
+            and all(isinstance(r, int) and not isinstance(r, bool) and 0 <= r < n for r in rows)
+            and (len(rows) == 1 if q[0] == "rating" else len(rows) >= 2)
+            and len({tuple(pool[r]) for r in rows}) == len(rows)
+        )
+        if not ok:
+            c.fail(
+                f"queries[{i}] must be ['rating', row] or ['ranking', row, row, ...] with rows of distinct "
+                f"items in 0..{n - 1}, got {q!r:.80}"
+            )
 
 
 def _check_answer(c: _Line, rec: dict, header: dict) -> None:

@@ -536,10 +536,15 @@ def run(args: Any) -> int:
         from torchpref.population.io import load_population
 
         population = load_population(args.population, dim=items.X.shape[-1], names=items.names)
+    queries = None
+    if getattr(args, "question_list", None) is not None:
+        from torchpref.sessions.query_list import read_question_list
+
+        queries = tuple(read_question_list(args.question_list, items.X))
     serve(
         items,
         sessions=args.sessions,
-        new=NewSessions(args.queries, args.seed, args.levels, not args.no_ties, population),
+        new=NewSessions(args.queries, args.seed, args.levels, not args.no_ties, population, queries),
         listen=Listen(args.host, args.port, args.allow_remote, args.token),
         limits=PoolLimits(max_open=args.max_open, idle_close=args.idle_close, finished_close=args.finished_close),
     )

@@ -39,10 +39,9 @@ from torchpref.data.queries import InvalidAnswer, Query, RankingQuery, RatingQue
 from torchpref.frontends.serve.errors import AnswerRefused
 from torchpref.frontends.serve.items import ServeItems
 from torchpref.population.model import Population
-from torchpref.selection.strategies import UCBC
 from torchpref.sessions.errors import SessionFileError
 from torchpref.sessions.records import AnswerRecord
-from torchpref.sessions.session import PreferenceSession, default_ranking_size
+from torchpref.sessions.session import PreferenceSession
 
 if TYPE_CHECKING:
     from torchpref.frontends.serve.pool import PoolEntry as _Entry
@@ -74,6 +73,8 @@ class NewSessions:
         num_levels: ratings on a ``1..K`` scale (``None``: ``[0, 1]``).
         ties: offer "no preference" in the best-of-m questions.
         population: a :class:`~torchpref.Population` each new session starts from (docs/population.md).
+        queries: a fixed list of questions (rows of the items) the selector chooses among
+            (``--question-list``: :func:`~torchpref.sessions.query_list.read_question_list`).
     """
 
     num_queries: int = 14
@@ -81,6 +82,7 @@ class NewSessions:
     num_levels: int | None = 5
     ties: bool = True
     population: Population | None = None
+    queries: tuple[Query, ...] | None = None
 
     @classmethod
     def of(cls, given: NewSessions | None, keywords: dict[str, Any], where: str) -> NewSessions:
@@ -151,7 +153,6 @@ class SessionStore:
             self.directory = Path(directory)
             self.directory.mkdir(parents=True, exist_ok=True)
             self.num_levels = new.num_levels
-        n = torch.unique(items.X, dim=0).shape[0]
         self._kwargs = dict(
             seed=new.seed,
             num_queries=new.num_queries,
@@ -159,8 +160,8 @@ class SessionStore:
             names=items.names,
             metadata={**items.metadata, "front_end": "serve"},
             population=new.population,
+            queries=None if new.queries is None else list(new.queries),
         )
-        self._ranking_size = default_ranking_size(n)
 
     # ------------------------------------------------------------ sessions
     def path(self, sid: str) -> Path:
@@ -221,7 +222,9 @@ class SessionStore:
             raise
 
     def _open(self, sid: str) -> PreferenceSession:
-        kwargs = dict(self._kwargs, selector=UCBC(m=self._ranking_size), session_file=self.path(sid), repair=True)
+        # the selector: a new session's is the default (torchpref.default_selector), a resumed one's
+        # the one its header records
+        kwargs = dict(self._kwargs, session_file=self.path(sid), repair=True)
         with warnings.catch_warnings(record=True) as caught:  # a partial last line: never acknowledged
             warnings.simplefilter("always")
             session = PreferenceSession(self.items.X, **kwargs)
