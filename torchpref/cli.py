@@ -151,7 +151,13 @@ def _reproduce_parser(sub) -> None:
     rp = rep_sub.add_parser("replay", help="selectors replaying real people's recorded choices (docs/suite.md)")
     rp.add_argument("--people", type=positive_int, default=80, help="people per data set (default 80)")
     rp.add_argument("--splits", type=positive_int, default=3, help="train / held-out splits per person (default 3)")
-    rp.add_argument("--datasets", nargs="+", choices=["electricity", "rail"], default=["electricity", "rail"])
+    rp.add_argument(
+        "--datasets",
+        nargs="+",
+        choices=["electricity", "rail"],
+        default=["electricity", "rail"],
+        help="which recorded choice data sets to replay (default both; copies ship in benchmarks/)",
+    )
     rp.add_argument("--seed", type=int, default=0, help="seed of the people, splits and selectors (default 0)")
     rp.add_argument("--data", default=None, help="folder of the data (default: benchmarks/studies/data of a clone)")
     rp.add_argument("--out", default=None, help=f"output folder (default: a new folder in ./{RESULTS}/)")

@@ -526,3 +526,14 @@ def test_serve_asks_only_from_a_question_list(tmp_path):
         )
     header = json.loads(store.path(sid).read_text().splitlines()[0])
     assert sorted(sorted(q[1:]) for q in header["queries"]) == sorted(allowed)
+
+
+def test_favicon_and_a_friendly_not_found_page(served):
+    store, c, sid = served
+    r = c.get("/favicon.ico")
+    assert r.status_code == 200 and r.headers["content-type"] == "image/x-icon" and r.content[:4] == b"\x00\x00\x01\x00"
+    page = c.get("/nowhere/at/all", headers={"accept": "text/html"})
+    assert page.status_code == 404 and "Back to the start page" in page.text and 'href="/"' in page.text
+    api = c.get("/nowhere", headers={"accept": "application/json"})
+    assert api.status_code == 404 and "no page" in api.json()["error"]
+    assert "favicon.ico" in c.get(f"/s/{sid}/").text  # every page names its icon

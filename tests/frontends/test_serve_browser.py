@@ -280,6 +280,12 @@ def test_lake_page(tmp_path, browser):
         q = _state(page)["question"]
         widths = page.eval_on_selector_all("#question img.picture", "imgs => imgs.map(i => i.clientWidth)")
         assert len(widths) == len(q["options"]) == 5 and min(widths) >= 340, widths
+        # at 1280 x 900 every option's button, "no preference" and undo are in view without scrolling
+        bottoms = page.eval_on_selector_all(
+            "#question button.answer, #ties-slot button, #undo", "bs => bs.map(b => b.getBoundingClientRect().bottom)"
+        )
+        assert len(bottoms) == 7 and max(bottoms) <= 900, bottoms
+        assert page.evaluate("window.scrollY") == 0
         assert page.locator("#recommended img.picture").count() == 1  # the recommended path's map ...
         assert not page.locator("#recommended img.picture").is_visible()  # ... only when opened
         shots["serve_lake_best_of_5"] = tmp_path / "serve_lake_best_of_5.png"
@@ -300,6 +306,13 @@ def test_lake_page(tmp_path, browser):
         page.keyboard.press("Escape")
         _answer(page, 1, by_keyboard=True)
         _wait_answered(page, k + 1)
+        page.keyboard.press("u")  # the undo's confirmation is in view too
+        page.wait_for_function("document.getElementById('message').textContent.includes('withdrawn')", timeout=ACK_MS)
+        text_bottom = page.evaluate(
+            "(() => { const r = document.createRange(); r.selectNodeContents(document.getElementById('message'));"
+            " return r.getBoundingClientRect().bottom; })()"
+        )
+        assert 0 < text_bottom <= 900 and page.evaluate("window.scrollY") == 0, text_bottom
     finally:
         srv.stop()
     out = os.environ.get("TORCHPREF_SCREENSHOT_DIR")

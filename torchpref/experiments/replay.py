@@ -331,10 +331,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"{ds}: area under held-out accuracy / top-1 (p vs random, Wilcoxon over person x split)")
         for name, e in per.items():
             a, t = e["accuracy"], e["top1"]
-            print(
-                f"  {name:28s} {a['area']:.3f} (p={a.get('p', float('nan')):.3g})  {t['area']:.3f} (p={t.get('p', float('nan')):.3g})"
-            )
+            print(f"  {name:28s} {a['area']:.3f} ({_p_text(a)})  {t['area']:.3f} ({_p_text(t)})")
+        print("  (p: n/a for random itself, and where fewer than 5 paired differences are non-zero)")
     return 0
+
+
+def _p_text(entry: dict) -> str:
+    """A summary entry's p value against random, or why there is none."""
+    p = entry.get("p")
+    return "p n/a" if p is None or math.isnan(p) else f"p={p:.3g}"
 
 
 def default_name() -> str:

@@ -126,7 +126,8 @@ def plot_paths(
     draw_lake(ax, scenario)
     draw_paths(ax, paths, labels, line_width=line_width)
     ax.set_title(title)
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.06), ncol=min(2, len(paths)), fontsize=8, frameon=False)
+    if any(labels):  # unlabelled paths (a served item's map) have no legend, and no warning that it is empty
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.06), ncol=min(2, len(paths)), fontsize=8, frameon=False)
     fig.tight_layout()
     return _save(fig, path, dpi)
 

@@ -78,7 +78,7 @@ def _warn_dtype(dtype: torch.dtype) -> None:
     ``PairwiseGP``'s warning catch this one), and what it means here."""
     if dtype != torch.float64:
         botorch_text = getattr(botorch_warnings, "_get_single_precision_warning", None)
-        head = botorch_text(str(dtype)) + " " if botorch_text is not None else ""
+        head = botorch_text(str(dtype)).rstrip(". ") + ". " if botorch_text is not None else ""
         warnings.warn(
             f"{head}train_X is {dtype}; float64 is recommended (as in BoTorch). The Laplace problem is "
             "solved in float64 unless laplace_dtype says otherwise (docs/precision.md).",

@@ -117,12 +117,21 @@ def create_app(store: SessionStore, *, token: str | None = None, allowed_hosts: 
         Route("/s/{sid}/summary", h.wrap(h.summary)),
         Route("/s/{sid}/utility.png", h.wrap(h.utility_png)),
         Route("/s/{sid}/download/{what}", h.wrap(h.download)),
+        Route("/favicon.ico", _favicon),
         Mount("/static", StaticFiles(directory=HERE / "static"), name="static"),
     ]
-    app = Starlette(routes=routes)
+    app = Starlette(routes=routes, exception_handlers={404: h.not_found})
     app.state.store = store
     hosts = list(LOOPBACK_NAMES) if allowed_hosts is None else list(allowed_hosts)
     return _Guard(app, token, hosts)
+
+
+def _favicon(request):
+    """The page's icon (browsers ask for ``/favicon.ico`` on every page)."""
+    from starlette.responses import Response
+
+    data = (HERE / "static" / "favicon.ico").read_bytes()
+    return Response(data, media_type="image/x-icon", headers={"Cache-Control": "public, max-age=86400"})
 
 
 class _Handlers:
@@ -181,6 +190,15 @@ class _Handlers:
             raise AnswerRefused("the request is not JSON this server reads (nested too deeply).", 400) from None
         except (UnicodeDecodeError, ValueError) as exc:
             raise AnswerRefused(f"the request is not JSON ({str(exc)[:80]}).", 400) from None
+
+    async def not_found(self, request, exc):
+        """A wrong address: a page with the way back for a browser, JSON otherwise (404)."""
+        from starlette.responses import JSONResponse
+
+        message = "there is no page at this address."
+        if request.method == "GET" and "text/html" in request.headers.get("accept", ""):
+            return self.page("error.html", 404, message=message)
+        return JSONResponse({"error": message}, status_code=404)
 
     def index(self, request):
         store = self.store
@@ -466,7 +484,14 @@ def serve(
     before = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(threads)
-    prerender = store.items.prerender_in_background()
+    try:
+        store.items.prerender(progress=True)  # every picture drawn before the address is printed
+    except BaseException:
+        sock.close()
+        store.close()
+        torch.set_num_threads(before)
+        raise
+    prerender = store.items.prerender_in_background()  # beyond the cache's size (none for most pools)
     try:
         path = f"s/{store.sids[0]}/" if store.fixed else ""
         with quiet_resource_errors():  # out of descriptors: one log line, not a traceback a second

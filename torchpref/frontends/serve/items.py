@@ -10,7 +10,10 @@ matplotlib's state is shared by threads.
 
 from __future__ import annotations
 
+import hashlib
 import io
+import os
+import sys
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -20,8 +23,10 @@ from typing import Any
 
 import torch
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from torchpref.data.features import FeaturesError, printable, read_features_csv
+from torchpref.version import __version__
 
 __all__ = ["IMAGE_TYPES", "PLOT_LOCK", "ServeItems", "items_from_csv", "lake_items", "picture_bytes"]
 
@@ -76,6 +81,8 @@ class ServeItems:
         render: ``render(item, index) -> picture`` (see :func:`picture_bytes`), or ``None``.
         noun: what an item is called on the page ("item", "path").
         metadata: stored in each new session file's header.
+        picture_dir: a folder where drawn PNG pictures are kept between runs (``None``: none); its
+            name must change whenever the pictures would (the lake's names the scenario and version).
     """
 
     X: Tensor
@@ -84,6 +91,7 @@ class ServeItems:
     render: Callable[[Tensor, int], Any] | None = None
     noun: str = "item"
     metadata: dict = field(default_factory=dict)
+    picture_dir: Path | None = None
 
     def __post_init__(self) -> None:
         X = torch.as_tensor(self.X, dtype=torch.float64)
@@ -111,6 +119,57 @@ class ServeItems:
     def has_pictures(self) -> bool:
         """Whether items have pictures (a render function or image files)."""
         return self.render is not None
+
+    def prerender(self, progress: bool = True) -> None:
+        """Make every item's picture (up to the cache's size) now, one at a time, with a progress
+        bar on standard error when there is anything to draw: ``serve`` does this before it prints
+        its address, so that no participant waits for a picture. Pictures kept in
+        :attr:`picture_dir` by an earlier run are read, not drawn."""
+        if self.render is None:
+            return
+        count = min(len(self), CACHE_SIZE)
+        todo = [i for i in range(count) if not self._on_disk(i)]
+        if todo and progress:
+            where = f"; kept in {self.picture_dir} for the next start" if self.picture_dir is not None else ""
+            print(f"torchpref serve: drawing {len(todo)} pictures before the page opens{where}", file=sys.stderr)
+        bar = tqdm(todo, desc="pictures", unit="pic", file=sys.stderr, disable=not (todo and progress))
+        for i in bar:
+            try:
+                self.picture(i)
+            except Exception:  # a bad picture is reported when it is asked for (a 404)
+                continue
+        for i in range(count):  # those kept on disk, into memory
+            try:
+                self.picture(i)
+            except Exception:
+                continue
+
+    def _disk_path(self, i: int) -> Path | None:
+        return None if self.picture_dir is None else Path(self.picture_dir) / f"{i}.png"
+
+    def _on_disk(self, i: int) -> bool:
+        path = self._disk_path(i)
+        return path is not None and path.is_file()
+
+    def _from_disk(self, i: int) -> tuple[bytes, str] | None:
+        path = self._disk_path(i)
+        try:
+            data = path.read_bytes() if path is not None else b""
+        except OSError:
+            return None
+        return (data, "image/png") if data.startswith(b"\x89PNG\r\n\x1a\n") else None
+
+    def _to_disk(self, i: int, value: tuple[bytes, str] | None) -> None:
+        path = self._disk_path(i)
+        if path is None or value is None or value[1] != "image/png":
+            return
+        try:  # kept only to start faster next time: a folder that cannot be written is no error
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+            tmp.write_bytes(value[0])
+            os.replace(tmp, path)
+        except OSError:
+            pass
 
     def prerender_in_background(self) -> threading.Event:
         """Make every item's picture (up to the cache's size) in a daemon thread, one at a time,
@@ -141,7 +200,10 @@ class ServeItems:
             if i in self._cache:
                 self._cache.move_to_end(i)
                 return self._cache[i]
-            value = picture_bytes(self.render(self.X[i], i))
+            value = self._from_disk(i)
+            if value is None:
+                value = picture_bytes(self.render(self.X[i], i))
+                self._to_disk(i, value)
             self._cache[i] = value
             while len(self._cache) > CACHE_SIZE:
                 self._cache.popitem(last=False)
@@ -234,7 +296,7 @@ def lake_items(seed: int = 0) -> ServeItems:
     its map (:func:`torchpref.lake.plotting.plot_paths`, a wide line at 120 dpi); the scenario is
     cached on disk."""
     from torchpref.lake.plotting import plot_paths
-    from torchpref.lake.scenario import cached_scenario
+    from torchpref.lake.scenario import cached_scenario, default_cache_dir
 
     scenario = cached_scenario(seed, progress=True)
 
@@ -248,6 +310,7 @@ def lake_items(seed: int = 0) -> ServeItems:
             return out.read_bytes()
 
     labels = [f"path {i}" for i in range(scenario.train_X.shape[0])]
+    digest = hashlib.sha256(scenario.train_X.numpy().tobytes()).hexdigest()[:12]
     return ServeItems(
         scenario.train_X,
         ["distance", "information"],
@@ -255,4 +318,5 @@ def lake_items(seed: int = 0) -> ServeItems:
         render=render,
         noun="path",
         metadata={"world": "lake", "lake_seed": seed},
+        picture_dir=default_cache_dir() / f"pictures-{seed}-{digest}-{__version__}",
     )

@@ -51,7 +51,9 @@
 
   function card(o, title, button) {
     const rows = o.features.map(([n, v]) => el("tr", {}, el("td", {}, n), el("td", {}, v)));
-    const c = el("div", { class: "option" }, el("h3", {}, title));
+    const head = el("div", { class: "card-head" }, el("h3", {}, title));
+    if (button) head.append(button); // the answer beside the title: the card's height is its picture's
+    const c = el("div", { class: "option" }, head);
     if (o.picture) {
       const img = el("img", { src: o.picture, alt: "picture of " + o.label, class: "picture" });
       const zoom = el("button", { type: "button", class: "enlarge", title: "Enlarge (click, or Shift + its letter)",
@@ -60,7 +62,6 @@
       c.append(zoom);
     }
     c.append(el("table", { class: "features" }, el("tbody", {}, ...rows)));
-    if (button) c.append(button);
     return c;
   }
 
@@ -111,7 +112,8 @@
       opts.append(card(o, `${L}: ${o.label}`, answerButton(`${L} is best`, i, `${L} or ${i + 1}`)));
     });
     box.append(opts);
-    if (q.ties) box.append(el("div", { class: "choice-row" }, answerButton("No preference (0)", null, "0 or =")));
+    // "no preference" sits in the row of undo and the messages, below the options and in view
+    if (q.ties) $("ties-slot").append(answerButton("No preference (0)", null, "0 or ="));
   }
 
   function render(s) {
@@ -120,6 +122,7 @@
     ready = false;
     const box = $("question");
     box.replaceChildren();
+    $("ties-slot").replaceChildren();
     $("progress").max = s.total;
     $("progress").value = Math.min(s.answered, s.total);
     $("undo").disabled = !s.can_undo;
@@ -162,7 +165,9 @@
   }
 
   function setEnabled(on) {
-    for (const b of document.querySelectorAll("#question button, #question input, #undo")) b.disabled = !on;
+    for (const b of document.querySelectorAll("#question button, #question input, #ties-slot button, #undo")) {
+      b.disabled = !on;
+    }
     if (on && state) $("undo").disabled = !state.can_undo;
   }
 
