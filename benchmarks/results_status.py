@@ -18,13 +18,22 @@ from torchpref.experiments.stamp import ROOT, status
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def kept_stale(folder: Path) -> dict[str, str]:
-    """``{path: reason}`` of the stale files kept on purpose (``KEPT_STALE.txt``)."""
+def kept_stale(folder: Path, complain=print) -> dict[str, str]:
+    """``{path: reason}`` of the stale files kept on purpose (``KEPT_STALE.txt``); a line that is not
+    ``path: reason`` (no colon, or no reason) keeps nothing and is named through ``complain``."""
     f = folder / "KEPT_STALE.txt"
     if not f.is_file():
         return {}
-    rows = [line.split(":", 1) for line in f.read_text().splitlines() if line.strip() and not line.startswith("#")]
-    return {k.strip(): v.strip() for k, v in rows if v}
+    kept = {}
+    for n, line in enumerate(f.read_text().splitlines(), start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        path, colon, reason = line.partition(":")
+        if not colon or not reason.strip() or not path.strip():
+            complain(f"KEPT_STALE.txt line {n} is not 'path: reason' and keeps nothing: {line.strip()[:80]!r}")
+            continue
+        kept[path.strip()] = reason.strip()
+    return kept
 
 
 def main(argv: list[str] | None = None) -> int:
