@@ -97,3 +97,15 @@ def test_large_buffers_are_recorded_by_digest():
     assert same_description(a, b)
     other = torchpref.fit_population(people[:2], fit=False)
     assert not same_description(a, describe_model(other.person_model(X)))
+
+
+def test_a_population_path_points_to_load_population(tmp_path):
+    import torch
+
+    from torchpref.sessions.session import PreferenceSession
+
+    X = torch.rand(6, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="load_population"):
+        PreferenceSession(X, population=str(tmp_path / "pop.pt"))
+    with pytest.raises(ValueError, match="load_population"):
+        PreferenceSession(X, population=tmp_path / "pop.pt")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -380,6 +381,11 @@ def population_factory(
     """
     if population is None:
         return model_factory
+    if isinstance(population, (str, bytes, os.PathLike)):
+        raise ValueError(
+            f"population must be a torchpref.Population, got the path {population!r:.80}: load a saved one "
+            "with torchpref.load_population(path) and pass that."
+        )
     if not isinstance(population, Population):
         raise ValueError(f"population must be a torchpref.Population, got {type(population).__name__}.")
     if model_factory is not None:
