@@ -40,6 +40,7 @@ LAYERS = [
     "lake",
     "experiments",
     "frontends",
+    "study",
     "integrations",
     "testing",
 ]

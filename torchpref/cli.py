@@ -42,6 +42,7 @@ NEEDS = {
     "reproduce": ("matplotlib",),  # every experiment writes figures
     "elicit lake": ("matplotlib",),  # each query shows the paths on the lake's map
     "serve": ("starlette", "uvicorn", "jinja2", "matplotlib"),  # the web page and its plots
+    "study": ("starlette", "uvicorn", "jinja2", "matplotlib"),  # the study's pages, report and plots
 }
 """Command (``"reproduce"``, or ``"elicit WORLD"``) -> the optional modules it needs, checked
 before any work starts (a missing one: one line naming the extra, exit status 3)."""
@@ -111,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     _reproduce_parser(sub)
     _elicit_parser(sub)
     _serve_parser(sub)
+    _study_parser(sub)
     return parser
 
 
@@ -227,6 +229,11 @@ def _serve_parser(sub) -> None:
     sv.add_argument("--levels", type=positive_int, default=5, help="rating levels 1..K (default 5)")
     sv.add_argument("--no-ties", action="store_true", help="no 'no preference' button")
     sv.add_argument("--seed", type=int, default=0, help="seed of new sessions (and of the lake; default 0)")
+    _network_args(sv)
+
+
+def _network_args(sv) -> None:
+    """Where a server listens and how long its sessions stay open (``serve``, ``study serve``)."""
     sv.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1 only)")
     sv.add_argument("--port", type=int, default=8000, help="port (default 8000; 0: a free one)")
     sv.add_argument("--allow-remote", action="store_true", help="allow --host other than this machine (needs a token)")
@@ -252,6 +259,38 @@ def _serve_parser(sub) -> None:
         metavar="S",
         help="the same once all its questions are answered (default 1)",
     )
+
+
+def _study_parser(sub) -> None:
+    """``torchpref study``'s commands (docs/study.md)."""
+    st = sub.add_parser("study", help="a preference study: serve participants, export, report")
+    st_sub = st.add_subparsers(dest="study_command", required=True)
+    sv = st_sub.add_parser("serve", help="serve a study's participants (the population is refitted as they finish)")
+    sv.add_argument("folder", metavar="DIR", help="the study's folder (created with its first serve)")
+    sv.add_argument("world", nargs="?", metavar="WORLD", help="a built-in world to serve: lake")
+    sv.add_argument("--features", help="CSV of items' objective values (as for elicit; copied into the study)")
+    sv.add_argument("--id", dest="id_column", metavar="COLUMN", help="the CSV column that names the items")
+    sv.add_argument("--image-column", metavar="COLUMN", help="the CSV column naming each item's image file")
+    sv.add_argument("--image-dir", metavar="DIR", help="the folder of the images (default: the CSV's folder)")
+    sv.add_argument("--queries", type=positive_int, default=14, help="questions per participant (default 14)")
+    sv.add_argument("--levels", type=positive_int, default=5, help="rating levels 1..K (default 5)")
+    sv.add_argument("--no-ties", action="store_true", help="no 'no preference' button")
+    sv.add_argument("--seed", type=int, default=0, help="seed of the sessions (and of the lake; default 0)")
+    sv.add_argument(
+        "--refit-timeout",
+        type=seconds,
+        default=600.0,
+        metavar="S",
+        help="a population refit running longer is stopped; the previous population stays (default 600)",
+    )
+    _network_args(sv)
+    for name, what in (
+        ("export", "write the answers, participants and population as CSV"),
+        ("report", "write report.html"),
+    ):
+        p = st_sub.add_parser(name, help=what)
+        p.add_argument("folder", metavar="DIR", help="the study's folder")
+        p.add_argument("--out", default=None, help="where to write (default: DIR/exports)")
 
 
 def seconds_since_start() -> float:
@@ -405,6 +444,37 @@ def _serve(args) -> int:
     return int(_import(SERVE).run(args) or 0)
 
 
+def _study(args) -> int:
+    if args.study_command == "serve":
+        _check_world(args.world, args.features)
+        study_json = Path(args.folder) / "study.json"
+        if args.world is not None and args.features is not None:
+            raise UsageError("give either a world (lake) or --features FILE, not both")
+        if args.world is None and args.features is None and not study_json.is_file():
+            raise UsageError("a new study needs its items: a world (lake) or --features FILE")
+        if args.world is None and args.features is None:  # an existing study: its own items
+            import json
+
+            settings = json.loads(study_json.read_text())
+            args.world = settings.get("world")
+            if args.world is None:
+                args.features = str(Path(args.folder) / "items.csv")
+        if args.levels < 2:
+            raise UsageError(f"--levels must be at least 2, got {args.levels}")
+        return int(_import("torchpref.study.server").run(args) or 0)
+    from torchpref.study.folder import StudyFolder
+
+    folder = StudyFolder(Path(args.folder))
+    folder.settings()  # a folder that is not a study: said before anything is written
+    out = None if args.out is None else writable_folder(args.out, "--out")
+    if args.study_command == "export":
+        for f in _import("torchpref.study.export").export(folder, out):
+            print(f"wrote {f}")
+        return 0
+    print(f"wrote {_import('torchpref.study.report').report(folder, None if out is None else out / 'report.html')}")
+    return 0
+
+
 def _missing_extra(args: argparse.Namespace) -> str | None:
     """The one-line message for an optional module the command needs and does not find, or ``None``."""
     from torchpref.extras import missing
@@ -441,6 +511,8 @@ def _main(argv: list[str] | None) -> int:
             return MISSING_EXTRA
         if args.command == "serve":
             return _serve(args)
+        if args.command == "study":
+            return _study(args)
         return _reproduce(args) if args.command == "reproduce" else _elicit(args)
     except KeyboardInterrupt:
         print(f"\n{command}: interrupted", file=sys.stderr)

@@ -487,7 +487,8 @@ def test_command_line_names_the_missing_extra(tmp_path, monkeypatch, capsys):
 
 
 def test_serve_settings_are_grouped_and_keywords_override_them():
-    from torchpref.frontends.serve.app import Listen, NewSessions, PoolLimits, _grouped
+    from torchpref.frontends.serve.app import Listen, NewSessions, PoolLimits
+    from torchpref.frontends.serve.options import grouped as _grouped
 
     new, listen, limits = _grouped(
         {"num_queries": 6, "port": 0, "max_open": 3}, NewSessions(seed=4), Listen(host="localhost"), None

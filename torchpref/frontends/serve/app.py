@@ -34,7 +34,6 @@ import secrets
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +49,7 @@ from torchpref.frontends.serve.net import (  # noqa: F401  (HEADER_TIMEOUT_S, MA
     listening_socket,
     uvicorn_server,
 )
+from torchpref.frontends.serve.options import Listen, ServeItemsSpec, grouped
 from torchpref.frontends.serve.pool import PoolLimits
 from torchpref.frontends.serve.store import AnswerRefused, NewSessions, SessionStore
 from torchpref.sessions.session import PreferenceSession
@@ -89,7 +89,13 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-def create_app(store: SessionStore, *, token: str | None = None, allowed_hosts: list[str] | None = None) -> Any:
+def create_app(
+    store: SessionStore,
+    *,
+    token: str | None = None,
+    allowed_hosts: list[str] | None = None,
+    extra_routes: list | None = None,
+) -> Any:
     """The ASGI application over ``store`` (Starlette, wrapped in the Host / token / headers guard).
 
     Args:
@@ -97,6 +103,7 @@ def create_app(store: SessionStore, *, token: str | None = None, allowed_hosts: 
         token: if given, every request must carry it (``?token=`` once, then a cookie).
         allowed_hosts: the host names a request's ``Host`` may name (default: the loopback names);
             ``["*"]`` for any (only with a token).
+        extra_routes: more Starlette routes (the study's experimenter page), before the static files.
     """
     _require()
     from starlette.applications import Starlette
@@ -118,6 +125,7 @@ def create_app(store: SessionStore, *, token: str | None = None, allowed_hosts: 
         Route("/s/{sid}/utility.png", h.wrap(h.utility_png)),
         Route("/s/{sid}/download/{what}", h.wrap(h.download)),
         Route("/favicon.ico", _favicon),
+        *(extra_routes or []),
         Mount("/static", StaticFiles(directory=HERE / "static"), name="static"),
     ]
     app = Starlette(routes=routes, exception_handlers={404: h.not_found})
@@ -237,6 +245,7 @@ class _Handlers:
         self.store.plots.prefetch_state(result)  # queued only: no picture or plot delays this reply
         if result["done"]:
             self.store.plots.prerender(self.store, result["sid"])
+            self.store.on_finished(result["sid"])
         return JSONResponse(result, headers={"Server-Timing": f"answer;dur={ms:.2f}"})
 
     async def undo(self, request):
@@ -384,41 +393,6 @@ def _check_network(host: str, port: int, allow_remote: bool, token: str | None) 
     return token
 
 
-@dataclass(frozen=True)
-class Listen:
-    """Where :func:`serve` listens: ``host`` and ``port`` (``port=0``: a free one); another host
-    than the loopback needs ``allow_remote=True`` and a ``token`` (one is made and printed if not
-    given)."""
-
-    host: str = "127.0.0.1"
-    port: int = 8000
-    allow_remote: bool = False
-    token: str | None = None
-
-
-def _grouped(
-    settings: dict[str, Any], new: NewSessions | None, listen: Listen | None, limits: PoolLimits | None
-) -> tuple[NewSessions, Listen, PoolLimits]:
-    """:func:`serve`'s keyword settings sorted into their groups, each overriding the group given.
-
-    Raises:
-        TypeError: a keyword of no group, naming it.
-    """
-    groups: list[Any] = [NewSessions, Listen, PoolLimits]
-    given: list[Any] = [new, listen, limits]
-    out = []
-    for cls, group in zip(groups, given, strict=True):
-        names = {f.name for f in fields(cls)}
-        mine = {k: settings.pop(k) for k in list(settings) if k in names}
-        out.append(replace(group if group is not None else cls(), **mine))
-    if settings:
-        raise TypeError(
-            f"serve() got unexpected keyword argument(s) {', '.join(sorted(settings))}; its settings are "
-            "those of NewSessions, Listen and PoolLimits."
-        )
-    return out[0], out[1], out[2]
-
-
 def serve(
     source: PreferenceSession | Tensor | ServeItems,
     *,
@@ -466,19 +440,50 @@ def serve(
         ServeError: unsafe or impossible network settings. ImportError: the ``serve`` extra is missing.
     """
     _require()
+
+    new, listen, limits = grouped(dict(settings), new, listen, limits)
+    serve_store(
+        lambda: _store(source, ServeItemsSpec(render, names, labels, noun), sessions, new, limits),
+        listen,
+        threads,
+        ready,
+    )
+
+
+def serve_store(
+    make_store: Callable[[], SessionStore],
+    listen: Listen,
+    threads: int | None = 1,
+    ready: Callable[[str], None] | None = None,
+    extra_routes: Callable[[SessionStore], list] | None = None,
+    started: Callable[[SessionStore, str], None] | None = None,
+) -> None:
+    """Serve the store ``make_store()`` builds (after the network settings are checked and the
+    port is taken) until interrupted: the pictures drawn first, then the address printed.
+    ``extra_routes(store)``: more routes (the study's page); ``started(store, url)``: called once
+    the server listens (the study prints its experimenter link). Used by :func:`serve` and
+    ``torchpref study serve``."""
     from torchpref.frontends.serve.pool import quiet_resource_errors
 
-    new, listen, limits = _grouped(dict(settings), new, listen, limits)
     token = _check_network(listen.host, listen.port, listen.allow_remote, listen.token)
     sock = listening_socket(listen.host, listen.port)  # a busy port is named before any work
     try:
-        store = _store(source, ServeItemsSpec(render, names, labels, noun), sessions, new, limits)
+        store = make_store()
     except BaseException:
         sock.close()
         raise
     host = listen.host
     hosts = ["*"] if not _is_loopback(host) else [*LOOPBACK_NAMES, _shown_host(host)]
-    app = create_app(store, token=token, allowed_hosts=hosts)
+    routes = extra_routes(store) if extra_routes is not None else None
+    app = create_app(store, token=token, allowed_hosts=hosts, extra_routes=routes)
+    if started is not None:
+        inner = ready
+
+        def ready(url: str) -> None:
+            started(store, url)
+            if inner is not None:
+                inner(url)
+
     import torch
 
     before = torch.get_num_threads()
@@ -501,16 +506,6 @@ def serve(
         sock.close()
         store.close()
         torch.set_num_threads(before)
-
-
-@dataclass(frozen=True)
-class ServeItemsSpec:
-    """How :func:`serve` shows items given as a tensor or a session: their pictures, names and labels."""
-
-    render: Callable | None = None
-    names: list[str] | None = None
-    labels: list[str] | None = None
-    noun: str = "item"
 
 
 def _store(

@@ -221,10 +221,17 @@ class SessionStore:
                 raise _storage_refused(err, f"session {sid} cannot be opened") from None
             raise
 
+    def on_finished(self, sid: str) -> None:
+        """Called when session ``sid``'s last question is answered (a study refits its population)."""
+
+    def session_settings(self, sid: str) -> dict:
+        """The settings session ``sid`` is opened (or created) with."""
+        return dict(self._kwargs)
+
     def _open(self, sid: str) -> PreferenceSession:
         # the selector: a new session's is the default (torchpref.default_selector), a resumed one's
         # the one its header records
-        kwargs = dict(self._kwargs, session_file=self.path(sid), repair=True)
+        kwargs = dict(self.session_settings(sid), session_file=self.path(sid), repair=True)
         with warnings.catch_warnings(record=True) as caught:  # a partial last line: never acknowledged
             warnings.simplefilter("always")
             session = PreferenceSession(self.items.X, **kwargs)

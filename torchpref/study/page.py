@@ -1,0 +1,150 @@
+r"""The experimenter's page of a study (``/study/``): the participants with their progress, answers
+and seconds, the current population's utility and spread, the refit history, and downloads of
+the exports and the report. Reached only with the study's key: ``/study/?key=KEY`` once (the key
+becomes a cookie of that path), never with a participant's link; anything else under ``/study/``
+is a 403.
+"""
+
+from __future__ import annotations
+
+import hmac
+import html
+import io
+from typing import Any
+
+from torchpref.study.export import export, participant_rows, study_items
+from torchpref.study.folder import StudyFolder
+from torchpref.study.report import report
+from torchpref.study.store import StudyStore
+
+__all__ = ["KEY_COOKIE", "study_routes"]
+
+KEY_COOKIE = "torchpref_study"
+DOWNLOADS = {
+    "answers.csv": "text/csv",
+    "participants.csv": "text/csv",
+    "population_utility.csv": "text/csv",
+    "report.html": "text/html",
+}
+
+
+def _allowed(request: Any, key: str) -> bool:
+    given = request.cookies.get(KEY_COOKIE, "")
+    return bool(given) and hmac.compare_digest(given.encode(), key.encode())
+
+
+def study_routes(store: StudyStore, key: str) -> list:
+    """The page's Starlette routes over ``store`` (a study's), guarded by ``key``."""
+    from starlette.concurrency import run_in_threadpool
+    from starlette.responses import HTMLResponse, PlainTextResponse, RedirectResponse, Response
+    from starlette.routing import Route
+
+    folder = store.folder
+    pngs: dict[int, bytes] = {}
+
+    def guarded(fn):
+        async def handler(request):
+            given = request.query_params.get("key")
+            if given is not None and hmac.compare_digest(given.encode(), key.encode()):
+                response = RedirectResponse(request.url.path, 303)
+                response.set_cookie(KEY_COOKIE, key, httponly=True, samesite="strict", path="/study/")
+                return response
+            if not _allowed(request, key):
+                return PlainTextResponse("the experimenter's page needs the study's key (?key=...).", 403)
+            return await run_in_threadpool(fn, request)
+
+        return handler
+
+    def page(request):
+        return HTMLResponse(_page(folder, store))
+
+    def population_png(request):
+        pointer = folder.current()
+        if pointer is None:
+            return PlainTextResponse("no population yet", 404)
+        v = int(pointer["version"])
+        if v not in pngs:
+            pngs[v] = _population_png(folder, v)
+        return Response(pngs[v], media_type="image/png", headers={"Cache-Control": "no-store"})
+
+    def download(request):
+        what = request.path_params["what"]
+        if what not in DOWNLOADS:
+            return PlainTextResponse("no such download", 404)
+        if what == "report.html":
+            path = report(folder)
+        else:
+            export(folder)
+            path = folder.exports / what
+        headers = {"Content-Disposition": f'attachment; filename="{what}"'}
+        return Response(path.read_bytes(), media_type=DOWNLOADS[what], headers=headers)
+
+    return [
+        Route("/study", lambda r: RedirectResponse("/study/" + (f"?{r.url.query}" if r.url.query else ""), 307)),
+        Route("/study/", guarded(page)),
+        Route("/study/population.png", guarded(population_png)),
+        Route("/study/download/{what}", guarded(download)),
+    ]
+
+
+def _population_png(folder: StudyFolder, version: int) -> bytes:
+    import torch
+    from matplotlib.figure import Figure
+
+    X, names = study_items(folder)
+    pop = folder.population(version, names=names)
+    assert pop is not None
+    with torch.no_grad():
+        post = pop.person_model(X).posterior(X.unsqueeze(-2))
+    mean, sd = post.mean.reshape(-1), post.variance.reshape(-1).clamp_min(0).sqrt()
+    fig = Figure(figsize=(9, 3.6))
+    ax = fig.subplots(1, 2)
+    y = X[:, 1] if X.shape[1] > 1 else torch.zeros(X.shape[0])
+    for a, v, title in ((ax[0], mean, "mean utility"), (ax[1], sd, "spread (sd)")):
+        sc = a.scatter(X[:, 0], y, c=v, cmap="viridis", s=22)
+        fig.colorbar(sc, ax=a, label=title)
+        a.set(xlabel=names[0], ylabel=names[1] if len(names) > 1 else "", title=f"population v{version}: {title}")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def _page(folder: StudyFolder, store: StudyStore) -> str:
+    esc = html.escape
+    people = participant_rows(folder)
+    pointer = folder.current()
+    events = [e for e in folder.events() if e.get("event") in ("refit", "refit failed", "refit stopped", "finished")]
+    rows = "".join(
+        f"<tr><td>{esc(str(p['participant']))}</td><td>{p['answers']} / {p['questions']}</td>"
+        f"<td>{'yes' if p['finished'] else 'no'}</td><td>{p['median_seconds']}</td>"
+        f"<td>{esc(str(p['last_answer']))}</td><td>{p['population_version']}</td></tr>"
+        for p in people
+    )
+    history = "".join(
+        f"<tr><td>{esc(e.get('time', ''))}</td><td>{esc(e['event'])}</td><td>{e.get('version', '')}</td>"
+        f"<td>{e.get('participants', e.get('participant', ''))}</td><td>{e.get('seconds', '')}</td>"
+        f"<td>{esc(str(e.get('why', '')))}</td></tr>"
+        for e in reversed(events[-200:])
+    )
+    finished = sum(p["finished"] for p in people)
+    pop = (
+        f"<p>Population v{pointer['version']}, fitted on {len(pointer['participants'])} finished participants "
+        f"in {pointer['seconds']:.1f} s ({esc(pointer['fitted_at'])}).</p>"
+        '<img id="population" src="population.png" width="810" height="324" alt="the population\'s utility and spread">'
+        if pointer
+        else "<p>No population yet: it is fitted once two participants have finished.</p>"
+    )
+    links = "".join(f'<li><a href="download/{w}">{w}</a></li>' for w in DOWNLOADS)
+    return f"""<!doctype html><html lang="en"><head><meta charset="utf-8"><meta http-equiv="refresh" content="15">
+<title>torchpref study: {esc(folder.path.name)}</title><link rel="icon" href="/static/favicon.ico">
+<link rel="stylesheet" href="/static/serve.css"></head><body><main>
+<h1>Study {esc(folder.path.name)}</h1>
+<p id="counts">{len(people)} participants, {finished} finished, {sum(p["answers"] for p in people)} answers in force;
+{"a refit is running" if store.refits.busy() else "no refit running"} (this page refreshes every 15 s).</p>
+<h2>Population</h2>{pop}
+<h2>Participants</h2><table id="participants"><thead><tr><th>participant</th><th>answers</th><th>finished</th>
+<th>median seconds</th><th>last answer</th><th>population</th></tr></thead><tbody>{rows}</tbody></table>
+<h2>Refits</h2><table id="refits"><thead><tr><th>time</th><th>event</th><th>version</th><th>participants</th>
+<th>seconds</th><th>note</th></tr></thead><tbody>{history}</tbody></table>
+<h2>Downloads</h2><ul id="downloads">{links}</ul>
+</main></body></html>"""

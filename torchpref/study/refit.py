@@ -1,0 +1,198 @@
+r"""Refitting a study's population on every finished participant, in a process of its own.
+
+``python -m torchpref.study.refit DIR`` (started by the study's server when a participant
+finishes, :class:`RefitRunner`): reads the finished participants' session files without locking
+them (the server may hold them open), builds each person's data as their session's model sees it
+(:func:`person_data`), fits the population (:func:`~torchpref.fit_population`), warm-started from
+the current population's kernels, writes it as a new version and then points ``current.json`` at
+it, each atomically: a kill at any moment leaves the previous population in force and loadable.
+One refit runs at a time (a lock file); a failure is logged and keeps the previous population.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import fcntl
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import torch
+
+from torchpref.data.preference_data import DEFAULT_RATING_EPS, PreferenceData
+from torchpref.population.fit import fit_population
+from torchpref.population.io import save_population
+from torchpref.sessions.journal import read_session_file
+from torchpref.sessions.model_state import build_data
+from torchpref.sessions.records import AnswerRecord, parse_record
+from torchpref.study.folder import StudyFolder
+
+__all__ = ["RefitRunner", "finished_participants", "person_data", "refit"]
+
+MIN_PEOPLE = 2
+"""A population is fitted once this many participants have finished."""
+WARM_MAX_ITER = 40
+"""L-BFGS iterations of a refit warm-started from the current population's kernels (100 cold)."""
+
+
+def person_data(path: Path) -> tuple[PreferenceData, dict, int]:
+    """``(data, header, answers in force)`` of a session file: the data of its answers in force in the
+    unit cube its model sees (normalised by the header's bounds, the pool's first item the anchor),
+    as :class:`~torchpref.PreferenceSession` builds it. Reads without locking."""
+    header, raw, _ = read_session_file(path)
+    if header is None:
+        raise ValueError(f"session file {path} is empty.")
+    records = [parse_record(r) for r in raw]
+    in_force: dict[int, AnswerRecord] = {}
+    for r in records:
+        if isinstance(r, AnswerRecord):
+            in_force[r.seq] = r
+        else:
+            in_force.pop(r.undoes, None)
+    lo, hi = torch.tensor(header["bounds"], dtype=torch.float64)
+    pool = torch.tensor(header["candidates"]["items"], dtype=torch.float64)
+
+    def transform(X: torch.Tensor) -> torch.Tensor:
+        return (X - lo) / (hi - lo)
+
+    data, _ = build_data(transform(pool[:1]), list(in_force.values()), transform, DEFAULT_RATING_EPS, None)
+    return data, header, len(in_force)
+
+
+def finished_participants(folder: StudyFolder) -> list[tuple[str, PreferenceData, list[str] | None]]:
+    """``(sid, data, feature names)`` of every participant with all their questions answered, by sid."""
+    out = []
+    for f in sorted(folder.sessions.glob("*.session.jsonl")):
+        try:
+            data, header, answered = person_data(f)
+        except (OSError, ValueError):  # an unreadable file is not fitted (the server reports it)
+            continue
+        if answered >= header["num_queries"] and data.num_observations:
+            out.append((f.name.split(".")[0], data, header.get("names")))
+    return out
+
+
+def refit(folder: StudyFolder, max_iter: int | None = None) -> int | None:
+    """Fit the population on every finished participant and make it current; returns its version
+    (``None``: fewer than :data:`MIN_PEOPLE` finished, or another refit holds the lock)."""
+    folder.populations.mkdir(parents=True, exist_ok=True)
+    with open(folder.populations / ".lock", "w") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return None
+        people = finished_participants(folder)
+        if len(people) < MIN_PEOPLE:
+            return None
+        t0 = time.perf_counter()
+        names = people[0][2]
+        pointer = folder.current()
+        kernels = {}
+        if pointer is not None:  # warm start: the current population's kernels
+            try:
+                prev = folder.population(pointer["version"], names=names)
+            except (OSError, ValueError):
+                prev = None
+            if prev is not None:
+                kernels = {"k_m": copy.deepcopy(prev.k_m), "k_g": copy.deepcopy(prev.k_g)}
+        iters = max_iter if max_iter is not None else (WARM_MAX_ITER if kernels else 100)
+        pop = fit_population([d for _, d, _ in people], names=names, max_iter=iters, **kernels)
+        version = folder.next_version()
+        save_population(pop, folder.version_path(version))
+        seconds = time.perf_counter() - t0
+        sids = [s for s, _, _ in people]
+        folder.set_current(version, sids, seconds)
+        folder.log("refit", version=version, participants=len(sids), seconds=round(seconds, 3), warm=bool(kernels))
+        return version
+
+
+class RefitRunner:
+    """Starts ``python -m torchpref.study.refit DIR`` in a process of its own when asked
+    (:meth:`request`), one at a time: a request while one runs makes one more run after it.
+    A refit that fails or runs past ``timeout`` seconds is logged (and killed); the previous
+    population stays current. Never blocks the caller."""
+
+    def __init__(self, folder: StudyFolder, timeout: float = 600.0, nice: int = 10):
+        self.folder, self.timeout, self.nice = folder, timeout, nice
+        self._lock = threading.Lock()
+        self._running: subprocess.Popen | None = None
+        self._pending = False
+        self.completed = 0
+
+    def request(self) -> None:
+        """Refit soon (now if none is running)."""
+        with self._lock:
+            if self._running is not None:
+                self._pending = True
+                return
+            self._start()
+
+    def _start(self) -> None:
+        log = open(self.folder.path / "refit.log", "a")
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+        self._running = subprocess.Popen(
+            [sys.executable, "-m", "torchpref.study.refit", str(self.folder.path)],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            preexec_fn=(lambda: os.nice(self.nice)) if self.nice else None,
+        )
+        log.close()
+        threading.Thread(target=self._watch, args=(self._running,), daemon=True).start()
+
+    def _watch(self, proc: subprocess.Popen) -> None:
+        try:
+            code = proc.wait(timeout=self.timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            code = None
+            self.folder.log("refit stopped", why=f"ran past {self.timeout:.0f} s; the previous population stays")
+        if code not in (0, None):
+            self.folder.log("refit failed", code=code, why="see refit.log; the previous population stays")
+        with self._lock:
+            self._running = None
+            self.completed += 1
+            if self._pending:
+                self._pending = False
+                self._start()
+
+    def busy(self) -> bool:
+        with self._lock:
+            return self._running is not None or self._pending
+
+    def close(self, wait: float = 0.0) -> None:
+        """Stop a refit still running after ``wait`` seconds (its population is not made current
+        unless it got that far: the files are written atomically)."""
+        deadline = time.monotonic() + wait
+        while self.busy() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        with self._lock:
+            self._pending = False
+            proc = self._running
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="refit a study's population on its finished participants")
+    ap.add_argument("folder", type=Path)
+    ap.add_argument("--max-iter", type=int, default=None)
+    args = ap.parse_args(argv)
+    folder = StudyFolder(args.folder)
+    try:
+        version = refit(folder, args.max_iter)
+    except Exception as exc:  # logged; the previous population stays current
+        folder.log("refit failed", why=f"{type(exc).__name__}: {str(exc)[:300]}")
+        raise
+    print(f"refit: {f'population v{version}' if version else 'nothing to fit yet'}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
