@@ -178,3 +178,34 @@ def test_person_data_matches_the_session_model(tmp_path):
     _wait(refits)
     refits.close()
     store.close()
+
+
+def test_cli_refuses_a_folder_that_is_not_a_study(tmp_path, capsys):
+    from torchpref.cli import main
+
+    assert main(["study", "export", str(tmp_path)]) == 2
+    assert "not a torchpref study" in capsys.readouterr().err
+    assert main(["study", "serve", str(tmp_path / "new")]) == 2  # a new study needs its items
+    assert "needs its items" in capsys.readouterr().err
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "other.txt").write_text("x")
+    from torchpref.study.folder import create_study
+
+    with pytest.raises(ValueError, match="not a study"):
+        create_study(tmp_path / "busy", items=write_items(tmp_path / "src", n=5, d=2, pictures=False))
+
+
+def test_cli_exports_and_reports_a_study(tmp_path, capsys):
+    from torchpref.cli import main
+
+    folder, store, refits, key, client = _study(tmp_path)
+    c = client()
+    for i in range(2):
+        _participant(c, k0=i)
+    _wait(refits)
+    refits.close()
+    store.close()
+    assert main(["study", "export", str(folder.path)]) == 0
+    assert main(["study", "report", str(folder.path), "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "answers.csv" in out and (tmp_path / "out" / "report.html").is_file()

@@ -78,19 +78,18 @@ def finished_participants(folder: StudyFolder) -> list[tuple[str, PreferenceData
 
 def refit(folder: StudyFolder, max_iter: int | None = None) -> int | None:
     """Fit the population on every finished participant and make it current; returns its version
-    (``None``: fewer than :data:`MIN_PEOPLE` finished, or another refit holds the lock)."""
+    (``None``: fewer than :data:`MIN_PEOPLE` finished). A refit already running is waited for."""
     folder.populations.mkdir(parents=True, exist_ok=True)
     with open(folder.populations / ".lock", "w") as lock:
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            return None
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one refit at a time: a second waits, then fits everyone finished
         people = finished_participants(folder)
+        pointer = folder.current()
         if len(people) < MIN_PEOPLE:
             return None
+        if pointer is not None and set(pointer["participants"]) == {sid for sid, _, _ in people}:
+            return int(pointer["version"])  # the current population has everyone finished already
         t0 = time.perf_counter()
         names = people[0][2]
-        pointer = folder.current()
         kernels = {}
         if pointer is not None:  # warm start: the current population's kernels
             try:

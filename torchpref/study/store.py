@@ -13,8 +13,9 @@ from torchpref.frontends.serve.pool import PoolLimits
 from torchpref.frontends.serve.store import NewSessions, SessionStore
 from torchpref.population.model import Population
 from torchpref.sessions.journal import read_header
+from torchpref.study.export import participant_rows
 from torchpref.study.folder import StudyFolder
-from torchpref.study.refit import RefitRunner
+from torchpref.study.refit import MIN_PEOPLE, RefitRunner
 
 __all__ = ["StudyStore", "experimenter_key"]
 
@@ -28,8 +29,15 @@ class StudyStore(SessionStore):
         super().__init__(items, folder.sessions, new=new, limits=limits)
         self.folder, self.refits = folder, refits
         self._populations: dict[int, Population] = {}
-        self._finished: set[str] = set()
         self._plock = threading.Lock()
+        # participants finished before this start (a restart, a kill): refitted now if the current
+        # population does not have them all
+        self._finished: set[str] = {str(r["participant"]) for r in participant_rows(folder) if r["finished"]}
+        pointer = folder.current()
+        fitted = set(pointer["participants"]) if pointer is not None else set()
+        if len(self._finished) >= MIN_PEOPLE and not self._finished <= fitted:
+            folder.log("refit requested", why="finished participants not in the current population at start")
+            refits.request()
 
     def _population(self, version: int | None) -> Population | None:
         if version is None:

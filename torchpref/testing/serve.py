@@ -109,8 +109,8 @@ class Server:
     """``torchpref serve`` as a child process on a fixed free port; :meth:`kill` sends SIGKILL,
     :meth:`start` starts it again on the same port and folder."""
 
-    def __init__(self, args: list[str], folder: Path, port: int | None = None):
-        self.args, self.folder = args, folder
+    def __init__(self, args: list[str], folder: Path, port: int | None = None, command: tuple[str, ...] = ("serve",)):
+        self.args, self.folder, self.command = args, folder, command
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}/"
         self.proc: subprocess.Popen | None = None
@@ -120,7 +120,7 @@ class Server:
         """Start the server process and wait until it answers."""
         env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}", MPLBACKEND="Agg")
         log = open(self.folder / f"server-{self.starts}.log", "w")
-        cmd = [sys.executable, "-m", "torchpref.cli", "serve", *self.args, "--port", str(self.port)]
+        cmd = [sys.executable, "-m", "torchpref.cli", *self.command, *self.args, "--port", str(self.port)]
         self.proc = subprocess.Popen(cmd, cwd=self.folder, env=env, stdout=log, stderr=subprocess.STDOUT)
         log.close()
         self.starts += 1

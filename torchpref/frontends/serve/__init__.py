@@ -8,7 +8,8 @@ The pieces, each imported only by the ones after it:
 * ``pool``: the open sessions, bounded (files, memory), evicted least recently used;
 * ``plot_worker`` / ``summary`` / ``plots``: the summary's utility plot, drawn in a worker process;
 * ``store``: :class:`SessionStore`, every participant's session: the one way an answer enters;
-* ``app``: the Starlette application, :func:`serve` and :func:`create_app`.
+* ``options``: ``serve()``'s settings in groups (:class:`Listen`, ``NewSessions``, ``PoolLimits``);
+* ``app``: the Starlette application, :func:`serve`, :func:`serve_store` and :func:`create_app`.
 """
 
 from __future__ import annotations
