@@ -1,6 +1,6 @@
 r"""A whole study over HTTP with kills (issue 46's reliability): ``--participants`` scripted
 participants (40) answer ``--answers`` questions each (6), ``--active`` (10) at a time, against
-``torchpref study serve`` run as a process; meanwhile the server is killed (SIGKILL) ``--kills``
+``torchpref study serve`` run as a process, each thinking 0.5-1.5 s per answer; meanwhile the server is killed (SIGKILL) ``--kills``
 times (10) at random moments, preferring the moments a population refit is running, and
 restarted on the same folder. At the end:
 
@@ -68,13 +68,13 @@ def participant(base: str, n: int, k0: int, acked: dict, lock: threading.Lock, s
                 time.sleep(0.2)
         except OSError:  # the server is down: the page retries
             time.sleep(0.5)
-        time.sleep(random.uniform(0.05, 0.3))
+        time.sleep(random.uniform(0.5, 1.5))  # the participant "thinks" (as the soak's do)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--participants", type=int, default=40)
-    ap.add_argument("--answers", type=int, default=6)
+    ap.add_argument("--answers", type=int, default=10)
     ap.add_argument("--active", type=int, default=10)
     ap.add_argument("--kills", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)

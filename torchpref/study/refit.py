@@ -36,7 +36,9 @@ __all__ = ["RefitRunner", "finished_participants", "person_data", "refit"]
 MIN_PEOPLE = 2
 """A population is fitted once this many participants have finished."""
 WARM_MAX_ITER = 40
-"""L-BFGS iterations of a refit warm-started from the current population's kernels (100 cold)."""
+"""L-BFGS iterations of a refit warm-started from the current population's kernels."""
+COLD_MAX_ITER = 60
+"""L-BFGS iterations of the first fit (no population to start from)."""
 
 
 def person_data(path: Path) -> tuple[PreferenceData, dict, int]:
@@ -98,7 +100,7 @@ def refit(folder: StudyFolder, max_iter: int | None = None) -> int | None:
                 prev = None
             if prev is not None:
                 kernels = {"k_m": copy.deepcopy(prev.k_m), "k_g": copy.deepcopy(prev.k_g)}
-        iters = max_iter if max_iter is not None else (WARM_MAX_ITER if kernels else 100)
+        iters = max_iter if max_iter is not None else (WARM_MAX_ITER if kernels else COLD_MAX_ITER)
         pop = fit_population([d for _, d, _ in people], names=names, max_iter=iters, **kernels)
         version = folder.next_version()
         save_population(pop, folder.version_path(version))
