@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import operator
 from dataclasses import dataclass, field
-from typing import Any, Literal, overload
+from typing import Any, Literal, SupportsFloat, SupportsIndex, overload
 
 import torch
 from torch import Tensor
@@ -21,10 +21,10 @@ from torch import Tensor
 from torchpref.data.preference_data import best_of_m, best_of_m_with_ties, likert_to_unit, unit_to_likert
 
 
-def as_integer(value: Any) -> int | None:
+def as_integer(value: object) -> int | None:
     """``value`` as an ``int`` if it is an integer (a Python, NumPy or 0-d integer tensor one; not
     a bool, a float or text), else ``None``."""
-    if isinstance(value, bool):
+    if isinstance(value, bool) or not isinstance(value, SupportsIndex):
         return None
     try:
         return operator.index(value)
@@ -55,7 +55,7 @@ class RatingQuery:
         """``1 x d``: the items shown."""
         return self.item.unsqueeze(0)
 
-    def validate_answer(self, answer: Any, num_levels: int | None = None) -> float:
+    def validate_answer(self, answer: object, num_levels: int | None = None) -> float:
         """The rating in ``[0, 1]`` that ``answer`` gives: ``answer`` itself, or with ``num_levels``
         a whole Likert level ``1..num_levels`` mapped by :func:`~torchpref.likert_to_unit`.
 
@@ -64,13 +64,13 @@ class RatingQuery:
         """
         if num_levels is not None:
             try:
-                if _is_text_or_bool(answer):
+                if _is_text_or_bool(answer) or not isinstance(answer, (SupportsFloat, SupportsIndex)):
                     raise TypeError
                 return float(likert_to_unit(float(answer), num_levels))
             except (TypeError, ValueError):
                 raise InvalidAnswer(f"a rating must be a whole level in 1..{num_levels}, got {answer!r}.") from None
         try:
-            if _is_text_or_bool(answer):
+            if _is_text_or_bool(answer) or not isinstance(answer, (SupportsFloat, SupportsIndex)):
                 raise TypeError
             u = float(answer)
         except (TypeError, ValueError):

@@ -82,7 +82,7 @@ Y_TRANSFORMS = "Derelativize, Winsorize, BilogY, StandardizeY"
 _READ_AS_LAPLACE = (ExactMarginalLogLikelihood, PairwiseLaplaceMarginalLogLikelihood)
 
 
-def is_preference_model_class(cls: Any) -> bool:
+def is_preference_model_class(cls: object) -> bool:
     """Whether ``cls`` is :class:`PreferenceGP` or a subclass of it."""
     return isinstance(cls, type) and issubclass(cls, PreferenceGP)
 

@@ -328,19 +328,19 @@ def _check_contents(ck: Any, where: str, max_items: int | None = MAX_ITEMS) -> N
             raise CheckpointError(f"{where}: hyperparameter {name!r} is not finite: {value.tolist()}.")
 
 
-def _check_setting(name: str, value: Any, where: str) -> None:
+def _check_setting(name: str, value: object, where: str) -> None:
     """A setting of the kind the constructor takes: flags are ``bool`` (a string's truthiness is
     no answer), counts integers, ``rating_eps`` a number in ``(0, 0.5)``."""
-    integer = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    count = int(value) if isinstance(value, numbers.Integral) and not isinstance(value, bool) else None
+    real = float(value) if isinstance(value, numbers.Real) and not isinstance(value, bool) else None
     if name in ("learn_likelihood", "ties_offered"):
         ok, want = isinstance(value, bool), "True or False"
     elif name == "max_newton_iter":
-        ok, want = integer and value >= 1, "an integer of at least 1"
+        ok, want = count is not None and count >= 1, "an integer of at least 1"
     elif name == "rating_levels":
-        ok, want = value is None or (integer and value >= 2), "None or an integer of at least 2"
+        ok, want = value is None or (count is not None and count >= 2), "None or an integer of at least 2"
     elif name == "rating_eps":
-        real = isinstance(value, numbers.Real) and not isinstance(value, bool)
-        ok, want = real and 0 < value < 0.5, "a number in (0, 0.5)"
+        ok, want = real is not None and 0 < real < 0.5, "a number in (0, 0.5)"
     else:  # laplace_dtype (which dtypes the constructor takes, it checks)
         ok, want = value is None or isinstance(value, torch.dtype), "None or a torch.dtype"
     if not ok:

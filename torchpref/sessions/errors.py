@@ -5,8 +5,6 @@ and the warning of a repaired file. An invalid *answer* is
 
 from __future__ import annotations
 
-from typing import Any
-
 __all__ = [
     "SessionFileChanged",
     "SessionFileCorrupt",
@@ -38,7 +36,7 @@ class SessionFileCorrupt(SessionFileError):
         offset: the byte offset where the bad line starts.
     """
 
-    def __init__(self, path: Any, line_number: int, reason: str, repairable: bool, partial: bytes, offset: int):
+    def __init__(self, path: object, line_number: int, reason: str, repairable: bool, partial: bytes, offset: int):
         self.path, self.line_number, self.reason = str(path), line_number, reason
         self.repairable, self.partial, self.offset = repairable, partial, offset
         fix = (

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from typing import Any
 
 import torch
 from torch import Tensor
@@ -74,7 +73,7 @@ def queries_of_spec(spec: QuerySpec, pool: Tensor) -> list[Query]:
     return out
 
 
-def resumed_queries(header: dict, given: bool, mine: QuerySpec | None, path: Any) -> QuerySpec | None:
+def resumed_queries(header: dict, given: bool, mine: QuerySpec | None, path: object) -> QuerySpec | None:
     """A resumed file's query list: the header's; queries given (``mine``) must be the same.
 
     Raises:

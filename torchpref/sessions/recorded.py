@@ -110,7 +110,7 @@ def _jsonable(value) -> bool:
     return True
 
 
-def describe_selector(selector: Any) -> dict[str, Any]:
+def describe_selector(selector: object) -> dict[str, Any]:
     """The selector's class and options (its public attributes; those JSON cannot hold are named
     in ``"unrecorded"``: such a selector is not rebuilt from the file)."""
     options, unrecorded = {}, []
@@ -145,7 +145,7 @@ def _differences(recorded: dict, mine: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def settings_error(path: Any, setting: str, recorded: dict, mine: dict, why: str) -> SessionSettingsError:
+def settings_error(path: object, setting: str, recorded: dict, mine: dict, why: str) -> SessionSettingsError:
     """The error for a resumed file whose recorded ``setting`` this session does not reproduce."""
     diff = "; ".join(_differences(recorded, mine)[:4]) or "(not comparable)"
     return SessionSettingsError(

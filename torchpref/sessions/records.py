@@ -222,7 +222,7 @@ def _is_number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
-def validate_header(path: Any, h: dict) -> None:
+def validate_header(path: object, h: dict) -> None:
     """Check a header record (line 1 of ``path``); raises :class:`SessionFileError` naming the field."""
     c = _Line(f"session file {path}, line 1", h)
     if h.get("type") != "header":
@@ -262,7 +262,7 @@ def validate_header(path: Any, h: dict) -> None:
         _check_question_list(c, h["queries"], pool)
 
 
-def _check_question_list(c: _Line, queries: Any, pool: list | None) -> None:
+def _check_question_list(c: _Line, queries: object, pool: list | None) -> None:
     """A header's ``"queries"``: a non-empty list of ``["rating", row]`` or ``["ranking", row,
     row, ...]``, rows of the pool, distinct items within a question."""
     if pool is None:
@@ -348,7 +348,7 @@ def _check_query(c: _Line, q, kind: str, m: int, header: dict) -> None:
         c.fail(f"the items are not the pool's rows {idx}")
 
 
-def validate_records(path: Any, header: dict, records: list[dict], first_line: int = 2) -> None:
+def validate_records(path: object, header: dict, records: list[dict], first_line: int = 2) -> None:
     """Check every record after the header: format version, sequence numbers, answer schema,
     undo targets. Raises :class:`SessionFileError` (or :class:`SessionVersionError`) naming the line."""
     last_seq, active = 0, set[int]()
@@ -418,6 +418,6 @@ def records_in_force(records: list[dict]) -> list[dict]:
     return list(active.values())
 
 
-def dumps_settings(value: Any) -> str:
+def dumps_settings(value: object) -> str:
     """A canonical JSON text of a header setting, to compare a file's settings with a session's."""
     return json.dumps(value, sort_keys=True)

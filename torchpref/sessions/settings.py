@@ -69,7 +69,7 @@ class SessionAnswer:
     seq: int
     kind: str
     items: Tensor
-    answer: Any
+    answer: int | float | None
     value: float | None
     step: int | None
     pool_indices: tuple[int, ...] | None
@@ -126,7 +126,7 @@ def default_session_model(train_X: Tensor) -> PreferenceGP:
     return PreferenceGP(train_X, covar_module=kernel, ties_offered=True)
 
 
-def as_items(X: Any, dim: int, name: str) -> Tensor:
+def as_items(X: object, dim: int, name: str) -> Tensor:
     """``X`` as an ``m x dim`` float64 tensor of finite numbers (a ``dim`` vector is one row).
 
     Raises:
@@ -278,7 +278,7 @@ class SessionSettings:
             "metadata": metadata or {},
         }
 
-    def check_header(self, h: dict, path: Any) -> None:
+    def check_header(self, h: dict, path: object) -> None:
         """Raise :class:`~torchpref.sessions.errors.SessionMismatchError` where the header ``h`` of the file
         ``path`` was written with other items, candidates, bounds, seed or levels."""
         if h["dim"] != self.dim:
@@ -325,7 +325,7 @@ def unrated_rows(pool_rows: Tensor, in_force: Iterable[AnswerRecord], chosen: in
     return torch.tensor(keep, dtype=torch.long) if len(keep) >= max(2, m) else None
 
 
-def as_seconds(value: Any) -> float | None:
+def as_seconds(value: object) -> float | None:
     """A response time as float seconds (``None`` stays ``None``).
 
     Raises:
@@ -333,11 +333,12 @@ def as_seconds(value: Any) -> float | None:
     """
     if value is None:
         return None
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-    if not ok and isinstance(value, Tensor) and value.numel() == 1 and not value.dtype.is_complex:
-        value, ok = value.item(), value.dtype != torch.bool
+    number: object = value
+    if isinstance(value, Tensor) and value.numel() == 1 and not value.dtype.is_complex and value.dtype != torch.bool:
+        number = value.item()
+    ok = isinstance(number, (int, float)) and not isinstance(number, bool)
     try:
-        seconds = float(value) if ok else math.nan
+        seconds = float(number) if ok and isinstance(number, (int, float)) else math.nan
     except OverflowError:  # an integer too large for a float
         seconds = math.inf
     if not math.isfinite(seconds) or seconds < 0:
@@ -345,7 +346,7 @@ def as_seconds(value: Any) -> float | None:
     return seconds
 
 
-def as_time(value: Any, name: str) -> str:
+def as_time(value: object, name: str) -> str:
     """A time stamp kept in an answer record (``shown_at``, ``answered_at``): an ISO 8601 date and
     time, as :meth:`datetime.datetime.fromisoformat` reads it, of at most 40 characters.
 
@@ -354,16 +355,16 @@ def as_time(value: Any, name: str) -> str:
     """
     import datetime as _dt
 
-    try:
-        ok = isinstance(value, str) and len(value) <= 40 and _dt.datetime.fromisoformat(value) is not None
-    except ValueError:
-        ok = False
-    if not ok:
-        raise ValueError(f"{name} must be an ISO 8601 date and time, got {value!r:.80}.")
-    return value
+    if isinstance(value, str) and len(value) <= 40:
+        try:
+            _dt.datetime.fromisoformat(value)
+            return value
+        except ValueError:
+            pass
+    raise ValueError(f"{name} must be an ISO 8601 date and time, got {value!r:.80}.")
 
 
-def check_callables(selector: Any, model_factory: Any) -> None:
+def check_callables(selector: object, model_factory: object) -> None:
     """A selector with ``select`` and a callable model factory (or ``None``), else ``TypeError``."""
     if selector is not None and not callable(getattr(selector, "select", None)):
         raise TypeError(f"selector must be a Selector (with select(model, candidates, ...)), got {selector!r:.80}.")

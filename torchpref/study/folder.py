@@ -24,7 +24,6 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from torchpref.data.files import read_regular_text
 from torchpref.models.checkpoint import CheckpointError
@@ -37,7 +36,7 @@ FORMAT = "torchpref-study"
 VERSION = 1
 
 
-def write_json_atomically(path: Path, obj: Any) -> None:
+def write_json_atomically(path: Path, obj: object) -> None:
     """Write ``obj`` as JSON to ``path`` through a temporary file, fsynced, renamed: a reader (or a
     kill at any moment) sees the old file or the new one, never a part."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
@@ -99,7 +98,7 @@ class StudyFolder:
         return settings
 
     # ------------------------------------------------------------------- log
-    def log(self, event: str, **fields: Any) -> None:
+    def log(self, event: str, **fields: object) -> None:
         """Append one event to ``log.jsonl`` (one JSON line, fsynced)."""
         line = json.dumps({"time": now(), "event": event, **fields}) + "\n"
         with open(self.log_path, "a") as fh:

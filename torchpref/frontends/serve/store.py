@@ -31,7 +31,7 @@ import threading
 import warnings
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 import torch
 
@@ -316,7 +316,7 @@ class SessionStore:
         return out
 
     # ------------------------------------------------------------- answers
-    def answer(self, sid: str, body: Any) -> dict:
+    def answer(self, sid: str, body: object) -> dict:
         """Record a browser's answer ``body = {"qid", "answer", "response_time"}`` (see the
         module); returns the next state (``"duplicate": true`` for a repeated answer).
 
@@ -349,24 +349,25 @@ class SessionStore:
                 raise AnswerRefused(f"answer not recorded: {exc}", 400, self.state(entry)) from None
             return self.state(entry)
 
-    def _checked_answer(self, entry: _Entry, q: Query, answer: Any) -> Any:
+    def _checked_answer(self, entry: _Entry, q: Query, answer: object) -> int | float | None:
         """The JSON ``answer`` to ``q``, checked only for what JSON adds (raising
         :class:`~torchpref.data.queries.InvalidAnswer`): a level or a chosen option is a JSON
         integer (``3.0`` is not level 3, so a retry sent as ``3.0`` is not taken for the answer
         ``3``), and "no preference" only where it is offered. Its range is the session's to check, once
         (:meth:`~torchpref.PreferenceSession.tell` through the query's own validation)."""
         if isinstance(q, RankingQuery):
-            if answer is None and not self.ties:
-                raise InvalidAnswer("'no preference' is not offered here: pick one option.")
-            if answer is not None and not _is_int(answer):
-                raise InvalidAnswer(
-                    f"a choice must be the chosen option's number (a JSON integer), got {answer!r:.40}."
-                )
-            return answer
+            if answer is None:
+                if not self.ties:
+                    raise InvalidAnswer("'no preference' is not offered here: pick one option.")
+                return None
+            if _is_int(answer):
+                return answer
+            raise InvalidAnswer(f"a choice must be the chosen option's number (a JSON integer), got {answer!r:.40}.")
         k = entry.session.num_levels
-        if k is not None and not _is_int(answer):
-            raise InvalidAnswer(f"a rating must be a whole level in 1..{k}, got {answer!r:.40}.")
-        return answer
+        if _is_int(answer) or (k is None and isinstance(answer, float)):
+            return answer
+        want = f"a whole level in 1..{k}" if k is not None else "a number in [0, 1]"
+        raise InvalidAnswer(f"a rating must be {want}, got {answer!r:.40}.")
 
     def _not_current(self, entry: _Entry, body: dict) -> dict:
         """The answer names another question than the current one: a repeat of the last answer
@@ -390,7 +391,7 @@ class SessionStore:
                 raise AnswerRefused("this question was already answered.", 409, self.state(entry))
         raise AnswerRefused("not the current question of this session (stale, or another's).", 409, self.state(entry))
 
-    def undo(self, sid: str, body: Any) -> dict:
+    def undo(self, sid: str, body: object) -> dict:
         """Withdraw the last answer; ``body = {"qid"}`` names the question on screen (a second
         click on a stale page is refused). Returns the new state."""
         entry = self.entry(sid)
@@ -473,7 +474,7 @@ def _asked(rec: AnswerRecord) -> Query:
     return RatingQuery(items[0]) if rec.kind == "rating" else RankingQuery(items)
 
 
-def _same_answer(a: Any, b: Any) -> bool:
+def _same_answer(a: object, b: object) -> bool:
     """Equal answers of the same JSON type (``1 == 1.0 == True`` in Python, not in an answer)."""
     return a == b and (a is None) == (b is None) and isinstance(a, float) == isinstance(b, float)
 
@@ -515,11 +516,11 @@ def _resource_error(exc: BaseException) -> bool:
     return resource_error(exc)
 
 
-def _is_int(v: Any) -> bool:
+def _is_int(v: object) -> TypeGuard[int]:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def _object(body: Any, allowed: set[str]) -> dict:
+def _object(body: object, allowed: set[str]) -> dict:
     if not isinstance(body, dict):
         raise AnswerRefused(f"the request must be a JSON object, got {type(body).__name__}.", 400)
     extra = set(body) - allowed
@@ -530,7 +531,7 @@ def _object(body: Any, allowed: set[str]) -> dict:
     return body
 
 
-def _response_time(value: Any) -> float | None:
+def _response_time(value: object) -> float | None:
     if value is None:
         return None
     ok = isinstance(value, (int, float)) and not isinstance(value, bool)
