@@ -240,10 +240,13 @@ def warm_up() -> dict[str, Any] | None:
 
 
 class _BlasThreads:
-    """BLAS and LAPACK (numpy's and SciPy's OpenBLAS, which numba calls) limited to torch's thread
-    count while compiled calls run: the first caller saves the libraries' counts and sets them, the
-    last one to return restores them (a count of callers under a lock, so that threads overlapping
-    in compiled calls cannot leave the libraries changed)."""
+    """BLAS and LAPACK (numpy's and SciPy's OpenBLAS, which numba calls) on torch's thread count
+    while compiled calls run. A library with one process-wide pool (OpenBLAS's own threads): the
+    first caller saves its count and sets it, the last one to return restores it (a count of
+    callers under a lock, so that threads overlapping in compiled calls cannot leave it changed; set
+    through the library itself, which works from any thread, where threadpoolctl's own call acts
+    only from the first thread that used it). A library with per-thread counts (OpenMP's): set and
+    restored around each call in the calling thread."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -259,16 +262,28 @@ class _BlasThreads:
             self._libraries = list(ThreadpoolController().select(user_api="blas").lib_controllers)
         return self._libraries
 
-    def __enter__(self) -> None:
+    @staticmethod
+    def _set(lib: Any, n: int) -> None:
+        getattr(lib, "_real_set_num_threads", lib.set_num_threads)(n)
+
+    def _shared(self) -> list[Any]:
+        return [lib for lib in self._libs() if getattr(lib, "threading_layer", "") != "openmp"]
+
+    def __enter__(self) -> list[tuple[Any, int]]:
+        n = torch.get_num_threads()
         with self._lock:
             if self._depth == 0:
-                n = torch.get_num_threads()
-                self._saved = [(lib, lib.get_num_threads()) for lib in self._libs()]
+                self._saved = [(lib, lib.get_num_threads()) for lib in self._shared()]
                 for lib, count in self._saved:
                     if count != n:
-                        lib.set_num_threads(n)
-                self.limited = [f"{lib.internal_api} ({os.path.basename(lib.filepath)}): {n}" for lib in self._libs()]
+                        self._set(lib, n)
+                self.limited = [f"{lib.internal_api} {os.path.basename(lib.filepath)}: {n}" for lib in self._libs()]
             self._depth += 1
+        own = [(lib, lib.get_num_threads()) for lib in self._libs() if lib not in self._shared()]
+        for lib, count in own:
+            if count != n:
+                self._set(lib, n)
+        return own
 
     def __exit__(self, *exc: object) -> None:
         with self._lock:
@@ -276,7 +291,17 @@ class _BlasThreads:
             if self._depth == 0:
                 for lib, count in self._saved:
                     if lib.get_num_threads() != count:
-                        lib.set_num_threads(count)
+                        self._set(lib, count)
+
+    def run(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` with the libraries limited."""
+        own = self.__enter__()
+        try:
+            return fn(*args)
+        finally:
+            for lib, count in own:
+                self._set(lib, count)
+            self.__exit__()
 
 
 BLAS_THREADS = _BlasThreads()
@@ -292,8 +317,7 @@ def call(name: str, *args: Any) -> tuple | None:
     if functions is None:
         return None
     try:
-        with BLAS_THREADS:
-            out = functions[name](*args)
+        out = BLAS_THREADS.run(functions[name], *args)
     except (ArithmeticError, ValueError):
         return None
     except Exception as err:
