@@ -116,7 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
     _study_parser(sub)
     fast = sub.add_parser("fast-path", help="build (compile) the compiled small-problem path, or say where it stands")
     fast.add_argument("action", choices=("build", "status"), help="build: compile it now (about a minute); status: say")
-    fast.add_argument("--if-needed", action="store_true", help="build only where numba is installed and no usable cache is")
+    fast.add_argument(
+        "--if-needed", action="store_true", help="build only where numba is installed and no usable cache is"
+    )
     return parser
 
 

@@ -140,7 +140,9 @@ def test_compiled_loss_matches_the_torch_mll_and_autograd(kind, ratings, compile
         loss = -mll()
         grads = torch.autograd.grad(loss, list(problem.params.values()))
     state = fast_types.fit_state(problem.f0, problem.answers.first.shape[0])
-    value, grad, status = fast_path.call("fit_loss", x, problem.X, problem.answers, problem.spec, state, problem.tol, problem.max_iter)
+    value, grad, status = fast_path.call(
+        "fit_loss", x, problem.X, problem.answers, problem.spec, state, problem.tol, problem.max_iter
+    )
     assert status == fast_types.OK
     assert abs(value - float(loss.detach())) < 1e-10 * abs(float(loss.detach()))
     expected = torch.cat([g.reshape(-1) for g in grads]).numpy()
@@ -292,6 +294,7 @@ def test_custom_fit_routes_only_the_default_fit_of_a_supported_model(monkeypatch
 def test_a_compiled_arithmetic_error_falls_back_for_that_call_only(monkeypatch, compiled_path):
     """numba raises ``ZeroDivisionError`` where torch gives inf or NaN: the torch solver then
     answers that call, with its own results, and the compiled path stays on (no warning)."""
+
     def raising(*args):
         raise ZeroDivisionError("division by zero")
 

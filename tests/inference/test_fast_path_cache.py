@@ -7,7 +7,6 @@ when read; compiled calls run BLAS on torch's thread count and restore the libra
 The end-to-end cases run a short script (:data:`PROBE`: three fits and a mode) in a fresh process
 against a copy of a built cache (:func:`built_cache`) damaged in one way each."""
 
-import ctypes
 import json
 import os
 import shutil
@@ -87,7 +86,9 @@ def _subfolder(root: Path) -> Path:
 
     import torchpref.inference as inference
 
-    return root / UserProvidedCacheLocator.get_suitable_cache_subpath(str(Path(inference.__file__).parent / "_compiled.py"))
+    return root / UserProvidedCacheLocator.get_suitable_cache_subpath(
+        str(Path(inference.__file__).parent / "_compiled.py")
+    )
 
 
 @pytest.fixture(scope="session")
@@ -138,7 +139,9 @@ DAMAGE = {
     "index empty": lambda f: _index(f).write_bytes(b""),
     "data truncated": lambda f: _data(f).write_bytes(_data(f).read_bytes()[:100]),
     "data zeroed": lambda f: _data(f).write_bytes(bytes(len(_data(f).read_bytes()))),
-    "data deleted": lambda f: _data(f, "fit_lbfgs").unlink() if list(f.glob("_compiled.fit_lbfgs*")) else _data(f).unlink(),
+    "data deleted": lambda f: (
+        _data(f, "fit_lbfgs").unlink() if list(f.glob("_compiled.fit_lbfgs*")) else _data(f).unlink()
+    ),
     "manifest not JSON": lambda f: (f / fast_cache.MANIFEST).write_text("{not json"),
 }
 SLOW_DAMAGE = {"index truncated", "index empty", "data zeroed", "data deleted", "manifest not JSON"}
@@ -164,9 +167,7 @@ def test_the_built_cache_is_used_without_compiling_or_warning(built_cache):
 
 @needs_numba
 @linux_only
-@pytest.mark.parametrize(
-    "kind", [pytest.param(k, marks=pytest.mark.slow) if k in SLOW_DAMAGE else k for k in DAMAGE]
-)
+@pytest.mark.parametrize("kind", [pytest.param(k, marks=pytest.mark.slow) if k in SLOW_DAMAGE else k for k in DAMAGE])
 def test_a_damaged_cache_falls_back_with_one_warning(kind, built_cache, tmp_path):
     """Each kind of damage: the torch solver answers every fit, one warning names the command;
     nothing is compiled in the caller and no process is started (on the code before issue 42 a
@@ -382,7 +383,9 @@ def test_compiled_calls_run_blas_on_torch_s_threads_and_restore_them(own_state):
     inside, gate = [], threading.Barrier(2, timeout=10)
 
     def watched(*args):
-        inside.append({lib["filepath"]: lib["num_threads"] for lib in ThreadpoolController().info() if lib["user_api"] == "blas"})
+        inside.append(
+            {lib["filepath"]: lib["num_threads"] for lib in ThreadpoolController().info() if lib["user_api"] == "blas"}
+        )
         if threading.current_thread() is not threading.main_thread():
             gate.wait()
         return real(*args)
@@ -395,7 +398,11 @@ def test_compiled_calls_run_blas_on_torch_s_threads_and_restore_them(own_state):
             _mode()
             workers = [threading.Thread(target=_mode) for _ in range(2)]
             [w.start() for w in workers], [w.join(20) for w in workers]
-            after = {lib["filepath"]: lib["num_threads"] for lib in ThreadpoolController().info() if lib["user_api"] == "blas"}
+            after = {
+                lib["filepath"]: lib["num_threads"]
+                for lib in ThreadpoolController().info()
+                if lib["user_api"] == "blas"
+            }
     finally:
         torch.set_num_threads(threads)
     assert len(inside) == 3 and all(set(counts.values()) == {1} for counts in inside), inside

@@ -105,7 +105,13 @@ def test_hostile_beta_ratings_agree_or_fall_back(seed, nu, compiled_path):
 
     def model():
         return PreferenceGP(
-            X, torch.tensor([[0, 1], [2, 3]]), r, torch.arange(n), mean_module=mean, rating_precision=nu, rating_scale=0.3
+            X,
+            torch.tensor([[0, 1], [2, 3]]),
+            r,
+            torch.arange(n),
+            mean_module=mean,
+            rating_precision=nu,
+            rating_scale=0.3,
         )
 
     try:

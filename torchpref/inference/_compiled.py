@@ -26,6 +26,7 @@ not), :data:`NOT_FINITE` (a non-finite Newton step or evidence), :data:`NOT_CONV
 from __future__ import annotations
 
 import math
+
 import numpy as np
 from numba import njit
 

@@ -14,6 +14,7 @@ the end what :meth:`~torchpref.models.preference_gp.PreferenceGP` keeps as its p
 from __future__ import annotations
 
 import math
+
 import numpy as np
 from numba import njit
 

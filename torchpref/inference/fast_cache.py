@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from torchpref.inference import fast_types as ft
+import torchpref.inference.fast_types as ft
 from torchpref.version import __version__
 
 #: entry point -> the module that defines it
@@ -139,7 +139,7 @@ def folder(dispatchers: dict[str, Any]) -> Path:
     if len(paths) != 1:
         raise CacheUnusable(f"the entry points are cached in several folders: {sorted(map(str, paths))}")
     path = paths.pop()
-    asked = config.CACHE_DIR
+    asked = getattr(config, "CACHE_DIR", "")
     if asked and Path(asked).resolve() not in path.resolve().parents:
         raise CacheUnusable(f"NUMBA_CACHE_DIR={asked} is not a folder numba can write to")
     return path

@@ -40,8 +40,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchpref.inference import fast_cache
-from torchpref.inference import fast_types as ft
+import torchpref.inference.fast_cache as fast_cache
+import torchpref.inference.fast_types as ft
 from torchpref.inference.observations import Observations
 
 ENV = "TORCHPREF_FAST_PATH"
@@ -153,7 +153,9 @@ def compiled() -> dict[str, Any] | None:
         return None
     if not available():
         if fast_cache.installed():  # installed, but shadowed or blocked: said once
-            _warn_once("missing", f"the compiled fast path is not used: {fast_cache.problem()}; the torch solver answers")
+            _warn_once(
+                "missing", f"the compiled fast path is not used: {fast_cache.problem()}; the torch solver answers"
+            )
         return None
     with _lock:
         if _state["functions"] is None and _state["failed"] is None:
@@ -381,14 +383,14 @@ def answers(obs: Observations) -> ft.Answers | None:
         offset = torch.zeros(term.size, dtype=torch.float64) if term.offset is None else term.offset[0].detach()
         target = torch.zeros(term.size, dtype=torch.float64) if term.target is None else term.target[0].detach()
         rows[kind] = (first, second, offset, target, lik)
-    order = list(rows)
-    cat = [torch.cat([rows[k][c] for k in order]) for c in range(4)]
-    kinds = torch.cat([torch.full((rows[k][0].shape[0],), k) for k in order])
+    order = list(rows)  # the terms' order: the weights come back in it
+    cols = [torch.cat([rows[k][c] for k in order]).numpy() for c in range(4)]
+    kinds = torch.cat([torch.full((rows[k][0].shape[0],), k) for k in order]).numpy()
     probit = float(rows[ft.PROBIT][4].scale) if ft.PROBIT in rows else 1.0
     beta = rows[ft.BETA][4] if ft.BETA in rows else None
     c = 1.0 if beta is None else math.sqrt(2.0) * float(beta.rating_scale)  # the exact class's link
     nu = 1.0 if beta is None else float(beta.rating_precision)
-    return ft.answers(*(t.numpy() for t in cat[:2]), kinds.numpy(), *(t.to(torch.float64).numpy() for t in cat[2:]), probit, c, nu)
+    return ft.answers(cols[0], cols[1], kinds, cols[2], cols[3], probit, c, nu)
 
 
 def mode_applies(L: Tensor, obs: Observations) -> bool:

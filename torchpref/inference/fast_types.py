@@ -120,7 +120,9 @@ def prior(kind: int, p1: float, p2: float, const: float) -> Prior:
     return Prior(int(kind), float(p1), float(p2), float(const))
 
 
-def fit_spec(kernel, ls_start, ls_count, ls_lower, ls_prior, os_index, os_lower, os_prior, fixed_outputscale) -> FitSpec:
+def fit_spec(
+    kernel, ls_start, ls_count, ls_lower, ls_prior, os_index, os_lower, os_prior, fixed_outputscale
+) -> FitSpec:
     """A :class:`FitSpec` with its fields' types fixed."""
     return FitSpec(
         int(kernel),

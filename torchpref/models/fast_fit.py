@@ -28,14 +28,19 @@ from gpytorch.constraints import GreaterThan, Positive
 from gpytorch.kernels import MaternKernel, RBFKernel, ScaleKernel
 from gpytorch.priors import GammaPrior, LogNormalPrior
 
+import torchpref.inference.fast_types as ft
 from torchpref.data.preference_data import PreferenceData
-from torchpref.inference import fast_types as ft
 from torchpref.inference.fast_path import FIT_MAX_ITEMS, answers, call, compiled, setting
 from torchpref.inference.laplace import ModeResult
 from torchpref.inference.numerics import default_tolerance
 
 #: GPyTorch kernel -> the compiled kernel kind (Matern by its ``nu``)
-KINDS = {RBFKernel: ft.RBF, (MaternKernel, 0.5): ft.MATERN12, (MaternKernel, 1.5): ft.MATERN32, (MaternKernel, 2.5): ft.MATERN52}
+KINDS = {
+    RBFKernel: ft.RBF,
+    (MaternKernel, 0.5): ft.MATERN12,
+    (MaternKernel, 1.5): ft.MATERN32,
+    (MaternKernel, 2.5): ft.MATERN52,
+}
 
 
 @dataclass
