@@ -30,8 +30,10 @@ import math
 import numpy as np
 from numba import njit
 
-from torchpref.inference.fast_types import BETA, FISHER, NOT_CONVERGED, NOT_FINITE, NOT_PD, OK, PROBIT  # noqa: F401
+from torchpref.inference.fast_types import FISHER, NOT_CONVERGED, NOT_FINITE, NOT_PD, OK, PROBIT
 from torchpref.inference.step_rule import STEP_RULE
+
+BELOW_ZERO = 6  # internal: a converged point below Psi(0), which no mode is (retried from zeros)
 
 LOG_2PI_HALF = 0.5 * math.log(2.0 * math.pi)
 # the step rule of every Newton loop (numba freezes these module globals when it compiles)
@@ -246,11 +248,12 @@ def line_search(L, ans, a, psi, grad, w, ll, step, dec):
 
 @njit(cache=True)
 def best_start(L, ans, starts):
-    """``(a, Psi, grad, weights, log p)`` at the candidate start (rows of ``starts``, utilities)
-    of highest ``Psi``; zeros without one (a start that is not finite counts as zeros)."""
+    """``(a, Psi, grad, weights, log p, Psi(0))`` at the candidate start (rows of ``starts``,
+    utilities) of highest ``Psi``; zeros without one (a start that is not finite counts as zeros)."""
     n = L.shape[0]
     a = np.zeros(n)
     psi, grad, w, ll = evaluate(L, a, ans)
+    psi0 = psi
     for r in range(starts.shape[0]):
         ar = solve_lower(L, starts[r].copy())
         if not np.all(np.isfinite(ar)):
@@ -258,22 +261,42 @@ def best_start(L, ans, starts):
         pr, gr, wr, lr = evaluate(L, ar, ans)
         if r == 0 or pr > psi:
             a, psi, grad, w, ll = ar, pr, gr, wr, lr
-    return a, psi, grad, w, ll
+    return a, psi, grad, w, ll, psi0
 
 
 @njit(cache=True)
-def final_status(M, w, fisher, ok, status):
-    """The status of a factor ``M`` handed back: ``status``, or why the torch solver must answer."""
+def final_status(fisher, ok, status, psi, psi0):
+    """The status of a mode and factor handed back: ``status``, or why the torch solver must
+    answer: the factor is not positive definite, needed Fisher weights, or the point is below
+    ``Psi(0)`` (no mode is: a warm start that "converged" where round-off hides the gradient,
+    as far in a saturated likelihood's tail; the torch solver then fails or restarts cold)."""
     if not ok:
         return NOT_PD
+    if status == OK and not psi >= psi0:
+        return BELOW_ZERO
     return FISHER if fisher and status == OK else status
 
 
 @njit(cache=True)
 def newton(L, ans, starts, tol, max_iter):
     """The Laplace mode: ``(a, M, weights, iterations, status, decrement)`` with ``M`` the Cholesky
-    factor of ``B`` at ``a`` (:func:`torchpref.inference.newton.newton_mode` for one problem)."""
-    a, psi, grad, w, ll = best_start(L, ans, starts)
+    factor of ``B`` at ``a`` (:func:`torchpref.inference.newton.newton_mode` for one problem). A
+    warm start that fails (a non-finite step, no convergence, or a point below ``Psi(0)``, which no
+    mode is) is retried from zeros, as the torch solver's caller retries a warm start that raises
+    (:meth:`torchpref.inference.solver.PosteriorState.solve`): far in a saturated likelihood's tail
+    a start predicted for other hyperparameters can stall where round-off hides the gradient."""
+    out = newton_from(L, ans, starts, tol, max_iter)
+    if starts.shape[0] and out[4] in (BELOW_ZERO, NOT_CONVERGED, NOT_FINITE, NOT_PD):
+        out = newton_from(L, ans, np.empty((0, L.shape[0])), tol, max_iter)
+    if out[4] == BELOW_ZERO:
+        return out[0], out[1], out[2], out[3], NOT_CONVERGED, out[5]
+    return out
+
+
+@njit(cache=True)
+def newton_from(L, ans, starts, tol, max_iter):
+    """:func:`newton` from the best of ``starts`` (zeros without one), without the retry."""
+    a, psi, grad, w, ll, psi0 = best_start(L, ans, starts)
     newton_dec = np.inf
     dec = np.inf
     for it in range(1, max_iter + 1):
@@ -288,15 +311,15 @@ def newton(L, ans, starts, tol, max_iter):
         stalled = dec > 0.25 * newton_dec and dec / 2 < ROUNDOFF * (abs(psi + prior) + prior)
         newton_dec = dec
         if dec / 2 < tol or stalled:
-            return a, M, wM, it, final_status(M, wM, fisher, ok, OK), dec
+            return a, M, wM, it, final_status(fisher, ok, OK, psi, psi0), dec
         a, psi, grad, w, ll, moved = line_search(L, ans, a, psi, grad, w, ll, step, dec)
         if not moved:
             M, wM, fisher, ok = factorise(L, ans, a, w)
             floor = ROUNDOFF * (abs(psi + prior) + prior)
             status = OK if dec / 2 < max(floor, STUCK_TOL) else NOT_CONVERGED
-            return a, M, wM, it, final_status(M, wM, fisher, ok, status), dec
+            return a, M, wM, it, final_status(fisher, ok, status, psi, psi0), dec
     M, wM, fisher, ok = factorise(L, ans, a, w)
-    return a, M, wM, max_iter, final_status(M, wM, fisher, ok, NOT_CONVERGED), dec
+    return a, M, wM, max_iter, final_status(fisher, ok, NOT_CONVERGED, psi, psi0), dec
 
 
 @njit(cache=True)

@@ -99,16 +99,14 @@ def kernel_gradient(X, ls, outputscale, kind, G):
 @njit(cache=True)
 def mode_and_evidence(X, ans, kind, ls, outputscale, state, tol, max_iter):
     """One fit evaluation: ``(log q, d log q / d ls, d log q / d outputscale, status)``, Newton
-    warm-started from ``state.f`` (cold if that fails); on success ``state`` holds the new mode and factors."""
+    warm-started from ``state.f`` (:func:`~torchpref.inference._compiled.newton` retries cold if that fails); on success ``state`` holds the new mode and factors."""
     n = X.shape[0]
     K = kernel_matrix(X, ls, outputscale, kind)
     L, jitter, ok = jittered_cholesky(K)
     if not ok:
         return 0.0, np.zeros(ls.shape[0]), 0.0, NOT_PD
     starts = state.f.reshape(1, state.f.shape[0]) if state.f.shape[0] == n else np.empty((0, n))
-    a, M, w, its, status, _ = newton(L, ans, starts, tol, max_iter)
-    if status == NOT_FINITE and starts.shape[0]:
-        a, M, w, its, status, _ = newton(L, ans, np.empty((0, n)), tol, max_iter)
+    a, M, w, its, status, _ = newton(L, ans, starts, tol, max_iter)  # retried cold if the warm start fails
     if status != OK:
         return 0.0, np.zeros(ls.shape[0]), 0.0, status
     value, G = evidence(L, ans, a, M, w)
