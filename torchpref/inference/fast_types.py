@@ -101,7 +101,16 @@ def ints(x: Any) -> np.ndarray:
     return out
 
 
-def answers(first, second, kind, offset, target, probit_scale, rating_scale, rating_precision) -> Answers:
+def answers(
+    first: Any,
+    second: Any,
+    kind: Any,
+    offset: Any,
+    target: Any,
+    probit_scale: float,
+    rating_scale: float,
+    rating_precision: float,
+) -> Answers:
     """An :class:`Answers` with its fields' types fixed."""
     return Answers(
         ints(first),
@@ -121,7 +130,15 @@ def prior(kind: int, p1: float, p2: float, const: float) -> Prior:
 
 
 def fit_spec(
-    kernel, ls_start, ls_count, ls_lower, ls_prior, os_index, os_lower, os_prior, fixed_outputscale
+    kernel: int,
+    ls_start: int,
+    ls_count: int,
+    ls_lower: float,
+    ls_prior: tuple,
+    os_index: int,
+    os_lower: float,
+    os_prior: tuple,
+    fixed_outputscale: float,
 ) -> FitSpec:
     """A :class:`FitSpec` with its fields' types fixed."""
     return FitSpec(
