@@ -15,6 +15,8 @@ $(STAMP): pyproject.toml
 	# range in pyproject.toml installs nothing more
 	$(BIN)/pip install --quiet "$(TORCH)"
 	$(BIN)/pip install --quiet -e ".[test,notebooks,benchmarks]"
+	# the compiled small-problem path (numba, in the test extra): compiled here, once, never by a fit
+	$(BIN)/torchpref fast-path build --if-needed
 	touch $(STAMP)
 
 $(DEV_STAMP): $(STAMP)
@@ -32,7 +34,12 @@ demo: $(STAMP)
 
 # `make test`: the suite without the tests marked slow (kills, browsers, long loops, the longer
 # grids); `make test-slow`: only those. CI (CI=true) runs both, then the checks.
-test: $(STAMP)
+# `make fast-path`: compile the compiled path for this checkout (after its sources changed; a
+# minute), or say that its cache is current (docs/speed.md, "The compiled path")
+fast-path: $(STAMP)
+	$(BIN)/torchpref fast-path build --if-needed
+
+test: $(STAMP) fast-path
 	$(BIN)/python -m pytest -q
 ifeq ($(CI),true)
 	$(MAKE) test-slow lint types docs wheel-check test-floor
@@ -42,7 +49,7 @@ endif
 results-status: $(STAMP)
 	$(BIN)/python benchmarks/results_status.py
 
-test-slow: $(STAMP)
+test-slow: $(STAMP) fast-path
 	$(BIN)/python -m pytest -q -m slow
 
 bench: $(STAMP)
@@ -110,4 +117,4 @@ test-integrations:
 clean:
 	rm -rf $(VENV) .venv-floor .venv-ax .venv-bofire .cache/upstream dist build docs/_build docs/_generated docs/jupyter_execute
 
-.PHONY: venv demo test test-slow results-status bench lint format types docs wheel wheel-check clean test-floor upstream-tests test-integrations
+.PHONY: venv demo fast-path test test-slow results-status bench lint format types docs wheel wheel-check clean test-floor upstream-tests test-integrations

@@ -6,6 +6,7 @@ r"""The ``torchpref`` command line.
     torchpref reproduce suite [--families F ...] [--strategies S ...] [--effort E] [--trials N] [--queries Q] [--seed S] [--out DIR]
     torchpref elicit lake [--session FILE]
     torchpref elicit --features items.csv [--id COLUMN] [--session FILE]
+    torchpref fast-path build [--if-needed] | status
     torchpref --version
 
 Each subcommand lives in its own module, imported only when it runs. Every argument is checked
@@ -113,6 +114,11 @@ def build_parser() -> argparse.ArgumentParser:
     _elicit_parser(sub)
     _serve_parser(sub)
     _study_parser(sub)
+    fast = sub.add_parser("fast-path", help="build (compile) the compiled small-problem path, or say where it stands")
+    fast.add_argument("action", choices=("build", "status"), help="build: compile it now (about a minute); status: say")
+    fast.add_argument(
+        "--if-needed", action="store_true", help="build only where numba is installed and no usable cache is"
+    )
     return parser
 
 
@@ -475,6 +481,27 @@ def _study(args) -> int:
     return 0
 
 
+def _fast_path(args) -> int:
+    """``torchpref fast-path build``: compile the compiled path into its cache (progress on
+    stdout, the cache's folder at the end); ``status``: the setting, the cache and whether it loads."""
+    from torchpref.inference import fast_cache, fast_path
+
+    if args.action == "status":
+        print(fast_path.status())
+        return 0
+    if args.if_needed and fast_cache.problem() is not None:
+        print(f"torchpref fast-path: nothing to build: {fast_cache.problem()}")
+        return 0
+    if args.if_needed and fast_path.loads():
+        print(f"torchpref fast-path: the cache in {fast_path.cache_folder()} is this installation's")
+        return 0
+    try:
+        fast_path.build(progress=lambda line: print(line, flush=True))
+    except fast_cache.CacheUnusable as exc:
+        raise ValueError(f"the compiled path cannot be built: {exc}") from None
+    return 0
+
+
 def _missing_extra(args: argparse.Namespace) -> str | None:
     """The one-line message for an optional module the command needs and does not find, or ``None``."""
     from torchpref.extras import missing
@@ -509,6 +536,11 @@ def _main(argv: list[str] | None) -> int:
         if (line := _missing_extra(args)) is not None:
             print(line, file=sys.stderr)
             return MISSING_EXTRA
+        from torchpref.inference.fast_path import check_setting
+
+        check_setting()  # a mistyped TORCHPREF_FAST_PATH is named now, not at the first solve or page
+        if args.command == "fast-path":
+            return _fast_path(args)
         if args.command == "serve":
             return _serve(args)
         if args.command == "study":

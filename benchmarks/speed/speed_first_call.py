@@ -1,11 +1,11 @@
-r"""First-call cost of the compiled path (issue 33, item 3): the first fit of a fresh process.
+r"""First-call cost of the compiled path (issues 33 and 42): the first fits of a fresh process.
 
 Three fresh processes each build a 50-item comparisons model (``bench_common``) and time its first
-three ``fit_gpytorch_mll``: with the compiled path off; with ``auto`` and numba's on-disk cache
-present (the first fit is the torch solver's, the second imports numba and loads the compiled
-code); with ``auto`` and no cache (an
-empty ``NUMBA_CACHE_DIR``: the torch solver answers while a background process compiles, which
-this benchmark stops). Also the compile itself: ``warm_up()`` in a process with an empty cache.
+three ``fit_gpytorch_mll``: with the compiled path off; with ``auto`` and the cache built for this
+installation (the first fit imports numba and loads the compiled code: since issue 42 at the
+first solve, not the second fit); with ``auto`` and no cache (an empty ``NUMBA_CACHE_DIR``: the
+torch solver answers, one warning, nothing compiled and no process started). Also the build
+itself: ``fast_path.build()`` into an empty cache folder.
 Writes ``results/fast_path/first_call.json``.
 
 Usage::
@@ -44,20 +44,16 @@ for _ in range(3):
     bc.fit_torchpref(m)
     times.append((time.perf_counter() - t, time.process_time() - c))
 from torchpref.inference import fast_path as fp
-w = fp._state["warming"]
-if w:
-    w.kill()
 print(json.dumps({"imports_s": t_import, "first_fit_wall_s": times[0][0], "first_fit_cpu_s": times[0][1],
                   "second_fit_wall_s": times[1][0], "second_fit_cpu_s": times[1][1], "third_fit_wall_s": times[2][0],
-                  "compiled_loaded": fp._state["module"] is not None,
-                  "background_compile_started": bool(w), "numba_imported": "numba" in sys.modules}))
+                  "compiled_loaded": fp._state["functions"] is not None, "numba_imported": "numba" in sys.modules}))
 """
 
 COMPILE = r"""
 import time
 t, c = time.perf_counter(), time.process_time()
 from torchpref.inference import fast_path
-fast_path.warm_up()
+fast_path.build(progress=None)
 import json
 print(json.dumps({"compile_wall_s": time.perf_counter() - t, "compile_cpu_s": time.process_time() - c}))
 """
@@ -78,13 +74,13 @@ def main() -> None:
     from torchpref.experiments.results import write_json
 
     rows = {"off": json.loads(run(CHILD, TORCHPREF_FAST_PATH="off"))}
-    run("from torchpref.inference import fast_path; fast_path.warm_up()")  # the in-tree cache exists
+    run("from torchpref.inference import fast_path; fast_path.loads() or fast_path.build(None)")  # the cache exists
     rows["auto, cache on disk"] = json.loads(run(CHILD, TORCHPREF_FAST_PATH="auto"))
     with tempfile.TemporaryDirectory() as empty:
         rows["auto, no cache"] = json.loads(run(CHILD, TORCHPREF_FAST_PATH="auto", NUMBA_CACHE_DIR=empty))
     if not args.no_compile:
         with tempfile.TemporaryDirectory() as empty:
-            rows["compile (warm_up, empty cache)"] = json.loads(run(COMPILE, NUMBA_CACHE_DIR=empty))
+            rows["build (fast_path.build, empty cache)"] = json.loads(run(COMPILE, NUMBA_CACHE_DIR=empty))
     for k, v in rows.items():
         print(f"{k:32s} " + ", ".join(f"{a} {b:.3f}" if isinstance(b, float) else f"{a} {b}" for a, b in v.items()))
     write_json(

@@ -20,9 +20,12 @@ The agreement of the libraries is reported per size (``fit_quality`` in the JSON
 difference of the modes at the initial hyperparameters (the same MAP problem for all three), and
 each fit's hyperparameters and evidence (each library's own evidence + log priors).
 
-``--clock cpu`` times each task by this process's CPU time instead of wall time: on a machine
+``--clock cpu`` ranks and compares by this process's CPU time instead of wall time: on a machine
 loaded by other processes the wall time mostly measures the waiting; with one thread the two
-agree on a quiet machine. From ``--slow-n`` items on, each task is timed once per library after
+agree on a quiet machine. Both clocks are recorded for every measurement (``{lib}_cpu_s`` and
+``{lib}_wall_s``: a CPU time above the wall time means more than one thread worked), and the JSON
+says which threads were limited: torch's (``--threads``), and the BLAS libraries' counts inside the
+compiled path's calls (``meta.blas``: the libraries' own counts, and what the compiled calls set). From ``--slow-n`` items on, each task is timed once per library after
 no warm-up (PairwiseGP's fit at n = 2,000 takes minutes).
 
 Peak memory: a fresh subprocess per (task, library, size) loads everything, resets its peak RSS
@@ -104,11 +107,31 @@ CLOCK = {"wall": time.perf_counter, "cpu": time.process_time}
 clock = CLOCK["wall"]
 
 
-def _timed(fn, setup=None) -> float:
+def _timed(fn, setup=None) -> dict[str, float]:
+    """``{"cpu": seconds, "wall": seconds}`` of one call (``setup``, untimed, gives its argument)."""
     arg = setup() if setup is not None else None
-    t0 = clock()
+    c0, w0 = time.process_time(), time.perf_counter()
     fn(arg) if setup is not None else fn()
-    return clock() - t0
+    return {"cpu": time.process_time() - c0, "wall": time.perf_counter() - w0}
+
+
+def _medians(times: list[dict[str, float]]) -> dict[str, float]:
+    """The median of each clock over the repeats, and ``"s"``: the run's clock's."""
+    out = {k: statistics.median(t[k] for t in times) for k in ("cpu", "wall")}
+    return {**out, "s": out["cpu" if clock is CLOCK["cpu"] else "wall"]}
+
+
+def blas_threads() -> dict:
+    """The BLAS libraries' own thread counts (threadpoolctl, where installed) and what the compiled
+    path's calls set them to (:data:`torchpref.inference.fast_path.BLAS_THREADS`)."""
+    from torchpref.inference.fast_path import BLAS_THREADS
+
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        return {"libraries": None, "inside_compiled_calls": BLAS_THREADS.limited}
+    libs = [f"{i['internal_api']} {os.path.basename(i['filepath'])}: {i['num_threads']}" for i in threadpool_info()]
+    return {"libraries": libs, "inside_compiled_calls": BLAS_THREADS.limited}
 
 
 def _torch_path(fn):
@@ -158,15 +181,23 @@ def measure(task: str, n: int, p: int, libs, repeats: int, fitted: dict | None =
     if warm_up:
         for fn, setup in fns.values():  # first-call overheads, caches
             _timed(fn, setup)
-    times = {lib: [] for lib in fns}
+    times: dict[str, list] = {lib: [] for lib in fns}
     for r in range(repeats):
         for lib, (fn, setup) in fns.items():
             times[lib].append(_timed(fn, setup))
         log(
             f"  {task} n={n} p={p} repeat {r + 1}/{repeats}: "
-            + ", ".join(f"{lib} {t[-1]:.4f}s" for lib, t in times.items())
+            + ", ".join(f"{lib} {t[-1]['cpu']:.4f}s cpu {t[-1]['wall']:.4f}s wall" for lib, t in times.items())
         )
-    return {lib: statistics.median(t) for lib, t in times.items()}
+    return {lib: _medians(t) for lib, t in times.items()}
+
+
+def _cells(med: dict) -> dict:
+    """A row's time columns from :func:`measure`'s medians."""
+    out = {}
+    for lib, m in med.items():
+        out.update({f"{lib}_s": m["s"], f"{lib}_cpu_s": m["cpu"], f"{lib}_wall_s": m["wall"]})
+    return out
 
 
 def fit_quality(n: int, p: int, libs) -> tuple[dict, dict]:
@@ -201,8 +232,10 @@ def measure_mixed(repeats: int) -> float:
     ts = []
     for r in range(repeats):
         ts.append(_timed(run))
-        log(f"  mixed_mode n={bc.MIXED_N} repeat {r + 1}/{repeats}: {ts[-1]:.3f}s")
-    return statistics.median(ts)
+        log(
+            f"  mixed_mode n={bc.MIXED_N} repeat {r + 1}/{repeats}: {ts[-1]['cpu']:.3f}s cpu {ts[-1]['wall']:.3f}s wall"
+        )
+    return _medians(ts)
 
 
 # ------------------------------------------------------------------ memory (one subprocess each)
@@ -375,17 +408,22 @@ def main() -> None:
                 med = measure(
                     task, n, p, libs, 1 if slow else max(reps, 5 if task == "mode" else reps), warm_up=not slow
                 )
-                rows.append({"task": task, "n": n, "p": p, **{f"{lib}_s": med[lib] for lib in libs}})
+                rows.append({"task": task, "n": n, "p": p, **_cells(med)})
         fitted, q = fit_quality(n, p, libs)
         quality.append(q)
         log(f"  agreement n={n}: {q}")
         for task in ("posterior", "eubo"):
             if task in args.tasks:
                 med = measure(task, n, p, libs, reps, fitted, warm_up=not slow)
-                rows.append({"task": task, "n": n, "p": p, **{f"{lib}_s": med[lib] for lib in libs}})
+                rows.append({"task": task, "n": n, "p": p, **_cells(med)})
     if not args.no_mixed:
         rows.append(
-            {"task": "mixed_mode", "n": bc.MIXED_N, "p": bc.MIXED_N, "torchpref_s": measure_mixed(args.repeats)}
+            {
+                "task": "mixed_mode",
+                "n": bc.MIXED_N,
+                "p": bc.MIXED_N,
+                **_cells({"torchpref": measure_mixed(args.repeats)}),
+            }
         )
     for row in rows:
         _judge(row, libs)
@@ -410,6 +448,7 @@ def main() -> None:
 
     fields = ["task", "n", "p"] + [f"{lib}_s" for lib in ("torchpref", *PEERS)]
     fields += [f"ratio_{lib}" for lib in PEERS] + ["target", "met"]
+    fields += [f"{lib}_{c}_s" for c in ("cpu", "wall") for lib in ("torchpref", *PEERS)]
     if not args.no_memory:
         fields += [f"{lib}_peak_rss_mib" for lib in ("torchpref", *PEERS)]
     with open(args.out / f"{args.name}.csv", "w", newline="") as fh:
@@ -421,6 +460,9 @@ def main() -> None:
         "torch": torch.__version__,
         "botorch_rust": rust_note,
         "threads": torch.get_num_threads(),
+        "threads_limited": "torch.set_num_threads(threads); BLAS inside the compiled path's calls: see blas",
+        "blas": blas_threads(),
+        "clocks_recorded": ["cpu", "wall"],
         "python": platform.python_version(),
         "machine": platform.machine(),
         "cpus": os.cpu_count(),

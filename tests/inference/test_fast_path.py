@@ -1,7 +1,9 @@
-"""The compiled small-problem path (issue 33) against the torch solver, its reference: the same
-problems through both agree on the mode, the evidence and its gradient, and the fitted
-hyperparameters, on random problems and on hostile ones; the setting switches it; the package
-works without numba and ``import torchpref`` does not load it."""
+"""The compiled small-problem path (issues 33 and 42) against the torch solver, its reference: the
+same problems through both agree on the mode, the evidence and its gradient, and the fitted
+hyperparameters, on random problems and on hostile ones, with comparisons and with Beta ratings;
+the compiled fit hands its mode to the model's cache; the package works without numba and
+``import torchpref`` does not load it. The cache, the setting and the processes:
+``test_fast_path_cache.py``; person models: ``test_fast_path_person.py``."""
 
 import math
 import os
@@ -21,6 +23,15 @@ from torchpref.testing import problems
 
 F64 = torch.float64
 needs_numba = pytest.mark.skipif(not fast_path.available(), reason="numba is not installed (the fast extra)")
+
+
+@pytest.fixture(scope="module")
+def compiled_path():
+    """The compiled path loaded in this process (built first if no usable cache exists: a minute)."""
+    with fast_path.fast_path("on"):
+        functions = fast_path.warm_up()
+    assert functions is not None, fast_path.status()
+    return functions
 
 
 def _kernel(kind: str, d: int, ls: float = 0.3, os_: float = 1.0):
@@ -70,8 +81,10 @@ def test_setting_values_and_errors(monkeypatch):
     monkeypatch.setenv(fast_path.ENV, "off")
     assert fast_path.setting() == "off" and fast_path.compiled() is None
     monkeypatch.setenv(fast_path.ENV, "fast")
-    with pytest.raises(ValueError, match="TORCHPREF_FAST_PATH"):
+    with pytest.raises(ValueError, match="TORCHPREF_FAST_PATH='fast'.*auto, on, off"):
         fast_path.setting()
+    with pytest.raises(ValueError, match="TORCHPREF_FAST_PATH"):
+        fast_path.check_setting()
     with pytest.raises(ValueError, match="'sometimes'"):
         fast_path.fast_path("sometimes")
 
@@ -80,7 +93,7 @@ def test_setting_values_and_errors(monkeypatch):
 @pytest.mark.parametrize(
     "seed,n,kind,noise", [(0, 20, "rbf", 1.0), (1, 60, "m52", 0.1), (2, 7, "m32", 3.0), (3, 150, "rbf", 0.5)]
 )
-def test_mode_evidence_and_gradient_agree(seed, n, kind, noise):
+def test_mode_evidence_and_gradient_agree(seed, n, kind, noise, compiled_path):
     X, C = _problem(seed, n)
     out = {}
     for mode in ("off", "on"):
@@ -99,25 +112,38 @@ def test_mode_evidence_and_gradient_agree(seed, n, kind, noise):
 
 @needs_numba
 @pytest.mark.parametrize("kind", ["rbf", "m12", "m32", "m52"])
-def test_compiled_loss_matches_the_torch_mll_and_autograd(kind):
+@pytest.mark.parametrize("ratings", [False, True])
+def test_compiled_loss_matches_the_torch_mll_and_autograd(kind, ratings, compiled_path):
     """The compiled fit's loss and raw-parameter gradient against BoTorch's loss (``-mll()``) and
-    autograd through it at the same point, for each kernel."""
+    autograd through it at the same point, for each kernel, with comparisons only and with Beta
+    ratings and a fixed prior mean besides; the specification crosses as named fields."""
+    from gpytorch.means import ConstantMean
+
+    from torchpref.inference import fast_types
     from torchpref.models.fast_fit import compiled_problem
 
-    module = fast_path.warm_up()
     X, C = _problem(4, 30, d=3)
     model = _model(X, C, kind, ls=0.4, os_=1.7)
+    if ratings:
+        u = torch.linspace(0.05, 0.95, 9, dtype=F64)
+        mean = ConstantMean().to(F64).requires_grad_(False)
+        mean.constant.fill_(0.4)
+        model = PreferenceGP(X, C, u, torch.arange(9) * 3, covar_module=model.covar_module, mean_module=mean)
     model.covar_module.base_kernel.lengthscale = torch.tensor([[0.2, 0.5, 0.9]], dtype=F64)
     mll = LaplaceMarginalLogLikelihood(model)
     problem = compiled_problem(mll)
-    assert problem is not None
+    assert problem is not None and isinstance(problem.spec, fast_types.FitSpec)
+    assert problem.spec.ls_count == 3 and problem.spec.os_prior.kind == fast_types.GAMMA
+    assert (problem.answers.kind == fast_types.BETA).sum() == (9 if ratings else 0)
     x = torch.cat([p.detach().reshape(-1) for p in problem.params.values()]).numpy()
     with fast_path.fast_path("off"):
         loss = -mll()
         grads = torch.autograd.grad(loss, list(problem.params.values()))
-    value, grad, status = module.fit_loss(x, problem.X, problem.C, problem.scale, problem.kind, problem.spec,
-                                          problem.f0.copy(), problem.tol, problem.max_iter)  # fmt: skip
-    assert status == module.OK
+    state = fast_types.fit_state(problem.f0, problem.answers.first.shape[0])
+    value, grad, status = fast_path.call(
+        "fit_loss", x, problem.X, problem.answers, problem.spec, state, problem.tol, problem.max_iter
+    )
+    assert status == fast_types.OK
     assert abs(value - float(loss.detach())) < 1e-10 * abs(float(loss.detach()))
     expected = torch.cat([g.reshape(-1) for g in grads]).numpy()
     assert abs(grad - expected).max() < 1e-7 * max(1.0, abs(expected).max())
@@ -136,7 +162,7 @@ def _fit(X, C, mode, kind="rbf", noise=1.0):
 
 @needs_numba
 @pytest.mark.parametrize("seed,n,kind", [(5, 20, "rbf"), (6, 50, "rbf"), (7, 35, "m52"), (8, 100, "rbf")])
-def test_fitted_hyperparameters_agree(seed, n, kind):
+def test_fitted_hyperparameters_agree(seed, n, kind, compiled_path):
     """The compiled fit (its own L-BFGS with SciPy's L-BFGS-B stopping rules) reaches the torch
     fit's optimum: the same objective to 1e-7 relative, hyperparameters to L-BFGS's tolerance."""
     X, C = _problem(seed, n)
@@ -149,7 +175,7 @@ def test_fitted_hyperparameters_agree(seed, n, kind):
 
 @needs_numba
 @pytest.mark.parametrize("seed", range(12))
-def test_hostile_problems_agree_or_fall_back(seed):
+def test_hostile_problems_agree_or_fall_back(seed, compiled_path):
     """The fuzz's hostile comparison problems (duplicated items, contradictions, noise from 1e-3,
     lengthscales from 1e-3 to 1e3): the compiled mode agrees with the torch one wherever the
     torch solver succeeds, and a compiled fit ends usable wherever the torch fit does."""
@@ -183,15 +209,18 @@ def test_hostile_problems_agree_or_fall_back(seed):
 
 
 @needs_numba
-def test_unsupported_models_use_the_torch_solver():
-    """Ratings, a batch and float32 go to the torch solver even when the compiled path is forced."""
+def test_unsupported_models_use_the_torch_solver(compiled_path):
+    """Ordinal ratings, float32 and a learnable likelihood go to the torch solver even when the
+    compiled path is forced (bit for bit the same results)."""
     X, C = _problem(9, 15)
-    u, ri = torch.rand(5, generator=torch.Generator().manual_seed(0), dtype=F64), torch.arange(5)
+    levels, ri = torch.tensor([1, 3, 5, 2, 4]), torch.arange(5)
     ref = {}
     for mode in ("off", "on"):
         with fast_path.fast_path(mode), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            model = PreferenceGP(X, comparisons=C, ratings=u, rating_index=ri, covar_module=_kernel("rbf", 2))
+            model = PreferenceGP(
+                X, comparisons=C, ratings=levels, rating_index=ri, rating_levels=5, covar_module=_kernel("rbf", 2)
+            )
             fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
             ref[mode] = model.covar_module.outputscale.detach().clone()
             m32 = PreferenceGP(
@@ -237,26 +266,7 @@ def test_package_works_without_numba():
 
 
 @needs_numba
-def test_auto_loads_at_the_second_fit_and_only_from_the_cache(monkeypatch):
-    """``auto``: no load for modes or a process's first fit; the second fit loads it, and only when
-    numba's on-disk cache exists (else one background compile starts and the torch solver answers)."""
-    monkeypatch.delenv(fast_path.ENV, raising=False)
-    monkeypatch.setattr(fast_path, "_state", {"module": None, "warming": None, "fits": 0})
-    started = []
-    monkeypatch.setattr(fast_path, "_warm_in_background", lambda: started.append(1))
-    monkeypatch.setattr(fast_path, "cached_on_disk", lambda: False)
-    assert fast_path.compiled(load=True) is None and started == [1]
-    monkeypatch.setattr(fast_path, "cached_on_disk", lambda: True)
-    assert fast_path.compiled() is None  # a mode never loads it
-    assert fast_path.compiled(load=True) is None  # the first fit
-    module = fast_path.compiled(load=True)  # the second
-    assert module is not None and fast_path.compiled() is module
-    with fast_path.fast_path("off"):
-        assert fast_path.compiled() is None
-
-
-@needs_numba
-def test_custom_fit_routes_only_the_default_fit_of_a_supported_model(monkeypatch):
+def test_custom_fit_routes_only_the_default_fit_of_a_supported_model(monkeypatch, compiled_path):
     """BoTorch's ``fit_gpytorch_mll`` comes to ``custom_fit``: the compiled fit runs for the default
     call of a supported model; arguments, learnable likelihoods and a failed compiled fit go to
     BoTorch's own routine, which still fits."""
@@ -264,7 +274,7 @@ def test_custom_fit_routes_only_the_default_fit_of_a_supported_model(monkeypatch
 
     calls = []
     real = fast_fit.run
-    monkeypatch.setattr(fast_fit, "run", lambda p, m: calls.append(1) or real(p, m))
+    monkeypatch.setattr(fast_fit, "run", lambda p: calls.append(1) or real(p))
     X, C = _problem(10, 12)
     with fast_path.fast_path("on"), warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -274,17 +284,16 @@ def test_custom_fit_routes_only_the_default_fit_of_a_supported_model(monkeypatch
         learnable = PreferenceGP(X, comparisons=C, covar_module=_kernel("rbf", 2), learn_likelihood=True)
         fit_gpytorch_mll(LaplaceMarginalLogLikelihood(learnable))
         assert calls == [1]
-        monkeypatch.setattr(fast_fit, "run", lambda p, m: False)  # a compiled fit that gave up
+        monkeypatch.setattr(fast_fit, "run", lambda p: None)  # a compiled fit that gave up
         model = _model(X, C)
         mll = fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
     assert not mll.training and float(model.covar_module.outputscale) != 1.0
 
 
 @needs_numba
-def test_a_compiled_arithmetic_error_falls_back_to_the_torch_solver(monkeypatch):
-    """numba raises ``ZeroDivisionError`` where torch gives inf or NaN: the torch solver then runs,
-    with its own results and errors."""
-    module = fast_path.warm_up()
+def test_a_compiled_arithmetic_error_falls_back_for_that_call_only(monkeypatch, compiled_path):
+    """numba raises ``ZeroDivisionError`` where torch gives inf or NaN: the torch solver then
+    answers that call, with its own results, and the compiled path stays on (no warning)."""
 
     def raising(*args):
         raise ZeroDivisionError("division by zero")
@@ -292,11 +301,51 @@ def test_a_compiled_arithmetic_error_falls_back_to_the_torch_solver(monkeypatch)
     X, C = _problem(11, 10)
     with fast_path.fast_path("off"):
         f_ref = _model(X, C).mode.f
-    monkeypatch.setattr(module, "newton", raising)
-    monkeypatch.setattr(module, "fit_lbfgs", raising)
+    monkeypatch.setitem(fast_path._state, "functions", {**compiled_path, "newton": raising, "fit_lbfgs": raising})
     with fast_path.fast_path("on"), warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+        warnings.simplefilter("error", fast_path.FastPathWarning)
         model = _model(X, C)
         assert torch.equal(model.mode.f, f_ref)
-        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            warnings.simplefilter("error", fast_path.FastPathWarning)
+            fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
     assert float(model.covar_module.outputscale) != 1.0
+    assert fast_path._state["failed"] is None
+
+
+@needs_numba
+@pytest.mark.parametrize("ratings", [False, True])
+def test_the_compiled_fit_hands_its_mode_to_the_model(monkeypatch, ratings, compiled_path):
+    """After a compiled fit the model's posterior cache holds the fit's last mode and factors, for
+    the fitted hyperparameters: the next prediction solves nothing, and it is the prediction of a
+    fresh torch solve at those hyperparameters."""
+    from torchpref.inference import solver
+
+    X, C = _problem(12, 25)
+    kw = dict(ratings=torch.linspace(0.1, 0.9, 6, dtype=F64), rating_index=torch.arange(6) * 4) if ratings else {}
+    model = PreferenceGP(X, C, covar_module=_kernel("rbf", 2), **kw)
+    with fast_path.fast_path("on"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+    solves = []
+    real = solver.find_mode
+    monkeypatch.setattr(solver, "find_mode", lambda *a, **k: solves.append(1) or real(*a, **k))
+    Xt = torch.rand(7, 2, generator=torch.Generator().manual_seed(3), dtype=F64)
+    with torch.no_grad():
+        post = model.posterior(Xt)
+        mean, var = post.mean.clone(), post.variance.clone()
+    assert solves == []
+    # the kept mode is converged by the torch solver's own test (half the Newton decrement below tol)
+    from torchpref.inference.newton import Problem
+
+    state = model._cache
+    point = Problem(state.pred.L, state.obs).evaluate(state.mode.a)
+    step = torch.cholesky_solve(point.grad.unsqueeze(-1), state.mode.M).squeeze(-1)
+    assert float((point.grad * step).sum()) / 2 < 1e-11
+    model._cache = None  # a fresh solve by the torch solver at the fitted hyperparameters
+    with fast_path.fast_path("off"), torch.no_grad():
+        ref = model.posterior(Xt)
+    assert solves == [1]
+    # two modes that each pass that test: equal to the solver's tolerance, not to round-off
+    assert float((mean - ref.mean).abs().max()) < 1e-6 and float((var - ref.variance).abs().max()) < 1e-6

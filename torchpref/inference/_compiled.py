@@ -1,23 +1,26 @@
-r"""The compiled small-problem path (issue 33): the Laplace mode, evidence and its gradient, and a
-whole hyperparameter-fit evaluation, each as one numba-compiled call, for one problem on the CPU in
-float64 with probit comparisons (eq. 3).
+r"""The compiled small-problem path (issues 33 and 42): the Laplace mode and the second-order
+corrected evidence with its gradient in ``K``, for one problem on the CPU in float64, with probit
+comparisons (eq. 3) and Beta ratings (eqs. 4-7), each comparison or rating optionally shifted by a
+prior mean's offset (a population's person model). The hyperparameter fit built on them is
+:mod:`torchpref.inference._compiled_fit`.
 
 The torch solver (:mod:`torchpref.inference.newton`, :mod:`torchpref.inference.laplace`) is the
-reference: the same Newton iteration (exact ``B = I + L^T W L``, Armijo backtracking, the same
-stopping tests; no chord or float32 steps, which the torch solver takes only from ``n = 128`` and
-``256``), the same second-order corrected evidence and the same written-out gradient
-(:func:`~torchpref.inference.laplace.laplace_evidence`). The stationary kernels of
-:func:`kernel_matrix` are GPyTorch's ``RBFKernel`` and ``MaternKernel`` (``nu`` = 1/2, 3/2, 5/2),
-ARD or shared lengthscale, times an outputscale.
+reference: the same Newton iteration (exact ``B = I + L^T W L``, Fisher weights for the Beta ratings
+where that ``B`` is not positive definite, Armijo backtracking, the same stopping tests; no chord or
+float32 steps, which the torch solver takes only from ``n = 128`` and ``256``), the same
+second-order corrected evidence and the same written-out gradient
+(:func:`~torchpref.inference.laplace.laplace_evidence`).
 
-This module imports numba; nothing imports it at ``import torchpref`` time:
-the dispatch (:mod:`torchpref.inference.fast_path`) loads it on the first solve that uses it. Functions are
-compiled with ``cache=True`` (numba's on-disk cache beside this file, or in
-``NUMBA_CACHE_DIR``), so only the first process ever pays the compilation.
+The observations cross the boundary as one named structure,
+:class:`~torchpref.inference.fast_types.Answers` (one row per comparison or rating).
+
+This module imports numba; nothing imports it at ``import torchpref`` time, and nothing compiles
+it but an explicit build (:mod:`torchpref.inference.fast_cache`: ``torchpref fast-path build``).
 
 Status codes returned by the compiled calls: :data:`OK`, :data:`NOT_PD` (the kernel matrix is
-not positive definite even with the torch solver's largest jitter),
-:data:`NOT_FINITE` (a non-finite Newton step or evidence), :data:`NOT_CONVERGED`.
+not positive definite even with the torch solver's largest jitter, or Fisher scoring's ``B`` is
+not), :data:`NOT_FINITE` (a non-finite Newton step or evidence), :data:`NOT_CONVERGED`,
+:data:`FISHER` (the final factor needed Fisher weights: the torch solver answers, with its warning).
 """
 
 from __future__ import annotations
@@ -27,13 +30,10 @@ import math
 import numpy as np
 from numba import njit
 
+from torchpref.inference.fast_types import FISHER, NOT_CONVERGED, NOT_FINITE, NOT_PD, OK, PROBIT
 from torchpref.inference.step_rule import STEP_RULE
 
-OK, NOT_PD, NOT_FINITE, NOT_CONVERGED = 0, 1, 2, 3
-#: kernel kinds: GPyTorch's RBF, and Matern with nu = 1/2, 3/2, 5/2
-RBF, MATERN12, MATERN32, MATERN52 = 0, 1, 2, 3
-#: prior kinds on a positive hyperparameter
-NO_PRIOR, LOG_NORMAL, GAMMA = 0, 1, 2
+BELOW_ZERO = 6  # internal: a converged point below Psi(0), which no mode is (retried from zeros)
 
 LOG_2PI_HALF = 0.5 * math.log(2.0 * math.pi)
 # the step rule of every Newton loop (numba freezes these module globals when it compiles)
@@ -71,64 +71,105 @@ def probit(eta, s):
 
 
 @njit(cache=True)
-def kernel_profile(r2, kind):
-    """``k(r) / outputscale`` and ``phi = (d k / d l_k) l_k^3 / (outputscale diff_k^2)`` at the
-    squared scaled distance ``r2``, so that ``d k / d l_k = outputscale phi diff_k^2 / l_k^3``."""
-    if kind == RBF:
-        k = math.exp(-0.5 * r2)
-        return k, k
-    r = math.sqrt(r2)
-    if kind == MATERN12:
-        e = math.exp(-r)
-        return e, (e / r if r > 0.0 else 0.0)
-    if kind == MATERN32:
-        c = math.sqrt(3.0) * r
-        e = math.exp(-c)
-        return (1.0 + c) * e, 3.0 * e
-    c = math.sqrt(5.0) * r
-    e = math.exp(-c)
-    return (1.0 + c + 5.0 / 3.0 * r2) * e, 5.0 / 3.0 * (1.0 + c) * e
+def polygammas(x):
+    """``(psi(x), psi'(x), psi''(x))`` for ``x >= 1``: the recurrences up to ``x >= 10``, then the
+    asymptotic series (Abramowitz & Stegun 6.3.18, 6.4.11-12), to about ``1e-16`` relative."""
+    p0, p1, p2 = 0.0, 0.0, 0.0
+    while x < 10.0:
+        p0 -= 1.0 / x
+        p1 += 1.0 / (x * x)
+        p2 -= 2.0 / (x * x * x)
+        x += 1.0
+    v = 1.0 / (x * x)
+    p0 += math.log(x) - 0.5 / x
+    p0 -= v * (1 / 12 - v * (1 / 120 - v * (1 / 252 - v * (1 / 240 - v * (1 / 132 - v * (691 / 32760 - v / 12))))))
+    s1 = 1 / 6 - v * (1 / 30 - v * (1 / 42 - v * (1 / 30 - v * (5 / 66 - v * (691 / 2730 - v * 7 / 6)))))
+    p1 += 1.0 / x + 0.5 * v + s1 * v / x
+    s2 = 0.5 - v * (1 / 6 - v * (1 / 6 - v * (3 / 10 - v * (5 / 6 - v * (691 / 210 - v * 35 / 2)))))
+    p2 += -v - v / x - s2 * v * v
+    return p0, p1, p2
 
 
 @njit(cache=True)
-def kernel_matrix(X, ls, outputscale, kind):
-    """``K`` (``n x n``) of the items ``X`` (``n x d``) with lengthscales ``ls`` (``d``)."""
-    n, d = X.shape
-    K = np.empty((n, n))
-    for i in range(n):
-        K[i, i] = outputscale
-        for j in range(i):
-            r2 = 0.0
-            for c in range(d):
-                diff = (X[i, c] - X[j, c]) / ls[c]
-                r2 += diff * diff
-            k, _ = kernel_profile(r2, kind)
-            K[i, j] = outputscale * k
-            K[j, i] = K[i, j]
-    return K
+def beta_rating(eta, u, c, nu):
+    """``(log p, l', w = -l'', -l''', Fisher weight)`` of a rating ``u ~ Beta(nu mu, nu (1 - mu))``,
+    ``mu = Phi(eta / c)``, written as :class:`~torchpref.likelihoods.pairwise_beta.BetaRatingLikelihood`
+    writes them (finite where ``mu`` rounds to 0 or 1)."""
+    t = eta / c
+    log_mu, mills_a = log_cdf_mills(t)
+    log_1mmu, mills_b = log_cdf_mills(-t)
+    a, b = nu * math.exp(log_mu), nu * math.exp(log_1mmu)
+    r_a, r_b = mills_a / c, mills_b / c
+    dmu = math.exp(-0.5 * t * t - LOG_2PI_HALF) / c
+    lu, l1u = math.log(u), math.log1p(-u)
+    lp = (a - 1.0) * lu + (b - 1.0) * l1u + math.lgamma(nu) - math.lgamma(a + 1.0) - math.lgamma(b + 1.0)
+    lp += 2.0 * math.log(nu) + log_mu + log_1mmu
+    pa0, pa1, pa2 = polygammas(a + 1.0)
+    pb0, pb1, pb2 = polygammas(b + 1.0)
+    g = nu * (lu - l1u - pa0 + pb0) * dmu + r_a - r_b
+    F = r_a * r_a + r_b * r_b + nu * nu * (pa1 + pb1) * dmu * dmu
+    l3 = -(nu**3) * (pa2 - pb2) * dmu**3 + 2.0 * r_a**3 - 2.0 * r_b**3
+    third = l3 + 3.0 * F * t / c + g * (t * t - 1.0) / (c * c)
+    return lp, g, F + t * g / c, -third, F
 
 
 @njit(cache=True)
-def kernel_gradient(X, ls, outputscale, kind, G):
-    """``(sum G dK/dl_c for each c, sum G dK/doutputscale)`` for ``G`` (``n x n``, not necessarily
-    symmetric)."""
-    n, d = X.shape
-    gls = np.zeros(d)
-    gos = 0.0
-    for i in range(n):
-        gos += G[i, i]
-        for j in range(i):
-            r2 = 0.0
-            for c in range(d):
-                diff = (X[i, c] - X[j, c]) / ls[c]
-                r2 += diff * diff
-            k, phi = kernel_profile(r2, kind)
-            g = G[i, j] + G[j, i]
-            gos += g * k
-            for c in range(d):
-                diff = X[i, c] - X[j, c]
-                gls[c] += g * outputscale * phi * diff * diff / (ls[c] * ls[c] * ls[c])
-    return gls, gos
+def answer_terms(f, ans):
+    """``(log p, d log p / d f, weights w, d w / d eta, Fisher weights)`` of the rows of ``ans`` at ``f``."""
+    n, m = f.shape[0], ans.first.shape[0]
+    gf = np.zeros(n)
+    w, dw, fw = np.empty(m), np.empty(m), np.empty(m)
+    ll = 0.0
+    for k in range(m):
+        i, j = ans.first[k], ans.second[k]
+        eta = f[i] + ans.offset[k] - (f[j] if j >= 0 else 0.0)
+        if ans.kind[k] == PROBIT:
+            lp, d1, wk, dwk = probit(eta, ans.probit_scale)
+            fk = wk
+        else:
+            lp, d1, wk, dwk, fk = beta_rating(eta, ans.target[k], ans.rating_scale, ans.rating_precision)
+        ll += lp
+        gf[i] += d1
+        if j >= 0:
+            gf[j] -= d1
+        w[k], dw[k], fw[k] = wk, dwk, fk
+    return ll, gf, w, dw, fw
+
+
+@njit(cache=True)
+def evaluate(L, a, ans):
+    """``(Psi, grad Psi, weights, log p)`` at the whitened point ``a``."""
+    ll, gf, w, _, _ = answer_terms(L @ a, ans)
+    grad = L.T @ gf - a
+    return ll - 0.5 * (a @ a), grad, w, ll
+
+
+@njit(cache=True)
+def w_times(ans, w, A):
+    """``W A`` for ``W = sum_k w_k d_k d_k^T`` (``d_k = e_i - e_j``, or ``e_i`` for a rating) and ``A`` (``n x k``)."""
+    out = np.zeros_like(A)
+    for k in range(ans.first.shape[0]):
+        i, j = ans.first[k], ans.second[k]
+        for c in range(A.shape[1]):
+            v = w[k] * (A[i, c] - (A[j, c] if j >= 0 else 0.0))
+            out[i, c] += v
+            if j >= 0:
+                out[j, c] -= v
+    return out
+
+
+@njit(cache=True)
+def w_dense(ans, w, n):
+    """``W`` (``n x n``) densely."""
+    W = np.zeros((n, n))
+    for k in range(ans.first.shape[0]):
+        i, j = ans.first[k], ans.second[k]
+        W[i, i] += w[k]
+        if j >= 0:
+            W[j, j] += w[k]
+            W[i, j] -= w[k]
+            W[j, i] -= w[k]
+    return W
 
 
 @njit(cache=True)
@@ -138,6 +179,25 @@ def cholesky(A):
         return np.linalg.cholesky(A), True
     except Exception:  # numba's LinAlgError
         return np.zeros_like(A), False
+
+
+@njit(cache=True)
+def factorise(L, ans, a, w):
+    """``(M, weights, fisher, ok)``: the Cholesky factor of ``B = I + L^T W L`` at ``a``, with the
+    Fisher weights of the Beta ratings where the exact ``B`` is not positive definite
+    (:meth:`torchpref.inference.newton.Problem.factorise`)."""
+    B = L.T @ w_times(ans, w, L)
+    for i in range(B.shape[0]):
+        B[i, i] += 1.0
+    M, ok = cholesky(B)
+    if ok:
+        return M, w, False, True
+    fw = answer_terms(L @ a, ans)[4]
+    B = L.T @ w_times(ans, fw, L)
+    for i in range(B.shape[0]):
+        B[i, i] += 1.0
+    M, ok = cholesky(B)
+    return M, fw, True, ok
 
 
 @njit(cache=True)
@@ -173,61 +233,12 @@ def chol_solve(M, b):
 
 
 @njit(cache=True)
-def comparison_terms(f, C, s):
-    """``(log p, d log p / d f, weights w, d w / d eta)`` of the comparisons ``C`` (``m x 2``) at ``f``."""
-    n, m = f.shape[0], C.shape[0]
-    gf = np.zeros(n)
-    w = np.empty(m)
-    dw = np.empty(m)
-    ll = 0.0
-    for k in range(m):
-        i, j = C[k, 0], C[k, 1]
-        lp, d1, wk, dwk = probit(f[i] - f[j], s)
-        ll += lp
-        gf[i] += d1
-        gf[j] -= d1
-        w[k] = wk
-        dw[k] = dwk
-    return ll, gf, w, dw
-
-
-@njit(cache=True)
-def evaluate(L, a, C, s):
-    """``(Psi, grad Psi, weights, log p)`` at the whitened point ``a`` for comparisons ``C`` (``m x 2``)."""
-    ll, gf, w, _ = comparison_terms(L @ a, C, s)
-    grad = L.T @ gf - a
-    return ll - 0.5 * (a @ a), grad, w, ll
-
-
-@njit(cache=True)
-def w_times(C, w, A):
-    """``W A`` for ``W = sum_k w_k d_k d_k^T`` (``d_k = e_i - e_j``) and ``A`` (``n x k``)."""
-    out = np.zeros_like(A)
-    for k in range(C.shape[0]):
-        i, j = C[k, 0], C[k, 1]
-        for c in range(A.shape[1]):
-            v = w[k] * (A[i, c] - A[j, c])
-            out[i, c] += v
-            out[j, c] -= v
-    return out
-
-
-@njit(cache=True)
-def hessian(L, C, w):
-    """``B = I + L^T W L``."""
-    H = L.T @ w_times(C, w, L)
-    for i in range(H.shape[0]):
-        H[i, i] += 1.0
-    return H
-
-
-@njit(cache=True)
-def line_search(L, C, s, a, psi, grad, w, ll, step, dec):
+def line_search(L, ans, a, psi, grad, w, ll, step, dec):
     """Armijo backtracking from ``a`` along ``step``: ``(a, Psi, grad, weights, log p, moved)``."""
     t = 1.0
     while True:
         trial = a + t * step
-        psi_t, grad_t, w_t, ll_t = evaluate(L, trial, C, s)
+        psi_t, grad_t, w_t, ll_t = evaluate(L, trial, ans)
         if np.isfinite(psi_t) and psi_t >= psi + ARMIJO * t * dec:
             return trial, psi_t, grad_t, w_t, ll_t, True
         t *= SHRINK
@@ -236,80 +247,105 @@ def line_search(L, C, s, a, psi, grad, w, ll, step, dec):
 
 
 @njit(cache=True)
-def newton(L, C, s, starts, tol, max_iter):
-    """The Laplace mode: ``(a, M, weights, iterations, status, decrement)`` with ``M`` the Cholesky
-    factor of ``B`` at ``a`` (:func:`torchpref.inference.newton.newton_mode` for one problem)."""
+def best_start(L, ans, starts):
+    """``(a, Psi, grad, weights, log p, Psi(0))`` at the candidate start (rows of ``starts``,
+    utilities) of highest ``Psi``; zeros without one (a start that is not finite counts as zeros)."""
     n = L.shape[0]
     a = np.zeros(n)
-    psi, grad, w, ll = evaluate(L, a, C, s)
-    if starts.shape[0]:
-        first = True
-        for r in range(starts.shape[0]):
-            ar = solve_lower(L, starts[r].copy())
-            if not np.all(np.isfinite(ar)):
-                ar = np.zeros(n)
-            pr, gr, wr, lr = evaluate(L, ar, C, s)
-            if first or pr > psi:
-                a, psi, grad, w, ll = ar, pr, gr, wr, lr
-            first = False
+    psi, grad, w, ll = evaluate(L, a, ans)
+    psi0 = psi
+    for r in range(starts.shape[0]):
+        ar = solve_lower(L, starts[r].copy())
+        if not np.all(np.isfinite(ar)):
+            ar = np.zeros(n)
+        pr, gr, wr, lr = evaluate(L, ar, ans)
+        if r == 0 or pr > psi:
+            a, psi, grad, w, ll = ar, pr, gr, wr, lr
+    return a, psi, grad, w, ll, psi0
+
+
+@njit(cache=True)
+def final_status(fisher, ok, status, psi, psi0):
+    """The status of a mode and factor handed back: ``status``, or why the torch solver must
+    answer: the factor is not positive definite, needed Fisher weights, or the point is below
+    ``Psi(0)`` (no mode is: a warm start that "converged" where round-off hides the gradient,
+    as far in a saturated likelihood's tail; the torch solver then fails or restarts cold)."""
+    if not ok:
+        return NOT_PD
+    if status == OK and not psi >= psi0:
+        return BELOW_ZERO
+    return FISHER if fisher and status == OK else status
+
+
+@njit(cache=True)
+def newton(L, ans, starts, tol, max_iter):
+    """The Laplace mode: ``(a, M, weights, iterations, status, decrement)`` with ``M`` the Cholesky
+    factor of ``B`` at ``a`` (:func:`torchpref.inference.newton.newton_mode` for one problem). A
+    warm start that fails (a non-finite step, no convergence, or a point below ``Psi(0)``, which no
+    mode is) is retried from zeros, as the torch solver's caller retries a warm start that raises
+    (:meth:`torchpref.inference.solver.PosteriorState.solve`): far in a saturated likelihood's tail
+    a start predicted for other hyperparameters can stall where round-off hides the gradient."""
+    out = newton_from(L, ans, starts, tol, max_iter)
+    if starts.shape[0] and out[4] in (BELOW_ZERO, NOT_CONVERGED, NOT_FINITE, NOT_PD):
+        out = newton_from(L, ans, np.empty((0, L.shape[0])), tol, max_iter)
+    if out[4] == BELOW_ZERO:
+        return out[0], out[1], out[2], out[3], NOT_CONVERGED, out[5]
+    return out
+
+
+@njit(cache=True)
+def newton_from(L, ans, starts, tol, max_iter):
+    """:func:`newton` from the best of ``starts`` (zeros without one), without the retry."""
+    a, psi, grad, w, ll, psi0 = best_start(L, ans, starts)
     newton_dec = np.inf
     dec = np.inf
     for it in range(1, max_iter + 1):
-        M, ok = cholesky(hessian(L, C, w))
+        M, wM, fisher, ok = factorise(L, ans, a, w)
         if not ok:
-            return a, M, w, it, NOT_FINITE, dec
+            return a, M, wM, it, NOT_PD, dec
         step = chol_solve(M, grad)
         dec = grad @ step
         if not np.isfinite(dec):
-            return a, M, w, it, NOT_FINITE, dec
+            return a, M, wM, it, NOT_FINITE, dec
         prior = 0.5 * (a @ a)
         stalled = dec > 0.25 * newton_dec and dec / 2 < ROUNDOFF * (abs(psi + prior) + prior)
         newton_dec = dec
         if dec / 2 < tol or stalled:
-            return a, M, w, it, OK, dec
-        a, psi, grad, w, ll, moved = line_search(L, C, s, a, psi, grad, w, ll, step, dec)
+            return a, M, wM, it, final_status(fisher, ok, OK, psi, psi0), dec
+        a, psi, grad, w, ll, moved = line_search(L, ans, a, psi, grad, w, ll, step, dec)
         if not moved:
-            M, ok = cholesky(hessian(L, C, w))
+            M, wM, fisher, ok = factorise(L, ans, a, w)
             floor = ROUNDOFF * (abs(psi + prior) + prior)
-            return a, M, w, it, (OK if dec / 2 < max(floor, STUCK_TOL) else NOT_CONVERGED), dec
-    M, ok = cholesky(hessian(L, C, w))
-    return a, M, w, max_iter, NOT_CONVERGED, dec
+            status = OK if dec / 2 < max(floor, STUCK_TOL) else NOT_CONVERGED
+            return a, M, wM, it, final_status(fisher, ok, status, psi, psi0), dec
+    M, wM, fisher, ok = factorise(L, ans, a, w)
+    return a, M, wM, max_iter, final_status(fisher, ok, NOT_CONVERGED, psi, psi0), dec
 
 
 @njit(cache=True)
-def w_dense(C, w, n):
-    """``W`` (``n x n``) densely."""
-    W = np.zeros((n, n))
-    for k in range(C.shape[0]):
-        i, j = C[k, 0], C[k, 1]
-        W[i, i] += w[k]
-        W[j, j] += w[k]
-        W[i, j] -= w[k]
-        W[j, i] -= w[k]
-    return W
-
-
-@njit(cache=True)
-def evidence(L, C, s, a, M, w):
+def evidence(L, ans, a, M, w):
     r"""``(log q, G)``: the second-order corrected Laplace evidence at the mode ``a`` and its
     gradient in ``K``, ``G = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``
     (:func:`torchpref.inference.laplace.laplace_evidence`)."""
-    n, m = L.shape[0], C.shape[0]
-    ll, g, _, dw = comparison_terms(L @ a, C, s)
+    n, m = L.shape[0], ans.first.shape[0]
+    ll, g, _, dw, _ = answer_terms(L @ a, ans)
     V = np.linalg.solve(M, np.ascontiguousarray(L.T))  # M^-1 L^T: Sigma = V^T V
     Sigma = V.T @ V
     h = np.zeros(n)
     for k in range(m):
-        i, j = C[k, 0], C[k, 1]
-        v = dw[k] * (Sigma[i, i] + Sigma[j, j] - 2.0 * Sigma[i, j])
+        i, j = ans.first[k], ans.second[k]
+        if j >= 0:
+            v = dw[k] * (Sigma[i, i] + Sigma[j, j] - 2.0 * Sigma[i, j])
+            h[j] -= v
+        else:
+            v = dw[k] * Sigma[i, i]
         h[i] += v
-        h[j] -= v
     Sigma_h = Sigma @ h
-    WS = w_times(C, w, Sigma)
-    WSW = w_times(C, w, np.ascontiguousarray(WS.T))
-    b = h - w_times(C, w, Sigma_h.reshape(n, 1))[:, 0]
+    WS = w_times(ans, w, Sigma)
+    WSW = w_times(ans, w, np.ascontiguousarray(WS.T))
+    b = h - w_times(ans, w, Sigma_h.reshape(n, 1))[:, 0]
     alpha = solve_lower_t(L, a)
-    W = w_dense(C, w, n)
+    W = w_dense(ans, w, n)
     G = np.empty((n, n))
     for i in range(n):
         for j in range(n):
@@ -325,196 +361,22 @@ def evidence(L, C, s, a, M, w):
 
 @njit(cache=True)
 def jittered_cholesky(K):
-    """``(L, ok)`` with ``L L^T = K + j I`` for the first ``j`` of the torch solver's float64
-    schedule that works (:func:`torchpref.inference.numerics.jitter_schedule`: 0, then ``1e-10``
-    to ``1e-6`` of the mean diagonal, tenfold)."""
+    """``(L, jitter, ok)`` with ``L L^T = K + jitter I`` for the first jitter of the torch solver's
+    float64 schedule that works (:func:`torchpref.inference.numerics.jitter_schedule`: 0, then
+    ``1e-10`` to ``1e-6`` of the mean diagonal, tenfold)."""
     L, ok = cholesky(K)
     if ok:
-        return L, ok
+        return L, 0.0, ok
     n = K.shape[0]
     scale = np.trace(K) / n
     if not (np.isfinite(scale) and scale > 0.0):
         scale = 1.0
     for e in range(-10, -5):
         Kj = K.copy()
+        j = scale * 10.0**e
         for i in range(n):
-            Kj[i, i] += scale * 10.0**e
+            Kj[i, i] += j
         L, ok = cholesky(Kj)
         if ok:
-            return L, ok
-    return L, False
-
-
-@njit(cache=True)
-def mode_and_evidence(X, C, s, kind, ls, outputscale, f_prev, tol, max_iter):
-    """One fit evaluation: ``(log q, d log q / d ls, d log q / d outputscale, mode f, status)``,
-    Newton warm-started from ``f_prev`` (``n``; a row of zeros-length ``0``: cold), cold if that fails."""
-    n = X.shape[0]
-    K = kernel_matrix(X, ls, outputscale, kind)
-    L, ok = jittered_cholesky(K)
-    if not ok:
-        return 0.0, np.zeros(ls.shape[0]), 0.0, np.zeros(n), NOT_PD
-    starts = f_prev.reshape(1, f_prev.shape[0]) if f_prev.shape[0] == n else np.empty((0, n))
-    a, M, w, _, status, _ = newton(L, C, s, starts, tol, max_iter)
-    if status == NOT_FINITE and starts.shape[0]:
-        a, M, w, _, status, _ = newton(L, C, s, np.empty((0, n)), tol, max_iter)
-    if status != OK:
-        return 0.0, np.zeros(ls.shape[0]), 0.0, np.zeros(n), status
-    value, G = evidence(L, C, s, a, M, w)
-    if not np.isfinite(value):
-        return 0.0, np.zeros(ls.shape[0]), 0.0, np.zeros(n), NOT_FINITE
-    gls, gos = kernel_gradient(X, ls, outputscale, kind, G)
-    return value, gls, gos, L @ a, OK
-
-
-@njit(cache=True)
-def softplus(x):
-    """torch's ``softplus`` (threshold 20) and its derivative."""
-    if x > 20.0:
-        return x, 1.0
-    return math.log1p(math.exp(x)), 1.0 / (1.0 + math.exp(-x))
-
-
-@njit(cache=True)
-def log_prior(x, kind, p1, p2, const):
-    """``(log density, its derivative)`` at ``x > 0`` of a LogNormal(``p1``, ``p2``) or
-    Gamma(concentration ``p1``, rate ``p2``) prior (0 for none), whose constant part is ``const``
-    (``-log p2 - log(2 pi) / 2``, ``p1 log p2 - lgamma(p1)``: computed by the prior itself, in its
-    own dtype, as GPyTorch's float32 prior parameters give it)."""
-    if kind == LOG_NORMAL:
-        lx = math.log(x)
-        z = (lx - p1) / p2
-        return const - lx - 0.5 * z * z, (-1.0 - z / p2) / x
-    if kind == GAMMA:
-        return const + (p1 - 1.0) * math.log(x) - p2 * x, (p1 - 1.0) / x - p2
-    return 0.0, 0.0
-
-
-@njit(cache=True)
-def fit_loss(x, X, C, s, kind, spec, f_prev, tol, max_iter):
-    """BoTorch's loss ``-(log q + log priors)`` and its gradient in the raw parameters ``x``.
-
-    ``spec`` (floats): ``[ls_start, ls_count, os_index, ls_lower, os_lower, ls_prior kind, p1, p2,
-    os_prior kind, p1, p2, fixed outputscale, ls_prior const, os_prior const]`` (:func:`log_prior`): the lengthscales are ``softplus(x[ls_start :
-    ls_start + ls_count]) + ls_lower`` (one shared value when ``ls_count = 1``), the outputscale
-    ``softplus(x[os_index]) + os_lower`` (the fixed value where ``os_index < 0``). ``f_prev`` is
-    overwritten with the new mode (the next call's warm start). Returns ``(loss, grad, status)``."""
-    d = X.shape[1]
-    start, count, os_index = int(spec[0]), int(spec[1]), int(spec[2])
-    ls = np.empty(d)
-    dls = np.empty(count)
-    lp = 0.0
-    gprior_ls = np.zeros(count)
-    for c in range(count):
-        v, dv = softplus(x[start + c])
-        v += spec[3]
-        dls[c] = dv
-        pr, dpr = log_prior(v, int(spec[5]), spec[6], spec[7], spec[12])
-        lp += pr
-        gprior_ls[c] = dpr
-        for e in range(d):
-            if count == 1 or e == c:
-                ls[e] = v
-    outputscale, dos, gprior_os = spec[11], 0.0, 0.0
-    if os_index >= 0:
-        outputscale, dos = softplus(x[os_index])
-        outputscale += spec[4]
-        pr, gprior_os = log_prior(outputscale, int(spec[8]), spec[9], spec[10], spec[13])
-        lp += pr
-    value, gls, gos, f, status = mode_and_evidence(X, C, s, kind, ls, outputscale, f_prev, tol, max_iter)
-    grad = np.zeros(x.shape[0])
-    if status != OK:
-        return 0.0, grad, status
-    if f_prev.shape[0] == f.shape[0]:
-        f_prev[:] = f
-    for c in range(count):
-        total = gls.sum() if count == 1 else gls[c]
-        grad[start + c] = -(total + gprior_ls[c]) * dls[c]
-    if os_index >= 0:
-        grad[os_index] = -(gos + gprior_os) * dos
-    return -(value + lp), grad, OK
-
-
-LINE_SEARCH_FAILED = 4
-#: SciPy's L-BFGS-B defaults, which BoTorch's fit uses: memory, ``ftol``, ``gtol``, iteration limit
-LBFGS_MEMORY, LBFGS_FTOL, LBFGS_GTOL, LBFGS_MAXITER = 10, 2.220446049250313e-09, 1e-5, 15000
-
-
-@njit(cache=True)
-def two_loop(g, S, Y, rho, count, head):
-    """The L-BFGS product ``H g`` from the last ``count`` pairs ``(s, y)`` (ring buffer ending at ``head``)."""
-    q = g.copy()
-    m = S.shape[0]
-    alpha = np.zeros(m)
-    for back in range(count):
-        i = (head - 1 - back) % m
-        alpha[i] = rho[i] * (S[i] @ q)
-        q -= alpha[i] * Y[i]
-    if count:
-        last = (head - 1) % m
-        q *= (S[last] @ Y[last]) / (Y[last] @ Y[last])
-    for fwd in range(count):
-        i = (head - count + fwd) % m
-        beta = rho[i] * (Y[i] @ q)
-        q += (alpha[i] - beta) * S[i]
-    return q
-
-
-@njit(cache=True)
-def wolfe_search(x, fx, gx, d, t, X, C, s, kind, spec, f_prev, tol, max_iter):
-    """A step along ``d`` satisfying the strong Wolfe conditions with L-BFGS-B's constants
-    (sufficient decrease ``1e-3``, curvature ``0.9``), bracketed by bisection and extended by
-    doubling: ``(x, loss, grad, status)``; :data:`LINE_SEARCH_FAILED` after 60 trials."""
-    gd = gx @ d
-    lo, hi = 0.0, np.inf
-    for _ in range(60):
-        xn = x + t * d
-        fn, gn, status = fit_loss(xn, X, C, s, kind, spec, f_prev, tol, max_iter)
-        if status != OK:
-            return x, fx, gx, status
-        gnd = gn @ d
-        if not fn <= fx + 1e-3 * t * gd or gnd > -0.9 * gd:
-            hi = t  # not enough decrease, or past the minimum along d
-        elif gnd < 0.9 * gd:
-            lo = t  # still descending steeply: a longer step
-        else:
-            return xn, fn, gn, OK
-        t = 0.5 * (lo + hi) if hi < np.inf else 2.0 * t
-    return x, fx, gx, LINE_SEARCH_FAILED
-
-
-@njit(cache=True)
-def fit_lbfgs(x0, X, C, s, kind, spec, f_prev, tol, max_iter):
-    """The whole fit in one call: L-BFGS on :func:`fit_loss` from the raw parameters ``x0``, with
-    SciPy's L-BFGS-B stopping rules, defaults, first step (unit length along the gradient) and
-    line-search constants (unbounded, as BoTorch's softplus-constrained parameters are; the line
-    search brackets by bisection where L-BFGS-B's interpolates): ``(x, loss, status, iterations)``."""
-    k = x0.shape[0]
-    x = x0.copy()
-    fx, gx, status = fit_loss(x, X, C, s, kind, spec, f_prev, tol, max_iter)
-    if status != OK:
-        return x, fx, status, 0
-    S, Y = np.zeros((LBFGS_MEMORY, k)), np.zeros((LBFGS_MEMORY, k))
-    rho = np.zeros(LBFGS_MEMORY)
-    count, head = 0, 0
-    for it in range(LBFGS_MAXITER):
-        if np.max(np.abs(gx)) <= LBFGS_GTOL:
-            return x, fx, OK, it
-        d = -two_loop(gx, S, Y, rho, count, head)
-        if not gx @ d < 0.0:
-            d, count = -gx, 0
-        t = 1.0 if count else 1.0 / math.sqrt(d @ d)  # L-BFGS-B's first step: unit length
-        xn, fn, gn, status = wolfe_search(x, fx, gx, d, t, X, C, s, kind, spec, f_prev, tol, max_iter)
-        if status != OK:
-            return x, fx, status, it
-        sv, yv = xn - x, gn - gx
-        sy = sv @ yv
-        if sy > 2.220446049250313e-16 * (yv @ yv):
-            S[head], Y[head], rho[head] = sv, yv, 1.0 / sy
-            head = (head + 1) % LBFGS_MEMORY
-            count = min(count + 1, LBFGS_MEMORY)
-        done = (fx - fn) <= LBFGS_FTOL * max(abs(fx), abs(fn), 1.0)
-        x, fx, gx = xn, fn, gn
-        if done:
-            return x, fx, OK, it + 1
-    return x, fx, OK, LBFGS_MAXITER
+            return L, j, ok
+    return L, 0.0, False

@@ -2,40 +2,46 @@ r"""Which solver runs: the compiled small-problem path (:mod:`torchpref.inferenc
 numba) or the torch solver, and the setting that forces either (docs/speed.md, "The compiled path").
 
 The setting, in order of precedence: :func:`fast_path` as a context manager (``with
-torchpref.fast_path("off"): ...``) or called once (``torchpref.fast_path("on")``), else the
-environment variable ``TORCHPREF_FAST_PATH``, else ``"auto"``:
+torchpref.fast_path("off"): ...``, for the calling thread only), :func:`fast_path` called alone
+(``torchpref.fast_path("on")``: the whole process, until changed), else the environment variable
+``TORCHPREF_FAST_PATH`` (checked when read: a value other than :data:`SETTINGS` raises a
+``ValueError`` naming it), else ``"auto"``:
 
 * ``"off"``: the torch solver everywhere.
-* ``"on"``: the compiled path wherever it applies (compiling it now if no on-disk cache exists).
-* ``"auto"``: the compiled path where it applies and is faster (up to :data:`MODE_MAX_ITEMS`
-  items for a mode, :data:`FIT_MAX_ITEMS` for a fit). It is loaded at the second fit of a process
-  (:data:`LOAD_AT_FIT`: loading numba, 0.5-1 s, pays back over a loop of fits, not over one), or
-  by :func:`warm_up`; modes use it once it is loaded, so a program that fits once or only
-  predicts (``torchpref elicit``, ``serve``) runs as before. It
-  is loaded only from numba's on-disk cache: where that does not exist yet (the first use after
-  installing), a background process compiles it while the torch solver answers, so no call
-  waits for the compiler.
+* ``"auto"``: the compiled path where it applies and is faster (up to :data:`MODE_MAX_ITEMS` items
+  for a mode, :data:`FIT_MAX_ITEMS` for a fit), if the cache built for this installation loads
+  (:mod:`torchpref.inference.fast_cache`; built by ``torchpref fast-path build`` or :func:`build`).
+  It is loaded at the first solve it applies to, never compiled: without a usable cache the torch
+  solver answers and one :class:`FastPathWarning` per process names the command.
+* ``"on"``: the compiled path wherever it applies; without a usable cache it is built in the
+  calling process first (about a minute, with a progress line on stderr).
 
-It applies to one problem (no batch), on the CPU, in float64, with probit comparisons only, and,
-for a fit, the stationary kernels :mod:`torchpref.models.fast_fit` lists. numba is imported on the
-first solve that uses it, never at ``import torchpref``. Without numba (the ``fast`` extra) every
-setting gives the torch solver.
+No fit or solve ever starts a process. Any failure of the compiled path (its cache fails to load,
+a compiled call raises anything but an arithmetic error of the problem, or returns a non-finite
+result) falls back to the torch solver, with one warning per process, and the compiled path is not
+used again by that process. The compiled calls run BLAS and LAPACK on torch's thread count
+(``torch.get_num_threads()``), restoring the libraries' own counts when the last one returns.
+
+It applies to one problem (no batch), on the CPU, in float64, with probit comparisons and Beta
+ratings (each optionally shifted by a prior mean: a population's person model), and, for a fit,
+the stationary kernels :mod:`torchpref.models.fast_fit` lists. numba is imported on the first solve
+that uses it, never at ``import torchpref``.
 """
 
 from __future__ import annotations
 
-import importlib.util
+import math
 import os
-import subprocess
 import sys
 import threading
-from pathlib import Path
-from types import ModuleType
+import warnings
 from typing import Any
 
 import torch
 from torch import Tensor
 
+import torchpref.inference.fast_cache as fast_cache
+import torchpref.inference.fast_types as ft
 from torchpref.inference.observations import Observations
 
 ENV = "TORCHPREF_FAST_PATH"
@@ -45,144 +51,296 @@ SETTINGS = ("auto", "on", "off")
 #: from 500 items on ``auto`` is the torch solver, as before (docs/speed.md)
 MODE_MAX_ITEMS = 400
 FIT_MAX_ITEMS = 400
-#: the compiled functions whose on-disk cache ``auto`` waits for
-ENTRY_POINTS = ("newton", "fit_lbfgs", "mode_and_evidence")
-
-_override: list[str] = []
-_lock = threading.Lock()
-#: ``auto`` loads the compiled path at a process's second fit: the first fit is the torch solver's,
-#: as before, so a program that fits once never pays numba's import (0.5-1 s); a loop that refits
-#: pays it once, at its second fit
-LOAD_AT_FIT = 2
-_state: dict[str, Any] = {"module": None, "warming": None, "fits": 0}
+BETA_CLASS = "torchpref.likelihoods.pairwise_beta.BetaRatingLikelihood"
+#: where each entry point returns its status
+STATUS_AT = {"newton": 4, "fit_lbfgs": 2, "fit_loss": 2}
 
 
-def _check(value: str) -> str:
+class FastPathWarning(UserWarning):
+    """The compiled path is not used in this process (once per process, with the reason)."""
+
+
+_lock = threading.RLock()
+_local = threading.local()  # .stack: this thread's context-manager settings, innermost last
+_process: dict[str, str | None] = {"setting": None}  # fast_path(mode) called alone
+#: the loaded entry points, their cache folder, and why the path is off for this process
+_state: dict[str, Any] = {"functions": None, "folder": None, "failed": None, "missing": None}
+
+
+def check_setting(value: str | None = None) -> str:
+    """``value`` (default: the environment variable ``TORCHPREF_FAST_PATH``, empty meaning
+    ``"auto"``) if it is a setting, else a ``ValueError`` naming the variable and the allowed values;
+    for programs to call at start (``torchpref serve``, ``elicit``)."""
+    if value is None:
+        raw = os.environ.get(ENV, "")
+        if not raw.strip():
+            return "auto"
+        if raw.strip().lower() not in SETTINGS:
+            raise ValueError(f"{ENV}={raw!r} is not a fast-path setting: use one of {', '.join(SETTINGS)}.")
+        return raw.strip().lower()
     if value not in SETTINGS:
         raise ValueError(f"the fast-path setting must be one of {SETTINGS}, got {value!r}.")
     return value
 
 
 def setting() -> str:
-    """The current setting: ``"auto"``, ``"on"`` or ``"off"``."""
-    if _override:
-        return _override[-1]
-    env = os.environ.get(ENV, "").strip().lower()
-    if not env:
-        return "auto"
-    if env not in SETTINGS:
-        raise ValueError(f"{ENV} must be one of {SETTINGS}, got {env!r}.")
-    return env
+    """The current setting for the calling thread: ``"auto"``, ``"on"`` or ``"off"``."""
+    stack = getattr(_local, "stack", None)
+    if stack:
+        return stack[-1]
+    return _process["setting"] or check_setting()
 
 
 class fast_path:  # lower case: used as a function and a context manager, like torch.no_grad
     """Force the compiled path (``"on"``), the torch solver (``"off"``) or let each call choose
-    (``"auto"``). As a context manager it applies inside the block; called alone, until changed."""
+    (``"auto"``). As a context manager it applies inside the block, to the calling thread only
+    (other threads keep theirs); called alone, to the whole process until changed (when the
+    returned object is released: at once, in CPython, for ``torchpref.fast_path("on")``)."""
 
     def __init__(self, mode: str):
-        self.mode = _check(mode)
-        self._previous = list(_override)
-        _override[:] = [self.mode]
+        self.mode = check_setting(mode)
+        self._entered = False
 
     def __enter__(self) -> fast_path:
+        self._entered = True
+        stack = getattr(_local, "stack", None)
+        if stack is None:
+            stack = _local.stack = []
+        stack.append(self.mode)
         return self
 
     def __exit__(self, *exc: object) -> None:
-        _override[:] = self._previous
+        _local.stack.pop()
+
+    def __del__(self) -> None:
+        if getattr(self, "_entered", True) or not hasattr(self, "mode"):
+            return
+        with _lock:
+            _process["setting"] = self.mode
 
 
 def available() -> bool:
-    """Whether numba is installed (the ``fast`` extra) and not blocked (``sys.modules["numba"] = None``)."""
-    if "numba" in sys.modules:
-        return sys.modules["numba"] is not None
+    """Whether the compiled path can be loaded here: numba and threadpoolctl (the ``fast`` extra)
+    installed, not blocked, and numba not shadowed by the working directory."""
+    return fast_cache.problem() is None
+
+
+def _warn_once(key: str, message: str) -> None:
+    if _state.get("warned_" + key):
+        return
+    _state["warned_" + key] = True
+    warnings.warn(message, FastPathWarning, stacklevel=4)
+
+
+def _disable(reason: str) -> None:
+    """The compiled path is off for the rest of this process (one warning)."""
+    with _lock:
+        _state["functions"], _state["failed"] = None, reason
+    _warn_once("failed", f"the compiled fast path is off in this process: {reason}; the torch solver answers")
+
+
+def compiled() -> dict[str, Any] | None:
+    """The compiled entry points if the setting and the installation allow them now, else
+    ``None``: for ``"off"``, without numba, after a failure, or under ``"auto"`` without a usable
+    cache. ``"on"`` builds the cache first where none is usable."""
+    mode = setting()
+    if mode == "off":
+        return None
+    functions = _state["functions"]
+    if functions is not None or _state["failed"] is not None:
+        return functions
+    if mode == "auto" and _state["missing"] is not None:
+        return None
+    if not available():
+        if fast_cache.installed():  # installed, but shadowed or blocked: said once
+            _warn_once(
+                "missing", f"the compiled fast path is not used: {fast_cache.problem()}; the torch solver answers"
+            )
+        return None
+    with _lock:
+        if _state["functions"] is None and _state["failed"] is None:
+            _load(mode)
+    return _state["functions"]
+
+
+def _load(mode: str) -> None:
     try:
-        return importlib.util.find_spec("numba") is not None
-    except (ImportError, ValueError):
+        _state["functions"], _state["folder"] = fast_cache.load()
+        return
+    except fast_cache.CacheUnusable as err:
+        reason = str(err)
+    if mode == "auto":
+        _state["missing"] = reason
+        _warn_once(
+            "missing",
+            f"the compiled fast path is not used: {reason}. Run `{fast_cache.COMMAND}` (or "
+            "torchpref.fast_path.build()) once to compile it for this installation; the torch solver answers",
+        )
+        return
+    print(f"torchpref: {reason}; compiling the fast path in this process (about a minute) ...", file=sys.stderr)
+    try:
+        build(progress=None)
+    except Exception as err:
+        _disable(f"it could not be built ({type(err).__name__}: {err})")
+
+
+def build(progress: Any = print) -> fast_cache.Built:
+    """Compile the compiled path for this installation into numba's cache folder (its old files
+    there replaced), showing progress (``progress(line)``; ``None``: quiet) and saying where the
+    cache is; the path is then used by this process and, under ``"auto"``, by every later one.
+
+    Raises:
+        fast_cache.CacheUnusable: numba is not usable here, or the cache folder cannot be written.
+    """
+    with _lock:
+        built, functions = fast_cache.build(progress)
+        _state.update(functions=functions, folder=built.folder, failed=None, missing=None)
+    if progress is not None:
+        progress(f"the compiled fast path is built: {sum(built.seconds.values()):.0f} s; cache in {built.folder}")
+    return built
+
+
+def status() -> str:
+    """Where the compiled path stands in this process, in a few lines: the setting, whether it can
+    be loaded here, its cache folder and whether the cache there is this installation's."""
+    lines = [f"setting: {setting()} ({ENV}={os.environ.get(ENV, '')!r})"]
+    why = fast_cache.problem()
+    if why is not None:
+        return "\n".join([*lines, f"not available: {why}; the torch solver answers"])
+    try:
+        path = fast_cache.folder(fast_cache.functions())
+        lines.append(f"cache folder: {path}")
+        fast_cache.check_manifest(path)
+        lines.append(f"cache: built for this installation ({', '.join(fast_cache.identity().values())})")
+    except fast_cache.CacheUnusable as err:
+        lines.append(f"cache: not usable: {err}; run `{fast_cache.COMMAND}`")
+    if _state["failed"] is not None:
+        lines.append(f"off in this process: {_state['failed']}")
+    return "\n".join(lines)
+
+
+def loads() -> bool:
+    """Whether this installation's cache loads (loading it into this process if it does)."""
+    try:
+        functions, path = fast_cache.load()
+    except fast_cache.CacheUnusable:
         return False
-
-
-def _cache_dirs() -> list[Path]:
-    """Where numba keeps this package's cache: ``NUMBA_CACHE_DIR`` if set, else beside the module
-    (or, where that is not writable, numba's user-wide cache folder)."""
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return [Path(os.environ["NUMBA_CACHE_DIR"])]
-    home = Path.home()
-    if sys.platform == "darwin":
-        user = home / "Library" / "Caches" / "numba"
-    elif sys.platform == "win32":
-        user = Path(os.environ.get("LOCALAPPDATA", home)) / "numba" / "numba" / "Cache"
-    else:
-        user = Path(os.environ.get("XDG_CACHE_HOME", home / ".cache")) / "numba"
-    return [Path(__file__).resolve().parent / "__pycache__", user]
-
-
-def cached_on_disk() -> bool:
-    """Whether numba's on-disk cache holds every entry point (judged by its index files)."""
-    tag = f"py{sys.version_info.major}{sys.version_info.minor}"
-    for name in ENTRY_POINTS:
-        pattern = f"_compiled.{name}-*.{tag}.nbi"
-        if not any(any(d.rglob(pattern)) for d in _cache_dirs() if d.is_dir()):
-            return False
+    with _lock:
+        _state.update(functions=functions, folder=path, failed=None, missing=None)
     return True
 
 
-def _warm_in_background() -> None:
-    """Compile (and cache) the entry points in a separate process, once per process."""
-    if _state["warming"] is not None:
-        return
-    cmd = [sys.executable, "-c", "import torchpref.inference.fast_path as f; f.warm_up()"]
+def cache_folder() -> Any:
+    """The loaded cache's folder (``None`` before a load)."""
+    return _state["folder"]
+
+
+def warm_up() -> dict[str, Any] | None:
+    """Load the compiled path now, as the setting says (``"on"``: building it if need be), e.g.
+    before timing; its entry points, or ``None`` where it is not used."""
+    return compiled()
+
+
+class _BlasThreads:
+    """BLAS and LAPACK (numpy's and SciPy's OpenBLAS, which numba calls) on torch's thread count
+    while compiled calls run. A library with one process-wide pool (OpenBLAS's own threads): the
+    first caller saves its count and sets it, the last one to return restores it (a count of
+    callers under a lock, so that threads overlapping in compiled calls cannot leave it changed; set
+    through the library itself, which works from any thread, where threadpoolctl's own call acts
+    only from the first thread that used it). A library with per-thread counts (OpenMP's): set and
+    restored around each call in the calling thread."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._depth = 0
+        self._saved: list[tuple[Any, int]] = []
+        self._libraries: list[Any] | None = None
+        self.limited: list[str] = []
+
+    def _libs(self) -> list[Any]:
+        if self._libraries is None:
+            from threadpoolctl import ThreadpoolController
+
+            self._libraries = list(ThreadpoolController().select(user_api="blas").lib_controllers)
+        return self._libraries
+
+    @staticmethod
+    def _set(lib: Any, n: int) -> None:
+        getattr(lib, "_real_set_num_threads", lib.set_num_threads)(n)
+
+    def _shared(self) -> list[Any]:
+        return [lib for lib in self._libs() if getattr(lib, "threading_layer", "") != "openmp"]
+
+    def __enter__(self) -> list[tuple[Any, int]]:
+        n = torch.get_num_threads()
+        with self._lock:
+            if self._depth == 0:
+                self._saved = [(lib, lib.get_num_threads()) for lib in self._shared()]
+                for lib, count in self._saved:
+                    if count != n:
+                        self._set(lib, n)
+                self.limited = [f"{lib.internal_api} {os.path.basename(lib.filepath)}: {n}" for lib in self._libs()]
+            self._depth += 1
+        own = [(lib, lib.get_num_threads()) for lib in self._libs() if lib not in self._shared()]
+        for lib, count in own:
+            if count != n:
+                self._set(lib, n)
+        return own
+
+    def __exit__(self, *exc: object) -> None:
+        with self._lock:
+            self._depth -= 1
+            if self._depth == 0:
+                for lib, count in self._saved:
+                    if lib.get_num_threads() != count:
+                        self._set(lib, count)
+
+    def run(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` with the libraries limited."""
+        own = self.__enter__()
+        try:
+            return fn(*args)
+        finally:
+            for lib, count in own:
+                self._set(lib, count)
+            self.__exit__()
+
+
+BLAS_THREADS = _BlasThreads()
+
+
+def call(name: str, *args: Any) -> tuple | None:
+    """Entry point ``name``'s result on ``args``, or ``None`` where the torch solver must answer:
+    the path is not loaded, the problem met an arithmetic error (``ArithmeticError``, ``ValueError``
+    from numba's arithmetic, where torch gives inf or NaN: silently, for this call), or the call
+    failed otherwise (any other exception, or a non-finite result with an OK status: the path is off
+    for the rest of the process, with one warning)."""
+    functions = _state["functions"]
+    if functions is None:
+        return None
     try:
-        _state["warming"] = subprocess.Popen(
-            cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
-        )
-    except OSError:
-        _state["warming"] = False
-
-
-def compiled(load: bool = False) -> ModuleType | None:
-    """:mod:`torchpref.inference._compiled` if the setting and the installation allow it now, else
-    ``None``: for ``"off"`` or without numba. For ``"on"`` it is loaded (compiled, where no on-disk
-    cache exists) on first use. For ``"auto"`` only once loaded, or when ``load`` (a fit) from the
-    :data:`LOAD_AT_FIT`-th fit of the process on, and only from the on-disk cache: while there is
-    none, a background process compiles it and the torch solver answers."""
-    mode = setting()
-    if mode == "off" or not available():
+        out = BLAS_THREADS.run(functions[name], *args)
+    except (ArithmeticError, ValueError):
         return None
-    module = _state["module"]
-    if module is not None:
-        return module
-    if mode == "auto" and not load:
+    except Exception as err:
+        _disable(f"its {name} raised {type(err).__name__}: {err}")
         return None
-    with _lock:
-        if _state["module"] is None:
-            if mode == "auto":
-                if not cached_on_disk():
-                    _warm_in_background()
-                    return None
-                _state["fits"] += 1
-                if _state["fits"] < LOAD_AT_FIT:
-                    return None
-            _state["module"] = importlib.import_module("torchpref.inference._compiled")
-    return _state["module"]
+    if out[STATUS_AT[name]] == ft.OK and not _finite(out):
+        _disable(f"its {name} returned non-finite values with an OK status")
+        return None
+    return out
 
 
-def warm_up() -> ModuleType | None:
-    """Load (compiling where no on-disk cache exists) every compiled entry point now, e.g. at
-    the start of a program that will fit many small models; ``None`` without numba."""
-    if not available():
-        return None
+def _finite(values: Any) -> bool:
     import numpy as np
 
-    module = importlib.import_module("torchpref.inference._compiled")
-    X = np.array([[0.0, 0.0], [0.5, 0.2], [0.9, 0.7]])
-    C = np.array([[0, 1], [2, 1]], dtype=np.int64)
-    spec = np.array([0.0, 2.0, 2.0, 1e-4, 0.0, 1.0, 1.7, 1.7, 2.0, 2.0, 1.0, 1.0, -1.5, 0.0])
-    module.fit_lbfgs(np.zeros(3), X, C, 1.4, 0, spec, np.zeros(3), 1e-11, 100)
-    L = np.linalg.cholesky(module.kernel_matrix(X, np.ones(2), 1.0, 0))
-    module.newton(L, C, 1.4, np.zeros((1, 3)), 1e-11, 100)
-    module.mode_and_evidence(X, C, 1.4, 3, np.ones(2), 1.0, np.zeros(0), 1e-11, 100)
-    _state["module"] = module
-    return module
+    for v in values:
+        if isinstance(v, tuple):
+            if not _finite(v):
+                return False
+        elif isinstance(v, (np.ndarray, float)) and not np.all(np.isfinite(v)):
+            return False
+    return True
 
 
 def known_probit(likelihood: object) -> bool:
@@ -191,29 +349,81 @@ def known_probit(likelihood: object) -> bool:
     if type(likelihood).__dict__.get("compiled_kind") != "probit":
         return False
     own = getattr(likelihood, "__dict__", {})
-    return not any(name in own for name in ("derivatives", "third_derivative", "_scale", "log_prob"))
+    return not any(name in own for name in ("derivatives", "third_derivative", "scale", "log_prob"))
 
 
-def probit_scale(obs: Observations) -> float | None:
-    """``sqrt 2 sigma_R`` when ``obs`` is one problem's unmasked probit comparisons (the one
-    kind the compiled path knows), else ``None``."""
-    if obs.batch != 1 or len(obs.terms) != 1:
+def known_beta(likelihood: object) -> bool:
+    """Whether ``likelihood`` is exactly the Beta rating likelihood (not a subclass, which may change
+    its link: :class:`~torchpref.likelihoods.person.PersonRatingLikelihood`), nothing replaced."""
+    cls = type(likelihood)
+    if f"{cls.__module__}.{cls.__qualname__}" != BETA_CLASS:
+        return False
+    own = getattr(likelihood, "__dict__", {})
+    return not any(name in own for name in ("derivatives", "third_derivative", "_link", "fisher", "log_prob"))
+
+
+def answers(obs: Observations) -> ft.Answers | None:
+    """One problem's unmasked probit comparisons and Beta ratings (with their prior-mean offsets)
+    as :class:`~torchpref.inference.fast_types.Answers`, or ``None`` for anything else."""
+    if obs.batch != 1 or not obs.terms:
         return None
-    term = obs.terms[0]
-    lik = term.likelihood
-    if not known_probit(lik) or term.coef != (1.0, -1.0) or term.target is not None:
-        return None
-    if term.offset is not None:  # a prior mean (a population's): the torch solver's
-        return None
-    if term.mask is not None and not bool(term.mask.all()):
-        return None
-    return float(lik.scale)  # type: ignore[attr-defined]
+    rows: dict[int, tuple] = {}
+    for term in obs.terms:
+        lik = term.likelihood
+        if term.mask is not None and not bool(term.mask.all()):
+            return None
+        if known_probit(lik) and term.coef == (1.0, -1.0) and term.target is None:
+            kind, first, second = ft.PROBIT, term.index[0, :, 0], term.index[0, :, 1]
+        elif known_beta(lik) and term.coef == (1.0,) and term.target is not None:
+            kind, first, second = ft.BETA, term.index[0, :, 0], torch.full_like(term.index[0, :, 0], -1)
+        else:
+            return None
+        if kind in rows:
+            return None  # one likelihood of each kind
+        offset = torch.zeros(term.size, dtype=torch.float64) if term.offset is None else term.offset[0].detach()
+        target = torch.zeros(term.size, dtype=torch.float64) if term.target is None else term.target[0].detach()
+        rows[kind] = (first, second, offset, target, lik)
+    order = list(rows)  # the terms' order: the weights come back in it
+    cols = [torch.cat([rows[k][c] for k in order]).numpy() for c in range(4)]
+    kinds = torch.cat([torch.full((rows[k][0].shape[0],), k) for k in order]).numpy()
+    probit = float(rows[ft.PROBIT][4].scale) if ft.PROBIT in rows else 1.0
+    beta = rows[ft.BETA][4] if ft.BETA in rows else None
+    c = 1.0 if beta is None else math.sqrt(2.0) * float(beta.rating_scale)  # the exact class's link
+    nu = 1.0 if beta is None else float(beta.rating_precision)
+    return ft.answers(cols[0], cols[1], kinds, cols[2], cols[3], probit, c, nu)
 
 
 def mode_applies(L: Tensor, obs: Observations) -> bool:
     """Whether the mode of ``L`` (``1 x n x n``) and ``obs`` may be solved compiled (before the
-    setting and the installation are asked)."""
+    setting's cache is asked)."""
     n = L.shape[-1]
     if L.dtype != torch.float64 or L.device.type != "cpu" or L.shape[0] != 1 or n == 0:
         return False
     return setting() == "on" or n <= MODE_MAX_ITEMS
+
+
+def solve_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], max_iter: int, tol: float) -> tuple | None:
+    """The Laplace mode of one problem (``L``: ``1 x n x n``) on the compiled path: ``(a, f, M,
+    weights per term, iterations)`` as tensors, or ``None`` where the torch solver answers (the
+    path does not apply or is not loaded, or the compiled Newton did not converge, met a non-finite
+    step or needed Fisher weights at its end: the torch solver's warnings and errors are then its own)."""
+    mode = setting()
+    if mode == "off" or _state["failed"] is not None or (mode == "auto" and _state["missing"] is not None):
+        return None
+    if not mode_applies(L, obs):
+        return None
+    ans = answers(obs)
+    if ans is None or compiled() is None:
+        return None
+    import numpy as np
+
+    n = L.shape[-1]
+    Ln = ft.floats(L[0].detach().numpy(), 2)
+    S = np.stack([f.detach().to(L).reshape(n).numpy() for f in starts]) if starts else np.empty((0, n))
+    out = call("newton", Ln, ans, ft.floats(S, 2), float(tol), int(max_iter))
+    if out is None or out[4] != ft.OK:
+        return None
+    a, M, w, iterations, _, _ = out
+    sizes = [t.size for t in obs.terms]
+    weights = tuple(torch.from_numpy(part) for part in np.split(w, np.cumsum(sizes)[:-1]))
+    return torch.from_numpy(a), torch.from_numpy(Ln @ a), torch.from_numpy(M), weights, int(iterations)

@@ -36,8 +36,7 @@ from typing import cast
 import torch
 from torch import Tensor
 
-from torchpref.inference.fast_path import compiled as compiled_module
-from torchpref.inference.fast_path import mode_applies, probit_scale
+from torchpref.inference.fast_path import solve_mode
 from torchpref.inference.newton import NewtonOptions, newton_mode
 from torchpref.inference.numerics import LaplaceNumericalError, NotPSDError, default_tolerance
 from torchpref.inference.observations import Observations, Term, item_term, pairwise_term  # noqa: F401  (re-exported)
@@ -166,40 +165,15 @@ def find_mode(
 def _compiled_mode(
     L: Tensor, obs: Observations, f0: Tensor | tuple[Tensor, ...] | None, max_iter: int, tol: float
 ) -> ModeResult | None:
-    """The mode from the compiled path (:mod:`torchpref.inference.fast_path` decides whether it
-    applies), or ``None``: then the torch solver runs (also where the compiled Newton did not
-    converge or met a non-finite step, so that its warnings and errors are the torch solver's)."""
-    if not mode_applies(L, obs):
+    """The mode from the compiled path (:func:`torchpref.inference.fast_path.solve_mode` decides
+    whether it applies), or ``None``: then the torch solver runs (also where the compiled Newton did
+    not converge or met a non-finite step, so that its warnings and errors are the torch solver's)."""
+    out = solve_mode(L, obs, () if f0 is None else (f0 if isinstance(f0, tuple) else (f0,)), max_iter, tol)
+    if out is None:
         return None
-    s = probit_scale(obs)
-    module = None if s is None else compiled_module()
-    if module is None:
-        return None
-    import numpy as np
-
-    n = L.shape[-1]
-    Ln = np.ascontiguousarray(L[0].detach().numpy())
-    given = () if f0 is None else (f0 if isinstance(f0, tuple) else (f0,))
-    starts = np.ascontiguousarray(
-        np.stack([f.detach().to(L).reshape(n).numpy() for f in given]) if given else np.empty((0, n))
-    )
-    C = np.ascontiguousarray(obs.terms[0].index[0].numpy())
-    try:
-        a, M, w, iterations, status, _ = module.newton(Ln, C, s, starts, tol, max_iter)
-    except (ArithmeticError, ValueError):  # numba raises where torch gives inf or NaN: torch's errors then
-        return None
-    if status != module.OK:
-        return None
-    a_t = torch.from_numpy(a)[None]
-    return ModeResult(
-        a_t,
-        torch.from_numpy(Ln @ a)[None],
-        torch.from_numpy(M)[None],
-        (torch.from_numpy(w)[None],),
-        int(iterations),
-        torch.ones(1, dtype=torch.bool),
-        torch.zeros(1, dtype=torch.bool),
-    )
+    a, f, M, weights, iterations = out
+    one, no = torch.ones(1, dtype=torch.bool), torch.zeros(1, dtype=torch.bool)
+    return ModeResult(a[None], f[None], M[None], tuple(w[None] for w in weights), iterations, one, no)
 
 
 def predicted_mode(f: Tensor, cache: PredictiveCache, L: Tensor) -> Tensor:

@@ -1,18 +1,19 @@
 r"""BoTorch's ``fit_gpytorch_mll`` for a :class:`~torchpref.models.preference_gp.PreferenceGP`: the
-whole fit compiled where it applies, BoTorch's own routine otherwise (issue 33, items 1 and 4).
+whole fit compiled where it applies, BoTorch's own routine otherwise (issues 33 and 42).
 
 ``fit_gpytorch_mll(mll)`` calls the model's ``custom_fit`` (BoTorch's hook for models with their
 own fitting routine), which comes here. Where the compiled path applies
-(:mod:`torchpref.inference.fast_path`: one problem, CPU, float64, probit comparisons, and here a
-``ScaleKernel`` of an ``RBFKernel`` or ``MaternKernel`` with softplus-constrained lengthscales and
-outputscale, LogNormal / Gamma priors or none, nothing else trainable and no other prior) it runs
-BoTorch's optimiser, SciPy's L-BFGS-B from the same raw parameters with the same bounds, on one
-compiled call per evaluation (:func:`torchpref.inference._compiled.fit_loss`: kernel matrix and its
-derivatives, Newton warm-started from the last mode, the evidence and its written-out gradient,
-the priors and the constraints' chain rule). Anything else, any failure of the compiled
-evaluation (a kernel matrix that needs jitter, a Newton solve that does not converge) and any
-L-BFGS-B stop other than success or its iteration limit, goes to BoTorch's ``_fit_fallback`` from
-the starting values, so that retries, warnings and errors are exactly BoTorch's.
+(:mod:`torchpref.inference.fast_path`: one problem, CPU, float64, probit comparisons and Beta
+ratings, a fixed prior mean or none, and here a ``ScaleKernel`` of an ``RBFKernel`` or
+``MaternKernel`` with softplus-constrained lengthscales and outputscale, LogNormal / Gamma priors or
+none, nothing else trainable and no other prior) the whole L-BFGS fit is one compiled call
+(:func:`torchpref.inference._compiled_fit.fit_lbfgs`: kernel matrix and its derivatives, Newton
+warm-started from the last mode, the evidence and its written-out gradient, the priors and the
+constraints' chain rule, from the model's raw parameters), and its last mode and factors become the
+model's posterior cache (the next prediction solves nothing). Anything else, any failure of the
+compiled evaluation (a kernel matrix that is not positive definite, a Newton solve that does not
+converge) and any stop other than success or the iteration limit, goes to BoTorch's
+``_fit_fallback`` from the starting values, so that retries, warnings and errors are exactly BoTorch's.
 """
 
 from __future__ import annotations
@@ -27,25 +28,31 @@ from gpytorch.constraints import GreaterThan, Positive
 from gpytorch.kernels import MaternKernel, RBFKernel, ScaleKernel
 from gpytorch.priors import GammaPrior, LogNormalPrior
 
+import torchpref.inference.fast_types as ft
 from torchpref.data.preference_data import PreferenceData
-from torchpref.inference.fast_path import FIT_MAX_ITEMS, compiled, known_probit, setting
+from torchpref.inference.fast_path import FIT_MAX_ITEMS, answers, call, compiled, setting
+from torchpref.inference.laplace import ModeResult
 from torchpref.inference.numerics import default_tolerance
 
-#: GPyTorch kernel -> :mod:`torchpref.inference._compiled`'s kind (Matern by its ``nu``)
-KINDS = {RBFKernel: 0, (MaternKernel, 0.5): 1, (MaternKernel, 1.5): 2, (MaternKernel, 2.5): 3}
+#: GPyTorch kernel -> the compiled kernel kind (Matern by its ``nu``)
+KINDS = {
+    RBFKernel: ft.RBF,
+    (MaternKernel, 0.5): ft.MATERN12,
+    (MaternKernel, 1.5): ft.MATERN32,
+    (MaternKernel, 2.5): ft.MATERN52,
+}
 
 
 @dataclass
 class CompiledFit:
-    """One model's fit problem as the compiled loss takes it."""
+    """One model's fit problem as the compiled fit takes it."""
 
     X: np.ndarray
-    C: np.ndarray
-    scale: float
-    kind: int
-    spec: np.ndarray
+    answers: ft.Answers
+    spec: ft.FitSpec
     params: dict[str, torch.nn.Parameter]  # BoTorch's order: the raw parameters x
     f0: np.ndarray
+    sizes: tuple[int, ...]  # the answers of each observation term, in order
     tol: float
     max_iter: int
 
@@ -61,18 +68,18 @@ def _constraint(module: Any, name: str) -> float | None:
     return float(c.lower_bound)
 
 
-def _prior(prior: Any) -> tuple[float, float, float, float] | None:
-    """``(kind, p1, p2, const)`` of :func:`torchpref.inference._compiled.log_prior`, or ``None``;
-    ``const`` computed as the prior computes it (in its parameters' dtype)."""
+def _prior(prior: Any) -> ft.Prior | None:
+    """The compiled :class:`~torchpref.inference.fast_types.Prior` of a GPyTorch prior, or ``None``;
+    its ``const`` computed as the prior computes it (in its parameters' dtype)."""
     if prior is None:
-        return (0.0, 0.0, 0.0, 0.0)
+        return ft.prior(ft.NO_PRIOR, 0.0, 0.0, 0.0)
     if type(prior) is LogNormalPrior and prior.loc.numel() == 1 and prior.scale.numel() == 1:
         # as torch's Normal.log_prob takes them: the variance and log(scale) in the prior's dtype
         const = -float(prior.scale.log()) - 0.5 * math.log(2 * math.pi)
-        return (1.0, float(prior.loc), math.sqrt(float(prior.scale**2)), const)
+        return ft.prior(ft.LOG_NORMAL, float(prior.loc), math.sqrt(float(prior.scale**2)), const)
     if type(prior) is GammaPrior and prior.concentration.numel() == 1 and prior.rate.numel() == 1:
         a, b = prior.concentration, prior.rate
-        return (2.0, float(a), float(b), float(torch.xlogy(a, b) - torch.lgamma(a)))
+        return ft.prior(ft.GAMMA, float(a), float(b), float(torch.xlogy(a, b) - torch.lgamma(a)))
     return None
 
 
@@ -103,9 +110,10 @@ def _priors(model: Any, base: torch.nn.Module, scale: torch.nn.Module | None) ->
     return found
 
 
-def _spec(mll: Any, base, scale, priors) -> tuple[np.ndarray, dict] | None:
-    """The compiled loss's ``spec`` and the trainable parameters in BoTorch's order (that of
-    ``named_parameters``, as ``get_parameters_and_bounds``), or ``None``."""
+def _spec(mll: Any, kind: int, base, scale, priors) -> tuple[ft.FitSpec, dict] | None:
+    """The compiled fit's :class:`~torchpref.inference.fast_types.FitSpec` and the trainable
+    parameters in BoTorch's order (that of ``named_parameters``, as ``get_parameters_and_bounds``),
+    or ``None``."""
     params = {name: p for name, p in mll.named_parameters() if p.requires_grad}
     wanted = [base.raw_lengthscale] + ([] if scale is None else [scale.raw_outputscale])
     if len(params) != len(wanted) or {id(p) for p in params.values()} != {id(p) for p in wanted}:
@@ -122,19 +130,19 @@ def _spec(mll: Any, base, scale, priors) -> tuple[np.ndarray, dict] | None:
         else:
             os_index = offset
         offset += t.numel()
-    spec = [ls_start, count, os_index, ls_lower, os_lower, *ls_prior[:3], *os_prior[:3], 1.0, ls_prior[3], os_prior[3]]
-    return np.array(spec, dtype=np.float64), params
+    spec = ft.fit_spec(kind, ls_start, count, ls_lower, ls_prior, os_index, os_lower, os_prior, 1.0)
+    return spec, params
 
 
-def _probit_scale(model: Any, data: PreferenceData) -> float | None:
-    """``sqrt 2 sigma_R`` where the data are comparisons only, scored by the probit the compiled
-    path knows (:func:`torchpref.inference.fast_path.probit_scale`, read from the data directly)."""
-    lik = model.likelihood.comparison
-    if model.ties_offered or data.ratings.numel() or (data.ties is not None and data.ties.numel()):
-        return None
-    if not known_probit(lik) or not data.comparisons.shape[0]:
-        return None
-    return float(lik.scale)
+def _answers(model: Any, X: torch.Tensor) -> tuple[ft.Answers, tuple[int, ...]] | None:
+    """The model's observations (shifted by its prior mean, fixed during the fit) as compiled
+    :class:`~torchpref.inference.fast_types.Answers` and the number of each term's, or ``None``."""
+    obs = model._observations()
+    with torch.no_grad():
+        mean = model._item_mean(model._padded().with_items(X))
+    obs = obs.shifted(None if mean is None else mean.detach())
+    found = answers(obs)
+    return None if found is None else (found, tuple(t.size for t in obs.terms))
 
 
 def compiled_problem(mll: Any) -> CompiledFit | None:
@@ -144,49 +152,57 @@ def compiled_problem(mll: Any) -> CompiledFit | None:
     data = model.data
     if not isinstance(data, PreferenceData) or data.n == 0 or model.laplace_dtype != torch.float64:
         return None
-    if getattr(model, "mean_module", None) is not None or getattr(model, "prior_mean", None) is not None:
-        return None  # a prior mean: the compiled path solves a zero-mean GP
     X = model._transformed_train_X().detach()
     if X.dtype != torch.float64 or X.device.type != "cpu":
         return None
     if setting() != "on" and X.shape[0] > FIT_MAX_ITEMS:
         return None
-    s = _probit_scale(model, data)
     kernel = _kernel(model, X.shape[-1])
-    if s is None or kernel is None:
+    if kernel is None:
         return None
     kind, base, scale = kernel
     priors = _priors(model, base, scale)
-    found = None if priors is None else _spec(mll, base, scale, priors)
-    if found is None:
+    found = None if priors is None else _spec(mll, kind, base, scale, priors)
+    rows = None if found is None else _answers(model, X)
+    if found is None or rows is None:
         return None
     spec, params = found
     cache = model._cache
     f0 = cache.mode.f[0].detach().numpy().copy() if cache is not None else np.zeros(X.shape[0])
-    C = np.ascontiguousarray(data.comparisons.numpy())
     tol = default_tolerance(torch.float64)
-    return CompiledFit(np.ascontiguousarray(X.numpy()), C, s, kind, spec, params, f0, tol, model.max_newton_iter)
+    return CompiledFit(ft.floats(X.numpy(), 2), rows[0], spec, params, f0, rows[1], tol, model.max_newton_iter)
 
 
-def run(problem: CompiledFit, module: Any) -> bool:
-    """The whole fit in one compiled call (:func:`torchpref.inference._compiled.fit_lbfgs`: L-BFGS
-    with SciPy's L-BFGS-B stopping rules, from the model's raw parameters); sets the parameters
-    and returns ``True`` on success, leaves them unchanged and returns ``False`` otherwise."""
+def run(problem: CompiledFit) -> ft.FitState | None:
+    """The whole fit in one compiled call (:func:`torchpref.inference._compiled_fit.fit_lbfgs`:
+    L-BFGS with SciPy's L-BFGS-B stopping rules, from the model's raw parameters); sets the
+    parameters and returns the final mode and factors on success, leaves the parameters unchanged
+    and returns ``None`` otherwise."""
     p = problem
-    x0 = np.concatenate([t.detach().reshape(-1).numpy() for t in p.params.values()]).astype(np.float64)
-    try:
-        x, _, status, _ = module.fit_lbfgs(x0, p.X, p.C, p.scale, p.kind, p.spec, p.f0.copy(), p.tol, p.max_iter)
-    except (ArithmeticError, ValueError):  # numba raises where torch gives inf or NaN (a lengthscale of 0)
-        return False
-    if status != module.OK or not np.all(np.isfinite(x)):
-        return False
+    x0 = ft.floats(np.concatenate([t.detach().reshape(-1).numpy() for t in p.params.values()]))
+    state = ft.fit_state(p.f0, p.answers.first.shape[0])
+    out = call("fit_lbfgs", x0, p.X, p.answers, p.spec, state, float(p.tol), int(p.max_iter))
+    if out is None or out[2] != ft.OK:
+        return None
+    x = out[0]
     with torch.no_grad():
         offset = 0
         for t in p.params.values():
             n = t.numel()
             t.copy_(torch.from_numpy(x[offset : offset + n].copy()).reshape(t.shape))
             offset += n
-    return True
+    return state
+
+
+def hand_back(model: Any, problem: CompiledFit, state: ft.FitState) -> None:
+    """The compiled fit's last mode and factors (at the fitted hyperparameters) as the model's
+    posterior cache (:meth:`~torchpref.models.preference_gp.PreferenceGP._adopt_mode`)."""
+    w = torch.from_numpy(state.w)
+    weights = tuple(part[None] for part in torch.split(w, list(problem.sizes)))
+    one, no = torch.ones(1, dtype=torch.bool), torch.zeros(1, dtype=torch.bool)
+    a, f, M = (torch.from_numpy(v)[None] for v in (state.a, state.f, state.M))
+    mode = ModeResult(a, f, M, weights, int(state.iterations[0]), one, no)
+    model._adopt_mode(torch.from_numpy(state.L)[None], float(state.jitter[0]), mode)
 
 
 def _leave_in_eval(mll: Any) -> Any:
@@ -213,10 +229,12 @@ def fit_laplace(
     default = closure is None and closure_kwargs is None and not optimizer_kwargs
     default = default and kwargs.get("optimizer", fit_gpytorch_mll_scipy) is fit_gpytorch_mll_scipy
     if default:
-        problem = compiled_problem(mll)
-        module = None if problem is None else compiled(load=True)
-        if problem is not None and module is not None and run(problem, module):
-            return _leave_in_eval(mll)
+        problem = compiled_problem(mll) if setting() != "off" else None
+        state = None if problem is None or compiled() is None else run(problem)
+        if problem is not None and state is not None:
+            _leave_in_eval(mll)
+            hand_back(mll.model, problem, state)
+            return mll
     kwargs.pop("optimizer", None) if kwargs.get("optimizer") is None else None
     return _fit_fallback(
         mll, closure=closure, closure_kwargs=closure_kwargs, optimizer_kwargs=optimizer_kwargs, **kwargs

@@ -31,7 +31,7 @@ from linear_operator.operators import DenseLinearOperator, LinearOperator
 from torch import Tensor
 
 from torchpref.data.preference_data import DEFAULT_RATING_EPS, PreferenceData
-from torchpref.inference.laplace import ModeResult, Observations, laplace_evidence
+from torchpref.inference.laplace import ModeResult, Observations, PredictiveCache, laplace_evidence
 from torchpref.inference.numerics import LaplaceNumericalError, pin_coincident
 from torchpref.inference.padding import PaddedData, create_data
 from torchpref.inference.precision import call_in_dtype, check_dtype, check_laplace_dtype, solve_dtype
@@ -377,6 +377,18 @@ class PreferenceGP(Model, GP):
                 mean=mean,
             )
         return self._cache
+
+    def _adopt_mode(self, L: Tensor, jitter: float, mode: ModeResult) -> None:
+        """Keep ``mode`` (one problem's, solved elsewhere for the current hyperparameters and data,
+        ``L L^T = K + jitter I``: the compiled fit's last, :func:`~torchpref.models.fast_fit.hand_back`)
+        as the posterior cache, so that the next prediction does not solve it again."""
+        fp, structure = cache_key(self)
+        with torch.no_grad():
+            padded = self._padded().with_items(self._transformed_train_X().detach())
+            mean = self._item_mean(padded)
+        obs = self._observations().shifted(None if mean is None else mean.reshape(L.shape[:-1]))
+        key = SolveKey(self._data, fp, structure, self.likelihood)
+        self._cache = PosteriorState(key, padded, jitter, obs, mode, PredictiveCache.from_mode(L, mode))
 
     def train(self, mode: bool = True) -> PreferenceGP:
         """Train or eval mode, as for any module; a switch between them makes the posterior cache

@@ -1,0 +1,161 @@
+r"""What crosses the boundary of the compiled path (:mod:`torchpref.inference._compiled`,
+:mod:`torchpref.inference._compiled_fit`): named structures of NumPy arrays and numbers, and the
+codes the compiled calls return, without numba (so that deciding whether the path applies imports
+nothing heavy).
+
+Every structure is built by its function here (:func:`answers`, :func:`prior`, :func:`fit_spec`,
+:func:`fit_state`), which fixes each field's type (int64 and float64 C-contiguous writable arrays,
+Python ints and floats): numba compiles one version per combination of argument types, and the
+build (:mod:`torchpref.inference.fast_cache`) compiles exactly the combination these give, so no call
+ever meets the compiler.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+
+#: status codes of the compiled calls (:mod:`torchpref.inference._compiled`)
+OK, NOT_PD, NOT_FINITE, NOT_CONVERGED, LINE_SEARCH_FAILED, FISHER = 0, 1, 2, 3, 4, 5
+#: the likelihood of an :class:`Answers` row
+PROBIT, BETA = 0, 1
+#: kernel kinds: GPyTorch's RBF, and Matern with nu = 1/2, 3/2, 5/2
+RBF, MATERN12, MATERN32, MATERN52 = 0, 1, 2, 3
+#: prior kinds on a positive hyperparameter
+NO_PRIOR, LOG_NORMAL, GAMMA = 0, 1, 2
+
+
+class Answers(NamedTuple):
+    """One problem's observations, one row each: the predictor of row ``k`` is
+    ``eta_k = f[first_k] - f[second_k] + offset_k`` (``second_k = -1``: a rating, ``f[first_k] +
+    offset_k``), scored by the probit (``kind_k = PROBIT``, scale ``probit_scale = sqrt 2 sigma_R``)
+    or the Beta rating likelihood (``BETA``: the rating ``target_k``, link scale ``rating_scale =
+    sqrt 2 sigma_B``, precision ``rating_precision = nu``)."""
+
+    first: np.ndarray
+    second: np.ndarray
+    kind: np.ndarray
+    offset: np.ndarray
+    target: np.ndarray
+    probit_scale: float
+    rating_scale: float
+    rating_precision: float
+
+
+class Prior(NamedTuple):
+    """A LogNormal(``p1``, ``p2``) or Gamma(concentration ``p1``, rate ``p2``) prior on a positive
+    hyperparameter (``kind``: :data:`NO_PRIOR`, :data:`LOG_NORMAL`, :data:`GAMMA`), whose constant
+    part is ``const`` (computed by the prior itself, in its own dtype)."""
+
+    kind: int
+    p1: float
+    p2: float
+    const: float
+
+
+class FitSpec(NamedTuple):
+    """What the raw parameters ``x`` of a fit are: the lengthscales are ``softplus(x[ls_start :
+    ls_start + ls_count]) + ls_lower`` (one shared value when ``ls_count = 1``), the outputscale
+    ``softplus(x[os_index]) + os_lower`` (``fixed_outputscale`` where ``os_index < 0``), of a
+    kernel of kind ``kernel`` (:data:`RBF`, ...), each with its prior."""
+
+    kernel: int
+    ls_start: int
+    ls_count: int
+    ls_lower: float
+    ls_prior: Prior
+    os_index: int
+    os_lower: float
+    os_prior: Prior
+    fixed_outputscale: float
+
+
+class FitState(NamedTuple):
+    """Buffers each successful fit evaluation overwrites: the mode ``f`` (``n``; also the next
+    evaluation's warm start), whitened ``a``, ``L`` with ``L L^T = K + jitter I``, ``B``'s factor
+    ``M``, the weights ``w`` of the answers, ``jitter`` and Newton's ``iterations`` (one value each)."""
+
+    f: np.ndarray
+    a: np.ndarray
+    L: np.ndarray
+    M: np.ndarray
+    w: np.ndarray
+    jitter: np.ndarray
+    iterations: np.ndarray
+
+
+def floats(x: Any, ndim: int = 1) -> np.ndarray:
+    """``x`` as a float64 C-contiguous writable array of ``ndim`` dimensions (a copy only if need be)."""
+    out = np.require(x, dtype=np.float64, requirements=("C", "W", "A"))
+    if out.ndim != ndim:
+        raise ValueError(f"expected a {ndim}-d array, got shape {out.shape}")
+    return out
+
+
+def ints(x: Any) -> np.ndarray:
+    """``x`` as an int64 C-contiguous writable vector."""
+    out = np.require(x, dtype=np.int64, requirements=("C", "W", "A"))
+    if out.ndim != 1:
+        raise ValueError(f"expected a vector, got shape {out.shape}")
+    return out
+
+
+def answers(
+    first: Any,
+    second: Any,
+    kind: Any,
+    offset: Any,
+    target: Any,
+    probit_scale: float,
+    rating_scale: float,
+    rating_precision: float,
+) -> Answers:
+    """An :class:`Answers` with its fields' types fixed."""
+    return Answers(
+        ints(first),
+        ints(second),
+        ints(kind),
+        floats(offset),
+        floats(target),
+        float(probit_scale),
+        float(rating_scale),
+        float(rating_precision),
+    )
+
+
+def prior(kind: int, p1: float, p2: float, const: float) -> Prior:
+    """A :class:`Prior` with its fields' types fixed."""
+    return Prior(int(kind), float(p1), float(p2), float(const))
+
+
+def fit_spec(
+    kernel: int,
+    ls_start: int,
+    ls_count: int,
+    ls_lower: float,
+    ls_prior: tuple,
+    os_index: int,
+    os_lower: float,
+    os_prior: tuple,
+    fixed_outputscale: float,
+) -> FitSpec:
+    """A :class:`FitSpec` with its fields' types fixed."""
+    return FitSpec(
+        int(kernel),
+        int(ls_start),
+        int(ls_count),
+        float(ls_lower),
+        prior(*ls_prior),
+        int(os_index),
+        float(os_lower),
+        prior(*os_prior),
+        float(fixed_outputscale),
+    )
+
+
+def fit_state(f0: np.ndarray, m: int) -> FitState:
+    """Fresh buffers for a fit of ``n = len(f0)`` items and ``m`` answers, warm-starting from ``f0``."""
+    n = f0.shape[0]
+    zeros = np.zeros
+    return FitState(floats(f0.copy()), zeros(n), zeros((n, n)), zeros((n, n)), zeros(m), zeros(1), ints(zeros(1)))
