@@ -65,18 +65,22 @@ class StudyFolder:
     # ------------------------------------------------------------------ places
     @property
     def sessions(self) -> Path:
+        """``DIR/sessions``: one session file per participant."""
         return self.path / "sessions"
 
     @property
     def populations(self) -> Path:
+        """``DIR/population``: the fitted populations and ``current.json``."""
         return self.path / "population"
 
     @property
     def exports(self) -> Path:
+        """``DIR/exports``: what ``export`` and ``report`` write."""
         return self.path / "exports"
 
     @property
     def log_path(self) -> Path:
+        """``DIR/log.jsonl``: the study's events."""
         return self.path / "log.jsonl"
 
     def settings(self) -> dict:
@@ -128,6 +132,7 @@ class StudyFolder:
             return None
 
     def version_path(self, version: int) -> Path:
+        """The file of population ``version`` (``population/vNNNN.pt``)."""
         return self.populations / f"v{version:04d}.pt"
 
     def next_version(self) -> int:

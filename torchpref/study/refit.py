@@ -163,6 +163,7 @@ class RefitRunner:
                 self._start()
 
     def busy(self) -> bool:
+        """Whether a refit is running or asked for."""
         with self._lock:
             return self._running is not None or self._pending
 
