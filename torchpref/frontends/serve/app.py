@@ -464,7 +464,9 @@ def serve_store(
     the server listens (the study prints its experimenter link). Used by :func:`serve` and
     ``torchpref study serve``."""
     from torchpref.frontends.serve.pool import quiet_resource_errors
+    from torchpref.inference.fast_path import check_setting
 
+    check_setting()  # a mistyped TORCHPREF_FAST_PATH is named now, not at every page
     token = _check_network(listen.host, listen.port, listen.allow_remote, listen.token)
     sock = listening_socket(listen.host, listen.port)  # a busy port is named before any work
     try:
