@@ -49,6 +49,28 @@ endif
 results-status: $(STAMP)
 	$(BIN)/python benchmarks/results_status.py
 
+# write every figure into README.md and docs/*.md from its stamped results file (docs/figures.py);
+# a stale one gets its visible note
+pages: $(STAMP)
+	$(BIN)/python docs/figures.py --write
+
+# re-run every measurement the pages quote, then write the pages (docs/results.md: what each step
+# costs on this project's 2-core machine, which settings are cheaper than the published runs', and
+# what it leaves out: the Ax loops, which need the Ax environment, `make test-integrations`).
+# Run it alone on the machine: the speed figures are CPU times.
+RESULTS := benchmarks/results
+results: $(STAMP) fast-path
+	$(BIN)/torchpref reproduce wave --out $(RESULTS)
+	$(BIN)/python benchmarks/speed/speed_pairwise.py --sizes 20 50 100 200 500 --repeats 5 --slow-n 1000 --clock cpu --threads 1 --no-mixed --no-memory --out $(RESULTS)/speed_quiet
+	$(BIN)/python benchmarks/speed/speed_fast_path.py --sizes 20 50 100 200 --person-sizes 20 50 100 200 --repeats 7 --out $(RESULTS)/fast_path
+	$(BIN)/python benchmarks/studies/population.py
+	$(BIN)/python benchmarks/studies/population_scale.py
+	$(BIN)/python benchmarks/studies/study_twins.py
+	$(BIN)/torchpref reproduce replay --out $(RESULTS)/replay
+	$(BIN)/python benchmarks/robustness/fuzz.py
+	$(BIN)/python benchmarks/results_status.py
+	$(MAKE) pages
+
 test-slow: $(STAMP) fast-path
 	$(BIN)/python -m pytest -q -m slow
 
@@ -117,4 +139,4 @@ test-integrations:
 clean:
 	rm -rf $(VENV) .venv-floor .venv-ax .venv-bofire .cache/upstream dist build docs/_build docs/_generated docs/jupyter_execute
 
-.PHONY: venv demo fast-path test test-slow results-status bench lint format types docs wheel wheel-check clean test-floor upstream-tests test-integrations
+.PHONY: venv demo fast-path test test-slow results-status pages results bench lint format types docs wheel wheel-check clean test-floor upstream-tests test-integrations

@@ -580,6 +580,14 @@ for _task in ("mode", "fit", "posterior", "eubo"):
         for _col, _peer in (("ratio_pairwisegp", "pgp"), ("ratio_botorch_rust", "rust")):
             FIGURES[f"speedq_{_task}_{_n}_{_peer}"] = Figure(_SPEED, f"{_col}@task={_task},n={_n}", "{:,.2f}×")
 
+# the fuzz's run time and its per-precision times (docs/precision.md, docs/decisions.md)
+FIGURES["fuzz_seconds"] = Figure("fuzz.json", "seconds", "{:.0f}")
+FIGURES["fuzz_load"] = Figure("fuzz.json", "stamp.load_avg.0", "{:.1f}")
+for _group, _g in (("all", "all"), ("n < 100", "small"), ("100 <= n < 500", "mid"), ("n >= 500", "large")):
+    for _col in ("f64", "f32", "f32n", "f32_over_f32n", "f32_over_f64"):
+        FIGURES[f"fuzz_s_{_g}_{_col}"] = Figure("fuzz.json", f"seconds_per_run.{_group}.{_col}", "{:.3g}")
+    FIGURES[f"fuzz_s_{_g}_problems"] = Figure("fuzz.json", f"seconds_per_run.{_group}.problems", "{:,}")
+
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 
@@ -598,3 +606,43 @@ def is_stale(name: str) -> bool:
 def substitutions() -> dict[str, str]:
     """``{name: text}`` for MyST, a stale figure with :data:`STALE_NOTE`."""
     return {name: fig.text() + (STALE_NOTE if is_stale(name) else "") for name, fig in FIGURES.items()}
+
+
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def page_text(name: str) -> str:
+    """What a page shows for figure ``name``: its value, with :data:`STALE_NOTE` when its file is stale."""
+    return FIGURES[name].text() + (STALE_NOTE if is_stale(name) else "")
+
+
+def write_pages(pages: list[Path] | None = None) -> dict[str, int]:
+    """Write every figure into the pages (``make pages``): each ``{{ name }}`` becomes
+    ``<!-- fig:name -->value<!-- /fig -->`` and every marker's text is set to :func:`page_text`, so a
+    page read as a file (on GitHub, in an editor) shows the numbers. Returns ``{page: figures}``."""
+    out = {}
+    texts: dict[str, str] = {}
+
+    def text(name: str) -> str:
+        if name not in texts:
+            texts[name] = page_text(name)
+        return texts[name]
+
+    for page in pages or PAGES:
+        old = page.read_text()
+        new = SUBSTITUTION.sub(lambda m: f"<!-- fig:{m['name']} -->{text(m['name'])}<!-- /fig -->", old)
+        new = MARKER.sub(lambda m: f"<!-- fig:{m['name']} -->{text(m['name'])}<!-- /fig -->", new)
+        if new != old:
+            page.write_text(new)
+        out[page.relative_to(ROOT).as_posix()] = len(MARKER.findall(new))
+    return out
+
+
+if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:] != ["--write"]:
+        sys.exit("usage: python docs/figures.py --write   (writes every figure into README.md and docs/*.md)")
+    for page, n in write_pages().items():
+        if n:
+            print(f"{page}: {n} figures")

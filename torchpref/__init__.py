@@ -14,6 +14,20 @@ from typing import TYPE_CHECKING, Any
 
 from torchpref.version import __version__
 
+
+def _record_sources_for_a_measurement() -> None:
+    """Only where ``TORCHPREF_STAMP_SOURCES`` is set (a benchmark recording what the processes it
+    started ran, for its results' stamp: ``torchpref.experiments.stamp``); nothing otherwise."""
+    import os
+
+    if os.environ.get("TORCHPREF_STAMP_SOURCES"):
+        from torchpref.experiments.stamp import record_at_exit
+
+        record_at_exit()
+
+
+_record_sources_for_a_measurement()
+
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from torchpref.acquisition.functions import QueryInformation, QueryUCB, latent_ucb
     from torchpref.data.preference_data import (

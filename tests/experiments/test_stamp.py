@@ -50,3 +50,47 @@ def test_write_json_stamps_a_dictionary_with_the_loaded_package_modules(tmp_path
     assert "torchpref/experiments/stamp.py" in data["stamp"]["sources"]  # the code that ran
     assert status(path, ROOT)[0] == "fresh"
     assert json.loads(write_json(tmp_path / "l.json", [1, 2]).read_text()) == [1, 2]  # lists as they are
+
+
+def test_code_digest_ignores_docstrings_comments_and_layout(tmp_path):
+    from torchpref.experiments.stamp import code_digest
+
+    a, b, c = tmp_path / "a.py", tmp_path / "b.py", tmp_path / "c.py"
+    a.write_text('"""Module."""\n\ndef f(x):\n    """Twice x."""\n    return 2 * x  # double\n')
+    b.write_text('"""Another text."""\ndef f(x):\n    # a comment\n    return 2*x\n')
+    c.write_text('def f(x):\n    return 3 * x\n')
+    assert code_digest(a) == code_digest(b) != code_digest(c)
+    data = tmp_path / "d.csv"
+    data.write_text("1,2\n")
+    before = code_digest(data)
+    data.write_text("1,3\n")
+    assert code_digest(data) != before
+
+
+def test_a_stamp_is_stale_only_when_code_changed(tmp_path):
+    import json
+
+    from torchpref.experiments.stamp import make_stamp, status
+
+    src = tmp_path / "m.py"
+    src.write_text('def f():\n    """Doc."""\n    return 1\n')
+    out = tmp_path / "r.json"
+    out.write_text(json.dumps({"x": 1, "stamp": make_stamp(sources=[src], root=tmp_path)}))
+    assert status(out, tmp_path)[0] == "fresh"
+    src.write_text('def f():\n    """Another doc."""\n    # why\n    return 1\n')
+    assert status(out, tmp_path)[0] == "fresh"
+    src.write_text("def f():\n    return 2\n")
+    assert status(out, tmp_path) == ("stale", "changed since the stamp: m.py")
+
+
+def test_a_stamp_hashes_what_its_subprocesses_ran(tmp_path):
+    import subprocess
+    import sys
+
+    from torchpref.experiments.stamp import make_stamp, recording_subprocesses
+
+    with recording_subprocesses():
+        subprocess.run([sys.executable, "-c", "import torchpref.study.folder"], check=True)
+        stamp = make_stamp()
+    assert "torchpref/study/folder.py" in stamp["sources"] and "torchpref/study/folder.py" in stamp["code"]
+    assert "torchpref/study/folder.py" not in make_stamp()["sources"] or "torchpref.study.folder" in sys.modules

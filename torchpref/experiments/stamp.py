@@ -5,9 +5,12 @@ A *stamp* (:func:`make_stamp`) is a dictionary written into a results file under
 * ``commit`` (``git rev-parse HEAD`` of the checkout, or ``None``) and ``dirty`` (uncommitted
   changes to the sources below);
 * ``sources``: ``{path: sha256}`` of the files the result depends on: the script that wrote it and
-  every ``torchpref`` module loaded in the process when it was written (what the measured code
-  actually ran; packages' ``__init__`` files, which only re-export names, left out), paths
-  relative to the repository root;
+  every ``torchpref`` module loaded in the process when it was written, and in every process it
+  started under :func:`recording_subprocesses` (what the measured code actually ran; packages'
+  ``__init__`` files, which only re-export names, left out), paths relative to the repository root;
+* ``code``: ``{path: digest}`` of the same files' *code*: a Python file's syntax tree without its
+  docstrings, comments and formatting (:func:`code_digest`), so that a change to a page of
+  documentation, a comment or the layout of a line leaves a result fresh;
 * ``versions`` of Python, torch, GPyTorch, BoTorch, NumPy and torchpref;
 * ``load_avg`` (1, 5, 15 minutes) and ``cpu_count`` when it was written;
 * ``wall_s`` and ``cpu_s``: the process's wall time since it started and its CPU time (user +
@@ -15,8 +18,8 @@ A *stamp* (:func:`make_stamp`) is a dictionary written into a results file under
 * ``path``: *what was measured*: ``"user"`` (the documented user path) or ``"harness: ..."``
   naming a test harness (a count under a harness is labelled so beside the user-path count).
 
-:func:`status` compares a stamp's ``sources`` with the files as they are now: a result is
-``"fresh"`` when every source is unchanged, ``"stale"`` (with the files that changed or went)
+:func:`status` compares a stamp's ``code`` (``sources`` for stamps written before it existed)
+with the files as they are now: a result is ``"fresh"`` when every source's code is unchanged, ``"stale"`` (with the files that changed or went)
 otherwise, and ``"unstamped"`` without a stamp. ``make results-status`` lists every results file
 so (``benchmarks/results_status.py``); the docs mark a figure read from a stale file.
 """
@@ -43,6 +46,97 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def code_digest(path: Path) -> str:
+    """A digest of what a file does: for Python, its syntax tree with every docstring removed,
+    dumped without line numbers (comments and formatting never reach the tree); for anything
+    else (data), its bytes. A file that does not parse is digested as bytes."""
+    import ast
+
+    if path.suffix != ".py":
+        return _sha256(path)
+    try:
+        tree = ast.parse(path.read_bytes())
+    except (SyntaxError, ValueError):
+        return _sha256(path)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body:
+            first = body[0]
+            if (
+                isinstance(first, ast.Expr)
+                and isinstance(first.value, ast.Constant)
+                and isinstance(first.value.value, str)
+            ):
+                node.body = body[1:] or [ast.Pass()]
+    return "code:" + hashlib.sha256(ast.dump(tree, include_attributes=False).encode()).hexdigest()
+
+
+SUBPROCESS_VAR = "TORCHPREF_STAMP_SOURCES"
+"""When set (to a folder), each process that imports torchpref writes the files of its loaded
+torchpref modules there at exit (:func:`record_at_exit`), for the stamp of the measurement that
+started it (:func:`recording_subprocesses`)."""
+
+
+def record_at_exit() -> None:
+    """Write this process's loaded torchpref modules' files to ``$TORCHPREF_STAMP_SOURCES/PID.json``
+    when it exits (called by ``import torchpref`` only where the variable is set)."""
+    import atexit
+
+    folder = os.environ.get(SUBPROCESS_VAR)
+    if not folder:
+        return
+
+    def write() -> None:
+        files = [f for name, m in list(sys.modules.items()) if (f := _module_file(name, m)) is not None]
+        try:
+            Path(folder, f"{os.getpid()}.json").write_text(json.dumps(files))
+        except OSError:
+            pass
+
+    atexit.register(write)
+
+
+def _module_file(name: str, module: Any) -> str | None:
+    f = getattr(module, "__file__", None)
+    # a package's __init__ only re-exports its modules' names (docs/architecture.md): not hashed,
+    # so that adding a public name does not make every result stale
+    if (name == "torchpref" or name.startswith("torchpref.")) and f and not f.endswith("__init__.py"):
+        return str(f)
+    return None
+
+
+class recording_subprocesses:
+    """``with recording_subprocesses():`` every process started inside (and any it starts) that
+    imports torchpref records its loaded modules, and a stamp written inside hashes them too."""
+
+    def __enter__(self) -> recording_subprocesses:
+        import tempfile
+
+        self._before = os.environ.get(SUBPROCESS_VAR)
+        self.folder = tempfile.mkdtemp(prefix="torchpref-stamp-")
+        os.environ[SUBPROCESS_VAR] = self.folder
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._before is None:
+            os.environ.pop(SUBPROCESS_VAR, None)
+        else:
+            os.environ[SUBPROCESS_VAR] = self._before
+
+
+def _subprocess_files() -> set[Path]:
+    folder = os.environ.get(SUBPROCESS_VAR)
+    out: set[Path] = set()
+    if not folder or not Path(folder).is_dir():
+        return out
+    for f in Path(folder).glob("*.json"):
+        try:
+            out.update(Path(p).resolve() for p in json.loads(f.read_text()))
+        except (OSError, ValueError, TypeError):
+            continue
+    return out
+
+
 def _relative(path: Path, root: Path) -> str | None:
     try:
         return path.resolve().relative_to(root.resolve()).as_posix()
@@ -59,11 +153,9 @@ def loaded_sources(root: Path = ROOT, extra: Iterable[str | os.PathLike] = ()) -
         files.add(main.resolve())
     files.update(Path(p).resolve() for p in extra)
     for name, module in list(sys.modules.items()):
-        f = getattr(module, "__file__", None)
-        # a package's __init__ only re-exports its modules' names (docs/architecture.md): not hashed,
-        # so that adding a public name does not make every result stale
-        if (name == "torchpref" or name.startswith("torchpref.")) and f and not f.endswith("__init__.py"):
+        if (f := _module_file(name, module)) is not None:
             files.add(Path(f).resolve())
+    files.update(_subprocess_files())  # what processes started under recording_subprocesses() ran
     out = {}
     for f in sorted(files):
         rel = _relative(f, root)
@@ -131,6 +223,7 @@ def make_stamp(
         "commit": _git(root, "rev-parse", "HEAD"),
         "dirty": bool(dirty),
         "sources": hashed,
+        "code": {rel: code_digest(root / rel) for rel in hashed},
         "versions": _versions(),
         "load_avg": [round(x, 2) for x in os.getloadavg()],
         "cpu_count": os.cpu_count(),
@@ -153,11 +246,12 @@ def status(file: str | os.PathLike, root: Path = ROOT) -> tuple[str, str]:
     if not isinstance(stamp, dict) or not isinstance(stamp.get("sources"), dict):
         return "unstamped", "no stamp"
     changed = []
-    for rel, digest in sorted(stamp["sources"].items()):
+    code = stamp.get("code") if isinstance(stamp.get("code"), dict) else None
+    for rel, digest in sorted((code or stamp["sources"]).items()):
         f = root / rel
         if not f.is_file():
             changed.append(f"{rel} (gone)")
-        elif _sha256(f) != digest:
+        elif (code_digest(f) if code is not None else _sha256(f)) != digest:
             changed.append(rel)
     if changed:
         return "stale", "changed since the stamp: " + ", ".join(changed[:6]) + (" ..." if len(changed) > 6 else "")
