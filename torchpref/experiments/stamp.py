@@ -153,8 +153,8 @@ def loaded_sources(root: Path = ROOT, extra: Iterable[str | os.PathLike] = ()) -
         files.add(main.resolve())
     files.update(Path(p).resolve() for p in extra)
     for name, module in list(sys.modules.items()):
-        if (f := _module_file(name, module)) is not None:
-            files.add(Path(f).resolve())
+        if (loaded := _module_file(name, module)) is not None:
+            files.add(Path(loaded).resolve())
     files.update(_subprocess_files())  # what processes started under recording_subprocesses() ran
     out = {}
     for f in sorted(files):

@@ -35,9 +35,9 @@ __all__ = ["RefitRunner", "finished_participants", "person_data", "refit"]
 
 MIN_PEOPLE = 2
 """A population is fitted once this many participants have finished."""
-WARM_MAX_ITER = 40
+WARM_MAX_ITER = 15
 """L-BFGS iterations of a refit warm-started from the current population's kernels."""
-COLD_MAX_ITER = 60
+COLD_MAX_ITER = 30
 """L-BFGS iterations of the first fit (no population to start from)."""
 
 
@@ -134,7 +134,9 @@ class RefitRunner:
 
     def _start(self) -> None:
         log = open(self.folder.path / "refit.log", "a")
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+        # one thread (torch's and BLAS's): a refit shares the machine with the server's answers
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p), OMP_NUM_THREADS="1")
+        env.update(OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
         self._running = subprocess.Popen(
             [sys.executable, "-m", "torchpref.study.refit", str(self.folder.path)],
             stdout=log,
@@ -186,6 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("folder", type=Path)
     ap.add_argument("--max-iter", type=int, default=None)
     args = ap.parse_args(argv)
+    torch.set_num_threads(1)
     folder = StudyFolder(args.folder)
     try:
         version = refit(folder, args.max_iter)
