@@ -328,7 +328,11 @@ class SessionPool:
             self.closed += len(closed)
         for session in closed:  # outside the pool's lock: closing waits for nothing of ours
             _close_quietly(session)
-        return len(closed)
+        count = len(closed)
+        if count:
+            closed.clear()
+            _release_memory()
+        return count
 
     def _start_sweeper(self) -> None:
         every = max(0.2, min(30.0, min(self.limits.idle_close, self.limits.finished_close) / 2 or 0.2))
@@ -419,6 +423,30 @@ class SessionPool:
             what, self._short = self._short, None
         if what is not None:
             self._log(f"torchpref serve: {what.split(' (')[0]} available again: new participants are accepted")
+
+
+_LAST_RELEASE = [0.0]
+
+
+def _release_memory(every_s: float = 5.0) -> None:
+    """After sessions closed, at most every ``every_s`` seconds: collect their reference cycles
+    (a session and its model refer to each other) and hand the freed heap back to the system
+    (glibc's ``malloc_trim``; the server's threads each keep an arena otherwise, and its memory
+    grew with every finished session)."""
+    import gc
+    import time
+
+    now = time.monotonic()
+    if now - _LAST_RELEASE[0] < every_s:
+        return
+    _LAST_RELEASE[0] = now
+    gc.collect()
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc: the collection alone
+        pass
 
 
 def _close_quietly(session: Any) -> None:
