@@ -588,6 +588,19 @@ for _group, _g in (("all", "all"), ("n < 100", "small"), ("100 <= n < 500", "mid
         FIGURES[f"fuzz_s_{_g}_{_col}"] = Figure("fuzz.json", f"seconds_per_run.{_group}.{_col}", "{:.3g}")
     FIGURES[f"fuzz_s_{_g}_problems"] = Figure("fuzz.json", f"seconds_per_run.{_group}.problems", "{:,}")
 
+# the serve soak (docs/serve.md)
+FIGURES["soak_finished_kb"] = Figure("serve/soak.json", "summary.finished_session_kb_slope", "{:.0f}")
+FIGURES["soak_finished_kb_half"] = Figure("serve/soak.json", "summary.finished_session_kb_slope_second_half", "{:.0f}")
+FIGURES["soak_open_kb"] = Figure("serve/soak.json", "restart.open_session_kb_slope", "{:.0f}")
+for _i, _q in enumerate(("p50", "p95", "p99")):
+    FIGURES[f"soak_ms_{_q}"] = Figure("serve/soak.json", f"summary.answer_ms_p50_p95_p99.{_i}", "{:.0f}")
+    FIGURES[f"soak_plots_ms_{_q}"] = Figure("serve/soak.json", f"summary.answer_ms_during_plots_p50_p95_p99_n.{_i}", "{:.0f}")
+FIGURES["soak_lost"] = Figure("serve/soak.json", "restart.lost_answers")
+FIGURES["soak_acknowledged"] = Figure("serve/soak.json", "restart.acknowledged_answers", "{:,}")
+FIGURES["soak_reopened"] = Figure("serve/soak.json", "restart.sessions_reopened")
+FIGURES["soak_load_lo"] = Figure("serve/soak.json", "load_average.0", "{:.1f}")
+FIGURES["soak_load_hi"] = Figure("serve/soak.json", "load_average.3", "{:.1f}")
+
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 
