@@ -5,7 +5,8 @@ times (10) at random moments, preferring the moments a population refit is runni
 restarted on the same folder. At the end:
 
 * every acknowledged answer is in its session file, in force (0 lost);
-* after every kill the population file in force loads (``torchpref.load_population``);
+* after every kill the population file in force loads (``torchpref.load_population``); the kills
+  start once the first population is in force;
 * the population was refitted at least once per 5 finished participants;
 * the export's answer rows are the session files' answer records;
 * the report opens in Chromium with its figures (where Chromium and Playwright are installed).
@@ -107,6 +108,9 @@ def main() -> int:
     for t in threads:
         t.start()
     kills, loadable, during_refit = 0, [], 0
+    deadline = time.time() + 600  # the kills start once a population is in force (so each can break it)
+    while time.time() < deadline and not (study / "population" / "current.json").is_file():
+        time.sleep(0.5)
     while any(t.is_alive() for t in threads) and kills < args.kills:
         deadline = time.time() + random.uniform(2.0, 8.0)
         while time.time() < deadline and not _refit_processes():  # a kill during a refit where one runs
@@ -131,14 +135,14 @@ def main() -> int:
         recs = records(f)
         answers_in_files += sum(r["type"] == "answer" for r in recs)
         problems += [f"{sid}: {p}" for p in acknowledged_in_file(acked.get(sid, []), recs)]
-    from torchpref.study.export import answer_rows
+    from torchpref.study.export import answer_rows, participant_rows
     from torchpref.study.folder import StudyFolder
     from torchpref.study.report import report
 
     folder = StudyFolder(study)
     rows = answer_rows(folder)
     events = folder.events()
-    finished = len({e["participant"] for e in events if e["event"] == "finished"})
+    finished = sum(int(r["finished"]) for r in participant_rows(folder))
     refits = sum(e["event"] == "refit" for e in events)
     page = report(folder)
     figures = _report_figures(page)

@@ -112,72 +112,104 @@ def refit(folder: StudyFolder, max_iter: int | None = None) -> int | None:
 
 
 class RefitRunner:
-    """Starts ``python -m torchpref.study.refit DIR`` in a process of its own when asked
-    (:meth:`request`), one at a time: a request while one runs makes one more run after it.
-    A refit that fails or runs past ``timeout`` seconds is logged (and killed); the previous
-    population stays current. Never blocks the caller."""
+    """Refits in a worker process of its own, ``python -m torchpref.study.refit DIR --serve``,
+    started at the first request and kept (so a refit costs the fit, not Python's and torch's
+    start-up): one refit at a time, a request while one runs makes one more run after it. A
+    refit that fails is logged by the worker; one that runs past ``timeout`` seconds is stopped
+    with its worker (a new one starts at the next request). The previous population stays
+    current either way. Never blocks the caller. If the server dies, the worker finishes the
+    refit it is in (its files are written atomically) and exits."""
 
     def __init__(self, folder: StudyFolder, timeout: float = 600.0, nice: int = 10):
         self.folder, self.timeout, self.nice = folder, timeout, nice
         self._lock = threading.Lock()
-        self._running: subprocess.Popen | None = None
+        self._worker: subprocess.Popen | None = None
+        self._busy = False  # a refit asked of the worker and not answered yet
         self._pending = False
+        self._asked = 0  # the number of the refit asked last (for the timeout's check)
         self.completed = 0
 
     def request(self) -> None:
         """Refit soon (now if none is running)."""
         with self._lock:
-            if self._running is not None:
+            if self._busy:
                 self._pending = True
                 return
-            self._start()
+            self._ask()
 
-    def _start(self) -> None:
+    def _spawn(self) -> subprocess.Popen:
         log = open(self.folder.path / "refit.log", "a")
         # one thread (torch's and BLAS's): a refit shares the machine with the server's answers
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p), OMP_NUM_THREADS="1")
         env.update(OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-        self._running = subprocess.Popen(
-            [sys.executable, "-m", "torchpref.study.refit", str(self.folder.path)],
-            stdout=log,
-            stderr=subprocess.STDOUT,
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "torchpref.study.refit", str(self.folder.path), "--serve"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=log,
+            text=True,
             env=env,
             preexec_fn=(lambda: os.nice(self.nice)) if self.nice else None,
         )
         log.close()
-        threading.Thread(target=self._watch, args=(self._running,), daemon=True).start()
+        threading.Thread(target=self._read, args=(proc,), daemon=True).start()
+        return proc
 
-    def _watch(self, proc: subprocess.Popen) -> None:
+    def _ask(self) -> None:
+        """Ask the worker (started if need be) for one refit; called under the lock."""
+        if self._worker is None or self._worker.poll() is not None:
+            self._worker = self._spawn()
+        self._busy, self._asked = True, self._asked + 1
         try:
-            code = proc.wait(timeout=self.timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-            code = None
-            self.folder.log("refit stopped", why=f"ran past {self.timeout:.0f} s; the previous population stays")
-        if code not in (0, None):
-            self.folder.log("refit failed", code=code, why="see refit.log; the previous population stays")
+            assert self._worker.stdin is not None
+            self._worker.stdin.write("refit\n")
+            self._worker.stdin.flush()
+        except (OSError, ValueError):  # the worker is gone: the next request starts another
+            self._worker, self._busy = None, False
+            return
+        timer = threading.Timer(self.timeout, self._check_timeout, args=(self._asked,))
+        timer.daemon = True
+        timer.start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.startswith(("done", "failed")):
+                with self._lock:
+                    if proc is not self._worker:
+                        continue
+                    self._busy = False
+                    self.completed += 1
+                    if self._pending:
+                        self._pending = False
+                        self._ask()
+        with self._lock:  # the worker exited (stopped, or it failed to start)
+            if proc is self._worker:
+                self._worker, self._busy = None, False
+
+    def _check_timeout(self, asked: int) -> None:
         with self._lock:
-            self._running = None
-            self.completed += 1
-            if self._pending:
-                self._pending = False
-                self._start()
+            if not (self._busy and asked == self._asked and self._worker is not None):
+                return
+            proc, self._worker, self._busy = self._worker, None, False
+        proc.kill()
+        proc.wait()
+        self.folder.log("refit stopped", why=f"ran past {self.timeout:.0f} s; the previous population stays")
 
     def busy(self) -> bool:
         """Whether a refit is running or asked for."""
         with self._lock:
-            return self._running is not None or self._pending
+            return self._busy or self._pending
 
     def close(self, wait: float = 0.0) -> None:
-        """Stop a refit still running after ``wait`` seconds (its population is not made current
-        unless it got that far: the files are written atomically)."""
+        """Stop the worker, once a refit still running has had ``wait`` seconds (its population is
+        made current only if it got that far: the files are written atomically)."""
         deadline = time.monotonic() + wait
         while self.busy() and time.monotonic() < deadline:
             time.sleep(0.1)
         with self._lock:
             self._pending = False
-            proc = self._running
+            proc, self._worker, self._busy = self._worker, None, False
         if proc is not None and proc.poll() is None:
             proc.kill()
             proc.wait()
@@ -187,15 +219,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="refit a study's population on its finished participants")
     ap.add_argument("folder", type=Path)
     ap.add_argument("--max-iter", type=int, default=None)
+    ap.add_argument("--serve", action="store_true", help="refit once per line read from standard input")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     folder = StudyFolder(args.folder)
-    try:
-        version = refit(folder, args.max_iter)
-    except Exception as exc:  # logged; the previous population stays current
-        folder.log("refit failed", why=f"{type(exc).__name__}: {str(exc)[:300]}")
-        raise
-    print(f"refit: {f'population v{version}' if version else 'nothing to fit yet'}", flush=True)
+    for _ in sys.stdin if args.serve else [None]:
+        try:
+            version = refit(folder, args.max_iter)
+        except Exception as exc:  # logged; the previous population stays current
+            folder.log("refit failed", why=f"{type(exc).__name__}: {str(exc)[:300]}")
+            print(f"failed {type(exc).__name__}", flush=True)
+            if not args.serve:
+                raise
+            continue
+        print(f"done {f'v{version}' if version else 'nothing to fit yet'}", flush=True)
     return 0
 
 
