@@ -601,6 +601,24 @@ FIGURES["soak_reopened"] = Figure("serve/soak.json", "restart.sessions_reopened"
 FIGURES["soak_load_lo"] = Figure("serve/soak.json", "load_average.0", "{:.1f}")
 FIGURES["soak_load_hi"] = Figure("serve/soak.json", "load_average.3", "{:.1f}")
 
+# the study on twins and the study over HTTP (docs/study.md)
+for _ds, _short in (("electricity", "elec"), ("rail", "rail")):
+    for _k in (0, 2, 5, 10):
+        for _c in ("online", "none"):
+            FIGURES[f"study_{_short}_k{_k}_{_c}"] = Figure("study/study_twins.json", f"summary.{_ds}.{_k}.after_20.{_c}", "{:.3f}")
+        FIGURES[f"study_{_short}_k{_k}_p"] = Figure("study/study_twins.json", f"summary.{_ds}.{_k}.after_20.p", "{:.1g}")
+    FIGURES[f"study_{_short}_pairs"] = Figure("study/study_twins.json", f"summary.{_ds}.2.after_20.pairs")
+for _i, (_ds, _n) in enumerate((("elec", 10), ("elec", 50), ("elec", 200), ("rail", 10), ("rail", 50), ("rail", 200))):
+    for _w in ("cold", "warm"):
+        FIGURES[f"study_refit_{_ds}_{_n}_{_w}"] = Figure("study/study_twins.json", f"refit_cost.{_i}.{_w}_s", "{:.1f}")
+FIGURES["study_twins_load_lo"] = Figure("study/study_twins.json", "meta.load_average_start_end.1", "{:.0f}")
+FIGURES["study_twins_load_hi"] = Figure("study/study_twins.json", "meta.load_average_start_end.0", "{:.0f}")
+for _key in ("participants", "acknowledged", "kills", "kills_during_refit", "finished", "refits", "export_rows",
+             "answer_records_in_files", "report_figures_shown_in_chromium", "seconds"):
+    FIGURES[f"study_run_{_key}"] = Figure("study/study_run.json", _key, "{:,}")
+FIGURES["study_run_per5"] = Figure("study/study_run.json", "refits_per_5_finished", "{:.2f}")
+FIGURES["study_run_load"] = Figure("study/study_run.json", "load_average_start_end.0", "{:.1f}")
+
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 
