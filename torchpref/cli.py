@@ -536,9 +536,10 @@ def _main(argv: list[str] | None) -> int:
         if (line := _missing_extra(args)) is not None:
             print(line, file=sys.stderr)
             return MISSING_EXTRA
-        from torchpref.inference.fast_path import check_setting
+        if os.environ.get("TORCHPREF_FAST_PATH", "").strip():  # only then: checking it imports torch
+            from torchpref.inference.fast_path import check_setting
 
-        check_setting()  # a mistyped TORCHPREF_FAST_PATH is named now, not at the first solve or page
+            check_setting()  # a mistyped TORCHPREF_FAST_PATH is named now, not at the first solve or page
         if args.command == "fast-path":
             return _fast_path(args)
         if args.command == "serve":
