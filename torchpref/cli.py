@@ -225,6 +225,11 @@ def _serve_parser(sub) -> None:
         metavar="FILE",
         help="a saved population (torchpref.save_population) each new session starts from (docs/population.md)",
     )
+    sv.add_argument(
+        "--population-without-names",
+        action="store_true",
+        help="accept a population file that records no feature names (it cannot be checked against the items)",
+    )
     sv.add_argument("--queries", type=positive_int, default=14, help="questions per session (default 14)")
     sv.add_argument(
         "--question-list",

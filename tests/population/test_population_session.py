@@ -109,3 +109,29 @@ def test_a_population_path_points_to_load_population(tmp_path):
         PreferenceSession(X, population=str(tmp_path / "pop.pt"))
     with pytest.raises(ValueError, match="load_population"):
         PreferenceSession(X, population=tmp_path / "pop.pt")
+
+
+def test_serve_refuses_a_population_file_without_feature_names(tmp_path, monkeypatch):
+    """``serve --population`` with a file that records no feature names cannot check it against the
+    items: refused, naming the way out, unless --population-without-names says so."""
+    pytest.importorskip("starlette")
+    from torchpref.cli import build_parser
+    from torchpref.frontends.serve import app
+    from torchpref.frontends.serve.app import ServeError
+    from torchpref.testing.serve import write_items
+
+    g = torch.Generator().manual_seed(3)
+    people = [
+        PreferenceData.create(torch.rand(5, 2, generator=g, dtype=D), torch.tensor([[0, 1], [2, 3]])) for _ in range(3)
+    ]
+    torchpref.save_population(torchpref.fit_population(people, fit=False), tmp_path / "p.pt")
+    items = write_items(tmp_path, n=8, d=2, pictures=False)
+    args = build_parser().parse_args(
+        ["serve", "--features", str(items), "--population", str(tmp_path / "p.pt"), "--port", "0"]
+    )
+    with pytest.raises(ServeError, match="no feature names.*--population-without-names"):
+        app.run(args)
+    args.population_without_names = True
+    served = []
+    monkeypatch.setattr(app, "serve", lambda items, **kw: served.append(kw["new"].population))
+    assert app.run(args) == 0 and served and served[0] is not None

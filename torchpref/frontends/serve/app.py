@@ -558,6 +558,12 @@ def run(args: Any) -> int:
         from torchpref.population.io import load_population
 
         population = load_population(args.population, dim=items.X.shape[-1], names=items.names)
+        if population.names is None and not getattr(args, "population_without_names", False):
+            raise ServeError(
+                f"the population {args.population} records no feature names, so it cannot be checked against "
+                f"the items' ({', '.join(items.names)}): fit it with names= (torchpref.fit_population), or "
+                "pass --population-without-names if its features are these, in this order."
+            )
     queries = None
     if getattr(args, "question_list", None) is not None:
         from torchpref.sessions.query_list import read_question_list
