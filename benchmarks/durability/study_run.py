@@ -1,6 +1,7 @@
 r"""A whole study over HTTP with kills (issue 46's reliability): ``--participants`` scripted
 participants (40) answer ``--answers`` questions each (6), ``--active`` (10) at a time, against
-``torchpref study serve`` run as a process, each thinking 0.5-1.5 s per answer; meanwhile the server is killed (SIGKILL) ``--kills``
+``torchpref study serve`` run as a process, arriving ``--arrival`` (5) seconds apart on average
+and thinking 0.5-1.5 s per answer; meanwhile the server is killed (SIGKILL) ``--kills``
 times (10) at random moments, preferring the moments a population refit is running, and
 restarted on the same folder. At the end:
 
@@ -78,6 +79,7 @@ def main() -> int:
     ap.add_argument("--answers", type=int, default=10)
     ap.add_argument("--active", type=int, default=10)
     ap.add_argument("--kills", type=int, default=10)
+    ap.add_argument("--arrival", type=float, default=5.0, help="mean seconds between two participants' arrivals")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args()
@@ -96,12 +98,19 @@ def main() -> int:
     for i in range(args.participants):
         todo.put(i)
 
+    arrivals = threading.Lock()
+    next_arrival = [time.time()]
+
     def worker() -> None:
         while not stop.is_set():
             try:
                 i = todo.get_nowait()
             except queue.Empty:
                 return
+            with arrivals:  # participants arrive one after another, --arrival seconds apart on average
+                wait = next_arrival[0] - time.time()
+                next_arrival[0] = max(next_arrival[0], time.time()) + random.expovariate(1.0 / args.arrival)
+            time.sleep(max(0.0, wait))
             participant(srv.url, args.answers, i, acked, lock, stop)
 
     threads = [threading.Thread(target=worker, daemon=True) for _ in range(args.active)]
