@@ -13,7 +13,7 @@ posterior mean at ``X``.
 from __future__ import annotations
 
 import copy
-from typing import Any
+from typing import Protocol, TypeVar
 
 import torch
 from botorch.posteriors.gpytorch import GPyTorchPosterior
@@ -21,10 +21,50 @@ from botorch.sampling.base import MCSampler
 from botorch.sampling.pairwise_samplers import PairwiseMCSampler
 from torch import Tensor
 
-from torchpref.data.preference_data import prepare_levels, prepare_ratings
+from torchpref.data.preference_data import PreferenceData, prepare_levels, prepare_ratings
+from torchpref.inference.padding import PaddedData
+from torchpref.inference.solver import PosteriorState
+from torchpref.models.defaults import PreferenceLikelihood
 
-#: A :class:`~torchpref.PreferenceGP` (not imported: ``preference_gp`` imports this module).
-PreferenceGP = Any
+
+class FantasyModel(Protocol):
+    """What conditioning and fantasies use of a :class:`~torchpref.PreferenceGP` (a Protocol:
+    ``preference_gp`` imports this module)."""
+
+    _cache: PosteriorState | None
+
+    @property
+    def train_X(self) -> Tensor: ...
+
+    @property
+    def batch_shape(self) -> torch.Size: ...
+
+    @property
+    def rating_levels(self) -> int | None: ...
+
+    @property
+    def rating_eps(self) -> float: ...
+
+    @property
+    def likelihood(self) -> PreferenceLikelihood: ...
+
+    def posterior(self, X: Tensor, *, observation_noise: bool = False) -> GPyTorchPosterior: ...
+
+    def replace_data(
+        self, data: PreferenceData | PaddedData, warm_f: Tensor | None = None, *, lazy: bool = False
+    ) -> object: ...
+
+    def _padded(self) -> PaddedData: ...
+
+    def _state(self) -> PosteriorState: ...
+
+    def _predict(self, X: Tensor) -> tuple[Tensor, Tensor]: ...
+
+    def _prediction_inputs(self, X: Tensor) -> Tensor: ...
+
+
+#: the model conditioned (the result is a new one of its class)
+ModelT = TypeVar("ModelT", bound=FantasyModel)
 
 
 def _check_indices(name: str, index: Tensor, m: int) -> Tensor:
@@ -58,12 +98,12 @@ def batch_shape_of(
 
 
 def condition_batch(
-    model: PreferenceGP,
+    model: ModelT,
     X: Tensor,
     comparisons: Tensor | None = None,
     ratings: Tensor | None = None,
     rating_index: Tensor | None = None,
-) -> PreferenceGP:
+) -> ModelT:
     r"""A new model with the items ``X`` and observations among them added to every problem.
 
     Args:
@@ -93,8 +133,9 @@ def condition_batch(
         assert rating_index is not None  # given together: checked above
         rating_index = _check_indices("rating_index", rating_index, m)
         shape = torch.as_tensor(ratings).shape
-        if getattr(model, "rating_levels", None) is not None:  # an ordinal model's ratings are levels
-            ratings = prepare_levels(ratings, model.rating_levels, dtype=X.dtype, device=X.device).reshape(shape)
+        levels = getattr(model, "rating_levels", None)
+        if levels is not None:  # an ordinal model's ratings are levels
+            ratings = prepare_levels(ratings, levels, dtype=X.dtype, device=X.device).reshape(shape)
         else:
             ratings = prepare_ratings(ratings, model.rating_eps, dtype=X.dtype, device=X.device).reshape(shape)
     batch_shape_of(X, comparisons, ratings, model.batch_shape)
@@ -114,7 +155,7 @@ def condition_batch(
     return new
 
 
-def perceived_utility(model: PreferenceGP, X: Tensor) -> GPyTorchPosterior:
+def perceived_utility(model: FantasyModel, X: Tensor) -> GPyTorchPosterior:
     r"""The posterior of ``f + eps`` at ``X`` with ``eps ~ N(0, sigma_R^2)`` independent per point:
     the utilities a person compares (eq. 3), so that ``P(f_i + eps_i > f_j + eps_j)`` is the
     probit likelihood of the comparison."""
@@ -137,7 +178,7 @@ def sampled_comparisons(sampler: PairwiseMCSampler, posterior: GPyTorchPosterior
     return torch.where((first >= second).unsqueeze(-1), pairs, pairs.flip(-1)).to(samples.device)
 
 
-def fantasize(model: PreferenceGP, X: Tensor, sampler: MCSampler, kind: str | None = None) -> PreferenceGP:
+def fantasize(model: ModelT, X: Tensor, sampler: MCSampler, kind: str | None = None) -> ModelT:
     r"""A fantasy model: ``model`` conditioned on sampled answers at ``X`` (``batch x q x d``).
 
     Args:

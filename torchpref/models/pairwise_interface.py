@@ -13,7 +13,6 @@ BoTorch has none; this module holds what those methods share: the ``datapoints=`
 from __future__ import annotations
 
 import copy
-from typing import Any
 
 import torch
 from botorch.exceptions.errors import UnsupportedError
@@ -51,7 +50,7 @@ def pairwise_alias(train_X: Tensor | None, datapoints: Tensor | None) -> Tensor 
     return datapoints
 
 
-def pairwise_likelihood_noise(likelihood: Any, comparison_noise: float | None) -> float:
+def pairwise_likelihood_noise(likelihood: object, comparison_noise: float | None) -> float:
     r"""``comparison_noise`` (``sigma_R``) for ``PairwiseGP``'s ``likelihood=``.
 
     BoTorch's ``PairwiseProbitLikelihood`` is ``Phi((f_i - f_j) / sqrt 2)``: eq. 3 with
