@@ -13,14 +13,43 @@ BoTorch has none; this module holds what those methods share: the ``datapoints=`
 from __future__ import annotations
 
 import copy
+from typing import Protocol, TypeVar
 
 import torch
 from botorch.exceptions.errors import UnsupportedError
 from torch import Tensor
 
 from torchpref.data.preference_data import PreferenceData
-from torchpref.inference.padding import create_data
+from torchpref.inference.padding import PaddedData, create_data
 from torchpref.models.fantasy import batch_shape_of
+
+
+class PriorOnlyModel(Protocol):
+    """What :func:`_condition_prior_only` uses of a :class:`~torchpref.models.preference_gp.PreferenceGP`
+    (a Protocol: that module imports this one)."""
+
+    @property
+    def train_X(self) -> Tensor: ...
+
+    @property
+    def rating_eps(self) -> float: ...
+
+    @property
+    def rating_levels(self) -> int | None: ...
+
+    def set_train_data(
+        self,
+        train_X: Tensor | None = None,
+        comparisons: Tensor | None = None,
+        ratings: Tensor | None = None,
+        rating_index: Tensor | None = None,
+    ) -> None: ...
+
+    def replace_data(self, data: PreferenceData | PaddedData, warm_f: Tensor | None = None) -> object: ...
+
+
+#: the prior-only model conditioned (the result is a copy of it)
+PriorOnlyT = TypeVar("PriorOnlyT", bound=PriorOnlyModel)
 
 
 class TrainDataMismatchError(ValueError, RuntimeError):
@@ -126,7 +155,13 @@ def ranking_comparisons(items: Tensor, ranks: Tensor) -> Tensor:
     return torch.stack([items[k, i], items[k, j]], dim=-1).long()
 
 
-def _condition_prior_only(model, X: Tensor, comparisons, ratings, rating_index):
+def _condition_prior_only(
+    model: PriorOnlyT,
+    X: Tensor,
+    comparisons: Tensor | None,
+    ratings: Tensor | None,
+    rating_index: Tensor | None,
+) -> PriorOnlyT:
     """A copy of a prior-only ``model`` whose data are these; batched ``X`` or observations give
     one problem per batch element, as the constructor builds them (BoTorch's fantasies)."""
     new = copy.deepcopy(model)
@@ -138,6 +173,7 @@ def _condition_prior_only(model, X: Tensor, comparisons, ratings, rating_index):
     if comparisons is not None:
         comparisons = comparisons.expand(*batch, *comparisons.shape[-2:])
     if ratings is not None:
+        assert rating_index is not None  # condition_on_observations gives the ratings' index with them
         ratings, rating_index = (
             ratings.expand(*batch, ratings.shape[-1]),
             rating_index.expand(*batch, ratings.shape[-1]),

@@ -867,7 +867,7 @@ class PreferenceGP(Model, GP):
 
     # ---------------------------------------------------------------- construction
     @classmethod
-    def construct_inputs(cls, training_data: SupervisedDataset, **kwargs: object) -> dict[str, object]:  # type: ignore[override]
+    def construct_inputs(cls, training_data: SupervisedDataset, **kwargs: object) -> dict[str, Any]:
         r"""Constructor keyword arguments from BoTorch's ``RankingDataset``.
 
         A ranking dataset holds items (``X.values``, ``n x d``), the items of each query
