@@ -30,7 +30,8 @@ class ObservedModel(Protocol):
     ``ties``)."""
 
     @property
-    def add_observations(self) -> Callable[..., object]: ...
+    def add_observations(self) -> Callable[..., object]:
+        """The model's method that adds items and observations among them."""
 
 
 class Respondent(Protocol):
@@ -38,9 +39,11 @@ class Respondent(Protocol):
     (:class:`~torchpref.simulation.users.User` is one); the answers are validated where they are
     recorded (:func:`record_answer`)."""
 
-    def rate(self, x: Tensor, /) -> object: ...
+    def rate(self, x: Tensor, /) -> object:
+        """A rating of the item ``x`` (``d``)."""
 
-    def choose(self, X: Tensor, /) -> object: ...
+    def choose(self, X: Tensor, /) -> object:
+        """The index of the best row of ``X`` (``m x d``)."""
 
 
 def as_integer(value: object) -> int | None:

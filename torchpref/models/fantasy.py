@@ -24,7 +24,18 @@ from torch import Tensor
 from torchpref.data.preference_data import PreferenceData, prepare_levels, prepare_ratings
 from torchpref.inference.padding import PaddedData
 from torchpref.inference.solver import PosteriorState
-from torchpref.models.defaults import PreferenceLikelihood
+from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood
+from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood
+
+
+class RatingLikelihoods(Protocol):
+    """The model's likelihoods as fantasies use them: the rating likelihood (a Protocol:
+    :class:`~torchpref.models.defaults.PreferenceLikelihood`'s module imports this one, through
+    ``pairwise_interface``)."""
+
+    @property
+    def rating(self) -> BetaRatingLikelihood | OrdinalRatingLikelihood:
+        """The likelihood of a rating: Beta on ``[0, 1]``, or ordinal for levels."""
 
 
 class FantasyModel(Protocol):
@@ -34,25 +45,32 @@ class FantasyModel(Protocol):
     _cache: PosteriorState | None
 
     @property
-    def train_X(self) -> Tensor: ...
+    def train_X(self) -> Tensor:
+        """The items (``batch x n x d``, untransformed)."""
 
     @property
-    def batch_shape(self) -> torch.Size: ...
+    def batch_shape(self) -> torch.Size:
+        """The batch of problems."""
 
     @property
-    def rating_levels(self) -> int | None: ...
+    def rating_levels(self) -> int | None:
+        """``K`` where ratings are levels ``1..K``, else ``None``."""
 
     @property
-    def rating_eps(self) -> float: ...
+    def rating_eps(self) -> float:
+        """How far ratings are kept from 0 and 1."""
 
     @property
-    def likelihood(self) -> PreferenceLikelihood: ...
+    def likelihood(self) -> RatingLikelihoods:
+        """The model's likelihoods (``model.likelihood``)."""
 
-    def posterior(self, X: Tensor, *, observation_noise: bool = False) -> GPyTorchPosterior: ...
+    def posterior(self, X: Tensor, *, observation_noise: bool = False) -> GPyTorchPosterior:
+        """The posterior at ``X`` (with the comparison noise where ``observation_noise``)."""
 
     def replace_data(
         self, data: PreferenceData | PaddedData, warm_f: Tensor | None = None, *, lazy: bool = False
-    ) -> object: ...
+    ) -> object:
+        """Swap in new observations (``lazy``: solved at the next prediction)."""
 
     def _padded(self) -> PaddedData: ...
 
@@ -206,7 +224,12 @@ def fantasize(model: ModelT, X: Tensor, sampler: MCSampler, kind: str | None = N
         if isinstance(sampler, PairwiseMCSampler):
             raise ValueError("rating fantasies need a sampler of utilities, not a PairwiseMCSampler.")
         f = sampler(model.posterior(X)).squeeze(-1)  # sample_shape x batch x q
-        u = model.likelihood.rating.mean_link(f)  # differentiable in X, as BoTorch's fantasies are
+        rating = model.likelihood.rating
+        if not isinstance(rating, BetaRatingLikelihood):  # as before: no rating mean for levels
+            raise AttributeError(
+                f"rating fantasies need a Beta rating likelihood's mean_link; {type(rating).__name__} has none."
+            )
+        u = rating.mean_link(f)  # differentiable in X, as BoTorch's fantasies are
         index = torch.arange(X.shape[-2], device=u.device).expand(u.shape)
         return condition_batch(model, X, ratings=u, rating_index=index)
     raise ValueError(f"kind must be 'comparisons' or 'ratings', got {kind!r}.")

@@ -53,21 +53,26 @@ class LaplaceModel(Protocol):
     (a Protocol: that module imports this one)."""
 
     @property
-    def covar_module(self) -> Kernel: ...
+    def covar_module(self) -> Kernel:
+        """The kernel."""
 
     @property
-    def data(self) -> PreferenceData | PaddedData: ...
+    def data(self) -> PreferenceData | PaddedData:
+        """The observations."""
 
     @property
-    def laplace_dtype(self) -> torch.dtype: ...
+    def laplace_dtype(self) -> torch.dtype:
+        """The dtype of the Laplace solve."""
 
     @property
-    def max_newton_iter(self) -> int: ...
+    def max_newton_iter(self) -> int:
+        """The mode finder's iteration budget."""
 
     @property
     def _cache(self) -> PosteriorState | None: ...
 
-    def modules(self) -> Iterator[torch.nn.Module]: ...
+    def modules(self) -> Iterator[torch.nn.Module]:
+        """The model and its submodules (their priors)."""
 
     def _transformed_train_X(self) -> Tensor: ...
 
@@ -88,14 +93,18 @@ class LaplaceMLL(Protocol):
     training: bool
 
     @property
-    def model(self) -> LaplaceModel: ...
+    def model(self) -> LaplaceModel:
+        """The model fitted."""
 
     @property
-    def likelihood(self) -> torch.nn.Module: ...
+    def likelihood(self) -> torch.nn.Module:
+        """The model's likelihood module."""
 
-    def named_parameters(self) -> Iterator[tuple[str, torch.nn.Parameter]]: ...
+    def named_parameters(self) -> Iterator[tuple[str, torch.nn.Parameter]]:
+        """The parameters by name, in BoTorch's order."""
 
-    def eval(self) -> torch.nn.Module: ...
+    def eval(self) -> torch.nn.Module:
+        """Evaluation mode for the MLL, its model and likelihood."""
 
 
 MLL = TypeVar("MLL", bound=LaplaceMLL)

@@ -29,13 +29,16 @@ class PriorOnlyModel(Protocol):
     (a Protocol: that module imports this one)."""
 
     @property
-    def train_X(self) -> Tensor: ...
+    def train_X(self) -> Tensor:
+        """The items (``0 x 0`` for a prior-only model)."""
 
     @property
-    def rating_eps(self) -> float: ...
+    def rating_eps(self) -> float:
+        """How far ratings are kept from 0 and 1."""
 
     @property
-    def rating_levels(self) -> int | None: ...
+    def rating_levels(self) -> int | None:
+        """``K`` where ratings are levels ``1..K``, else ``None``."""
 
     def set_train_data(
         self,
@@ -43,9 +46,11 @@ class PriorOnlyModel(Protocol):
         comparisons: Tensor | None = None,
         ratings: Tensor | None = None,
         rating_index: Tensor | None = None,
-    ) -> None: ...
+    ) -> None:
+        """Replace the data (of one problem)."""
 
-    def replace_data(self, data: PreferenceData | PaddedData, warm_f: Tensor | None = None) -> object: ...
+    def replace_data(self, data: PreferenceData | PaddedData, warm_f: Tensor | None = None) -> object:
+        """Swap in new observations (batched ones as :class:`~torchpref.inference.padding.PaddedData`)."""
 
 
 #: the prior-only model conditioned (the result is a copy of it)
