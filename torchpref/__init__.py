@@ -10,7 +10,7 @@ command line starts (``--help``, ``--version``, argument errors, Ctrl-C) before 
 from __future__ import annotations
 
 import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from torchpref.version import __version__
 
@@ -174,7 +174,7 @@ __all__ = ["__version__"]
 __all__ += sorted(_EXPORTS)  # noqa: PLE0605 (the lazy names, listed once above)
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     module = _EXPORTS.get(name)
     if module is None:
         try:  # a submodule, as ``torchpref.sessions.session`` after ``import torchpref``

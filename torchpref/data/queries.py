@@ -12,13 +12,38 @@ query).
 from __future__ import annotations
 
 import operator
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal, SupportsFloat, SupportsIndex, overload
+from typing import Literal, Protocol, SupportsFloat, SupportsIndex, overload
 
 import torch
 from torch import Tensor
 
 from torchpref.data.preference_data import best_of_m, best_of_m_with_ties, likert_to_unit, unit_to_likert
+
+
+class ObservedModel(Protocol):
+    """What :func:`record_answer` asks of a model: its
+    :meth:`~torchpref.PreferenceGP.add_observations`, called with the query's items and keywords
+    ``comparisons``, ``ratings`` and ``rating_index``, or ``ties`` (a Protocol: ``data`` is below
+    ``models``; its parameters are not spelled out because a batch trial's wrapper takes no
+    ``ties``)."""
+
+    @property
+    def add_observations(self) -> Callable[..., object]:
+        """The model's method that adds items and observations among them."""
+
+
+class Respondent(Protocol):
+    """Who answers a query (:func:`ask_user`): a rating of one item, a choice among several
+    (:class:`~torchpref.simulation.users.User` is one); the answers are validated where they are
+    recorded (:func:`record_answer`)."""
+
+    def rate(self, x: Tensor, /) -> object:
+        """A rating of the item ``x`` (``d``)."""
+
+    def choose(self, X: Tensor, /) -> object:
+        """The index of the best row of ``X`` (``m x d``)."""
 
 
 def as_integer(value: object) -> int | None:
@@ -122,7 +147,7 @@ Query = RatingQuery | RankingQuery
 
 
 def record_answer(
-    model: Any, query: Query, answer: Any, *, num_levels: int | None = None
+    model: ObservedModel, query: Query, answer: object, *, num_levels: int | None = None
 ) -> float | int | list[int] | None:
     r"""Validate ``answer`` to ``query`` and add it to ``model``: the one path from an answer to
     observations (the active-learning loop, the session live and on replay).
@@ -171,7 +196,7 @@ def record_answer(
     raise TypeError(f"query must be a RatingQuery or RankingQuery, got {type(query).__name__}.")
 
 
-def no_preference_observations(model: Any, query: RankingQuery) -> None:
+def no_preference_observations(model: ObservedModel, query: RankingQuery) -> None:
     """No preference among ``query.items``: a tie between every two of them
     (:class:`~torchpref.TieLikelihood`; docs/likelihoods.md)."""
     model.add_observations(query.items, ties=torch.combinations(torch.arange(query.m), 2))
@@ -190,7 +215,7 @@ def ranking_query(X: Tensor, indices: Tensor | None, rows: Tensor) -> RankingQue
     return RankingQuery(X[rows], None if indices is None else tuple(int(indices[r]) for r in rows))
 
 
-def ask_user(user: Any, query: Query) -> Any:
+def ask_user(user: Respondent, query: Query) -> object:
     """The answer of a user (``rate(x)`` / ``choose(X)``) to ``query``, as given (it is validated
     where it is used, by :func:`record_answer`)."""
     if isinstance(query, RatingQuery):

@@ -30,13 +30,16 @@ import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from torch import Tensor
 
 from torchpref.data.queries import Query, RankingQuery
 from torchpref.lake.scenario import LakeScenario
 from torchpref.sessions.session import PreferenceSession
+
+if TYPE_CHECKING:  # ipywidgets is the notebook extra: imported where used
+    from ipywidgets import Widget
 
 __all__ = ["PreferenceWidget", "as_picture", "lake_renderer", "table_picture"]
 
@@ -76,7 +79,7 @@ def table_picture(item: Tensor, index: int | None = None, names: list[str] | Non
     return f"{head}<table>{rows}</table>"
 
 
-def as_picture(picture: Any, width: str = "100%") -> Any:
+def as_picture(picture: object, width: str = "100%") -> Widget:
     """An ``ipywidgets`` widget showing what a render hook returned.
 
     Args:
@@ -196,7 +199,7 @@ class PreferenceWidget:
         display(self.box)
 
     # ------------------------------------------------------------------ drawing
-    def picture(self, item: Tensor, index: int | None) -> Any:
+    def picture(self, item: Tensor, index: int | None) -> Widget:
         """The widget showing one option (the render hook's picture, or the table fallback).
 
         A render hook that raises, or returns something that is no picture, gets the table with
@@ -215,7 +218,7 @@ class PreferenceWidget:
         table = as_picture(table_picture(item, index, self.session.names))
         return table if failure is None else _widgets().VBox([failure, table])
 
-    def _button(self, label: str, answer: Any, style: str = ""):
+    def _button(self, label: str, answer: int | float | None, style: str = ""):
         w = _widgets()
         b = w.Button(description=label, button_style=style, layout=w.Layout(width="auto"))
         b.answer = answer
@@ -265,7 +268,7 @@ class PreferenceWidget:
     def _clicked(self, button) -> None:
         self.answer(button.answer)
 
-    def answer(self, value: Any) -> None:
+    def answer(self, value: int | float | None) -> None:
         """Record ``value`` as the answer to the query shown (what a button's click does) and show
         the next query. An invalid answer is reported in :attr:`status`; nothing is recorded."""
         if self.query is None:

@@ -35,7 +35,9 @@ import os
 import sys
 import threading
 import warnings
-from typing import Any
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import torch
 from torch import Tensor
@@ -43,6 +45,11 @@ from torch import Tensor
 import torchpref.inference.fast_cache as fast_cache
 import torchpref.inference.fast_types as ft
 from torchpref.inference.observations import Observations
+
+if TYPE_CHECKING:
+    from threadpoolctl import LibController
+
+T = TypeVar("T")
 
 ENV = "TORCHPREF_FAST_PATH"
 SETTINGS = ("auto", "on", "off")
@@ -184,7 +191,7 @@ def _load(mode: str) -> None:
         _disable(f"it could not be built ({type(err).__name__}: {err})")
 
 
-def build(progress: Any = print) -> fast_cache.Built:
+def build(progress: Callable[[str], None] | None = print) -> fast_cache.Built:
     """Compile the compiled path for this installation into numba's cache folder (its old files
     there replaced), showing progress (``progress(line)``; ``None``: quiet) and saying where the
     cache is; the path is then used by this process and, under ``"auto"``, by every later one.
@@ -230,7 +237,7 @@ def loads() -> bool:
     return True
 
 
-def cache_folder() -> Any:
+def cache_folder() -> Path | None:
     """The loaded cache's folder (``None`` before a load)."""
     return _state["folder"]
 
@@ -253,11 +260,11 @@ class _BlasThreads:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._depth = 0
-        self._saved: list[tuple[Any, int]] = []
-        self._libraries: list[Any] | None = None
+        self._saved: list[tuple[LibController, int]] = []
+        self._libraries: list[LibController] | None = None
         self.limited: list[str] = []
 
-    def _libs(self) -> list[Any]:
+    def _libs(self) -> list[LibController]:
         if self._libraries is None:
             from threadpoolctl import ThreadpoolController
 
@@ -265,13 +272,13 @@ class _BlasThreads:
         return self._libraries
 
     @staticmethod
-    def _set(lib: Any, n: int) -> None:
+    def _set(lib: LibController, n: int) -> None:
         getattr(lib, "_real_set_num_threads", lib.set_num_threads)(n)
 
-    def _shared(self) -> list[Any]:
+    def _shared(self) -> list[LibController]:
         return [lib for lib in self._libs() if getattr(lib, "threading_layer", "") != "openmp"]
 
-    def __enter__(self) -> list[tuple[Any, int]]:
+    def __enter__(self) -> list[tuple[LibController, int]]:
         n = torch.get_num_threads()
         with self._lock:
             if self._depth == 0:
@@ -295,7 +302,7 @@ class _BlasThreads:
                     if lib.get_num_threads() != count:
                         self._set(lib, count)
 
-    def run(self, fn: Any, *args: Any) -> Any:
+    def run(self, fn: Callable[..., T], *args: object) -> T:
         """``fn(*args)`` with the libraries limited."""
         own = self.__enter__()
         try:
@@ -309,7 +316,7 @@ class _BlasThreads:
 BLAS_THREADS = _BlasThreads()
 
 
-def call(name: str, *args: Any) -> tuple | None:
+def call(name: str, *args: object) -> tuple | None:
     """Entry point ``name``'s result on ``args``, or ``None`` where the torch solver must answer:
     the path is not loaded, the problem met an arithmetic error (``ArithmeticError``, ``ValueError``
     from numba's arithmetic, where torch gives inf or NaN: silently, for this call), or the call
@@ -331,7 +338,7 @@ def call(name: str, *args: Any) -> tuple | None:
     return out
 
 
-def _finite(values: Any) -> bool:
+def _finite(values: Iterable[object]) -> bool:
     import numpy as np
 
     for v in values:

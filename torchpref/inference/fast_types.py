@@ -12,9 +12,10 @@ ever meets the compiler.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 
 #: status codes of the compiled calls (:mod:`torchpref.inference._compiled`)
 OK, NOT_PD, NOT_FINITE, NOT_CONVERGED, LINE_SEARCH_FAILED, FISHER = 0, 1, 2, 3, 4, 5
@@ -85,7 +86,7 @@ class FitState(NamedTuple):
     iterations: np.ndarray
 
 
-def floats(x: Any, ndim: int = 1) -> np.ndarray:
+def floats(x: npt.ArrayLike, ndim: int = 1) -> np.ndarray:
     """``x`` as a float64 C-contiguous writable array of ``ndim`` dimensions (a copy only if need be)."""
     out = np.require(x, dtype=np.float64, requirements=("C", "W", "A"))
     if out.ndim != ndim:
@@ -93,7 +94,7 @@ def floats(x: Any, ndim: int = 1) -> np.ndarray:
     return out
 
 
-def ints(x: Any) -> np.ndarray:
+def ints(x: npt.ArrayLike) -> np.ndarray:
     """``x`` as an int64 C-contiguous writable vector."""
     out = np.require(x, dtype=np.int64, requirements=("C", "W", "A"))
     if out.ndim != 1:
@@ -102,11 +103,11 @@ def ints(x: Any) -> np.ndarray:
 
 
 def answers(
-    first: Any,
-    second: Any,
-    kind: Any,
-    offset: Any,
-    target: Any,
+    first: npt.ArrayLike,
+    second: npt.ArrayLike,
+    kind: npt.ArrayLike,
+    offset: npt.ArrayLike,
+    target: npt.ArrayLike,
     probit_scale: float,
     rating_scale: float,
     rating_precision: float,

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, NamedTuple, Protocol
+from typing import NamedTuple, Protocol
 
 import torch
 from torch import Tensor
@@ -34,17 +34,37 @@ from torchpref.inference.shapes import Latent, PerProblem, TermIndex, TermValues
 DENSE_W_MAX_ITEMS = 256
 
 
-class TermLikelihood(Protocol):
-    """What a :class:`Term` asks of its likelihood: closed-form derivatives in the predictor."""
+class PairLikelihood(Protocol):
+    """What a :class:`Term` without targets (comparisons, ties: :func:`pairwise_term`) asks of its
+    likelihood: closed-form derivatives in the predictor alone."""
 
-    def derivatives(self, eta: Tensor, *target: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def derivatives(self, eta: Tensor, /) -> tuple[Tensor, Tensor, Tensor]:
         """``(log p, d log p / d eta, d^2 log p / d eta^2)``, elementwise."""
 
-    def third_derivative(self, eta: Tensor, *target: Tensor) -> Tensor:
+    def third_derivative(self, eta: Tensor, /) -> Tensor:
         """``d^3 log p / d eta^3``, elementwise."""
 
-    def fisher(self, eta: Tensor) -> Tensor:
+    def fisher(self, eta: Tensor, /) -> Tensor:
         """The expected negative second derivative (never negative); needed unless log-concave."""
+
+
+class ItemLikelihood(Protocol):
+    """What a :class:`Term` with targets (ratings: :func:`item_term`) asks of its likelihood:
+    closed-form derivatives in the predictor, given each observation's target."""
+
+    def derivatives(self, eta: Tensor, target: Tensor, /) -> tuple[Tensor, Tensor, Tensor]:
+        """``(log p, d log p / d eta, d^2 log p / d eta^2)``, elementwise."""
+
+    def third_derivative(self, eta: Tensor, target: Tensor, /) -> Tensor:
+        """``d^3 log p / d eta^3``, elementwise."""
+
+    def fisher(self, eta: Tensor, /) -> Tensor:
+        """The expected negative second derivative (never negative); needed unless log-concave."""
+
+
+#: What a :class:`Term` asks of its likelihood: closed-form derivatives in the predictor (and the
+#: target, where the term has one).
+TermLikelihood = PairLikelihood | ItemLikelihood
 
 
 @dataclass(frozen=True, eq=False)
@@ -181,12 +201,14 @@ class Term:
         return (self._patterns[key] * w.reshape(1, -1)).reshape(-1)
 
 
-def pairwise_term(likelihood: Any, comparisons: Tensor, mask: Tensor | None = None, **kw) -> Term:
+def pairwise_term(likelihood: PairLikelihood, comparisons: Tensor, mask: Tensor | None = None, **kw) -> Term:
     """A term on ``f_i - f_j`` for comparisons ``b x p x 2`` (rows ``[i, j]``)."""
     return Term(likelihood, comparisons, (1.0, -1.0), mask=mask, **kw)
 
 
-def item_term(likelihood: Any, index: Tensor, target: Tensor | None = None, mask: Tensor | None = None, **kw) -> Term:
+def item_term(
+    likelihood: ItemLikelihood, index: Tensor, target: Tensor | None = None, mask: Tensor | None = None, **kw
+) -> Term:
     """A term on ``f_i`` for items ``index`` (``b x q``) with observed values ``target``."""
     return Term(likelihood, index.unsqueeze(-1), (1.0,), target=target, mask=mask, **kw)
 
@@ -213,13 +235,13 @@ class Observations:
         comparisons: Tensor,
         ratings: Tensor,
         rating_index: Tensor,
-        comparison_likelihood: Any,
-        rating_likelihood: Any,
+        comparison_likelihood: PairLikelihood,
+        rating_likelihood: ItemLikelihood,
         comparison_mask: Tensor | None = None,
         rating_mask: Tensor | None = None,
         *,
         ties: Tensor | None = None,
-        tie_likelihood: Any = None,
+        tie_likelihood: PairLikelihood | None = None,
         tie_mask: Tensor | None = None,
     ) -> Observations:
         """Comparisons (``p x 2`` or ``b x p x 2``), ratings (``q`` or ``b x q``, of items

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from torchpref.data.preference_data import DEFAULT_RATING_EPS, PreferenceData
-from torchpref.inference.observations import Observations
+from torchpref.inference.observations import ItemLikelihood, Observations, PairLikelihood
 
 PAD_RATING = 0.5
 
@@ -193,7 +193,10 @@ class PaddedData:
         return replace(self, X=X)
 
     def observations(
-        self, comparison_likelihood: Any, rating_likelihood: Any, tie_likelihood: Any = None
+        self,
+        comparison_likelihood: PairLikelihood,
+        rating_likelihood: ItemLikelihood,
+        tie_likelihood: PairLikelihood | None = None,
     ) -> Observations:
         """The observations of the ``b`` flattened problems as likelihood terms."""
         d = self.flat()

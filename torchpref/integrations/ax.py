@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 try:
     from ax.generators.torch.botorch_modular import surrogate as _ax_surrogate
@@ -48,6 +48,9 @@ from gpytorch.mlls import ExactMarginalLogLikelihood
 from gpytorch.priors import GammaPrior, SmoothedBoxPrior
 
 from torchpref.models.preference_gp import LaplaceMarginalLogLikelihood, PreferenceGP
+
+if TYPE_CHECKING:
+    from ax.generators.torch.botorch_modular.surrogate import ModelConfig
 
 __all__ = [
     "KERNEL_PRIORS_OPTION",
@@ -219,7 +222,7 @@ class _RatingsOnly(PreferenceGP):
     its inputs start with no items; :func:`rating_inputs` adds the rated arms."""
 
     @classmethod
-    def construct_inputs(cls, training_data: Any, **kwargs: Any) -> dict[str, Any]:
+    def construct_inputs(cls, training_data: SupervisedDataset, **kwargs: object) -> dict[str, Any]:
         return {"train_X": training_data.X[:0], **kwargs}
 
 
@@ -269,7 +272,7 @@ def _preference_inputs(botorch_model_class, model_config, dataset, search_space_
     return inputs
 
 
-def preference_model_config(d: int | None = None, **kwargs: Any) -> Any:
+def preference_model_config(d: int | None = None, **kwargs: Any) -> ModelConfig:
     """Ax's ``ModelConfig`` for a ``PreferenceGP``, as Ax's ``get_preference_adapter`` writes one for
     ``PairwiseGP``: the Laplace MLL and, with ``d`` (the number of parameters), ``Normalize`` to the
     data's bounds (without ``d``, Ax's default input transforms: ``Normalize`` to the search space's

@@ -12,7 +12,7 @@ outcomes the learned objective reads away from the scale the preference model wa
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 try:
     from ax.adapter.registry import Generators
@@ -27,6 +27,11 @@ from botorch.acquisition.logei import qLogNoisyExpectedImprovement
 from botorch.acquisition.preference import qExpectedUtilityOfBestOption
 
 from torchpref.integrations.ax import RATING_METRICS_OPTION, preference_model_config, use_preference_gp
+
+if TYPE_CHECKING:
+    from ax.core.batch_trial import BatchTrial
+    from ax.core.optimization_config import PreferenceOptimizationConfig
+    from ax.core.search_space import SearchSpace
 
 __all__ = [
     "PREFERENCE_METRIC",
@@ -51,7 +56,7 @@ __all__ = [
 PREFERENCE_METRIC = Keys.PAIRWISE_PREFERENCE_QUERY.value
 
 
-def _search_space(bounds: dict[str, tuple[float, float]]) -> Any:
+def _search_space(bounds: dict[str, tuple[float, float]]) -> SearchSpace:
     from ax.core.parameter import ParameterType, RangeParameter
     from ax.core.search_space import SearchSpace
 
@@ -108,7 +113,7 @@ def refresh_preference_profile(bo: Experiment, pe: Experiment) -> None:
     ]
 
 
-def add_comparison(experiment: Experiment, a: dict, b: dict, a_preferred: bool) -> Any:
+def add_comparison(experiment: Experiment, a: dict, b: dict, a_preferred: bool) -> BatchTrial:
     """Record one answer as Ax's preference data: a completed two-arm batch trial of ``a`` and
     ``b`` (parameter dictionaries) with ``pairwise_pref_query`` 1 for the preferred arm, 0 for
     the other. Returns the trial."""
@@ -127,7 +132,7 @@ def add_comparison(experiment: Experiment, a: dict, b: dict, a_preferred: bool) 
     return trial
 
 
-def add_rating(experiment: Experiment, parameters: dict, rating: float, metric: str = "rating") -> Any:
+def add_rating(experiment: Experiment, parameters: dict, rating: float, metric: str = "rating") -> BatchTrial:
     """Record one rating in ``[0, 1]`` of the arm ``parameters`` as a completed one-arm trial of
     ``metric`` (added to the experiment as a tracking metric if it is not one of its metrics).
     Returns the trial.
@@ -150,7 +155,7 @@ def add_rating(experiment: Experiment, parameters: dict, rating: float, metric: 
     return trial
 
 
-def next_pair(experiment: Experiment, generation_strategy: GenerationStrategy) -> Any:
+def next_pair(experiment: Experiment, generation_strategy: GenerationStrategy) -> BatchTrial:
     """The next PBO query: a two-arm batch trial from ``generation_strategy`` (``gen(n=2)``), marked
     running. Answer it with :func:`record_preference`. (Ax's ``Client.get_next_trials`` makes
     one-arm trials, which hold no comparison: docs/ax.md.)"""
@@ -165,7 +170,7 @@ def next_pair(experiment: Experiment, generation_strategy: GenerationStrategy) -
     return trial
 
 
-def record_preference(trial: Any, preferred: int) -> None:
+def record_preference(trial: BatchTrial, preferred: int) -> None:
     """Answer a PBO query from :func:`next_pair`: ``preferred`` is the index (0 or 1) of the
     preferred arm in ``trial.arms``; the trial is completed."""
     if preferred not in (0, 1) or isinstance(preferred, bool):
@@ -296,7 +301,7 @@ def pbo_best_point(experiment: Experiment) -> tuple[str, dict, float]:
     return names[best], dict(experiment.arms_by_name[names[best]].parameters), float(utility[best])
 
 
-def _pe_experiment(experiment: Experiment, config: Any) -> Experiment:
+def _pe_experiment(experiment: Experiment, config: PreferenceOptimizationConfig) -> Experiment:
     from ax.core.auxiliary import AuxiliaryExperimentPurpose
 
     aux = experiment.find_auxiliary_experiment_by_name(

@@ -12,7 +12,7 @@ so a path with at least 150 information is rated 5 below distance 500, 4 below 5
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -20,6 +20,15 @@ from torch import Tensor
 from torchpref.data.preference_data import likert_to_unit
 
 __all__ = ["LakeOperator", "RealisticLakeOperator"]
+
+
+class Operator(Protocol):
+    """Who :class:`RealisticLakeOperator` wraps: a rating in ``[0, 1]`` of one path, the best of
+    several (:class:`LakeOperator`, the experiment's normalised operator)."""
+
+    def rate(self, x: Tensor, /) -> float: ...
+
+    def choose(self, X: Tensor, /) -> int: ...
 
 
 class LakeOperator:
@@ -146,7 +155,7 @@ class RealisticLakeOperator:
 
     def __init__(
         self,
-        operator: Any,
+        operator: Operator,
         generator: torch.Generator,
         *,
         level_offset: float = 0.29,

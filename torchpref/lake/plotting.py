@@ -4,13 +4,17 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from .operator import LakeOperator
 from .scenario import LakeScenario
+
+if TYPE_CHECKING:  # matplotlib is the plot extra: imported where drawn
+    from matplotlib.axes import Axes
+    from matplotlib.image import AxesImage
 
 __all__ = ["draw_lake", "draw_paths", "plot_field", "plot_objectives", "plot_paths"]
 
@@ -39,7 +43,7 @@ def _save(fig, path: str | Path, dpi: int = 130) -> Path:
     return path
 
 
-def draw_lake(ax: Any, scenario: LakeScenario, *, colorbar: bool = True) -> Any:
+def draw_lake(ax: Axes, scenario: LakeScenario, *, colorbar: bool = True) -> AxesImage:
     """The field on the water of ``ax`` (land masked grey, its own colour scale and colour bar),
     the shoreline, start and goal. Returns the field's image."""
     import numpy as np
@@ -57,10 +61,11 @@ def draw_lake(ax: Any, scenario: LakeScenario, *, colorbar: bool = True) -> Any:
     im = ax.imshow(values, origin="lower", extent=(xmin, xmax, ymin, ymax), cmap=cmap, zorder=0)
     ax.add_patch(Polygon(lake.vertices.numpy(), closed=True, facecolor="none", edgecolor="#3b3b3b", lw=1.5, zorder=2))
     for pt, name, m in ((lake.start, "start", "o"), (lake.goal, "goal", "*")):
-        ax.plot(*pt.tolist(), m, color="white", mec="black", ms=11, zorder=5)
+        x, y = pt.tolist()
+        ax.plot(x, y, m, color="white", mec="black", ms=11, zorder=5)
         ax.annotate(
             name,
-            pt.tolist(),
+            (x, y),
             xytext=(6, 8),
             textcoords="offset points",
             fontsize=9,
@@ -76,7 +81,7 @@ def draw_lake(ax: Any, scenario: LakeScenario, *, colorbar: bool = True) -> Any:
 
 
 def draw_paths(
-    ax: Any,
+    ax: Axes,
     paths: Sequence[Tensor],
     labels: Sequence[str],
     *,

@@ -221,8 +221,7 @@ def load_model(
     ):
         raise ValueError(f"max_items must be a positive integer or None, got {max_items!r}.")
     where = "the dictionary" if isinstance(source, dict) else str(source)
-    ck = source if isinstance(source, dict) else _read(source, map_location)
-    _check_contents(ck, where, max_items)
+    ck = _check_contents(source if isinstance(source, dict) else _read(source, map_location), where, max_items)
     settings = ck["settings"]
     if ck["data"]["train_X"].shape[-1] == 0:  # a prior-only PreferenceGP(None, None): no items, d unknown
         model = PreferenceGP(
@@ -276,9 +275,10 @@ def _read(path: str | os.PathLike, map_location) -> Any:
         ) from err
 
 
-def _check_contents(ck: Any, where: str, max_items: int | None = MAX_ITEMS) -> None:
+def _check_contents(ck: object, where: str, max_items: int | None = MAX_ITEMS) -> dict[str, Any]:
     """The checkpoint's entries are there and of the right kinds and ranges, its tensors real,
-    within their storage and finite (hyperparameters), and it holds at most ``max_items`` items."""
+    within their storage and finite (hyperparameters), and it holds at most ``max_items`` items;
+    returns it."""
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
         raise CheckpointError(f"{where} is not a {FORMAT} checkpoint.")
     version = ck.get("version")
@@ -326,6 +326,7 @@ def _check_contents(ck: Any, where: str, max_items: int | None = MAX_ITEMS) -> N
         bad = value.isnan() if "constraint" in name else ~value.isfinite()  # a bound may be infinite
         if value.is_floating_point() and bad.any():
             raise CheckpointError(f"{where}: hyperparameter {name!r} is not finite: {value.tolist()}.")
+    return ck
 
 
 def _check_setting(name: str, value: object, where: str) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any
+from typing import TypedDict
 
 from gpytorch.constraints import GreaterThan
 from gpytorch.kernels import RBFKernel, ScaleKernel
@@ -101,6 +101,19 @@ class PreferenceLikelihood(Module):
         )
 
 
+class LikelihoodKeywords(TypedDict, total=False):
+    """:class:`LikelihoodSettings`' fields as keywords of
+    :class:`~torchpref.models.preference_gp.PreferenceGP` (``PreferenceGP(X, C, comparison_noise=0.1)``)."""
+
+    comparison_noise: float
+    rating_scale: float
+    rating_precision: float
+    learn_likelihood: bool
+    tie_threshold: float
+    cut_points: Tensor | None
+    level_noise: float | None
+
+
 @dataclass(frozen=True)
 class LikelihoodSettings:
     r"""The settings of a model's answer likelihoods, in one object:
@@ -146,7 +159,7 @@ class LikelihoodSettings:
         return tuple(f.name for f in fields(cls))
 
     @classmethod
-    def of(cls, likelihood: Any, keywords: dict[str, Any]) -> LikelihoodSettings:
+    def of(cls, likelihood: object, keywords: LikelihoodKeywords) -> LikelihoodSettings:
         """The settings of ``PreferenceGP(..., likelihood=likelihood, **keywords)``: ``likelihood`` a
         :class:`LikelihoodSettings` (``keywords`` then override its fields), ``None``, or
         ``PairwiseGP``'s comparison likelihood (BoTorch's or torchpref's probit: its ``sigma_R``).
@@ -166,7 +179,8 @@ class LikelihoodSettings:
         if isinstance(likelihood, LikelihoodSettings):
             return replace(likelihood, **keywords) if keywords else likelihood
         noise = pairwise_likelihood_noise(likelihood, keywords.pop("comparison_noise", None))
-        return cls(comparison_noise=noise, **keywords)
+        settings: LikelihoodKeywords = {**keywords, "comparison_noise": noise}
+        return cls(**settings)
 
     def create(self, rating_levels: int | None = None) -> PreferenceLikelihood:
         """The model's likelihood module (:class:`PreferenceLikelihood`) for ratings on ``[0, 1]``

@@ -13,7 +13,7 @@ posterior mean at ``X``.
 from __future__ import annotations
 
 import copy
-from typing import Any
+from typing import Protocol, TypeVar
 
 import torch
 from botorch.posteriors.gpytorch import GPyTorchPosterior
@@ -21,10 +21,68 @@ from botorch.sampling.base import MCSampler
 from botorch.sampling.pairwise_samplers import PairwiseMCSampler
 from torch import Tensor
 
-from torchpref.data.preference_data import prepare_levels, prepare_ratings
+from torchpref.data.preference_data import PreferenceData, prepare_levels, prepare_ratings
+from torchpref.inference.padding import PaddedData
+from torchpref.inference.solver import PosteriorState
+from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood
+from torchpref.likelihoods.pairwise_beta import BetaRatingLikelihood
 
-#: A :class:`~torchpref.PreferenceGP` (not imported: ``preference_gp`` imports this module).
-PreferenceGP = Any
+
+class RatingLikelihoods(Protocol):
+    """The model's likelihoods as fantasies use them: the rating likelihood (a Protocol:
+    :class:`~torchpref.models.defaults.PreferenceLikelihood`'s module imports this one, through
+    ``pairwise_interface``)."""
+
+    @property
+    def rating(self) -> BetaRatingLikelihood | OrdinalRatingLikelihood:
+        """The likelihood of a rating: Beta on ``[0, 1]``, or ordinal for levels."""
+
+
+class FantasyModel(Protocol):
+    """What conditioning and fantasies use of a :class:`~torchpref.PreferenceGP` (a Protocol:
+    ``preference_gp`` imports this module)."""
+
+    _cache: PosteriorState | None
+
+    @property
+    def train_X(self) -> Tensor:
+        """The items (``batch x n x d``, untransformed)."""
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The batch of problems."""
+
+    @property
+    def rating_levels(self) -> int | None:
+        """``K`` where ratings are levels ``1..K``, else ``None``."""
+
+    @property
+    def rating_eps(self) -> float:
+        """How far ratings are kept from 0 and 1."""
+
+    @property
+    def likelihood(self) -> RatingLikelihoods:
+        """The model's likelihoods (``model.likelihood``)."""
+
+    def posterior(self, X: Tensor, *, observation_noise: bool = False) -> GPyTorchPosterior:
+        """The posterior at ``X`` (with the comparison noise where ``observation_noise``)."""
+
+    def replace_data(
+        self, data: PreferenceData | PaddedData, warm_f: Tensor | None = None, *, lazy: bool = False
+    ) -> object:
+        """Swap in new observations (``lazy``: solved at the next prediction)."""
+
+    def _padded(self) -> PaddedData: ...
+
+    def _state(self) -> PosteriorState: ...
+
+    def _predict(self, X: Tensor) -> tuple[Tensor, Tensor]: ...
+
+    def _prediction_inputs(self, X: Tensor) -> Tensor: ...
+
+
+#: the model conditioned (the result is a new one of its class)
+ModelT = TypeVar("ModelT", bound=FantasyModel)
 
 
 def _check_indices(name: str, index: Tensor, m: int) -> Tensor:
@@ -58,12 +116,12 @@ def batch_shape_of(
 
 
 def condition_batch(
-    model: PreferenceGP,
+    model: ModelT,
     X: Tensor,
     comparisons: Tensor | None = None,
     ratings: Tensor | None = None,
     rating_index: Tensor | None = None,
-) -> PreferenceGP:
+) -> ModelT:
     r"""A new model with the items ``X`` and observations among them added to every problem.
 
     Args:
@@ -93,8 +151,9 @@ def condition_batch(
         assert rating_index is not None  # given together: checked above
         rating_index = _check_indices("rating_index", rating_index, m)
         shape = torch.as_tensor(ratings).shape
-        if getattr(model, "rating_levels", None) is not None:  # an ordinal model's ratings are levels
-            ratings = prepare_levels(ratings, model.rating_levels, dtype=X.dtype, device=X.device).reshape(shape)
+        levels = getattr(model, "rating_levels", None)
+        if levels is not None:  # an ordinal model's ratings are levels
+            ratings = prepare_levels(ratings, levels, dtype=X.dtype, device=X.device).reshape(shape)
         else:
             ratings = prepare_ratings(ratings, model.rating_eps, dtype=X.dtype, device=X.device).reshape(shape)
     batch_shape_of(X, comparisons, ratings, model.batch_shape)
@@ -114,7 +173,7 @@ def condition_batch(
     return new
 
 
-def perceived_utility(model: PreferenceGP, X: Tensor) -> GPyTorchPosterior:
+def perceived_utility(model: FantasyModel, X: Tensor) -> GPyTorchPosterior:
     r"""The posterior of ``f + eps`` at ``X`` with ``eps ~ N(0, sigma_R^2)`` independent per point:
     the utilities a person compares (eq. 3), so that ``P(f_i + eps_i > f_j + eps_j)`` is the
     probit likelihood of the comparison."""
@@ -137,7 +196,7 @@ def sampled_comparisons(sampler: PairwiseMCSampler, posterior: GPyTorchPosterior
     return torch.where((first >= second).unsqueeze(-1), pairs, pairs.flip(-1)).to(samples.device)
 
 
-def fantasize(model: PreferenceGP, X: Tensor, sampler: MCSampler, kind: str | None = None) -> PreferenceGP:
+def fantasize(model: ModelT, X: Tensor, sampler: MCSampler, kind: str | None = None) -> ModelT:
     r"""A fantasy model: ``model`` conditioned on sampled answers at ``X`` (``batch x q x d``).
 
     Args:
@@ -165,7 +224,12 @@ def fantasize(model: PreferenceGP, X: Tensor, sampler: MCSampler, kind: str | No
         if isinstance(sampler, PairwiseMCSampler):
             raise ValueError("rating fantasies need a sampler of utilities, not a PairwiseMCSampler.")
         f = sampler(model.posterior(X)).squeeze(-1)  # sample_shape x batch x q
-        u = model.likelihood.rating.mean_link(f)  # differentiable in X, as BoTorch's fantasies are
+        rating = model.likelihood.rating
+        if not isinstance(rating, BetaRatingLikelihood):  # as before: no rating mean for levels
+            raise AttributeError(
+                f"rating fantasies need a Beta rating likelihood's mean_link; {type(rating).__name__} has none."
+            )
+        u = rating.mean_link(f)  # differentiable in X, as BoTorch's fantasies are
         index = torch.arange(X.shape[-2], device=u.device).expand(u.shape)
         return condition_batch(model, X, ratings=u, rating_index=index)
     raise ValueError(f"kind must be 'comparisons' or 'ratings', got {kind!r}.")

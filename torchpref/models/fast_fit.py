@@ -19,20 +19,25 @@ converge) and any stop other than success or the iteration limit, goes to BoTorc
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import torch
 from gpytorch.constraints import GreaterThan, Positive
-from gpytorch.kernels import MaternKernel, RBFKernel, ScaleKernel
-from gpytorch.priors import GammaPrior, LogNormalPrior
+from gpytorch.kernels import Kernel, MaternKernel, RBFKernel, ScaleKernel
+from gpytorch.module import Module
+from gpytorch.priors import GammaPrior, LogNormalPrior, Prior
+from torch import Tensor
 
 import torchpref.inference.fast_types as ft
 from torchpref.data.preference_data import PreferenceData
 from torchpref.inference.fast_path import FIT_MAX_ITEMS, answers, call, compiled, setting
-from torchpref.inference.laplace import ModeResult
+from torchpref.inference.laplace import ModeResult, Observations
 from torchpref.inference.numerics import default_tolerance
+from torchpref.inference.padding import PaddedData
+from torchpref.inference.solver import PosteriorState
 
 #: GPyTorch kernel -> the compiled kernel kind (Matern by its ``nu``)
 KINDS = {
@@ -41,6 +46,71 @@ KINDS = {
     (MaternKernel, 1.5): ft.MATERN32,
     (MaternKernel, 2.5): ft.MATERN52,
 }
+
+
+class LaplaceModel(Protocol):
+    """What the compiled fit reads and sets of a :class:`~torchpref.models.preference_gp.PreferenceGP`
+    (a Protocol: that module imports this one)."""
+
+    @property
+    def covar_module(self) -> Kernel:
+        """The kernel."""
+
+    @property
+    def data(self) -> PreferenceData | PaddedData:
+        """The observations."""
+
+    @property
+    def laplace_dtype(self) -> torch.dtype:
+        """The dtype of the Laplace solve."""
+
+    @property
+    def max_newton_iter(self) -> int:
+        """The mode finder's iteration budget."""
+
+    @property
+    def _cache(self) -> PosteriorState | None: ...
+
+    def modules(self) -> Iterator[torch.nn.Module]:
+        """The model and its submodules (their priors)."""
+
+    def _transformed_train_X(self) -> Tensor: ...
+
+    def _padded(self) -> PaddedData: ...
+
+    def _item_mean(self, padded: PaddedData) -> Tensor | None: ...
+
+    def _observations(self) -> Observations: ...
+
+    def _adopt_mode(self, L: Tensor, jitter: float, mode: ModeResult) -> None: ...
+
+
+class LaplaceMLL(Protocol):
+    """What the compiled fit reads and sets of a
+    :class:`~torchpref.models.preference_gp.LaplaceMarginalLogLikelihood` (its model and likelihood,
+    its trainable parameters, its mode)."""
+
+    training: bool
+
+    @property
+    def model(self) -> LaplaceModel:
+        """The model fitted."""
+
+    @property
+    def likelihood(self) -> torch.nn.Module:
+        """The model's likelihood module."""
+
+    def named_parameters(self) -> Iterator[tuple[str, torch.nn.Parameter]]:
+        """The parameters by name, in BoTorch's order."""
+
+    def eval(self) -> torch.nn.Module:
+        """Evaluation mode for the MLL, its model and likelihood."""
+
+
+MLL = TypeVar("MLL", bound=LaplaceMLL)
+
+#: BoTorch's closure of a fit: ``() -> (loss, gradients)`` (``fit_gpytorch_mll``'s ``closure``)
+Closure = Callable[[], tuple[Tensor, Sequence[Tensor | None]]]
 
 
 @dataclass
@@ -57,7 +127,7 @@ class CompiledFit:
     max_iter: int
 
 
-def _constraint(module: Any, name: str) -> float | None:
+def _constraint(module: Module, name: str) -> float | None:
     """The lower bound of a ``GreaterThan`` (or ``Positive``) constraint with torch's default
     softplus, else ``None``."""
     c = module.constraint_for_parameter_name(name)
@@ -68,7 +138,7 @@ def _constraint(module: Any, name: str) -> float | None:
     return float(c.lower_bound)
 
 
-def _prior(prior: Any) -> ft.Prior | None:
+def _prior(prior: Prior | None) -> ft.Prior | None:
     """The compiled :class:`~torchpref.inference.fast_types.Prior` of a GPyTorch prior, or ``None``;
     its ``const`` computed as the prior computes it (in its parameters' dtype)."""
     if prior is None:
@@ -83,7 +153,7 @@ def _prior(prior: Any) -> ft.Prior | None:
     return None
 
 
-def _kernel(model: Any, d: int) -> tuple[int, torch.nn.Module, torch.nn.Module | None] | None:
+def _kernel(model: LaplaceModel, d: int) -> tuple[int, torch.nn.Module, torch.nn.Module | None] | None:
     """``(kind, base kernel, scale kernel or None)`` for a supported kernel, else ``None``."""
     k = model.covar_module
     scale, base = (k, k.base_kernel) if type(k) is ScaleKernel else (None, k)
@@ -96,7 +166,7 @@ def _kernel(model: Any, d: int) -> tuple[int, torch.nn.Module, torch.nn.Module |
     return kind, base, scale
 
 
-def _priors(model: Any, base: torch.nn.Module, scale: torch.nn.Module | None) -> dict[str, Any] | None:
+def _priors(model: LaplaceModel, base: torch.nn.Module, scale: torch.nn.Module | None) -> dict[str, Any] | None:
     """The kernel's two priors (``"ls"``, ``"os"``), or ``None`` where the model has any other."""
     found: dict[str, Any] = {"ls": None, "os": None}
     for module in model.modules():
@@ -110,7 +180,7 @@ def _priors(model: Any, base: torch.nn.Module, scale: torch.nn.Module | None) ->
     return found
 
 
-def _spec(mll: Any, kind: int, base, scale, priors) -> tuple[ft.FitSpec, dict] | None:
+def _spec(mll: LaplaceMLL, kind: int, base, scale, priors) -> tuple[ft.FitSpec, dict] | None:
     """The compiled fit's :class:`~torchpref.inference.fast_types.FitSpec` and the trainable
     parameters in BoTorch's order (that of ``named_parameters``, as ``get_parameters_and_bounds``),
     or ``None``."""
@@ -134,7 +204,7 @@ def _spec(mll: Any, kind: int, base, scale, priors) -> tuple[ft.FitSpec, dict] |
     return spec, params
 
 
-def _answers(model: Any, X: torch.Tensor) -> tuple[ft.Answers, tuple[int, ...]] | None:
+def _answers(model: LaplaceModel, X: torch.Tensor) -> tuple[ft.Answers, tuple[int, ...]] | None:
     """The model's observations (shifted by its prior mean, fixed during the fit) as compiled
     :class:`~torchpref.inference.fast_types.Answers` and the number of each term's, or ``None``."""
     obs = model._observations()
@@ -145,7 +215,7 @@ def _answers(model: Any, X: torch.Tensor) -> tuple[ft.Answers, tuple[int, ...]] 
     return None if found is None else (found, tuple(t.size for t in obs.terms))
 
 
-def compiled_problem(mll: Any) -> CompiledFit | None:
+def compiled_problem(mll: LaplaceMLL) -> CompiledFit | None:
     """The fit of ``mll`` (a :class:`~torchpref.models.preference_gp.LaplaceMarginalLogLikelihood`)
     as a compiled problem, or ``None`` where the compiled path does not apply."""
     model = mll.model
@@ -194,7 +264,7 @@ def run(problem: CompiledFit) -> ft.FitState | None:
     return state
 
 
-def hand_back(model: Any, problem: CompiledFit, state: ft.FitState) -> None:
+def hand_back(model: LaplaceModel, problem: CompiledFit, state: ft.FitState) -> None:
     """The compiled fit's last mode and factors (at the fitted hyperparameters) as the model's
     posterior cache (:meth:`~torchpref.models.preference_gp.PreferenceGP._adopt_mode`)."""
     w = torch.from_numpy(state.w)
@@ -205,7 +275,7 @@ def hand_back(model: Any, problem: CompiledFit, state: ft.FitState) -> None:
     model._adopt_mode(torch.from_numpy(state.L)[None], float(state.jitter[0]), mode)
 
 
-def _leave_in_eval(mll: Any) -> Any:
+def _leave_in_eval(mll: MLL) -> MLL | torch.nn.Module:
     """``mll.eval()``, as BoTorch's routine leaves it; a switch walks every module, so where the
     model and likelihood already are in eval mode only the MLL's own flag is set."""
     if any(m.training for m in mll.model.modules()) or any(m.training for m in mll.likelihood.modules()):
@@ -215,12 +285,12 @@ def _leave_in_eval(mll: Any) -> Any:
 
 
 def fit_laplace(
-    mll: Any,
-    closure: Any = None,
+    mll: MLL,
+    closure: Closure | None = None,
     closure_kwargs: dict[str, Any] | None = None,
     optimizer_kwargs: dict[str, Any] | None = None,
     **kwargs: Any,
-) -> Any:
+) -> MLL:
     """``fit_gpytorch_mll(mll)`` for a Laplace MLL: compiled where it applies (and nothing but the
     defaults was asked for: no closure, optimizer or their arguments), else BoTorch's routine."""
     from botorch.fit import _fit_fallback

@@ -13,15 +13,48 @@ BoTorch has none; this module holds what those methods share: the ``datapoints=`
 from __future__ import annotations
 
 import copy
-from typing import Any
+from typing import Protocol, TypeVar
 
 import torch
 from botorch.exceptions.errors import UnsupportedError
 from torch import Tensor
 
 from torchpref.data.preference_data import PreferenceData
-from torchpref.inference.padding import create_data
+from torchpref.inference.padding import PaddedData, create_data
 from torchpref.models.fantasy import batch_shape_of
+
+
+class PriorOnlyModel(Protocol):
+    """What :func:`_condition_prior_only` uses of a :class:`~torchpref.models.preference_gp.PreferenceGP`
+    (a Protocol: that module imports this one)."""
+
+    @property
+    def train_X(self) -> Tensor:
+        """The items (``0 x 0`` for a prior-only model)."""
+
+    @property
+    def rating_eps(self) -> float:
+        """How far ratings are kept from 0 and 1."""
+
+    @property
+    def rating_levels(self) -> int | None:
+        """``K`` where ratings are levels ``1..K``, else ``None``."""
+
+    def set_train_data(
+        self,
+        train_X: Tensor | None = None,
+        comparisons: Tensor | None = None,
+        ratings: Tensor | None = None,
+        rating_index: Tensor | None = None,
+    ) -> None:
+        """Replace the data (of one problem)."""
+
+    def replace_data(self, data: PreferenceData | PaddedData, warm_f: Tensor | None = None) -> object:
+        """Swap in new observations (batched ones as :class:`~torchpref.inference.padding.PaddedData`)."""
+
+
+#: the prior-only model conditioned (the result is a copy of it)
+PriorOnlyT = TypeVar("PriorOnlyT", bound=PriorOnlyModel)
 
 
 class TrainDataMismatchError(ValueError, RuntimeError):
@@ -51,7 +84,7 @@ def pairwise_alias(train_X: Tensor | None, datapoints: Tensor | None) -> Tensor 
     return datapoints
 
 
-def pairwise_likelihood_noise(likelihood: Any, comparison_noise: float | None) -> float:
+def pairwise_likelihood_noise(likelihood: object, comparison_noise: float | None) -> float:
     r"""``comparison_noise`` (``sigma_R``) for ``PairwiseGP``'s ``likelihood=``.
 
     BoTorch's ``PairwiseProbitLikelihood`` is ``Phi((f_i - f_j) / sqrt 2)``: eq. 3 with
@@ -127,7 +160,13 @@ def ranking_comparisons(items: Tensor, ranks: Tensor) -> Tensor:
     return torch.stack([items[k, i], items[k, j]], dim=-1).long()
 
 
-def _condition_prior_only(model, X: Tensor, comparisons, ratings, rating_index):
+def _condition_prior_only(
+    model: PriorOnlyT,
+    X: Tensor,
+    comparisons: Tensor | None,
+    ratings: Tensor | None,
+    rating_index: Tensor | None,
+) -> PriorOnlyT:
     """A copy of a prior-only ``model`` whose data are these; batched ``X`` or observations give
     one problem per batch element, as the constructor builds them (BoTorch's fantasies)."""
     new = copy.deepcopy(model)
@@ -139,6 +178,7 @@ def _condition_prior_only(model, X: Tensor, comparisons, ratings, rating_index):
     if comparisons is not None:
         comparisons = comparisons.expand(*batch, *comparisons.shape[-2:])
     if ratings is not None:
+        assert rating_index is not None  # condition_on_observations gives the ratings' index with them
         ratings, rating_index = (
             ratings.expand(*batch, ratings.shape[-1]),
             rating_index.expand(*batch, ratings.shape[-1]),

@@ -8,7 +8,7 @@ import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from itertools import chain
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import torch
 from botorch.acquisition.objective import PosteriorTransform
@@ -19,7 +19,8 @@ from botorch.models.model import Model
 from botorch.models.transforms.input import InputTransform
 from botorch.posteriors.gpytorch import GPyTorchPosterior
 from botorch.sampling.base import MCSampler
-from botorch.utils.datasets import RankingDataset
+from botorch.utils.containers import SliceContainer
+from botorch.utils.datasets import RankingDataset, SupervisedDataset
 from gpytorch.distributions import MultivariateNormal
 from gpytorch.kernels import Kernel
 from gpytorch.likelihoods import Likelihood
@@ -43,12 +44,13 @@ from torchpref.models.arguments import check_model_arguments
 from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_FIG4_SETTINGS: re-exported)
     MIN_LENGTHSCALE,
     PAPER_FIG4_SETTINGS,
+    LikelihoodKeywords,
     LikelihoodSettings,
     PreferenceLikelihood,
     default_covar_module,
 )
 from torchpref.models.fantasy import condition_batch, fantasize
-from torchpref.models.fast_fit import fit_laplace
+from torchpref.models.fast_fit import Closure, fit_laplace
 from torchpref.models.pairwise_interface import (
     TrainDataMismatchError,
     _check_strict,
@@ -60,6 +62,10 @@ from torchpref.models.pairwise_interface import (
     ranking_comparisons,
 )
 from torchpref.models.posterior_state import cache_key, submodules
+
+if TYPE_CHECKING:
+    from torch.nn.modules.module import _IncompatibleKeys
+    from typing_extensions import Unpack
 
 
 def _initial_data(
@@ -199,7 +205,7 @@ class PreferenceGP(Model, GP):
         laplace_dtype: torch.dtype | None = None,
         datapoints: Tensor | None = None,
         jitter: float | None = None,
-        **likelihood_settings: Any,
+        **likelihood_settings: Unpack[LikelihoodKeywords],
     ) -> None:
         super().__init__()
         weak_load_hook(self)
@@ -283,7 +289,7 @@ class PreferenceGP(Model, GP):
         sampler: MCSampler,
         observation_noise: Tensor | None = None,
         kind: str | None = None,
-        **kwargs: Any,
+        **kwargs: object,
     ) -> PreferenceGP:
         r"""A batched fantasy model (see :func:`~torchpref.models.fantasy.fantasize`): comparisons among
         the ``q`` points of ``X`` (``batch x q x d``) with a ``PairwiseMCSampler``, ratings of them
@@ -294,7 +300,7 @@ class PreferenceGP(Model, GP):
     def custom_fit(
         self,
         mll: MarginalLogLikelihood,
-        closure: Any = None,
+        closure: Closure | None = None,
         closure_kwargs: dict[str, Any] | None = None,
         optimizer_kwargs: dict[str, Any] | None = None,
         **kwargs: Any,
@@ -462,7 +468,7 @@ class PreferenceGP(Model, GP):
         output_indices: list[int] | None = None,
         observation_noise: bool | Tensor = False,
         posterior_transform: PosteriorTransform | None = None,
-        **kwargs: Any,
+        **kwargs: object,
     ) -> GPyTorchPosterior:
         r"""Posterior of the latent utility (eqs. 9-10) at ``X`` (``batch_shape x q x d``).
 
@@ -861,7 +867,7 @@ class PreferenceGP(Model, GP):
 
     # ---------------------------------------------------------------- construction
     @classmethod
-    def construct_inputs(cls, training_data: Any, **kwargs: Any) -> dict[str, Tensor]:  # type: ignore[override]
+    def construct_inputs(cls, training_data: SupervisedDataset, **kwargs: object) -> dict[str, Any]:
         r"""Constructor keyword arguments from BoTorch's ``RankingDataset``.
 
         A ranking dataset holds items (``X.values``, ``n x d``), the items of each query
@@ -883,7 +889,7 @@ class PreferenceGP(Model, GP):
                 f"PreferenceGP.construct_inputs supports only a RankingDataset, got {type(training_data).__name__}; "
                 "pass ratings to the constructor with ratings= and rating_index=."
             )
-        X: Any = training_data._X  # a SliceContainer: values and indices
+        X = cast(SliceContainer, training_data._X)  # a RankingDataset's items: values and indices
         comparisons = ranking_comparisons(X.indices, training_data.Y)
         return {"train_X": X.values, "comparisons": comparisons, **kwargs}
 
@@ -899,7 +905,7 @@ class PreferenceGP(Model, GP):
 
     def load_state_dict(  # type: ignore[override]
         self, state_dict: dict[str, Any], strict: bool = False, assign: bool = False
-    ) -> Any:
+    ) -> _IncompatibleKeys:
         r"""Load hyperparameters; **non-strict by default**, as ``PairwiseGP.load_state_dict``.
 
         A state dict holds hyperparameters (kernel, likelihoods, input transform), never the data.
@@ -974,7 +980,7 @@ class PreferenceGP(Model, GP):
         comparisons: Tensor | None = None,
         ratings: Tensor | None = None,
         rating_index: Tensor | None = None,
-        **kwargs: Any,
+        **kwargs: object,
     ) -> PreferenceGP:
         r"""A new model with the items ``X`` and observations among them added (``self`` is
         unchanged), with BoTorch's meaning of ``Y``.
@@ -1081,7 +1087,7 @@ class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
             than the model's.
     """
 
-    def __init__(self, likelihood: Any = None, model: PreferenceGP | None = None):
+    def __init__(self, likelihood: object = None, model: PreferenceGP | None = None):
         if model is None and isinstance(likelihood, PreferenceGP):  # the one-argument form
             likelihood, model = None, likelihood
         if not isinstance(model, PreferenceGP):
@@ -1098,7 +1104,7 @@ class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
         super().__init__(model.likelihood, model)
         weak_load_hook(self)
 
-    def forward(self, *args: Any, **kwargs: Any) -> Tensor:
+    def forward(self, *args: object, **kwargs: object) -> Tensor:
         """The evidence of the model's own data. ``mll(output, comparisons)``, as BoTorch calls
         ``PairwiseLaplaceMarginalLogLikelihood``, is accepted; comparisons other than the
         model's raise :class:`~torchpref.models.pairwise_interface.TrainDataMismatchError` (``PairwiseGP``:
@@ -1119,6 +1125,6 @@ class LaplaceMarginalLogLikelihood(MarginalLogLikelihood):
             res = res + prior.log_prob(closure(module)).sum()
         return res
 
-    def compute_custom_loss(self, **kwargs: Any) -> Tensor:
+    def compute_custom_loss(self, **kwargs: object) -> Tensor:
         """The loss BoTorch's fitting routines minimise: ``-self()``."""
         return -self.forward()

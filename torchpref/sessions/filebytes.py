@@ -7,7 +7,6 @@ import hashlib
 import os
 import stat
 from pathlib import Path
-from typing import Any
 
 __all__ = [
     "dropped_path",
@@ -67,7 +66,7 @@ def dropped_path(path: Path) -> Path:
     return path.parent / os.fsdecode(name)
 
 
-def prefix_digest(fd: int, size: int) -> Any:
+def prefix_digest(fd: int, size: int) -> hashlib._Hash:
     """A SHA-256 (a :mod:`hashlib` object, to be updated) of the file's first ``size`` bytes."""
     digest, offset = hashlib.sha256(), 0
     while offset < size:

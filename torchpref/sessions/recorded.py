@@ -191,7 +191,7 @@ def recorded_model_factory(desc: dict, dim: int) -> Callable[[Tensor], Preferenc
     return factory if same_description(describe_model(model), desc) else None
 
 
-def recorded_selector(desc: dict) -> Any:
+def recorded_selector(desc: dict) -> Selector | None:
     """The recorded selector, built again from its class and options; ``None`` if this version
     cannot (a class outside torchpref or gone, options it no longer takes or records otherwise)."""
     path = desc.get("class", "")
@@ -322,9 +322,9 @@ def resume_settings(
     if same_description(mine, rec_model):
         return chosen_selector, factory
     if model_factory is None:
-        rebuilt = recorded_model_factory(rec_model, dim)
-        if rebuilt is not None:
-            return chosen_selector, rebuilt
+        rebuilt_factory = recorded_model_factory(rec_model, dim)
+        if rebuilt_factory is not None:
+            return chosen_selector, rebuilt_factory
     if not migrate:
         why = "another model was given" if model_factory is not None else "this version cannot build it"
         raise settings_error(path, "model", rec_model, mine, why)

@@ -15,7 +15,7 @@ import json
 import math
 from collections.abc import Container
 from dataclasses import dataclass, field
-from typing import Any, NoReturn
+from typing import Any, NoReturn, TypeGuard
 
 import torch
 
@@ -179,7 +179,7 @@ class _Line:
     def fail(self, msg: str, error: type[Exception] = SessionFileError) -> NoReturn:
         raise error(f"{self.where}: {msg}.")
 
-    def get(self, key: str, required: bool = True) -> Any:
+    def get(self, key: str, required: bool = True) -> object:
         if key not in self.rec:
             if required:
                 self.fail(f"the {self.rec.get('type')} record has no {key!r}")
@@ -218,7 +218,7 @@ def _level_values(levels: int) -> tuple[float, ...]:
     return tuple(likert_to_unit(torch.arange(1, levels + 1), levels).tolist())
 
 
-def _is_number(x) -> bool:
+def _is_number(x: object) -> TypeGuard[int | float]:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 

@@ -33,7 +33,7 @@ import os
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 import torch
 from torch import Tensor
@@ -49,6 +49,7 @@ from torchpref.data.queries import (
     record_answer,
 )
 from torchpref.models.preference_gp import PreferenceGP
+from torchpref.population.model import Population
 from torchpref.selection.choosing import query_items
 from torchpref.selection.defaults import default_selector
 from torchpref.selection.strategies import Selector
@@ -106,6 +107,9 @@ from torchpref.sessions.settings import (
     unrated_rows,
 )
 
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
 __all__ = [
     "FORMAT_VERSION",
     "PreferenceSession",
@@ -115,6 +119,23 @@ __all__ = [
     "read_session_file",
     "step_generator",
 ]
+
+
+class ResumeOptions(TypedDict, total=False):
+    """What :meth:`PreferenceSession.load` may be given besides the file and its candidates: the
+    constructor's other keywords (the file's header gives the seed and bounds, and by default the
+    number of queries, the levels and the names)."""
+
+    queries: Sequence[Query] | None
+    selector: Selector | None
+    model_factory: Callable[[Tensor], PreferenceGP] | None
+    num_queries: int
+    num_levels: int | None
+    names: Sequence[str] | None
+    repair: bool
+    metadata: dict | None
+    migrate: bool
+    population: Population | None
 
 
 class PreferenceSession:
@@ -173,7 +194,7 @@ class PreferenceSession:
         repair: bool = False,
         metadata: dict | None = None,
         migrate: bool = False,
-        population: Any = None,
+        population: Population | None = None,
     ) -> None:
         if candidates is None:
             if queries is None:
@@ -273,7 +294,7 @@ class PreferenceSession:
 
     @classmethod
     def load(
-        cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Any
+        cls, path: str | os.PathLike, candidates: Tensor | Candidates | None = None, **kwargs: Unpack[ResumeOptions]
     ) -> PreferenceSession:
         """Resume the session in ``path`` with the settings in its header (seed, levels, bounds,
         candidates, names, and the recorded model and selector); ``selector``, ``model_factory``,

@@ -373,7 +373,10 @@ def check_callables(selector: object, model_factory: object) -> None:
 
 
 def population_factory(
-    population: Population | None, model_factory: Callable[[Tensor], PreferenceGP] | None, dim: int, names: Any
+    population: Population | None,
+    model_factory: Callable[[Tensor], PreferenceGP] | None,
+    dim: int,
+    names: list[str] | None,
 ) -> Callable[[Tensor], PreferenceGP] | None:
     """``model_factory``, or for a ``population`` its :meth:`~torchpref.Population.person_model`.
 

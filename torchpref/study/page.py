@@ -10,12 +10,15 @@ from __future__ import annotations
 import hmac
 import html
 import io
-from typing import Any
+from typing import TYPE_CHECKING
 
 from torchpref.study.export import export, participant_rows, study_items
 from torchpref.study.folder import StudyFolder
 from torchpref.study.report import report
 from torchpref.study.store import StudyStore
+
+if TYPE_CHECKING:  # starlette is the serve extra: imported where the routes are made
+    from starlette.requests import Request
 
 __all__ = ["KEY_COOKIE", "study_routes"]
 
@@ -28,7 +31,7 @@ DOWNLOADS = {
 }
 
 
-def _allowed(request: Any, key: str) -> bool:
+def _allowed(request: Request, key: str) -> bool:
     given = request.cookies.get(KEY_COOKIE, "")
     return bool(given) and hmac.compare_digest(given.encode(), key.encode())
 

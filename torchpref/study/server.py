@@ -12,9 +12,9 @@ folder, the population refitted as participants finish, and the experimenter's p
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
-from typing import Any
 
 from torchpref.frontends.serve.app import Listen, NewSessions, serve_store
 from torchpref.frontends.serve.items import ServeItems, items_from_csv, lake_items
@@ -41,7 +41,7 @@ def study_items(folder: StudyFolder) -> ServeItems:
     )
 
 
-def run(args: Any) -> int:
+def run(args: argparse.Namespace) -> int:
     """``torchpref study serve`` (``args`` from :mod:`torchpref.cli`); returns the exit code."""
     world = args.world
     folder = create_study(

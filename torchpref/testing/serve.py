@@ -16,11 +16,34 @@ import urllib.error
 import urllib.request
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, TypedDict
 
 if TYPE_CHECKING:
+    from starlette.testclient import TestClient
+    from torch import Tensor
+    from typing_extensions import Unpack
+
     from torchpref.frontends.serve.items import ServeItems
     from torchpref.frontends.serve.store import SessionStore
+
+
+class ItemOptions(TypedDict, total=False):
+    """:class:`~torchpref.frontends.serve.items.ServeItems`' fields besides the items and names."""
+
+    labels: list[str] | None
+    render: Callable[[Tensor, int], object] | None
+    noun: str
+    metadata: dict
+    picture_dir: Path | None
+
+
+class AppOptions(TypedDict, total=False):
+    """:func:`~torchpref.frontends.serve.app.create_app`'s keywords."""
+
+    token: str | None
+    allowed_hosts: list[str] | None
+    extra_routes: list | None
+
 
 CHROMIUM = os.environ.get("TORCHPREF_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -39,7 +62,7 @@ ROOT = Path(__file__).resolve().parents[2]  # the folder holding the torchpref p
 TEST_BASE_URL = "http://127.0.0.1:8000"  # the in-process test client's address (an allowed Host)
 
 
-def random_items(n: int = 24, d: int = 3, seed: int = 0, **kwargs: Any) -> ServeItems:
+def random_items(n: int = 24, d: int = 3, seed: int = 0, **kwargs: Unpack[ItemOptions]) -> ServeItems:
     """``n`` seeded random items in ``[0, 1]^d`` with objectives ``f0, f1, ...`` as
     :class:`~torchpref.frontends.serve.items.ServeItems` (``kwargs``: its other arguments)."""
     import torch
@@ -50,7 +73,7 @@ def random_items(n: int = 24, d: int = 3, seed: int = 0, **kwargs: Any) -> Serve
     return ServeItems(torch.rand(n, d, generator=g, dtype=torch.float64), [f"f{k}" for k in range(d)], **kwargs)
 
 
-def serve_client(store: SessionStore, **kwargs: Any) -> Any:
+def serve_client(store: SessionStore, **kwargs: Unpack[AppOptions]) -> TestClient:
     """Starlette's in-process test client of the page over ``store`` (``kwargs``: ``create_app``'s,
     e.g. ``token``, ``allowed_hosts``), at :data:`TEST_BASE_URL`; needs the ``serve`` extra and httpx."""
     import warnings

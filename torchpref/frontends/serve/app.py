@@ -25,6 +25,7 @@ pictures are served by item number only. See ``docs/serve.md``.
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import hmac
 import inspect
@@ -95,7 +96,7 @@ def create_app(
     token: str | None = None,
     allowed_hosts: list[str] | None = None,
     extra_routes: list | None = None,
-) -> Any:
+) -> _Guard:
     """The ASGI application over ``store`` (Starlette, wrapped in the Host / token / headers guard).
 
     Args:
@@ -181,7 +182,7 @@ class _Handlers:
 
         return wrapped
 
-    async def json_body(self, request) -> Any:
+    async def json_body(self, request) -> object:
         """The request's JSON, if it is same-origin JSON of at most ``MAX_BODY`` bytes."""
         if request.headers.get("content-type", "").split(";")[0].strip() != "application/json":
             raise AnswerRefused("send the answer as application/json.", 415)
@@ -406,7 +407,7 @@ def serve(
     limits: PoolLimits | None = None,
     threads: int | None = 1,
     ready: Callable[[str], None] | None = None,
-    **settings: Any,
+    **settings: object,
 ) -> None:
     """Serve the answering page until interrupted (Ctrl-C).
 
@@ -543,7 +544,7 @@ def _store(
     return SessionStore(items, sessions, new=new, limits=limits)
 
 
-def run(args: Any) -> int:
+def run(args: argparse.Namespace) -> int:
     """``torchpref serve`` (``args`` from :mod:`torchpref.cli`); returns the exit code."""
     _require()
     _check_network(args.host, args.port, args.allow_remote, args.token)

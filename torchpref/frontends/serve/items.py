@@ -39,7 +39,7 @@ PLOT_LOCK = threading.RLock()
 """Held while a picture or plot is made: matplotlib's state is shared by the server's threads."""
 
 
-def picture_bytes(picture: Any) -> tuple[bytes, str] | None:
+def picture_bytes(picture: object) -> tuple[bytes, str] | None:
     """``(bytes, media type)`` of what a render function returned: PNG/JPEG/GIF ``bytes``, a
     matplotlib ``Figure`` (drawn to PNG and closed), a :class:`~pathlib.Path` to such a file, or
     ``None`` (no picture).

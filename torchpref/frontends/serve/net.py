@@ -9,7 +9,11 @@ import errno
 import socket
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # starlette and uvicorn are the serve extra: imported where used
+    import uvicorn
+    from starlette.types import ASGIApp
 
 HEADER_TIMEOUT_S = 15.0
 """A connection must send a request's headers within this many seconds (else it is closed)."""
@@ -26,7 +30,7 @@ def _shown_host(host: str) -> str:
     return f"[{host}]" if ":" in host else host
 
 
-def listening_socket(host: str, port: int) -> Any:
+def listening_socket(host: str, port: int) -> socket.socket:
     """A socket bound to ``(host, port)`` (``port`` 0: a free one).
 
     Raises:
@@ -91,7 +95,7 @@ def _timed_protocol():
     return TimedH11Protocol
 
 
-def uvicorn_server(app: Any, ready: Callable[[], None] | None = None) -> Any:
+def uvicorn_server(app: ASGIApp, ready: Callable[[], None] | None = None) -> uvicorn.Server:
     """The uvicorn server of ``app``: one event loop, h11 with header deadlines
     (:func:`_timed_protocol`), at most :data:`MAX_CONNECTIONS` at once; ``ready()`` is called (in
     a thread of its own) once it accepts connections."""

@@ -28,7 +28,7 @@ class Listen:
 
 
 def grouped(
-    settings: dict[str, Any], new: NewSessions | None, listen: Listen | None, limits: PoolLimits | None
+    settings: dict[str, object], new: NewSessions | None, listen: Listen | None, limits: PoolLimits | None
 ) -> tuple[NewSessions, Listen, PoolLimits]:
     """:func:`serve`'s keyword settings sorted into their groups, each overriding the group given.
 

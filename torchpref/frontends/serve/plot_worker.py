@@ -66,7 +66,7 @@ def draw_utility(data: dict[str, Any]) -> bytes:
     return buf.getvalue()
 
 
-def write_message(stream: BinaryIO, obj: Any) -> None:
+def write_message(stream: BinaryIO, obj: object) -> None:
     """Write ``obj`` as one message (length, pickle) and flush."""
     data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
     stream.write(struct.pack(">I", len(data)) + data)

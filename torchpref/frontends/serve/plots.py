@@ -31,11 +31,20 @@ from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable, Iterable
 from concurrent.futures import Future
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from torchpref.frontends.serve.items import PLOT_LOCK, ServeItems
+from torchpref.frontends.serve.pool import PoolEntry
 
 __all__ = ["DRAW_TIMEOUT", "Plots", "ProcessDrawer", "SUMMARY_CACHE", "Worker"]
+
+
+class SessionEntries(Protocol):
+    """What the summary plots ask of a store: a session's pool entry (its lock and session);
+    :class:`~torchpref.frontends.serve.store.SessionStore` is one (a Protocol: it imports this module)."""
+
+    def entry(self, sid: str) -> PoolEntry: ...
+
 
 SUMMARY_CACHE = 8
 """Summary plots kept (some 60 KB each): a finished session's, drawn at its last answer, until its page has loaded it."""
@@ -231,7 +240,7 @@ class ProcessDrawer:
                 pass
 
 
-def _send(proc: subprocess.Popen, obj: Any) -> None:
+def _send(proc: subprocess.Popen, obj: object) -> None:
     import pickle
 
     data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
@@ -294,7 +303,7 @@ class Plots:
         self.fallbacks = 0
 
     # --------------------------------------------------------------- summary
-    def utility_png(self, store: Any, sid: str, x: int, y: int, timeout: float = 2 * DRAW_TIMEOUT) -> bytes:
+    def utility_png(self, store: SessionEntries, sid: str, x: int, y: int, timeout: float = 2 * DRAW_TIMEOUT) -> bytes:
         """The summary plot of session ``sid`` over objectives ``x``, ``y`` now: from the cache,
         or drawn by the summary worker (this request waits for it; answers do not)."""
         entry = store.entry(sid)
@@ -309,7 +318,7 @@ class Plots:
         assert fut is not None
         return fut.result(timeout=timeout)
 
-    def prerender(self, store: Any, sid: str, x: int = 0, y: int | None = None) -> None:
+    def prerender(self, store: SessionEntries, sid: str, x: int = 0, y: int | None = None) -> None:
         """Start drawing ``sid``'s summary plot (default axes: the first two objectives) in the
         background; returns at once."""
         if y is None:
@@ -319,7 +328,7 @@ class Plots:
         except RuntimeError:  # closed: the server is stopping
             pass
 
-    def _draw(self, store: Any, sid: str, x: int, y: int) -> bytes:
+    def _draw(self, store: SessionEntries, sid: str, x: int, y: int) -> bytes:
         from torchpref.frontends.serve.summary import utility_data
 
         entry = store.entry(sid)

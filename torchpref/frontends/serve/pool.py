@@ -35,9 +35,12 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 from torchpref.frontends.serve.errors import AnswerRefused
+
+if TYPE_CHECKING:
+    from torchpref.sessions.session import PreferenceSession
 
 __all__ = [
     "PoolEntry",
@@ -176,13 +179,13 @@ class PoolEntry:
 
     __slots__ = ("__weakref__", "_pool", "_session", "last_used", "lock", "pinned", "sid")
 
-    def __init__(self, pool: SessionPool, sid: str, session: Any = None, pinned: bool = False):
+    def __init__(self, pool: SessionPool, sid: str, session: PreferenceSession | None = None, pinned: bool = False):
         self._pool, self.sid, self._session, self.pinned = pool, sid, session, pinned
         self.lock = threading.Lock()
         self.last_used = pool.clock()
 
     @property
-    def session(self) -> Any:
+    def session(self) -> PreferenceSession:
         """The open :class:`~torchpref.PreferenceSession` (call with :attr:`lock` held): opened from
         its file if it was closed. Raises what the pool's opener raises (``AnswerRefused``)."""
         s = self._session
@@ -209,7 +212,7 @@ class SessionPool:
 
     def __init__(
         self,
-        opener: Callable[[str], Any],
+        opener: Callable[[str], PreferenceSession],
         limits: PoolLimits | None = None,
         *,
         clock: Callable[[], float] = time.monotonic,
@@ -230,7 +233,7 @@ class SessionPool:
         self.opened = self.closed = 0  # counts, for the soak and the tests
 
     # ------------------------------------------------------------ entries
-    def add(self, sid: str, session: Any, pinned: bool = False) -> PoolEntry:
+    def add(self, sid: str, session: PreferenceSession, pinned: bool = False) -> PoolEntry:
         """Put a session just opened (a new participant's, or one served from Python: ``pinned``,
         never closed) in the pool; returns its entry."""
         entry = PoolEntry(self, sid, session, pinned)
@@ -264,7 +267,7 @@ class SessionPool:
             entry.session  # noqa: B018  (opens it now: errors surface here)
         return entry
 
-    def _reopen(self, entry: PoolEntry) -> Any:
+    def _reopen(self, entry: PoolEntry) -> PreferenceSession:
         """Open ``entry``'s session from its file (called with ``entry.lock`` held)."""
         session = self._opener(entry.sid)
         with self._lock:
@@ -449,7 +452,7 @@ def _release_memory(every_s: float = 5.0) -> None:
         pass
 
 
-def _close_quietly(session: Any) -> None:
+def _close_quietly(session: PreferenceSession) -> None:
     try:
         session.close()
     except Exception:  # pragma: no cover - a file already gone; every answer is on disk

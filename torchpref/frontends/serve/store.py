@@ -31,7 +31,7 @@ import threading
 import warnings
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeGuard
+from typing import TYPE_CHECKING, Any, TypedDict, TypeGuard
 
 import torch
 
@@ -44,6 +44,8 @@ from torchpref.sessions.records import AnswerRecord
 from torchpref.sessions.session import PreferenceSession
 
 if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
     from torchpref.frontends.serve.pool import PoolEntry as _Entry
     from torchpref.frontends.serve.pool import PoolLimits
 
@@ -61,6 +63,17 @@ milliseconds since 1970 (JavaScript's ``Date.now()``) when the question was on s
 pictures decoded and when it was answered."""
 
 LEVEL_WORDS = {1: "unacceptable", 2: "poor", 3: "fair", 4: "good", 5: "excellent"}
+
+
+class NewSessionKeywords(TypedDict, total=False):
+    """:class:`NewSessions`' fields as keywords (``SessionStore(items, folder, num_queries=6)``)."""
+
+    num_queries: int
+    seed: int
+    num_levels: int | None
+    ties: bool
+    population: Population | None
+    queries: tuple[Query, ...] | None
 
 
 @dataclass(frozen=True)
@@ -85,7 +98,7 @@ class NewSessions:
     queries: tuple[Query, ...] | None = None
 
     @classmethod
-    def of(cls, given: NewSessions | None, keywords: dict[str, Any], where: str) -> NewSessions:
+    def of(cls, given: NewSessions | None, keywords: NewSessionKeywords, where: str) -> NewSessions:
         """``given`` (default: the defaults) with ``keywords`` (this class's fields) overriding it.
 
         Raises:
@@ -128,7 +141,7 @@ class SessionStore:
         sid: str | None = None,
         new: NewSessions | None = None,
         limits: PoolLimits | None = None,
-        **new_settings: Any,
+        **new_settings: Unpack[NewSessionKeywords],
     ) -> None:
         from torchpref.frontends.serve.plots import Plots
         from torchpref.frontends.serve.pool import SessionPool

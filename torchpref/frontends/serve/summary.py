@@ -10,15 +10,28 @@ posterior mean and a two-standard-deviation band against that objective.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 
 from torchpref.frontends.serve.items import ServeItems
+from torchpref.frontends.serve.pool import PoolEntry
+
+if TYPE_CHECKING:
+    from torchpref.sessions.session import PreferenceSession
 
 __all__ = ["axes_from_query", "summary_context", "utility_data", "utility_plot"]
 
 TOP = 5
+
+
+class HasItems(Protocol):
+    """What the summary page asks of a store: its pool of items;
+    :class:`~torchpref.frontends.serve.store.SessionStore` is one (a Protocol: the store imports
+    the plots, which import this module)."""
+
+    @property
+    def items(self) -> ServeItems: ...
 
 
 def axes_from_query(items: ServeItems, query: Mapping[str, str]) -> tuple[int, int]:
@@ -42,7 +55,7 @@ def axes_from_query(items: ServeItems, query: Mapping[str, str]) -> tuple[int, i
     return out[0], out[1]
 
 
-def summary_context(store: Any, entry: Any, query: Mapping[str, str]) -> dict[str, Any]:
+def summary_context(store: HasItems, entry: PoolEntry, query: Mapping[str, str]) -> dict[str, Any]:
     """What ``summary.html`` shows for a session (call with ``entry.lock`` held)."""
     from torchpref.data.queries import first_unique_rows
 
@@ -86,7 +99,7 @@ def summary_context(store: Any, entry: Any, query: Mapping[str, str]) -> dict[st
     return ctx
 
 
-def utility_data(items: ServeItems, session: Any, x: int, y: int) -> dict[str, Any]:
+def utility_data(items: ServeItems, session: PreferenceSession, x: int, y: int) -> dict[str, Any]:
     """The numbers the summary plot of objectives ``x`` and ``y`` is drawn from (plain lists: the
     plot is drawn in a worker process, :func:`~torchpref.frontends.serve.plot_worker.draw_utility`).
     Call with the session's lock held; it takes the posterior over the pool (a few milliseconds)."""
@@ -111,7 +124,7 @@ def utility_data(items: ServeItems, session: Any, x: int, y: int) -> dict[str, A
     return data
 
 
-def utility_plot(items: ServeItems, session: Any, x: int, y: int) -> bytes:
+def utility_plot(items: ServeItems, session: PreferenceSession, x: int, y: int) -> bytes:
     """A PNG of the learned utility over objectives ``x`` and ``y`` (see the module), drawn here."""
     from torchpref.frontends.serve.plot_worker import draw_utility
 
