@@ -122,10 +122,10 @@ def main() -> int:
         time.sleep(0.5)
     while any(t.is_alive() for t in threads) and kills < args.kills:
         deadline = time.time() + random.uniform(2.0, 8.0)
-        while time.time() < deadline and not _refit_processes():  # a kill during a refit where one runs
+        while time.time() < deadline and not _refitting(study):  # a kill during a refit where one runs
             time.sleep(0.1)
         time.sleep(random.uniform(0.0, 1.5))  # a random moment of it
-        during_refit += bool(_refit_processes())
+        during_refit += _refitting(study)
         srv.kill()
         kills += 1
         loadable.append(_current_loads(study))
@@ -180,17 +180,20 @@ def main() -> int:
     return 0 if ok else 1
 
 
-def _refit_processes() -> list[int]:
-    """The pids of running ``torchpref.study.refit`` processes (Linux ``/proc``)."""
-    out = []
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                if b"torchpref.study.refit" in (d / "cmdline").read_bytes():
-                    out.append(int(d.name))
-            except OSError:
-                continue
-    return out
+def _refitting(study: Path) -> bool:
+    """Whether a refit runs now: its worker holds the population's lock while it fits."""
+    import fcntl
+
+    lock = study / "population" / ".lock"
+    if not lock.exists():
+        return False
+    with open(lock) as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return True
+        fcntl.flock(fh, fcntl.LOCK_UN)
+    return False
 
 
 def _current_loads(study: Path) -> bool | str | None:
@@ -221,7 +224,7 @@ def _all_fitted(study: Path) -> bool:
         fitted = set(json.loads((study / "population" / "current.json").read_text())["participants"])
     except (OSError, ValueError, KeyError):
         return False
-    return finished <= fitted and not _refit_processes()
+    return finished <= fitted and not _refitting(study)
 
 
 def _report_figures(page: Path) -> int | None:
