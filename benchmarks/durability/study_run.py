@@ -12,7 +12,8 @@ restarted on the same folder. At the end:
 * the export's answer rows are the session files' answer records;
 * the report opens in Chromium with its figures (where Chromium and Playwright are installed).
 
-Writes ``results/study/study_run.json`` (stamped).
+Writes ``results/study/NAME.json`` (stamped): ``study_run`` without kills (``--kills 0``: how
+often the population is refitted as participants finish), ``study_run_kills`` with them.
 
     nice -n 10 .venv/bin/python benchmarks/durability/study_run.py [--participants 40] [--kills 10]
 """
@@ -82,6 +83,7 @@ def main() -> int:
     ap.add_argument("--arrival", type=float, default=5.0, help="mean seconds between two participants' arrivals")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--name", default="study_run", help="the results file's name (study_run_kills for the run with kills)")
     args = ap.parse_args()
     random.seed(args.seed)
     tmp = Path(tempfile.mkdtemp(prefix="torchpref-study-"))
@@ -174,7 +176,7 @@ def main() -> int:
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "study_run.json", result, measured="harness: benchmarks/durability/study_run.py")
+    write_json(out / f"{args.name}.json", result, measured="harness: benchmarks/durability/study_run.py")
     print(result)
     ok = not problems and all(x in (True, None) for x in loadable) and len(rows) == answers_in_files
     return 0 if ok else 1
