@@ -617,7 +617,11 @@ for _key in ("participants", "acknowledged", "kills", "kills_during_refit", "fin
              "answer_records_in_files", "report_figures_shown_in_chromium", "seconds"):
     FIGURES[f"study_run_{_key}"] = Figure("study/study_run.json", _key, "{:,}")
 FIGURES["study_run_per5"] = Figure("study/study_run.json", "refits_per_5_finished", "{:.2f}")
-FIGURES["study_run_load"] = Figure("study/study_run.json", "load_average_start_end.0", "{:.1f}")
+FIGURES["study_run_load"] = Figure("study/study_run.json", "load_average_start_end.1", "{:.1f}")
+for _key in ("acknowledged", "kills", "kills_during_refit", "export_rows", "answer_records_in_files", "refits", "finished"):
+    FIGURES[f"study_kill_{_key}"] = Figure("study/study_run_kills.json", _key, "{:,}")
+FIGURES["study_kill_lost"] = Figure("study/study_run_kills.json", "lost", "{}")
+FIGURES["study_kill_load"] = Figure("study/study_run_kills.json", "load_average_start_end.1", "{:.1f}")
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
