@@ -59,12 +59,14 @@ def open_regular(path: str | os.PathLike) -> tuple[IO[bytes], int]:
         raise FileNotFoundError(
             errno.ENOENT, "no population file at this path (torchpref.save_population writes one)", str(path)
         ) from None
-    except IsADirectoryError:
+    except IsADirectoryError:  # where a directory cannot be opened for reading
         raise IsADirectoryError(errno.EISDIR, "a directory, not a population file", str(path)) from None
     info = os.fstat(fd)
     if not stat.S_ISREG(info.st_mode):
         os.close(fd)
-        kind = "a FIFO" if stat.S_ISFIFO(info.st_mode) else "a directory" if stat.S_ISDIR(info.st_mode) else "special"
+        if stat.S_ISDIR(info.st_mode):
+            raise IsADirectoryError(errno.EISDIR, "a directory, not a population file", str(path))
+        kind = "a FIFO" if stat.S_ISFIFO(info.st_mode) else "a socket or device"
         raise CheckpointError(f"{path} is not a regular file ({kind}); a population file is one save_population wrote.")
     return os.fdopen(fd, "rb"), int(info.st_size)
 
@@ -77,9 +79,11 @@ def check_archive(fh: IO[bytes], size: int, where: str) -> None:
         )
     fh.seek(0)
     try:
-        records = zipfile.ZipFile(cast(IO[bytes], fh)).infolist()
+        records = zipfile.ZipFile(fh).infolist()
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
-        raise CheckpointError(f"{where} is a damaged population file (truncated or corrupted: {err}); not loaded.") from err
+        raise CheckpointError(
+            f"{where} is a damaged population file (truncated or corrupted: {err}); not loaded."
+        ) from err
     for r in records:
         if r.compress_type != zipfile.ZIP_STORED or r.file_size > size:
             raise CheckpointError(
@@ -104,12 +108,16 @@ def read(fh: IO[bytes], where: str) -> Any:
 def check_kind(ck: Any, where: str) -> int:
     """The file's format and version (returned)."""
     if isinstance(ck, dict) and ck.get("format") == MODEL_FORMAT:
-        raise CheckpointError(f"{where} is a torchpref.PreferenceGP checkpoint, not a population file: load it with load_model.")
+        raise CheckpointError(
+            f"{where} is a torchpref.PreferenceGP checkpoint, not a population file: load it with load_model."
+        )
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
         raise CheckpointError(f"{where} is not a {FORMAT} file.")
     version = ck.get("version")
     if type(version) is not int or version not in VERSIONS:
-        raise CheckpointError(f"{where}: population file version {version!r} is not supported (this torchpref reads {VERSIONS}).")
+        raise CheckpointError(
+            f"{where}: population file version {version!r} is not supported (this torchpref reads {VERSIONS})."
+        )
     return version
 
 

@@ -256,21 +256,16 @@ def _check_settings(people: list[PreferenceData], names: Any, max_iter: Any, ind
         raise ValueError(f"inducing_method must be one of {list(METHODS)}, got {method!r}.")
 
 
-def _likelihood(people: list[PreferenceData], noise: float, scale: float, precision: float) -> tuple[Any, dict]:
-    settings = dict(
-        comparison_noise=float(noise),
-        rating_scale=float(scale),
-        rating_precision=float(precision),
-        rating_levels=people[0].rating_levels,
-    )
-    for key in ("comparison_noise", "rating_scale", "rating_precision"):
-        if not (math.isfinite(settings[key]) and settings[key] > 0):
-            raise ValueError(f"{key} must be a finite positive number, got {settings[key]!r}.")
-    lik = PreferenceLikelihood.create(
-        settings["comparison_noise"], settings["rating_scale"], settings["rating_precision"], False, 0.1,
-        settings["rating_levels"],
-    )  # fmt: skip
-    return lik.double(), settings
+def _likelihood(
+    people: Sequence[PreferenceData], noise: float, scale: float, precision: float
+) -> tuple[PreferenceLikelihood, dict[str, Any]]:
+    values = {"comparison_noise": float(noise), "rating_scale": float(scale), "rating_precision": float(precision)}
+    for key, value in values.items():
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{key} must be a finite positive number, got {value!r}.")
+    levels = people[0].rating_levels
+    lik = PreferenceLikelihood.create(float(noise), float(scale), float(precision), False, 0.1, levels)
+    return lik.double(), {**values, "rating_levels": levels}
 
 
 def _stats(people: list[PreferenceData], plan: Plan, objective: Objective) -> dict[str, Any]:
@@ -358,9 +353,16 @@ def fit_population(
     _check_settings(people, feature_names, max_iter, inducing, inducing_method)
     warn_outside_unit_cube(torch.cat([p.train_X for p in people]))
     objective, plan = population_objective(
-        people, k_m, k_g, likelihood=(comparison_noise, rating_scale, rating_precision), inducing=inducing,
-        inducing_method=inducing_method, executor=executor, shards=shards, memory_limit=memory_limit,
-    )  # fmt: skip
+        people,
+        k_m,
+        k_g,
+        likelihood=(comparison_noise, rating_scale, rating_precision),
+        inducing=inducing,
+        inducing_method=inducing_method,
+        executor=executor,
+        shards=shards,
+        memory_limit=memory_limit,
+    )
     params = _free(objective.kernels)
     bar = tqdm(total=max_iter, desc=f"fit_population: {plan.describe()}", disable=not progress, mininterval=5)
     if fit and params:
@@ -369,12 +371,19 @@ def fit_population(
         objective(with_gradient=False)
     bar.close()
     last = objective.last
-    assert last is not None
+    assert last is not None and last.mode.hessian.S_chol is not None  # a mode's Hessian is PD
     k = objective.kernels
     return Population.from_mode(
-        k.k_m, k.k_g, objective.Z, last.L_Z, last.mode.point.a, last.mode.hessian.S_chol,
-        objective.settings, _stats(people, plan, objective), feature_names,
-    )  # fmt: skip
+        k.k_m,
+        k.k_g,
+        objective.Z,
+        last.L_Z,
+        last.mode.point.a,
+        last.mode.hessian.S_chol,
+        objective.settings,
+        _stats(people, plan, objective),
+        feature_names,
+    )
 
 
 def population_objective(

@@ -97,7 +97,9 @@ def _read_checked(source: str | os.PathLike, where: str) -> dict[str, Any]:
     for key in ("k_m", "k_g"):
         checks.check_kernel_state(ck.get(key), key, where)
     if not isinstance(ck.get("digest"), str) or ck["digest"] != _digest(ck):
-        raise CheckpointError(f"{where}: the contents do not match their digest (a damaged population file); not loaded.")
+        raise CheckpointError(
+            f"{where}: the contents do not match their digest (a damaged population file); not loaded."
+        )
     checks.check_tensor_values(ck["tensors"], where)
     checks.check_settings(ck.get("settings"), where)
     checks.check_space_and_stats(ck, int(ck["tensors"]["U"].shape[-1]), where)

@@ -25,6 +25,7 @@ The posterior of ``a`` is ``N(a*, S^{-1})`` (Laplace), so the population's mean 
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -120,8 +121,9 @@ def newton(problem: JointProblem, start: JointPoint, max_iter: int = 100) -> Mod
         da = torch.cholesky_solve((p.ga - h.coupled).unsqueeze(-1), h.S_chol).squeeze(-1)
         trial = problem.step(h, p.a + first * da, da)
         dec = float((p.ga * da).sum() + trial.dec)
-        if 0.5 * dec < tol:
-            return Mode(p, h, it, True)
+        if 0.5 * dec < tol:  # the step is computed: its end is the mode to round-off, where it is PD
+            done = trial.S_chol is not None and math.isfinite(float(trial.psi))
+            return Mode(trial, trial, it, True) if done else Mode(p, h, it, True)
 
         def moved(t: float, p: JointPoint = p, da: Tensor = da, trial: JointPoint = trial) -> JointPoint:
             return trial if t == first else problem.retry(trial, p.a + t * da, t)

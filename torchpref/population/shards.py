@@ -37,8 +37,16 @@ from torch import Tensor
 
 from torchpref.inference.numerics import NotPSDError, batched_cholesky
 from torchpref.inference.step_rule import STEP_RULE
-from torchpref.population.blocks import Blocks, KernelFn, Layout, not_positive_definite, person_blocks
-from torchpref.population.blocks import person_covariance, scatter_blocks, scatter_vector
+from torchpref.population.blocks import (
+    Blocks,
+    KernelFn,
+    Layout,
+    not_positive_definite,
+    person_blocks,
+    person_covariance,
+    scatter_blocks,
+    scatter_vector,
+)
 from torchpref.population.prior import _dense
 
 
