@@ -79,8 +79,8 @@ def test_in_process_and_sharded_fits_run_the_same_newton_loop(monkeypatch):
 
 
 def test_a_newton_step_sends_order_M_squared_numbers_whatever_the_people():
-    """Bytes per Newton step on 2 shards: the same for 12 and for 60 people with their own items
-    (the M x M blocks and M-vectors), not growing with the people's blocks."""
+    """Bytes per Newton step on 2 shards: the same (to the last step's extra S) for 12 and for 60
+    people with their own items (the M x M blocks and M-vectors), not growing with the people."""
     per_step = []
     for count in (12, 60):
         people = [_person(100 + s, ratings=True) for s in range(count)]
@@ -88,8 +88,8 @@ def test_a_newton_step_sends_order_M_squared_numbers_whatever_the_people():
             pop = fit_population(people, fit=False, inducing=10, executor=ex, shards=2)
         per_step.append(pop.stats["bytes_per_newton_step"])
     M = 10
-    assert per_step[0] == per_step[1]
-    assert per_step[0] <= 2 * 8 * (M * M + 4 * M + 8)  # 2 shards: S_s, ga, coupled, a, da, scalars
+    bound = 2 * 8 * (2 * M * M + 5 * M + 8)  # 2 shards: S_s (twice at the last step), ga, coupled, a, da, scalars
+    assert max(per_step) <= bound and abs(per_step[1] - per_step[0]) <= 0.1 * per_step[0]
 
 
 def _same_population(a, b, tol):
@@ -140,4 +140,4 @@ def test_sharded_fit_on_a_local_dask_cluster():
         there = fit_population(people, max_iter=10, inducing=12, executor=client.get_executor(), shards=2)
         direct = fit_population(people, fit=False, inducing=12, executor=client, shards=2)
     _same_population(here, there, 1e-4)
-    assert direct.stats["bytes_per_newton_step"] <= 2 * 8 * (12 * 12 + 4 * 12 + 8)
+    assert direct.stats["bytes_per_newton_step"] <= 2 * 8 * (2 * 12 * 12 + 5 * 12 + 8)

@@ -31,7 +31,7 @@ from torchpref.inference.numerics import cholesky_jittered
 from torchpref.models.defaults import PreferenceLikelihood, default_covar_module
 from torchpref.population.hosts import host_for, workers_of
 from torchpref.population.inducing import METHODS, choose_items
-from torchpref.population.joint import Gradient, Mode, Shards, newton
+from torchpref.population.joint import Gradient, Shards, newton
 from torchpref.population.memory import ShardSize, check_memory, estimate_peak, gigabytes, shard_transient
 from torchpref.population.model import Population
 from torchpref.population.people import Items, by_rows, check_people, shard_bounds, shard_data, warn_outside_unit_cube
@@ -43,7 +43,7 @@ __all__ = ["fit_population", "check_people", "EXACT_ITEMS", "DEFAULT_INDUCING"]
 #: ``inducing="auto"`` represents the mean at every distinct item up to this many of them.
 EXACT_ITEMS = 2000
 #: ``inducing="auto"``'s number of inducing items above :data:`EXACT_ITEMS` distinct items.
-DEFAULT_INDUCING = 512
+DEFAULT_INDUCING = 256
 #: In process, people are split into shards so that one shard's gradient holds at most about
 #: this many bytes at once (the shards are worked one after another).
 SHARD_BYTES = 2**29
@@ -149,10 +149,12 @@ def plan_fit(
 
 @dataclass(frozen=True)
 class Evaluation:
-    """One evaluation of the evidence: its value, the mode and ``L_Z`` (with its jitter)."""
+    """One evaluation of the evidence: its value, the mode's ``a`` and Schur factor, and ``L_Z``
+    (with its jitter); the shards' states are not kept here (they rest in :class:`Shards`)."""
 
     evidence: float
-    mode: Mode
+    a: Tensor
+    S_chol: Tensor
     L_Z: Tensor
     jitter: float
 
@@ -189,19 +191,20 @@ class Objective:
             mode = newton(self.problem, start)
             c.newton_steps, c.newton_bytes = c.newton_steps + mode.iterations, c.newton_bytes + traffic.total - b1
             value = mode.evidence()
+            assert mode.hessian.S_chol is not None  # a mode's Hessian is factorised
             b2 = traffic.total
             grad = self.problem.gradient(mode) if with_gradient else None
             c.other_bytes += (b1 - b0) + (traffic.total - b2)
         c.evaluations += 1
         self.problem.keep(mode)
-        self.last = Evaluation(float(value), mode, L_Z, jitter)
+        self.last = Evaluation(float(value), mode.point.a, mode.hessian.S_chol, L_Z, jitter)
         loss = -(value + k.log_prior())
         return loss if grad is None else loss - self._linear(grad, jitter)
 
     @staticmethod
     def _warm(last: Evaluation, L_Z: Tensor) -> Tensor:
         """The last mode's ``a`` for the new ``L_Z``: the same mean at ``Z``, ``L_Z^{-1} m(Z)``."""
-        u = last.L_Z @ last.mode.point.a.unsqueeze(-1)
+        u = last.L_Z @ last.a.unsqueeze(-1)
         return torch.linalg.solve_triangular(L_Z, u, upper=False).squeeze(-1)
 
     def _linear(self, grad: Gradient, jitter: float) -> Tensor:
@@ -371,15 +374,15 @@ def fit_population(
         objective(with_gradient=False)
     bar.close()
     last = objective.last
-    assert last is not None and last.mode.hessian.S_chol is not None  # a mode's Hessian is PD
+    assert last is not None
     k = objective.kernels
     return Population.from_mode(
         k.k_m,
         k.k_g,
         objective.Z,
         last.L_Z,
-        last.mode.point.a,
-        last.mode.hessian.S_chol,
+        last.a,
+        last.S_chol,
         objective.settings,
         _stats(people, plan, objective),
         feature_names,

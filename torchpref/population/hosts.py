@@ -70,6 +70,15 @@ class Host(Protocol):
 
     def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]: ...
 
+    def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any: ...
+
+
+def _sum(parts: Sequence[Any]) -> Any:
+    """The sum of ``parts``, or ``None`` if any is ``None``."""
+    if any(p is None for p in parts):
+        return None
+    return sum(parts[1:], parts[0])
+
 
 class InProcess:
     """The shards in this process: each function called directly on each state in turn."""
@@ -89,6 +98,19 @@ class InProcess:
     def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
         out = self.map(fn, handles, *shared)
         self.traffic.received += nbytes(out)
+        return out
+
+    def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
+        """The sum of ``fn``'s results (``None`` if one is), added up as they come: one at a time here."""
+        self.traffic.sent += len(handles) * nbytes(shared)
+        self.traffic.rounds += 1
+        out = None
+        for h in handles:
+            part = fn(h, *shared)
+            if part is None:
+                return None
+            self.traffic.received += nbytes(part)
+            out = part if out is None else out + part
         return out
 
 
@@ -113,6 +135,9 @@ class OnExecutor(InProcess):
         out = self.map(fn, handles, *shared)
         self.traffic.received += 0 if self.copies else nbytes(out)
         return out
+
+    def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
+        return _sum(self.gather(fn, handles, *shared))
 
 
 class OnDask:
@@ -144,6 +169,9 @@ class OnDask:
         out = self.client.gather(self.map(fn, handles, *shared))
         self.traffic.received += nbytes(out)
         return out
+
+    def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
+        return _sum(self.gather(fn, handles, *shared))
 
 
 def summaries(host: Host, handles: Sequence[Any]) -> list[Any]:

@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import torch
@@ -41,9 +41,11 @@ from torchpref.population.hosts import Host, summaries
 from torchpref.population.shards import (
     Basis,
     ShardData,
+    schur_of,
     shard_cotangent,
     shard_fisher,
     shard_gradient,
+    shard_rest,
     shard_retry,
     shard_start,
     shard_step,
@@ -53,32 +55,34 @@ from torchpref.population.shards import (
 @dataclass(frozen=True)
 class JointPoint:
     """An iterate of all shards: ``a`` (``M``), the shards' states (``handles``, where they live),
-    ``psi``, its gradient ``ga`` in ``a``, the Schur complement's factor ``S_chol`` (``None``: not
-    positive definite at these weights), the summed couplings, ``sum_p log|H_p|``, whether the
-    weights are Fisher's, and ``dec`` (the shards' ``g_b^T db`` of the step that led here)."""
+    ``psi``, its gradient ``ga`` in ``a``, whether every person's block is positive definite
+    (``pd``), the summed couplings, ``sum_p log|H_p|``, whether the weights are Fisher's for
+    everyone, ``dec`` (the shards' ``g_b^T db`` of the step that led here), and the Schur
+    complement's factor ``S_chol`` once formed (:meth:`JointProblem.hessian`)."""
 
     a: Tensor
     handles: tuple[Any, ...]
     psi: Tensor
     ga: Tensor
-    S_chol: Tensor | None
+    pd: bool
     coupled: Tensor | None
     logdet_people: Tensor | None
     fisher: bool
     dec: Tensor
+    S_chol: Tensor | None = None
 
     def logdet(self) -> Tensor:
         """``log|H| = sum_p log|H_p| + log|S|``."""
         if self.S_chol is None or self.logdet_people is None:
-            raise NotPSDError("the population's Hessian is not positive definite at this point")
+            raise NotPSDError("the population's Hessian is not factorised (or not positive definite) at this point")
         return self.logdet_people + 2 * torch.diagonal(self.S_chol).log().sum()
 
 
 @dataclass(frozen=True)
 class Mode:
-    """The joint mode (``point``), the Hessian used there (``hessian``: the same point, or it
-    with Fisher weights where the exact Hessian is not positive definite), Newton's iterations
-    and whether it converged."""
+    """The joint mode (``point``), the Hessian used there (``hessian``: the same point factorised,
+    or it with Fisher weights where the exact Hessian is not positive definite), Newton's
+    iterations and whether it converged."""
 
     point: JointPoint
     hessian: JointPoint
@@ -91,23 +95,26 @@ class Mode:
 
 
 class JointProblem(Protocol):
-    """What Newton's loop asks of the problem: the same point with Fisher weights, a step (the
-    point at the step rule's first length along it) and a shorter one."""
+    """What Newton's loop asks of the problem: a point's Hessian factorised (Fisher weights where
+    the exact one is not positive definite), a step (the point at the step rule's first length
+    along it) and a shorter one."""
 
-    def fisher(self, p: JointPoint) -> JointPoint: ...
+    def hessian(self, p: JointPoint) -> JointPoint: ...
 
     def step(self, h: JointPoint, a: Tensor, da: Tensor) -> JointPoint: ...
 
     def retry(self, trial: JointPoint, a: Tensor, t: float) -> JointPoint: ...
 
 
-def _hessian(problem: JointProblem, p: JointPoint) -> JointPoint:
-    if p.S_chol is not None:
-        return p
-    h = problem.fisher(p)
-    if h.S_chol is None:
-        raise NotPSDError("the population's Fisher-scoring Hessian is not positive definite")
-    return h
+def _at_convergence(problem: JointProblem, p: JointPoint, h: JointPoint, trial: JointPoint, it: int) -> Mode:
+    """The end of the last step is the mode to round-off: taken where it is finite and its
+    Hessian positive definite, else ``p``."""
+    if math.isfinite(float(trial.psi)):
+        try:
+            return Mode(trial, problem.hessian(trial), it, True)
+        except NotPSDError:
+            pass
+    return Mode(p, h, it, True)
 
 
 def newton(problem: JointProblem, start: JointPoint, max_iter: int = 100) -> Mode:
@@ -116,14 +123,13 @@ def newton(problem: JointProblem, start: JointPoint, max_iter: int = 100) -> Mod
     p, tol = start, default_tolerance(start.a.dtype)
     first = next(STEP_RULE.lengths())
     for it in range(1, max_iter + 1):
-        h = _hessian(problem, p)
-        assert h.S_chol is not None and h.coupled is not None  # _hessian checked it
+        h = problem.hessian(p)
+        assert h.S_chol is not None and h.coupled is not None  # hessian() factorised it
         da = torch.cholesky_solve((p.ga - h.coupled).unsqueeze(-1), h.S_chol).squeeze(-1)
         trial = problem.step(h, p.a + first * da, da)
         dec = float((p.ga * da).sum() + trial.dec)
-        if 0.5 * dec < tol:  # the step is computed: its end is the mode to round-off, where it is PD
-            done = trial.S_chol is not None and math.isfinite(float(trial.psi))
-            return Mode(trial, trial, it, True) if done else Mode(p, h, it, True)
+        if 0.5 * dec < tol:
+            return _at_convergence(problem, p, h, trial, it)
 
         def moved(t: float, p: JointPoint = p, da: Tensor = da, trial: JointPoint = trial) -> JointPoint:
             return trial if t == first else problem.retry(trial, p.a + t * da, t)
@@ -137,7 +143,7 @@ def newton(problem: JointProblem, start: JointPoint, max_iter: int = 100) -> Mod
         LaplaceConvergenceWarning,
         stacklevel=2,
     )
-    return Mode(p, _hessian(problem, p), max_iter, False)
+    return Mode(p, problem.hessian(p), max_iter, False)
 
 
 @dataclass(frozen=True)
@@ -152,22 +158,29 @@ class Gradient:
 
 class Shards:
     """The population's joint problem over shards of people on a :class:`Host` (a
-    :class:`JointProblem`); it keeps each shard's state at the last mode for a warm start."""
+    :class:`JointProblem`); between evaluations each shard rests where the last mode left it."""
 
     def __init__(self, host: Host, data: Sequence[ShardData]):
         self.host = host
         self.handles: list[Any] = host.place(data)
 
     def start(self, basis: Basis, a: Tensor) -> JointPoint:
-        """All shards at new hyperparameters and ``a``, each from its last state."""
+        """All shards at new hyperparameters and ``a``, each from where it last rested."""
         return self._joint(a, self.host.map(shard_start, self.handles, basis, a), False)
 
     def keep(self, mode: Mode) -> None:
-        """Start the next evaluation from this mode's states."""
-        self.handles = list(mode.point.handles)
+        """Rest the shards at this mode (their blocks freed) for the next evaluation's start."""
+        self.handles = self.host.map(shard_rest, mode.point.handles)
 
-    def fisher(self, p: JointPoint) -> JointPoint:
-        return self._joint(p.a, self.host.map(shard_fisher, p.handles), True)
+    def hessian(self, p: JointPoint) -> JointPoint:
+        if p.S_chol is not None:
+            return p
+        S_chol = self._schur(p) if p.pd else None
+        if S_chol is not None:
+            return replace(p, S_chol=S_chol)
+        if p.fisher:
+            raise NotPSDError("the population's Fisher-scoring Hessian is not positive definite")
+        return self.hessian(self._joint(p.a, self.host.map(shard_fisher, p.handles), True))
 
     def step(self, h: JointPoint, a: Tensor, da: Tensor) -> JointPoint:
         return self._joint(a, self.host.map(shard_step, h.handles, a, da), False)
@@ -175,19 +188,25 @@ class Shards:
     def retry(self, trial: JointPoint, a: Tensor, t: float) -> JointPoint:
         return self._joint(a, self.host.map(shard_retry, trial.handles, a, t), False)
 
+    def _schur(self, p: JointPoint) -> Tensor | None:
+        """The factor of ``S = I + sum_s S_s`` (the shards' parts summed as they arrive), or
+        ``None`` where it is not positive definite."""
+        S = self.host.total(schur_of, p.handles)
+        if S is None:
+            return None
+        S = 0.5 * (S + S.mT) + torch.eye(p.a.shape[0], dtype=p.a.dtype, device=p.a.device)
+        S_chol, info = torch.linalg.cholesky_ex(S)
+        return None if bool(info > 0) else S_chol
+
     def _joint(self, a: Tensor, handles: list[Any], fisher: bool) -> JointPoint:
         parts = summaries(self.host, handles)
         psi = sum(s.psi for s in parts) - 0.5 * (a * a).sum()
         ga = sum(s.ga for s in parts) - a
         dec = sum(s.dec for s in parts)
-        if any(s.S is None for s in parts):
-            return JointPoint(a, tuple(handles), psi, ga, None, None, None, fisher, dec)
-        S = sum(s.S for s in parts)
-        S = 0.5 * (S + S.mT) + torch.eye(a.shape[0], dtype=a.dtype, device=a.device)
-        S_chol, info = torch.linalg.cholesky_ex(S)
+        if not all(s.pd for s in parts):
+            return JointPoint(a, tuple(handles), psi, ga, False, None, None, fisher, dec)
         coupled, logdet = sum(s.coupled for s in parts), sum(s.logdet for s in parts)
-        S_chol_ok = None if bool(info > 0) else S_chol
-        return JointPoint(a, tuple(handles), psi, ga, S_chol_ok, coupled, logdet, fisher, dec)
+        return JointPoint(a, tuple(handles), psi, ga, True, coupled, logdet, fisher, dec)
 
     def gradient(self, mode: Mode) -> Gradient:
         """The evidence's gradient at ``mode`` (:mod:`torchpref.population.shards`): two rounds,

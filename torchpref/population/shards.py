@@ -10,10 +10,11 @@ are in ``Z``: with ``Z = U``, the exact hierarchical model). Person ``p`` has
 ``f_p = (Phi_s a)[idx_p] + L_p b_p`` (:mod:`torchpref.population.blocks`).
 
 A shard's state (:class:`ShardState`) never leaves it; each function below takes one and returns
-a new one, and the master reads only its :class:`Summary`: the shard's log-likelihood, its
-gradient in ``a`` (``M``), its part of the Schur complement ``S = I + sum_s Phi_s^T W~_s Phi_s``
-(``M x M``), its coupling ``Phi_s^T W L H^{-1} g_b`` (``M``) and ``sum_p log|H_p|``: ``O(M^2)``
-numbers per Newton step, whatever the number of people or items in it. The shard's own
+a new one, and the master reads only its :class:`Summary` (the shard's log-likelihood, its
+gradient in ``a``, ``M``, its coupling ``Phi_s^T W L H^{-1} g_b``, ``M``, and ``sum_p log|H_p|``)
+and, for the point a step is taken from, its part of the Schur complement
+``S = I + sum_s Phi_s^T W~_s Phi_s`` (``M x M``, :func:`schur_of`): ``O(M^2)`` numbers per Newton
+step, whatever the number of people or items in it. The shard's own
 ``b`` and its Newton step ``db`` stay with it. Work per step: ``P_s n^3`` for the people's
 blocks plus ``P_s n M^2`` (or ``N_s^2 M`` where many people share few items) for its part of
 ``S``.
@@ -28,7 +29,7 @@ differentiates its own (in ``L_Z``, ``k_m``'s and ``k_g``'s parameters) and the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -85,14 +86,14 @@ class Prior:
 @dataclass(frozen=True)
 class Summary:
     """What the master needs of a shard at a point: ``psi`` (log-likelihood less ``|b|^2 / 2``),
-    ``ga`` (``Phi_s^T`` of its gradient, ``M``), ``S`` (its part of the Schur complement,
-    ``M x M``; ``None`` when a person's block is not positive definite), ``coupled``
-    (``Phi_s^T W L H^{-1} g_b``, ``M``), ``logdet`` (``sum_p log|H_p|``) and ``dec`` (``g_b^T db``
-    of the step that led here)."""
+    ``ga`` (``Phi_s^T`` of its gradient, ``M``), ``pd`` (every person's block positive definite),
+    ``coupled`` (``Phi_s^T W L H^{-1} g_b``, ``M``; ``None`` unless ``pd``), ``logdet``
+    (``sum_p log|H_p|``) and ``dec`` (``g_b^T db`` of the step that led here). The shard's part of
+    the Schur complement (``M x M``) is formed only when asked (:func:`schur_of`)."""
 
     psi: Tensor
     ga: Tensor
-    S: Tensor | None
+    pd: bool
     coupled: Tensor | None
     logdet: Tensor | None
     dec: Tensor
@@ -147,9 +148,32 @@ class ShardGradient:
     k_g: tuple[Tensor, ...]
 
 
+@dataclass(frozen=True)
+class Resting:
+    """What a shard keeps between evaluations: its data, its people's ``L_P`` and ``b`` (their
+    deviations at their items, the next evaluation's start)."""
+
+    data: ShardData
+    L_P: Tensor
+    b: Tensor
+
+
 def summary_of(state: Any) -> Any:
     """A state's summary (run where the state lives, so that only the summary travels)."""
     return state.summary
+
+
+def schur_of(state: ShardState) -> Tensor | None:
+    """The shard's part of the Schur complement, ``Phi_s^T (sum_p S_p^T W~_p S_p) Phi_s``
+    (``M x M``; ``None`` where a person's block is not positive definite), formed where the
+    shard lives when the master asks: a trial point the step rule rejects never forms it."""
+    with torch.no_grad():
+        return None if state.blocks is None else _schur_part(state.data, state.prior.Phi, state.blocks.Wt)
+
+
+def shard_rest(state: ShardState) -> Resting:
+    """The state reduced to what the next evaluation starts from (its blocks and factors freed)."""
+    return Resting(state.data, state.prior.L_P, state.b)
 
 
 def _kg(k_g: Kernel) -> KernelFn:
@@ -239,10 +263,9 @@ def _point(
     dec = ga.new_zeros(()) if dec is None else dec
     blocks, fisher = _blocks(lay, prior.L_P, f, weights, fisher)
     if blocks is None:
-        summary = Summary(psi, ga, None, None, None, dec)
+        summary = Summary(psi, ga, False, None, None, dec)
     else:
-        S, coupled = _schur_part(data, Phi, blocks.Wt), _coupled(data, prior, blocks, gb)
-        summary = Summary(psi, ga, S, coupled, blocks.logdet(), dec)
+        summary = Summary(psi, ga, True, _coupled(data, prior, blocks, gb), blocks.logdet(), dec)
     return ShardState(data, basis, prior, a, b, fisher, r, gb, blocks, summary, step)
 
 
@@ -252,16 +275,16 @@ def prior_factors(data: ShardData, basis: Basis) -> Prior:
     return Prior(mean_rows(data, basis.Z, basis.L_Z, basis.k_m), L_P, jitter)
 
 
-def shard_start(source: ShardData | ShardState, basis: Basis, a: Tensor) -> ShardState:
+def shard_start(source: ShardData | Resting, basis: Basis, a: Tensor) -> ShardState:
     """The shard at new hyperparameters (``basis``) and ``a``: each person's deviation at their
-    items where ``source`` (a previous state) left it (``b = L_p^{-1} g_p`` with the new
+    items where ``source`` (a :class:`Resting` shard) left it (``b = L_p^{-1} g_p`` with the new
     ``L_p``), zero for a fresh shard."""
     with torch.no_grad():
         if isinstance(source, ShardData):
             prior = prior_factors(source, basis)
             return _point(source, basis, prior, a, prior.L_P.new_zeros(source.layout.index.shape))
         prior = prior_factors(source.data, basis)
-        g = source.prior.L_P @ source.b.unsqueeze(-1)
+        g = source.L_P @ source.b.unsqueeze(-1)
         b = torch.linalg.solve_triangular(prior.L_P, g, upper=False).squeeze(-1)
         return _point(source.data, basis, prior, a, b)
 
@@ -350,8 +373,3 @@ def _traced_gradient(s: ShardState, w_a: Tensor, w_b: Tensor, S_chol: Tensor) ->
     grads = torch.autograd.grad(T, inputs, allow_unused=True) if T.requires_grad else [None] * len(inputs)
     g = [torch.zeros_like(x) if d is None else d for x, d in zip(inputs, grads)]
     return ShardGradient(T.detach(), g[0], tuple(g[1 : 1 + len(pm)]), tuple(g[1 + len(pm) :]))
-
-
-def without_factors(state: ShardState) -> ShardState:
-    """The state less its blocks (what a warm start needs of it: ``b``), to free memory."""
-    return replace(state, blocks=None)
