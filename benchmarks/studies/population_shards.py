@@ -72,10 +72,10 @@ def cost_model(rows: list[dict], workers: int) -> dict:
     a1, b = line([r["people"] for r in here], [r["s_per_evaluation"] for r in here])
     ak, bk = line([r["people"] for r in there], [r["s_per_evaluation"] for r in there])
     e = b / (workers * bk) if bk > 0 else float("nan")
-    pays = {}
+    pays: dict[str, int | None] = {}
     for k in (2, 4, 8, 16):
-        gain = b * (1 - 1 / (e * k))
-        pays[str(k)] = round((ak - a1) / gain) if gain > 0 else None
+        gain = b * (1 - 1 / (e * k))  # seconds saved per person; none if e k <= 1
+        pays[str(k)] = max(0, round((ak - a1) / gain)) if gain > 0 else None
     return dict(a_1=a1, b=b, a_k=ak, b_k=bk, efficiency=e, pays_from_people=pays)
 
 

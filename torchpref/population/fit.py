@@ -133,13 +133,11 @@ def plan_fit(
     items = Items.of(people)
     N, d = items.U.shape
     exact = inducing is None or (inducing == "auto" and N <= EXACT_ITEMS)
-    M = N if exact else (DEFAULT_INDUCING if inducing == "auto" else int(inducing))
-    M = min(M, N) if method == "variance" or exact else M
-    k = _shard_count(items, min(M, N), executor, shards)
-    bounds = shard_bounds(len(people), k)
-    sizes = _sizes(items, bounds, min(M, N))
-    peak = estimate_peak(sizes, N, min(M, N), d)
-    what = f"{len(people)} people, N = {N} distinct items, the mean at M = {min(M, N)} of them"
+    M = min(N if exact else (DEFAULT_INDUCING if inducing == "auto" else int(inducing)), N)
+    bounds = shard_bounds(len(people), _shard_count(items, M, executor, shards))
+    sizes = _sizes(items, bounds, M)
+    peak = estimate_peak(sizes, N, M, d)
+    what = f"{len(people)} people, N = {N} distinct items, the mean at M = {M} of them"
     alt = min(DEFAULT_INDUCING, max(N // 4, 1)) if exact or M > DEFAULT_INDUCING else max(M // 2, 1)
     alt_peak = estimate_peak(_sizes(items, bounds, alt), N, alt, d)
     check_memory(peak, memory_limit, what, f"fit with inducing={alt} (about {gigabytes(alt_peak)}) or fewer people")

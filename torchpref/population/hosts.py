@@ -63,6 +63,7 @@ class Host(Protocol):
     stay where the shards are), ``gather`` a function's (small) results here."""
 
     traffic: Traffic
+    remote: bool
 
     def place(self, data: Sequence[Any]) -> list[Any]: ...
 
@@ -73,7 +74,7 @@ class Host(Protocol):
     def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any: ...
 
 
-def _sum(parts: Sequence[Any]) -> Any:
+def sum_or_none(parts: Sequence[Any]) -> Any:
     """The sum of ``parts``, or ``None`` if any is ``None``."""
     if any(p is None for p in parts):
         return None
@@ -82,6 +83,10 @@ def _sum(parts: Sequence[Any]) -> Any:
 
 class InProcess:
     """The shards in this process: each function called directly on each state in turn."""
+
+    #: Whether a round trip to the shards costs (a network's or a scheduler's latency): then the
+    #: master asks for a point's summary and its part of ``S`` in one round.
+    remote = False
 
     def __init__(self) -> None:
         self.traffic = Traffic()
@@ -137,12 +142,14 @@ class OnExecutor(InProcess):
         return out
 
     def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
-        return _sum(self.gather(fn, handles, *shared))
+        return sum_or_none(self.gather(fn, handles, *shared))
 
 
 class OnDask:
     """The shards on a Dask cluster, each pinned to a worker (round robin), its state kept there
     as a future; only calls' small arguments and gathered results cross."""
+
+    remote = True
 
     def __init__(self, client: Any):
         self.client = client
@@ -171,7 +178,7 @@ class OnDask:
         return out
 
     def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
-        return _sum(self.gather(fn, handles, *shared))
+        return sum_or_none(self.gather(fn, handles, *shared))
 
 
 def summaries(host: Host, handles: Sequence[Any]) -> list[Any]:

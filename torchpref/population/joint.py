@@ -37,10 +37,11 @@ from torch import Tensor
 from torchpref.inference.laplace import LaplaceConvergenceWarning
 from torchpref.inference.numerics import NotPSDError, default_tolerance
 from torchpref.inference.step_rule import STEP_RULE
-from torchpref.population.hosts import Host, summaries
+from torchpref.population.hosts import Host, sum_or_none, summaries
 from torchpref.population.shards import (
     Basis,
     ShardData,
+    report,
     schur_of,
     shard_cotangent,
     shard_fisher,
@@ -146,6 +147,15 @@ def newton(problem: JointProblem, start: JointPoint, max_iter: int = 100) -> Mod
     return Mode(p, problem.hessian(p), max_iter, False)
 
 
+def _factor(S: Tensor | None, a: Tensor) -> Tensor | None:
+    """The Cholesky factor of ``I + S`` (symmetrised), ``None`` where it is not positive definite."""
+    if S is None:
+        return None
+    S = 0.5 * (S + S.mT) + torch.eye(a.shape[0], dtype=a.dtype, device=a.device)
+    S_chol, info = torch.linalg.cholesky_ex(S)
+    return None if bool(info > 0) else S_chol
+
+
 @dataclass(frozen=True)
 class Gradient:
     """The evidence's gradient, summed over the shards: in ``L_Z`` (``M x M``, chained through
@@ -191,22 +201,25 @@ class Shards:
     def _schur(self, p: JointPoint) -> Tensor | None:
         """The factor of ``S = I + sum_s S_s`` (the shards' parts summed as they arrive), or
         ``None`` where it is not positive definite."""
-        S = self.host.total(schur_of, p.handles)
-        if S is None:
-            return None
-        S = 0.5 * (S + S.mT) + torch.eye(p.a.shape[0], dtype=p.a.dtype, device=p.a.device)
-        S_chol, info = torch.linalg.cholesky_ex(S)
-        return None if bool(info > 0) else S_chol
+        return _factor(self.host.total(schur_of, p.handles), p.a)
 
     def _joint(self, a: Tensor, handles: list[Any], fisher: bool) -> JointPoint:
-        parts = summaries(self.host, handles)
+        """The point of the shards' states ``handles``: their summaries summed; where the shards
+        are remote, with the Schur complement's parts in the same round (:func:`report`)."""
+        S_chol = None
+        if self.host.remote:
+            pairs = self.host.gather(report, handles)
+            parts = [pair[0] for pair in pairs]
+            S_chol = _factor(sum_or_none([pair[1] for pair in pairs]), a)
+        else:
+            parts = summaries(self.host, handles)
         psi = sum(s.psi for s in parts) - 0.5 * (a * a).sum()
         ga = sum(s.ga for s in parts) - a
         dec = sum(s.dec for s in parts)
         if not all(s.pd for s in parts):
             return JointPoint(a, tuple(handles), psi, ga, False, None, None, fisher, dec)
         coupled, logdet = sum(s.coupled for s in parts), sum(s.logdet for s in parts)
-        return JointPoint(a, tuple(handles), psi, ga, True, coupled, logdet, fisher, dec)
+        return JointPoint(a, tuple(handles), psi, ga, True, coupled, logdet, fisher, dec, S_chol)
 
     def gradient(self, mode: Mode) -> Gradient:
         """The evidence's gradient at ``mode`` (:mod:`torchpref.population.shards`): two rounds,

@@ -171,6 +171,12 @@ def schur_of(state: ShardState) -> Tensor | None:
         return None if state.blocks is None else _schur_part(state.data, state.prior.Phi, state.blocks.Wt)
 
 
+def report(state: ShardState) -> tuple[Summary, Tensor | None]:
+    """The summary and the part of the Schur complement together: one round trip per Newton step
+    where the shards are remote (a rejected trial's part is formed for nothing)."""
+    return state.summary, schur_of(state)
+
+
 def shard_rest(state: ShardState) -> Resting:
     """The state reduced to what the next evaluation starts from (its blocks and factors freed)."""
     return Resting(state.data, state.prior.L_P, state.b)
