@@ -573,6 +573,45 @@ FIGURES["popul_scale_cpu"] = Figure("population/population_scale.json", "fit_cpu
 FIGURES["popul_scale_answers"] = Figure("population/population_scale.json", "answers", "{:,}")
 FIGURES["popul_scale_proc_wall"] = Figure("population/population_scale_processes.json", "fit_wall_seconds", "{:.0f}")
 FIGURES["popul_scale_spearman"] = Figure("population/population_scale.json", "spearman_mean_vs_truth", "{:.3f}")
+FIGURES["popul_scale_load"] = Figure("population/population_scale.json", "load_average_start.0", "{:.1f}")
+# issue 47: the mean at inducing items on real people, 10,000 people with their own items, shards that pay
+for _ds, _short in (("electricity", "elec"), ("rail", "rail")):
+    for _k in (0, 1, 2, 4, 8):
+        _at = f"summary.{_ds}.{_k}"
+        FIGURES[f"popul_{_short}_ind_k{_k}"] = Figure(
+            "population/population.json", f"{_at}.population, inducing.accuracy", "{:.3f}"
+        )
+        FIGURES[f"popul_{_short}_gap_k{_k}"] = Figure(
+            "population/population.json", f"{_at}.vs population, inducing.diff", "{:+.4f}"
+        )
+    FIGURES[f"popul_{_short}_ind_M"] = Figure(
+        "population/population.json", f"fits.{_ds}.0.population, inducing.inducing_items"
+    )
+    FIGURES[f"popul_{_short}_N"] = Figure("population/population.json", f"fits.{_ds}.0.population.items", "{:,}")
+    FIGURES[f"popul_{_short}_train"] = Figure("population/population.json", f"fits.{_ds}.0.train_people")
+_OWN = "population/population_scale_own10k.json"
+for _name, _key, _fmt in (
+    ("people", "config.people", "{:,}"),
+    ("items", "distinct_items", "{:,}"),
+    ("answers", "answers", "{:,}"),
+    ("M", "inducing_items", "{}"),
+    ("wall", "fit_wall_seconds", "{:.0f}"),
+    ("cpu", "fit_cpu_seconds", "{:.0f}"),
+    ("load", "load_average_start.0", "{:.1f}"),
+    ("peak", "peak_memory_gb.master", "{:.2f}"),
+    ("before", "peak_memory_before_fit_gb", "{:.2f}"),
+    ("estimate", "memory_estimate_gb", "{:.2f}"),
+    ("spearman", "spearman_mean_vs_truth", "{:.4f}"),
+):
+    FIGURES[f"popul_own_{_name}"] = Figure(_OWN, _key, _fmt)
+_SHARDS = "population/population_shards.json"
+for _i, _people in enumerate((1000, 5000, 20000)):
+    FIGURES[f"popul_shards_{_people}_local"] = Figure(_SHARDS, f"rows.{2 * _i}.s_per_evaluation", "{:.2f}")
+    FIGURES[f"popul_shards_{_people}_dask"] = Figure(_SHARDS, f"rows.{2 * _i + 1}.s_per_evaluation", "{:.2f}")
+    FIGURES[f"popul_shards_{_people}_bytes"] = Figure(_SHARDS, f"rows.{2 * _i + 1}.bytes_per_newton_step", "{:,}")
+FIGURES["popul_shards_eff"] = Figure(_SHARDS, "model.efficiency", "{:.2f}")
+for _k in (2, 4, 8, 16):
+    FIGURES[f"popul_shards_pays_k{_k}"] = Figure(_SHARDS, f"model.pays_from_people.{_k}", "{:,}")
 
 # the quiet speed run's table (docs/speed.md): each task and size against each peer
 for _task in ("mode", "fit", "posterior", "eubo"):

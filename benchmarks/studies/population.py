@@ -2,12 +2,14 @@ r"""Population prior on real people (issue 31): leave-people-out on the electric
 choices (``benchmarks/studies/data``; :mod:`torchpref.experiments.replay` loads them).
 
 People are split into ``--folds`` seeded folds. For each fold, the population is fitted
-(:func:`torchpref.fit_population`, hyperparameters by the evidence) on the other folds' people
-(at most ``--train-people`` of them, a seeded sample, all their choices). Each person of the fold
-with at least 8 choices left after holding out a third (at least 3) is then scored on the held-out
-choices after revealing k = 0, 1, 2, 4, 8 of their own choices (a seeded order), by
+(:func:`torchpref.fit_population`, hyperparameters by the evidence) on all the other folds' people
+(``--train-people`` caps them, a seeded sample; by default all), all their choices. Each person of
+the fold with at least 8 choices left after holding out a third (at least 3) is then scored on the
+held-out choices after revealing k = 0, 1, 2, 4, 8 of their own choices (a seeded order), by
 
-* **population**: ``pop.person_model(their items + k answers)``;
+* **population**: ``pop.person_model(their items + k answers)``, the exact fit (the mean at every
+  distinct training item);
+* **population, inducing**: the same with the mean at ``--inducing`` inducing items (issue 47);
 * **own GP**: the person's own GP of the replay study (RBF lengthscale ``sqrt(d)/2``,
   outputscale 1, ``sigma_R = 1``, fixed) on the k answers;
 * **pooled**: one GP of every training answer pooled as if one person's (kernel ``k_m + k_g``
@@ -38,7 +40,7 @@ from torchpref.experiments.replay import Person, load, score
 from torchpref.models.kernels import fixed_rbf_kernel
 
 KS = (0, 1, 2, 4, 8)
-METHODS = ("population", "own GP", "pooled")
+METHODS = ("population", "population, inducing", "own GP", "pooled")
 DATA = Path(__file__).resolve().parent / "data"
 OUT = Path(__file__).resolve().parents[1] / "results" / "population"
 
@@ -68,7 +70,7 @@ def own_gp(p: Person, choices) -> torchpref.PreferenceGP:
 
 def pooled_gp(pop, train: list[Person]) -> torchpref.PreferenceGP:
     """All training answers on the distinct items, as one person's."""
-    U = pop.U
+    U = torch.unique(torch.cat([p.X for p in train]), dim=0)
     rows = []
     for p in train:
         idx = [int((U == x).all(-1).nonzero()[0]) for x in p.X]
@@ -77,27 +79,34 @@ def pooled_gp(pop, train: list[Person]) -> torchpref.PreferenceGP:
     return torchpref.PreferenceGP(U, torch.tensor(rows), covar_module=kernel, comparison_noise=1.0)
 
 
-def run_fold(name, people, test, train, seed, max_iter) -> list[dict]:
-    t0 = time.time()
-    pop = torchpref.fit_population([person_data(p, p.choices) for p in train], max_iter=max_iter)
-    fit_s = time.time() - t0
-    pooled = pooled_gp(pop, train)
+def fit_both(train: list[Person], max_iter: int, inducing: int) -> tuple[dict, dict]:
+    """The exact population and the one with its mean at ``inducing`` items, and their fit stats."""
+    data = [person_data(p, p.choices) for p in train]
+    pops, stats = {}, {}
+    for method, where in (("population", None), ("population, inducing", inducing)):
+        t0 = time.time()
+        pops[method] = torchpref.fit_population(data, max_iter=max_iter, inducing=where)
+        stats[method] = dict(seconds=round(time.time() - t0, 1), **pops[method].stats)
+    return pops, stats
+
+
+def run_fold(name, people, test, train, seed, max_iter, inducing) -> tuple[list[dict], dict]:
+    pops, stats = fit_both(train, max_iter, inducing)
+    pooled = pooled_gp(pops["population"], train)
     out = []
     for p in test:
         held, pool = split(p, seed)
         if len(pool) < max(KS):
             continue
         for k in KS:
-            models = {"population": pop.person_model(person_data(p, pool[:k])), "own GP": own_gp(p, pool[:k])}
+            models = {m: pop.person_model(person_data(p, pool[:k])) for m, pop in pops.items()}
+            models["own GP"] = own_gp(p, pool[:k])
             models["pooled"] = pooled
             for method, model in models.items():
                 acc, loss, _ = score(model, p.X, held)
                 out.append(dict(dataset=name, person=p.pid, k=k, method=method, accuracy=acc, log_loss=loss))
-    print(
-        f"{name}: fold of {len(test)} people, population of {len(train)} fitted in {fit_s:.1f} s ({pop.stats})",
-        flush=True,
-    )
-    return out
+    print(f"{name}: fold of {len(test)} people, population of {len(train)}: {stats}", flush=True)
+    return out, stats
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -112,7 +121,7 @@ def summarise(rows: list[dict]) -> dict:
             entry: dict = {"people": len(people)}
             for m in METHODS:
                 entry[m] = {x: sum(here[(pid, m)][x] for pid in people) / len(people) for x in ("accuracy", "log_loss")}
-            for base in ("own GP", "pooled"):
+            for base in ("own GP", "pooled", "population, inducing"):
                 d = [here[(pid, "population")]["accuracy"] - here[(pid, base)]["accuracy"] for pid in people]
                 nz = [x for x in d if abs(x) > 1e-12]
                 p = float(stats.wilcoxon(nz).pvalue) if len(nz) >= 5 else float("nan")
@@ -149,8 +158,14 @@ def main() -> int:
     ap.add_argument(
         "--train-people",
         nargs="+",
-        default=["electricity=1000", "rail=100"],
-        help="per data set, the most training people a population is fitted on (name=count)",
+        default=[],
+        help="per data set, the most training people a population is fitted on (name=count; default all)",
+    )
+    ap.add_argument(
+        "--inducing",
+        nargs="+",
+        default=["electricity=16", "rail=256"],
+        help="per data set, the inducing items of the inducing population (name=M)",
     )
     ap.add_argument("--max-iter", type=int, default=40)
     ap.add_argument("--seed", type=int, default=0)
@@ -162,6 +177,7 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     start, load0 = time.time(), os.getloadavg()[0]
     rows: list[dict] = []
+    fits: dict[str, list] = {}
     for ds in args.datasets:
         people = load(ds, DATA)
         perm = torch.randperm(len(people), generator=torch.Generator().manual_seed(args.seed)).tolist()
@@ -169,9 +185,12 @@ def main() -> int:
         for f in range(args.folds):
             others = [p for g, fold in enumerate(folds) if g != f for p in fold]
             pick = torch.randperm(len(others), generator=torch.Generator().manual_seed(args.seed + f))
-            cap = int(dict(x.split("=") for x in args.train_people).get(ds, 100))
+            cap = int(dict(x.split("=") for x in args.train_people).get(ds, len(others)))
             train = [others[i] for i in sorted(pick[:cap].tolist())]
-            rows += run_fold(ds, people, folds[f], train, args.seed, args.max_iter)
+            M = int(dict(x.split("=") for x in args.inducing)[ds])
+            fold_rows, stats = run_fold(ds, people, folds[f], train, args.seed, args.max_iter, M)
+            rows += fold_rows
+            fits.setdefault(ds, []).append(dict(fold=f, train_people=len(train), **stats))
     summary = summarise(rows)
     with open(out / "population_rows.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
@@ -179,26 +198,37 @@ def main() -> int:
         w.writerows(rows)
     with open(out / "population.csv", "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["dataset", "k", "people", *[f"{m} accuracy" for m in METHODS], "p vs own GP", "p vs pooled"])
+        w.writerow(
+            [
+                "dataset",
+                "k",
+                "people",
+                *[f"{m} accuracy" for m in METHODS],
+                "p vs own GP",
+                "p vs pooled",
+                "inducing - exact",
+            ]
+        )
         for ds, per in summary.items():
             for k in KS:
                 e = per[str(k)]
                 accs = [round(e[m]["accuracy"], 4) for m in METHODS]
-                w.writerow([ds, k, e["people"], *accs, e["vs own GP"]["p"], e["vs pooled"]["p"]])
+                gap = round(e["population, inducing"]["accuracy"] - e["population"]["accuracy"], 4)
+                w.writerow([ds, k, e["people"], *accs, e["vs own GP"]["p"], e["vs pooled"]["p"], gap])
     meta = dict(vars(args), seconds=round(time.time() - start, 1), cpu_count=os.cpu_count())
     meta["load_average_start_end"] = [round(load0, 2), round(os.getloadavg()[0], 2)]
     from torchpref.experiments.results import write_json
 
     write_json(
         out / "population.json",
-        {"meta": meta, "summary": summary},
+        {"meta": meta, "summary": summary, "fits": fits},
         measured="harness: benchmarks/studies/population.py",
     )
     plot(summary, out / "population.png")
     for ds, per in summary.items():
         for k in KS:
             e = per[str(k)]
-            accs = "  ".join(f"{m} {e[m]['accuracy']:.3f}" for m in METHODS)
+            accs = "  ".join(f"{m} {e[m]['accuracy']:.4f}" for m in METHODS)
             print(f"{ds} k={k}: {accs}  p(own)={e['vs own GP']['p']:.3g} p(pooled)={e['vs pooled']['p']:.3g}")
     return 0
 

@@ -1,5 +1,6 @@
 """The population's evidence over shards of people on an executor: the same value, gradient and
-fitted model as in process (threads here; processes and a local Dask cluster where available)."""
+fitted model as in process (threads here; processes and a local Dask cluster where available),
+through the same Newton loop, with O(M^2) numbers per Newton step crossing."""
 
 import importlib.util
 import multiprocessing
@@ -8,12 +9,16 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 import pytest
 import torch
 
+import torchpref.population.joint as joint
 from torchpref.data.preference_data import PreferenceData
-from torchpref.models.defaults import PreferenceLikelihood, default_covar_module
-from torchpref.population.fit import _Kernels, _objective, check_people, fit_population, population_layout
-from torchpref.population.shards import ShardedProblem, shard_layouts, sharded_objective
+from torchpref.models.defaults import default_covar_module
+from torchpref.population.fit import check_people, fit_population, population_objective
 
 D = torch.float64
+NEEDS_DASK = pytest.mark.skipif(
+    importlib.util.find_spec("distributed") is None,
+    reason="dask.distributed is not installed (the 'dask' extra): no local Dask cluster to run on",
+)
 
 
 def _kernels():
@@ -31,29 +36,60 @@ def _person(seed, ratings=False):
     return PreferenceData.create(X, C)
 
 
-def _people():
+def _people(count=5):
     shared = _person(3).train_X[:4]
     extra = _person(9)
     mixed = PreferenceData.create(torch.cat([shared, extra.train_X[:3]]), extra.comparisons[:3])
-    return check_people([_person(s, ratings=s % 2 == 0) for s in range(5)] + [mixed])
+    return check_people([_person(s, ratings=s % 2 == 0) for s in range(count)] + [mixed])
 
 
+def _value_and_gradient(people, inducing, executor=None, shards=None):
+    objective, _ = population_objective(people, *_kernels(), inducing=inducing, executor=executor, shards=shards)
+    loss = objective()
+    return float(loss), torch.autograd.grad(loss, list(objective.kernels.parameters())), objective
+
+
+@pytest.mark.parametrize("inducing", [None, 12])
 @pytest.mark.parametrize("shards", [1, 2, 4])
-def test_sharded_value_and_gradient_are_the_in_process_ones(shards):
+def test_sharded_value_and_gradient_are_the_in_process_ones(shards, inducing):
     people = _people()
-    lik = PreferenceLikelihood.create(1.0, 1.0, 80.0, False, 0.1).double()
-    kernels = _Kernels(*_kernels())
-    params = list(kernels.parameters())
-    here = _objective(kernels, population_layout(people, lik), {})
-    g_here = torch.autograd.grad(here, params)
-    U, parts = shard_layouts(people, lambda ps: population_layout(ps, lik), shards)
-    assert len(parts) == min(shards, len(people))
+    here, g_here, _ = _value_and_gradient(people, inducing)
     with ThreadPoolExecutor(2) as ex:
-        there = sharded_objective(ShardedProblem(U, parts, ex), kernels, {})
-        g_there = torch.autograd.grad(there, params)
-    assert float(there) == pytest.approx(float(here), abs=1e-8)
+        there, g_there, objective = _value_and_gradient(people, inducing, ex, shards)
+    assert len(objective.problem.handles) == min(shards, len(people))
+    assert there == pytest.approx(here, abs=1e-8)
     for a, b in zip(g_here, g_there):
         torch.testing.assert_close(b, a, rtol=1e-6, atol=1e-8)
+
+
+def test_in_process_and_sharded_fits_run_the_same_newton_loop(monkeypatch):
+    """One loop: joint.newton is what both paths call (counted), with a Host in between."""
+    calls = []
+    original = joint.newton
+
+    def counted(problem, start, max_iter=100):
+        calls.append(type(problem.host).__name__)
+        return original(problem, start, max_iter)
+
+    monkeypatch.setattr("torchpref.population.fit.newton", counted)
+    fit_population(_people(), max_iter=2)
+    with ThreadPoolExecutor(2) as ex:
+        fit_population(_people(), max_iter=2, executor=ex, shards=2)
+    assert "InProcess" in calls and "OnExecutor" in calls
+
+
+def test_a_newton_step_sends_order_M_squared_numbers_whatever_the_people():
+    """Bytes per Newton step on 2 shards: the same (to the last step's extra S) for 12 and for 60
+    people with their own items (the M x M blocks and M-vectors), not growing with the people."""
+    per_step = []
+    for count in (12, 60):
+        people = [_person(100 + s, ratings=True) for s in range(count)]
+        with ThreadPoolExecutor(2) as ex:
+            pop = fit_population(people, fit=False, inducing=10, executor=ex, shards=2)
+        per_step.append(pop.stats["bytes_per_newton_step"])
+    M = 10
+    bound = 2 * 8 * (2 * M * M + 5 * M + 8)  # 2 shards: S_s (twice at the last step), ga, coupled, a, da, scalars
+    assert max(per_step) <= bound and abs(per_step[1] - per_step[0]) <= 0.1 * per_step[0]
 
 
 def _same_population(a, b, tol):
@@ -92,15 +128,16 @@ def test_a_forking_process_pool_is_refused_by_name():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(
-    importlib.util.find_spec("distributed") is None,
-    reason="dask.distributed is not installed (the 'dask' extra): no local Dask cluster to run on",
-)
+@NEEDS_DASK
 def test_sharded_fit_on_a_local_dask_cluster():
+    """Dask's executor (and the client itself): the in-process fit, the shards' states kept on the
+    workers (only summaries gathered: O(M^2) bytes per Newton step, as in process)."""
     from distributed import Client, LocalCluster
 
     people = _people()
-    here = fit_population(people, max_iter=10)
+    here = fit_population(people, max_iter=10, inducing=12)
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True) as cluster, Client(cluster) as client:
-        there = fit_population(people, max_iter=10, executor=client.get_executor(), shards=2)
+        there = fit_population(people, max_iter=10, inducing=12, executor=client.get_executor(), shards=2)
+        direct = fit_population(people, fit=False, inducing=12, executor=client, shards=2)
     _same_population(here, there, 1e-4)
+    assert direct.stats["bytes_per_newton_step"] <= 2 * 8 * (2 * 12 * 12 + 5 * 12 + 8)

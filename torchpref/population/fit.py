@@ -4,14 +4,20 @@ The population mean ``m ~ GP(0, k_m)`` and each person's deviation ``g_p ~ GP(0,
 fitted together: the hyperparameters of both kernels (``k_m``'s lengthscales and outputscale; ``k_g``'s
 lengthscales and its outputscale ``s^2``, the between-person spread) maximise the Laplace
 evidence of **all** people's answers plus the kernels' hyperparameter priors, the joint mode
-solved exactly through the problem's structure (:mod:`torchpref.population.joint`).
+solved through the problem's structure (:mod:`torchpref.population.joint`), in process or over
+shards of people on an executor, by one Newton loop. The mean is represented at every distinct
+item (exact) up to :data:`EXACT_ITEMS` of them, and at :data:`DEFAULT_INDUCING` inducing items
+above (:mod:`torchpref.population.inducing`); the population records which.
 """
 
 from __future__ import annotations
 
+import logging
+import math
 import numbers
 from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -21,67 +27,28 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from torchpref.data.preference_data import PreferenceData
-from torchpref.inference.padding import PaddedData
+from torchpref.inference.numerics import cholesky_jittered
 from torchpref.models.defaults import PreferenceLikelihood, default_covar_module
-from torchpref.population.joint import Factors, Layout, evidence, find_mode
+from torchpref.population.hosts import host_for, workers_of
+from torchpref.population.inducing import METHODS, choose_items
+from torchpref.population.joint import Gradient, Shards, newton
+from torchpref.population.memory import ShardSize, check_memory, estimate_peak, gigabytes, shard_transient
 from torchpref.population.model import Population
+from torchpref.population.people import Items, by_rows, check_people, shard_bounds, shard_data, warn_outside_unit_cube
 from torchpref.population.prior import _dense
-from torchpref.population.shards import ShardedProblem, shard_layouts, sharded_objective
+from torchpref.population.shards import Basis
 
-__all__ = ["fit_population", "check_people", "population_layout"]
+__all__ = ["fit_population", "check_people", "EXACT_ITEMS", "DEFAULT_INDUCING"]
 
+#: ``inducing="auto"`` represents the mean at every distinct item up to this many of them.
+EXACT_ITEMS = 2000
+#: ``inducing="auto"``'s number of inducing items above :data:`EXACT_ITEMS` distinct items.
+DEFAULT_INDUCING = 256
+#: In process, people are split into shards so that one shard's gradient holds at most about
+#: this many bytes at once (the shards are worked one after another).
+SHARD_BYTES = 2**29
 
-def check_people(people: Any) -> list[PreferenceData]:
-    """``people`` as a list of float64 :class:`~torchpref.data.preference_data.PreferenceData`.
-
-    Raises:
-        ValueError: naming the problem: not a sequence, empty, an entry that is not a
-            ``PreferenceData``, feature dimensions that differ, items that are not finite,
-            ratings of different kinds (Beta and levels, or different numbers of levels), or no
-            answers at all.
-    """
-    if isinstance(people, (PreferenceData, str, bytes)) or not isinstance(people, Sequence):
-        raise ValueError(f"people must be a sequence of PreferenceData, one per person; got {type(people).__name__}.")
-    if len(people) == 0:
-        raise ValueError("people is empty: a population needs at least one person's PreferenceData.")
-    out = []
-    for i, p in enumerate(people):
-        if not isinstance(p, PreferenceData):
-            raise ValueError(f"people[{i}] must be a PreferenceData, got {type(p).__name__}.")
-        X = p.train_X
-        if X.dim() != 2 or X.shape[-1] != people[0].train_X.shape[-1]:
-            raise ValueError(
-                f"people[{i}] has items of shape {tuple(X.shape)}: every person's items must have "
-                f"d = {people[0].train_X.shape[-1]} features (people[0]'s)."
-            )
-        if not bool(torch.isfinite(X).all()):
-            bad = X[~torch.isfinite(X)][:3].tolist()
-            raise ValueError(f"people[{i}] has items that are not finite (such as {bad}).")
-        if p.rating_levels != people[0].rating_levels:
-            raise ValueError(
-                f"people[{i}] has rating_levels={p.rating_levels}, people[0] {people[0].rating_levels}: "
-                "a population's ratings are all Beta (None) or all levels of one scale."
-            )
-        out.append(p.to(dtype=torch.float64))
-    if sum(p.num_observations for p in out) == 0:
-        raise ValueError("the population has no answers: fit_population needs comparisons or ratings.")
-    return out
-
-
-def population_layout(people: Sequence[PreferenceData], likelihood: PreferenceLikelihood) -> Layout:
-    """The distinct items of all people and each person's items as rows of them (:class:`Layout`)."""
-    X_all = torch.cat([p.train_X for p in people])
-    U, inverse = torch.unique(X_all, dim=0, return_inverse=True)
-    padded = PaddedData.stack(people)
-    n = padded.num_items
-    index = torch.zeros(len(people), n, dtype=torch.long)
-    start = 0
-    for k, p in enumerate(people):
-        index[k, : p.n] = inverse[start : start + p.n]
-        start += p.n
-    mask = padded.item_mask if padded.item_mask is not None else torch.ones(len(people), n, dtype=torch.bool)
-    obs = padded.observations(likelihood.comparison, likelihood.rating, likelihood.tie)
-    return Layout(U, padded.X, index, mask, obs)
+log = logging.getLogger("torchpref.population")
 
 
 class _Kernels(Module):
@@ -91,9 +58,6 @@ class _Kernels(Module):
         super().__init__()
         self.k_m, self.k_g = k_m, k_g
 
-    def functions(self) -> tuple[Callable[[Tensor, Tensor], Tensor], Callable[[Tensor, Tensor], Tensor]]:
-        return (lambda A, B: _dense(self.k_m, A, B)), (lambda A, B: _dense(self.k_g, A, B))
-
     def log_prior(self) -> Tensor:
         out = torch.zeros((), dtype=torch.float64)
         for _, module, prior, closure, _ in self.named_priors():
@@ -101,17 +65,172 @@ class _Kernels(Module):
         return out
 
 
-def _objective(kernels: _Kernels, layout: Layout, state: dict) -> Tensor:
-    """``-(evidence + log priors)``, the mode re-solved (warm-started) at the current values."""
-    k_m, k_g = kernels.functions()
-    with torch.no_grad():
-        F = Factors.build(layout, k_m, k_g, state.get("factors"))
-        mode = find_mode(layout, F, state.get("start"))
-    state.update(factors=F, start=(mode.point.a, mode.point.b), mode=mode)
-    state.update(L_U=F.L_U, a=mode.point.a, S_chol=mode.hessian.S_chol)
-    value = evidence(layout, F.traced(layout, k_m, k_g), mode)
-    state["evidence"] = float(value.detach())
-    return -(value + kernels.log_prior())
+def _free(k: Module) -> list[Tensor]:
+    return [p for p in k.parameters() if p.requires_grad]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The fit laid out before anything large is allocated: the people's distinct items, the
+    rows of ``U`` the mean is represented at (``z_rows``; all of them for ``exact``), the shards'
+    people and sizes, and the estimated peak memory."""
+
+    items: Items
+    exact: bool
+    method: str
+    z_rows: Tensor
+    bounds: list[tuple[int, int]]
+    sizes: list[ShardSize]
+    peak: int
+
+    @property
+    def M(self) -> int:
+        return int(self.z_rows.shape[0])
+
+    def describe(self) -> str:
+        N, P = self.items.U.shape[0], len(self.items.offsets) - 1
+        mean = f"exact mean at all N = {N} items" if self.exact else f"mean at M = {self.M} of N = {N} items"
+        n = max(s.items for s in self.sizes)
+        return f"{P} people, n <= {n} items each, {mean}, {len(self.sizes)} shard(s); peak about {gigabytes(self.peak)}"
+
+
+def _sizes(items: Items, bounds: list[tuple[int, int]], M: int) -> list[ShardSize]:
+    out = []
+    for start, stop in bounds:
+        ids = items.ids[int(items.offsets[start]) : int(items.offsets[stop])]
+        P, N_s = stop - start, int(torch.unique(ids).shape[0])
+        n = int((items.offsets[start + 1 : stop + 1] - items.offsets[start:stop]).max())
+        out.append(ShardSize(P, n, N_s, by_rows(P, n, N_s, M)))
+    return out
+
+
+def _shard_count(items: Items, M: int, executor: Any, shards: Any) -> int:
+    """The number of shards: ``shards`` if given; else, on an executor, two per worker; and at
+    least enough that one shard's work fits :data:`SHARD_BYTES`."""
+    if shards is not None:
+        if isinstance(shards, bool) or not isinstance(shards, numbers.Integral) or shards < 1:
+            raise ValueError(f"shards must be a positive integer, got {shards!r}.")
+        return int(shards)
+    P = len(items.offsets) - 1
+    one = _sizes(items, [(0, P)], M)[0]
+    k = math.ceil(8 * shard_transient(one, M) / SHARD_BYTES)
+    if executor is not None:
+        k = max(k, 2 * (workers_of(executor) or 2))
+    return max(1, min(k, P))
+
+
+def plan_fit(
+    people: Sequence[PreferenceData],
+    inducing: Any,
+    method: str,
+    k_m: Kernel,
+    executor: Any,
+    shards: Any,
+    memory_limit: int | None,
+) -> Plan:
+    """The :class:`Plan` of a fit, refused (naming the estimate and the way out) where its peak
+    would exceed ``memory_limit``."""
+    items = Items.of(people)
+    N, d = items.U.shape
+    exact = inducing is None or (inducing == "auto" and N <= EXACT_ITEMS)
+    M = min(N if exact else (DEFAULT_INDUCING if inducing == "auto" else int(inducing)), N)
+    bounds = shard_bounds(len(people), _shard_count(items, M, executor, shards))
+    sizes = _sizes(items, bounds, M)
+    peak = estimate_peak(sizes, N, M, d)
+    what = f"{len(people)} people, N = {N} distinct items, the mean at M = {M} of them"
+    alt = min(DEFAULT_INDUCING, max(N // 4, 1)) if exact or M > DEFAULT_INDUCING else max(M // 2, 1)
+    alt_peak = estimate_peak(_sizes(items, bounds, alt), N, alt, d)
+    check_memory(peak, memory_limit, what, f"fit with inducing={alt} (about {gigabytes(alt_peak)}) or fewer people")
+    rows = torch.arange(N) if exact else choose_items(items.U, M, method, k_m)
+    return Plan(items, exact, "exact" if exact else method, rows, bounds, sizes, peak)
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One evaluation of the evidence: its value, the mode's ``a`` and Schur factor, and ``L_Z``
+    (with its jitter); the shards' states are not kept here (they rest in :class:`Shards`)."""
+
+    evidence: float
+    a: Tensor
+    S_chol: Tensor
+    L_Z: Tensor
+    jitter: float
+
+
+@dataclass
+class Counters:
+    """Evaluations, Newton steps, and the bytes crossing to and from the shards during Newton's
+    steps (the per-step figure) and otherwise (each evaluation's start and gradient)."""
+
+    evaluations: int = 0
+    newton_steps: int = 0
+    newton_bytes: int = 0
+    other_bytes: int = 0
+
+
+class Objective:
+    """``-(evidence + log priors)`` of the kernels' hyperparameters, with its gradient; the mode
+    re-solved at each evaluation from the last one's (``settings``: the likelihoods')."""
+
+    def __init__(self, kernels: _Kernels, Z: Tensor, problem: Shards, settings: dict[str, Any]):
+        self.kernels, self.Z, self.problem, self.settings = kernels, Z, problem, settings
+        self.last: Evaluation | None = None
+        self.counters = Counters()
+
+    def __call__(self, with_gradient: bool = True) -> Tensor:
+        k, last, traffic, c = self.kernels, self.last, self.problem.host.traffic, self.counters
+        with torch.no_grad():
+            K = _dense(k.k_m, self.Z, self.Z)
+            L_Z, jitter = cholesky_jittered(K, None if last is None else last.jitter, "k_m(Z, Z)")
+            a0 = L_Z.new_zeros(L_Z.shape[-1]) if last is None else self._warm(last, L_Z)
+            b0 = traffic.total
+            start = self.problem.start(Basis(self.Z, L_Z, k.k_m, k.k_g), a0)
+            b1 = traffic.total
+            mode = newton(self.problem, start)
+            c.newton_steps, c.newton_bytes = c.newton_steps + mode.iterations, c.newton_bytes + traffic.total - b1
+            value = mode.evidence()
+            assert mode.hessian.S_chol is not None  # a mode's Hessian is factorised
+            b2 = traffic.total
+            grad = self.problem.gradient(mode) if with_gradient else None
+            c.other_bytes += (b1 - b0) + (traffic.total - b2)
+        c.evaluations += 1
+        self.problem.keep(mode)
+        self.last = Evaluation(float(value), mode.point.a, mode.hessian.S_chol, L_Z, jitter)
+        loss = -(value + k.log_prior())
+        return loss if grad is None else loss - self._linear(grad, jitter)
+
+    @staticmethod
+    def _warm(last: Evaluation, L_Z: Tensor) -> Tensor:
+        """The last mode's ``a`` for the new ``L_Z``: the same mean at ``Z``, ``L_Z^{-1} m(Z)``."""
+        u = last.L_Z @ last.a.unsqueeze(-1)
+        return torch.linalg.solve_triangular(L_Z, u, upper=False).squeeze(-1)
+
+    def _linear(self, grad: Gradient, jitter: float) -> Tensor:
+        """``T - T.detach()``: the gradient's values on the kernels' parameters, ``L_Z`` chained
+        through ``k_m`` by autograd here."""
+        k = self.kernels
+        K = _dense(k.k_m, self.Z, self.Z)
+        L = torch.linalg.cholesky(K + jitter * torch.eye(K.shape[-1], dtype=K.dtype, device=K.device))
+        T = (L * grad.L_Z).sum()
+        for p, g in zip(_free(k.k_m), grad.k_m):
+            T = T + (p * g).sum()
+        for p, g in zip(_free(k.k_g), grad.k_g):
+            T = T + (p * g).sum()
+        return T - T.detach()
+
+
+def _lbfgs(loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, bar: Any) -> None:
+    """Minimise ``loss_fn()`` in ``params`` with L-BFGS (strong Wolfe line search)."""
+    opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_change=1e-9)
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        bar.update()
+        return loss
+
+    opt.step(closure)
 
 
 def _refuse_fork(executor: Any) -> None:
@@ -125,33 +244,49 @@ def _refuse_fork(executor: Any) -> None:
         )
 
 
-def _objective_on(people: list[PreferenceData], likelihood: PreferenceLikelihood, executor: Any, shards: Any) -> Any:
-    """:func:`_objective` in process, or over shards of people on ``executor``."""
-    if executor is None:
-        return _objective
-    _refuse_fork(executor)
-    k = shards if shards is not None else 2 * getattr(executor, "_max_workers", 2)
-    if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
-        raise ValueError(f"shards must be a positive integer, got {shards!r}.")
-    U, parts = shard_layouts(people, lambda ps: population_layout(ps, likelihood), int(k))
-    problem = ShardedProblem(U, parts, executor)
-    return lambda kern, _, st: sharded_objective(problem, kern, st)
+def _check_settings(people: list[PreferenceData], names: Any, max_iter: Any, inducing: Any, method: Any) -> None:
+    d = people[0].train_X.shape[-1]
+    if names is not None and (isinstance(names, str) or len(names) != d):
+        raise ValueError(f"feature_names must name the {d} features, got {names!r}.")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}.")
+    integer = isinstance(inducing, numbers.Integral) and not isinstance(inducing, bool)
+    if not (inducing is None or inducing == "auto" or (integer and inducing >= 1)):
+        raise ValueError(f"inducing must be 'auto', None (exact) or a positive integer, got {inducing!r}.")
+    if method not in METHODS:
+        raise ValueError(f"inducing_method must be one of {list(METHODS)}, got {method!r}.")
 
 
-def _lbfgs(loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, progress: bool) -> None:
-    """Minimise ``loss_fn()`` in ``params`` with L-BFGS (strong Wolfe line search)."""
-    opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_change=1e-9)
-    bar = tqdm(total=max_iter, desc="fit_population", disable=not progress, mininterval=5)
+def _likelihood(
+    people: Sequence[PreferenceData], noise: float, scale: float, precision: float
+) -> tuple[PreferenceLikelihood, dict[str, Any]]:
+    values = {"comparison_noise": float(noise), "rating_scale": float(scale), "rating_precision": float(precision)}
+    for key, value in values.items():
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{key} must be a finite positive number, got {value!r}.")
+    levels = people[0].rating_levels
+    lik = PreferenceLikelihood.create(float(noise), float(scale), float(precision), False, 0.1, levels)
+    return lik.double(), {**values, "rating_levels": levels}
 
-    def closure() -> Tensor:
-        opt.zero_grad()
-        loss = loss_fn()
-        loss.backward()
-        bar.update()
-        return loss
 
-    opt.step(closure)
-    bar.close()
+def _stats(people: list[PreferenceData], plan: Plan, objective: Objective) -> dict[str, Any]:
+    assert objective.last is not None  # evaluated at least once
+    c = objective.counters
+    return dict(
+        people=len(people),
+        items=int(plan.items.U.shape[0]),
+        answers=sum(p.num_observations for p in people),
+        evidence=objective.last.evidence,
+        mean="exact" if plan.exact else "inducing",
+        inducing_items=plan.M,
+        inducing_method=plan.method,
+        shards=len(plan.bounds),
+        memory_estimate_bytes=plan.peak,
+        evaluations=c.evaluations,
+        newton_steps=c.newton_steps,
+        bytes_per_newton_step=round(c.newton_bytes / max(c.newton_steps, 1)),
+        bytes_per_evaluation_besides=round(c.other_bytes / max(c.evaluations, 1)),
+    )
 
 
 def fit_population(
@@ -164,9 +299,13 @@ def fit_population(
     rating_precision: float = 80.0,
     fit: bool = True,
     max_iter: int = 100,
+    feature_names: Sequence[str] | None = None,
     names: Sequence[str] | None = None,
+    inducing: int | str | None = "auto",
+    inducing_method: str = "kmeans",
+    memory_limit: int | None = None,
     progress: bool = False,
-    executor: Executor | None = None,
+    executor: Executor | Any | None = None,
     shards: int | None = None,
 ) -> Population:
     r"""The population of ``people`` (one :class:`~torchpref.data.preference_data.PreferenceData` each;
@@ -180,52 +319,99 @@ def fit_population(
             :class:`~torchpref.PreferenceGP`'s (ordinal people: ``rating_levels`` from the data).
         fit: optimise the kernels' hyperparameters (L-BFGS on the evidence); ``False`` keeps them.
         max_iter: L-BFGS iterations.
-        names: the features' names (the objective space), kept with the population so that a
-            file of it is refused for items of another space.
-        progress: show a progress bar over the evidence evaluations (tqdm).
+        feature_names: the features' names (the objective space), kept with the population (and
+            its file) so that it is refused for items of another space. ``names``: the same.
+        inducing: where the mean is represented. ``"auto"``: at every distinct item (exact) up to
+            :data:`EXACT_ITEMS` of them, else at :data:`DEFAULT_INDUCING` inducing items;
+            ``None``: exact; an integer ``M``: at ``M`` inducing items. ``pop.stats["mean"]`` says
+            which was used.
+        inducing_method: ``"kmeans"`` or ``"variance"`` (:mod:`torchpref.population.inducing`).
+        memory_limit: the most bytes the fit may plan to use (default 75% of the machine's
+            memory): a fit whose estimated peak is larger is refused before anything large is
+            allocated.
+        progress: show a progress bar over the evidence evaluations (tqdm); its first line
+            states the problem's sizes and the estimated peak memory.
         executor: a ``concurrent.futures.Executor`` (threads, processes, or Dask's
-            ``Client.get_executor()``): the evidence and its gradient are computed over ``shards``
-            shards of people on it (:mod:`torchpref.population.shards`), the same model as in
-            process to the optimiser's tolerance. A process pool must spawn, not fork
+            ``Client.get_executor()``, or the Dask ``Client``): the evidence and its gradient are
+            computed over ``shards`` shards of people on it, by the same Newton loop as in
+            process. On Dask each shard's state stays on its worker and a Newton step sends
+            ``O(M^2)`` numbers per shard. A process pool must spawn, not fork
             (``mp_context=multiprocessing.get_context("spawn")``): a forking one is refused.
-        shards: the number of shards (default: 2 per worker where the executor says, else 4).
+        shards: the number of shards (default: 2 per worker on an executor; in process, as many
+            as keep one shard's work within :data:`SHARD_BYTES`).
 
     Returns:
         a :class:`~torchpref.population.model.Population`.
 
     Raises:
-        ValueError: bad people (:func:`check_people`) or settings, naming the value.
+        ValueError: bad people (:func:`check_people`) or settings, naming the value; an estimated
+            peak memory above ``memory_limit``, naming both and the way out.
     """
     people = check_people(people)
-    if names is not None and len(names) != people[0].train_X.shape[-1]:
-        raise ValueError(f"names must name the {people[0].train_X.shape[-1]} features, got {list(names)}.")
-    if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}.")
-    d = people[0].train_X.shape[-1]
-    settings = dict(
-        comparison_noise=float(comparison_noise),
-        rating_scale=float(rating_scale),
-        rating_precision=float(rating_precision),
-        rating_levels=people[0].rating_levels,
+    if names is not None and feature_names is not None and list(names) != list(feature_names):
+        raise ValueError(f"names {list(names)} and feature_names {list(feature_names)} differ; give one.")
+    feature_names = feature_names if feature_names is not None else names
+    _check_settings(people, feature_names, max_iter, inducing, inducing_method)
+    warn_outside_unit_cube(torch.cat([p.train_X for p in people]))
+    objective, plan = population_objective(
+        people,
+        k_m,
+        k_g,
+        likelihood=(comparison_noise, rating_scale, rating_precision),
+        inducing=inducing,
+        inducing_method=inducing_method,
+        executor=executor,
+        shards=shards,
+        memory_limit=memory_limit,
     )
-    likelihood = PreferenceLikelihood.create(
-        settings["comparison_noise"], settings["rating_scale"], settings["rating_precision"], False, 0.1,
-        settings["rating_levels"],
-    )  # fmt: skip
-    likelihood = likelihood.double()
-    kernels = _Kernels(
-        (k_m if k_m is not None else default_covar_module(d)), (k_g if k_g is not None else default_covar_module(d))
-    ).double()
-    layout = population_layout(people, likelihood)
-    objective = _objective_on(people, likelihood, executor, shards)
-    state: dict = {}
-    params = [p for p in kernels.parameters() if p.requires_grad]
+    params = _free(objective.kernels)
+    bar = tqdm(total=max_iter, desc=f"fit_population: {plan.describe()}", disable=not progress, mininterval=5)
     if fit and params:
-        _lbfgs(lambda: objective(kernels, layout, state), params, max_iter, progress)
+        _lbfgs(objective, params, max_iter, bar)
     with torch.no_grad():
-        objective(kernels, layout, state)
-    stats = dict(people=len(people), items=int(layout.U.shape[0]), answers=sum(p.num_observations for p in people))
-    stats.update(evidence=state["evidence"])
+        objective(with_gradient=False)
+    bar.close()
+    last = objective.last
+    assert last is not None
+    k = objective.kernels
     return Population.from_mode(
-        kernels.k_m, kernels.k_g, layout.U, state["L_U"], state["a"], state["S_chol"], settings, stats, names
+        k.k_m,
+        k.k_g,
+        objective.Z,
+        last.L_Z,
+        last.a,
+        last.S_chol,
+        objective.settings,
+        _stats(people, plan, objective),
+        feature_names,
     )
+
+
+def population_objective(
+    people: Sequence[PreferenceData],
+    k_m: Kernel | None = None,
+    k_g: Kernel | None = None,
+    *,
+    likelihood: tuple[float, float, float] = (1.0, 1.0, 80.0),
+    inducing: int | str | None = "auto",
+    inducing_method: str = "kmeans",
+    executor: Any = None,
+    shards: int | None = None,
+    memory_limit: int | None = None,
+) -> tuple[Objective, Plan]:
+    """The evidence of checked ``people`` as an :class:`Objective` of the kernels' hyperparameters,
+    and the :class:`Plan` it runs (``likelihood``: comparison noise, rating scale and precision;
+    the other settings as :func:`fit_population`'s)."""
+    lik, settings = _likelihood(people, *likelihood)
+    d = people[0].train_X.shape[-1]
+    kernels = _Kernels(
+        k_m if k_m is not None else default_covar_module(d), k_g if k_g is not None else default_covar_module(d)
+    ).double()
+    if executor is not None:
+        _refuse_fork(executor)
+    plan = plan_fit(people, inducing, inducing_method, kernels.k_m, executor, shards, memory_limit)
+    log.info("fit_population: %s", plan.describe())
+    z_pos = torch.full((plan.items.U.shape[0],), -1, dtype=torch.long)
+    z_pos[plan.z_rows] = torch.arange(plan.M)
+    data = [shard_data(people, plan.items, b, lik, z_pos) for b in plan.bounds]
+    return Objective(kernels, plan.items.U[plan.z_rows], Shards(host_for(executor), data), settings), plan

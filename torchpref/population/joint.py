@@ -1,265 +1,238 @@
-r"""The hierarchical Laplace problem of a population, solved exactly through its structure.
+r"""The hierarchical Laplace problem of a population, solved through its structure: one Newton
+loop (:func:`newton`) over a small interface (:class:`JointProblem`), which the shards of people
+implement wherever they live (:class:`Shards` over a :class:`~torchpref.population.hosts.Host`:
+this process, an executor's workers, a Dask cluster).
 
 Person ``p``'s utility is ``f_p(x) = m(x) + g_p(x)``: ``m ~ GP(0, k_m)`` the population's mean
-utility, ``g_p ~ GP(0, k_g)`` the person's deviation (``k_g``'s outputscale is the between-person
-spread ``s^2``), independent across people. The answers touch ``m`` only at the **distinct items**
-``U`` (``N`` rows, deduplicated over everyone) and ``g_p`` only at person ``p``'s items, so the
-exact latent vector is ``z = (u = m(U), g_1, ..., g_P)`` with a block-diagonal prior. In whitened
-coordinates ``u = L_U a``, ``g_p = L_p b_p`` (``L L^T = K + jitter I``) the log posterior is
+utility, ``g_p ~ GP(0, k_g)`` the person's deviation, independent across people. ``m`` is
+represented at ``M`` items ``Z`` (:mod:`torchpref.population.shards`): ``m(Z) = L_Z a``. In
+whitened coordinates ``a`` (``M``) and ``b_p`` (``g_p = L_p b_p``) the log posterior is
 
 .. math::
-    \Psi(a, b) = \sum_p \log p(Y_p \mid S_p L_U a + L_p b_p) - \tfrac12 a^\top a - \tfrac12 \sum_p b_p^\top b_p,
+    \Psi(a, b) = \sum_p \log p(Y_p \mid \Phi_p a + L_p b_p) - \tfrac12 a^\top a - \tfrac12 \sum_p b_p^\top b_p .
 
-with ``S_p`` picking person ``p``'s items from ``U``. Its negative Hessian is an arrow: per-person
-blocks ``H_p = I + L_p^T W_p L_p`` (``n x n``, batched over people), and the ``N x N`` block of
-``a`` couples them. Newton's steps and the log-determinant go through the Schur complement
-``S = I + L_U^T (sum_p S_p^T W~_p S_p) L_U`` with ``W~_p = W_p - W_p L_p H_p^{-1} L_p^T W_p``
-(``= (W_p^{-1} + K_p)^{-1}``), so ``log|H| = sum_p log|H_p| + log|S|``: cost ``P n^3 + N^3``
-per step, not ``(sum_p n_p)^3``. Nothing is approximated beyond Laplace's own approximation.
+Its negative Hessian is an arrow (per-person blocks ``H_p = I + L_p^T W_p L_p`` coupled through the
+``M x M`` block of ``a``); Newton's steps and the log-determinant go through the Schur complement
+``S = I + sum_p Phi_p^T W~_p Phi_p``, so ``log|H| = sum_p log|H_p| + log|S|``: per step
+``P n^3`` for the people, ``M^3`` for ``S`` and ``N M^2`` to form it (``N^2 M`` through a scatter
+where many people share few items), never ``(sum_p n_p)^3``. With ``Z`` every distinct item
+(``M = N``) this is the exact hierarchical model given Laplace; with fewer, the mean is the GP
+given its values at ``Z`` (the person's deviation stays exact).
 
-The evidence ``log p(Y_p | f) - |a|^2 / 2 - |b|^2 / 2 - log|H| / 2`` at the mode is made
-differentiable in the hyperparameters by one Newton step taken with autograd on from the detached
-mode (the implicit-function derivative of the mode, as
-:func:`~torchpref.inference.laplace.traced_mode` does for one person).
-
-The posterior of ``u`` is ``N(L_U a, L_U S^{-1} L_U^T)``, so the population's mean utility at any
-``x`` has mean ``k_m(x, U) L_U^{-T} a`` and covariance ``k_m(x, x') - v^T (I - S^{-1}) v'`` with
-``v = L_U^{-1} k_m(U, x)``: a :class:`~torchpref.inference.laplace.PredictiveCache` of ``(L_U, a, chol S)``.
+The posterior of ``a`` is ``N(a*, S^{-1})`` (Laplace), so the population's mean utility at any
+``x`` has mean ``k_m(x, Z) L_Z^{-T} a*`` (:class:`~torchpref.population.model.Population`).
 """
 
 from __future__ import annotations
 
+import math
 import warnings
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor
 
 from torchpref.inference.laplace import LaplaceConvergenceWarning
-from torchpref.inference.numerics import NotPSDError, batched_cholesky, cholesky_jittered, default_tolerance
-from torchpref.inference.observations import Observations
+from torchpref.inference.numerics import NotPSDError, default_tolerance
 from torchpref.inference.step_rule import STEP_RULE
-
-#: ``kernel(X1, X2)``: a dense prior covariance.
-KernelFn = Callable[[Tensor, Tensor], Tensor]
-
-
-@dataclass(frozen=True)
-class Layout:
-    """The population's data: distinct items ``U`` (``N x d``), the people's items padded to
-    ``n`` (``X``: ``P x n x d``), each item's row of ``U`` (``index``: ``P x n``, 0 for padding),
-    which items are real (``item_mask``, ``P x n``) and the observations of the ``P`` problems."""
-
-    U: Tensor
-    X: Tensor
-    index: Tensor
-    item_mask: Tensor
-    obs: Observations
-
-    @property
-    def num_items(self) -> int:
-        """``n``, the padded number of items per person."""
-        return self.X.shape[-2]
+from torchpref.population.hosts import Host, sum_or_none, summaries
+from torchpref.population.shards import (
+    Basis,
+    ShardData,
+    report,
+    schur_of,
+    shard_cotangent,
+    shard_fisher,
+    shard_gradient,
+    shard_rest,
+    shard_retry,
+    shard_start,
+    shard_step,
+)
 
 
 @dataclass(frozen=True)
-class Factors:
-    """The prior factors: ``L_U`` (``N x N``), ``L_P`` (``P x n x n``) and their jitters."""
-
-    L_U: Tensor
-    L_P: Tensor
-    jitter_U: float
-    jitter_P: Tensor
-
-    @classmethod
-    def build(cls, layout: Layout, k_m: KernelFn, k_g: KernelFn, old: Factors | None = None) -> Factors:
-        """Jittered Cholesky factors of ``k_m(U, U)`` and of each person's ``k_g(X_p, X_p)``
-        (padded items independent, unit variance)."""
-        L_U, j_U = cholesky_jittered(k_m(layout.U, layout.U), None if old is None else old.jitter_U, "k_m(U, U)")
-        L_P, j_P = batched_cholesky(_person_covariance(layout, k_g), "a person's k_g")
-        return cls(L_U, L_P, j_U, j_P)
-
-    def traced(self, layout: Layout, k_m: KernelFn, k_g: KernelFn) -> Factors:
-        """The same factors recomputed with autograd (the jitters kept), differentiable in the kernels."""
-        K_U = k_m(layout.U, layout.U)
-        eye = torch.eye(K_U.shape[-1], dtype=K_U.dtype, device=K_U.device)
-        K_P = _person_covariance(layout, k_g)
-        eye_p = torch.eye(K_P.shape[-1], dtype=K_P.dtype, device=K_P.device)
-        L_U = torch.linalg.cholesky(K_U + self.jitter_U * eye)
-        L_P = torch.linalg.cholesky(K_P + self.jitter_P.to(K_P).reshape(-1, 1, 1) * eye_p)
-        return Factors(L_U, L_P, self.jitter_U, self.jitter_P)
-
-
-def _person_covariance(layout: Layout, k_g: KernelFn) -> Tensor:
-    K = k_g(layout.X, layout.X)
-    m = layout.item_mask
-    K = torch.where(m.unsqueeze(-1) & m.unsqueeze(-2), K, 0.0)
-    return K + torch.diag_embed((~m).to(K))
-
-
-@dataclass(frozen=True)
-class Point:
-    """An iterate: whitened ``a`` (``N``) and ``b`` (``P x n``), ``Psi``, its gradient, the
-    likelihood weights and the utilities ``f`` (``P x n``)."""
+class JointPoint:
+    """An iterate of all shards: ``a`` (``M``), the shards' states (``handles``, where they live),
+    ``psi``, its gradient ``ga`` in ``a``, whether every person's block is positive definite
+    (``pd``), the summed couplings, ``sum_p log|H_p|``, whether the weights are Fisher's for
+    everyone, ``dec`` (the shards' ``g_b^T db`` of the step that led here), and the Schur
+    complement's factor ``S_chol`` once formed (:meth:`JointProblem.hessian`)."""
 
     a: Tensor
-    b: Tensor
+    handles: tuple[Any, ...]
     psi: Tensor
     ga: Tensor
-    gb: Tensor
-    weights: tuple[Tensor, ...]
-    f: Tensor
-
-
-@dataclass(frozen=True)
-class Hessian:
-    """The arrow Hessian factorised: per person ``C = chol(I + L_p^T W_p L_p)``, ``W`` (dense,
-    ``P x n x n``) and the Schur complement's factor ``S_chol`` (``N x N``)."""
-
-    C: Tensor
-    W: Tensor
-    S_chol: Tensor
+    pd: bool
+    coupled: Tensor | None
+    logdet_people: Tensor | None
+    fisher: bool
+    dec: Tensor
+    S_chol: Tensor | None = None
 
     def logdet(self) -> Tensor:
         """``log|H| = sum_p log|H_p| + log|S|``."""
-        d1 = torch.diagonal(self.C, dim1=-2, dim2=-1).log().sum()
-        return 2 * (d1 + torch.diagonal(self.S_chol).log().sum())
-
-
-def _scatter_vector(layout: Layout, r: Tensor, N: int) -> Tensor:
-    """``sum_p S_p^T r_p`` (``N``) for per-person values ``r`` (``P x n``, zero on padding)."""
-    return r.new_zeros(N).index_add(0, layout.index.reshape(-1), r.reshape(-1))
-
-
-def evaluate(layout: Layout, F: Factors, a: Tensor, b: Tensor, fisher: bool = False) -> Point:
-    """``Psi`` and its gradient at ``(a, b)``."""
-    u = F.L_U @ a
-    f = u[layout.index] + (F.L_P @ b.unsqueeze(-1)).squeeze(-1)
-    mask = torch.ones(f.shape[0], dtype=torch.bool, device=f.device) if fisher else None
-    ll, r, weights = layout.obs.evaluate(f, mask)
-    psi = ll.sum() - 0.5 * (a * a).sum() - 0.5 * (b * b).sum()
-    ga = F.L_U.mT @ _scatter_vector(layout, r, a.shape[0]) - a
-    gb = (F.L_P.mT @ r.unsqueeze(-1)).squeeze(-1) - b
-    return Point(a, b, psi, ga, gb, weights, f)
-
-
-def factorise(layout: Layout, F: Factors, weights: tuple[Tensor, ...]) -> Hessian:
-    """The arrow Hessian at the given likelihood weights (differentiable).
-
-    Raises:
-        NotPSDError: a block or the Schur complement is not positive definite.
-    """
-    C, W, Wt = person_blocks(layout, F.L_P, weights)
-    return Hessian(C, W, schur(F.L_U, scatter_blocks(layout, Wt, F.L_U.shape[-1])))
-
-
-def person_blocks(layout: Layout, L_P: Tensor, weights: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, Tensor]:
-    """Per person ``C = chol(I + L_p^T W_p L_p)``, ``W_p`` and ``W~_p = W_p - W_p L_p H_p^{-1} L_p^T W_p``.
-
-    Raises:
-        NotPSDError: a person's block is not positive definite.
-    """
-    n = layout.num_items
-    W = layout.obs.W_dense(n, weights, like=L_P)
-    Hp = L_P.mT @ W @ L_P + torch.eye(n, dtype=L_P.dtype, device=L_P.device)
-    C, info = torch.linalg.cholesky_ex(Hp)
-    if bool((info > 0).any()):
-        raise NotPSDError("a person's block I + L_p^T W_p L_p is not positive definite")
-    V = torch.linalg.solve_triangular(C, L_P.mT @ W, upper=False)  # C^-1 L_p^T W_p
-    return C, W, W - V.mT @ V
-
-
-def scatter_blocks(layout: Layout, Wt: Tensor, N: int) -> Tensor:
-    """``M = sum_p S_p^T W~_p S_p`` (``N x N``)."""
-    flat = (layout.index.unsqueeze(-1) * N + layout.index.unsqueeze(-2)).reshape(-1)
-    return Wt.new_zeros(N * N).index_add(0, flat, Wt.reshape(-1)).reshape(N, N)
-
-
-def schur(L_U: Tensor, M: Tensor) -> Tensor:
-    """The Cholesky factor of ``S = I + L_U^T M L_U``.
-
-    Raises:
-        NotPSDError: ``S`` is not positive definite.
-    """
-    N = L_U.shape[-1]
-    S = L_U.mT @ M @ L_U
-    S = 0.5 * (S + S.mT) + torch.eye(N, dtype=S.dtype, device=S.device)
-    S_chol, info_s = torch.linalg.cholesky_ex(S)
-    if bool(info_s > 0):
-        raise NotPSDError("the population block (Schur complement) is not positive definite")
-    return S_chol
-
-
-def solve(layout: Layout, F: Factors, H: Hessian, ga: Tensor, gb: Tensor) -> tuple[Tensor, Tensor]:
-    """``H^{-1} (ga, gb)`` through the Schur complement."""
-    t = torch.cholesky_solve(gb.unsqueeze(-1), H.C)  # H_p^-1 gb_p
-    coupled = (H.W @ (F.L_P @ t)).squeeze(-1)  # W_p L_p H_p^-1 gb_p
-    rhs = ga - F.L_U.mT @ _scatter_vector(layout, coupled, ga.shape[0])
-    da = torch.cholesky_solve(rhs.unsqueeze(-1), H.S_chol).squeeze(-1)
-    z = (F.L_U @ da)[layout.index]
-    back = (F.L_P.mT @ (H.W @ z.unsqueeze(-1))).squeeze(-1)
-    db = torch.cholesky_solve((gb - back).unsqueeze(-1), H.C).squeeze(-1)
-    return da, db
+        if self.S_chol is None or self.logdet_people is None:
+            raise NotPSDError("the population's Hessian is not factorised (or not positive definite) at this point")
+        return self.logdet_people + 2 * torch.diagonal(self.S_chol).log().sum()
 
 
 @dataclass(frozen=True)
 class Mode:
-    """The joint mode, its Hessian (exact, or Fisher if the exact one was not positive definite)."""
+    """The joint mode (``point``), the Hessian used there (``hessian``: the same point factorised,
+    or it with Fisher weights where the exact Hessian is not positive definite), Newton's
+    iterations and whether it converged."""
 
-    point: Point
-    hessian: Hessian
-    fisher: bool
+    point: JointPoint
+    hessian: JointPoint
     iterations: int
     converged: bool
 
-
-def _hessian_at(layout: Layout, F: Factors, p: Point) -> tuple[Hessian, bool, Point]:
-    try:
-        return factorise(layout, F, p.weights), False, p
-    except NotPSDError:
-        q = evaluate(layout, F, p.a, p.b, fisher=True)
-        return factorise(layout, F, q.weights), True, q
+    def evidence(self) -> Tensor:
+        """The Laplace evidence ``log p(Y | f) - |a|^2 / 2 - |b|^2 / 2 - log|H| / 2``."""
+        return self.point.psi - 0.5 * self.hessian.logdet()
 
 
-def find_mode(layout: Layout, F: Factors, start: tuple[Tensor, Tensor] | None = None, max_iter: int = 100) -> Mode:
-    """Newton's method with Armijo backtracking for the joint mode (all detached)."""
-    N, (P, n) = F.L_U.shape[-1], layout.index.shape
-    with torch.no_grad():
-        a0 = F.L_U.new_zeros(N) if start is None else start[0]
-        b0 = F.L_U.new_zeros(P, n) if start is None else start[1]
-        p = evaluate(layout, F, a0, b0)
-        tol = default_tolerance(F.L_U.dtype)
-        for it in range(1, max_iter + 1):
-            H, fisher, p_h = _hessian_at(layout, F, p)
-            da, db = solve(layout, F, H, p_h.ga, p_h.gb)
-            dec = float((p.ga * da).sum() + (p.gb * db).sum())
-            if 0.5 * dec < tol:
-                return Mode(p, H, fisher, it, True)
+class JointProblem(Protocol):
+    """What Newton's loop asks of the problem: a point's Hessian factorised (Fisher weights where
+    the exact one is not positive definite), a step (the point at the step rule's first length
+    along it) and a shorter one."""
 
-            def trial(t: float, p: Point = p, da: Tensor = da, db: Tensor = db) -> Point:
-                return evaluate(layout, F, p.a + t * da, p.b + t * db)
+    def hessian(self, p: JointPoint) -> JointPoint: ...
 
-            q = STEP_RULE.backtrack(trial, lambda q: float(q.psi), float(p.psi), dec)
-            if q is None:
-                return Mode(p, H, fisher, it, 0.5 * dec < STEP_RULE.stuck_tol)
-            p = q
-        H, fisher, _ = _hessian_at(layout, F, p)
-        warnings.warn(
-            f"Newton's method for the population's joint mode did not converge in {max_iter} iterations",
-            LaplaceConvergenceWarning,
-            stacklevel=2,
+    def step(self, h: JointPoint, a: Tensor, da: Tensor) -> JointPoint: ...
+
+    def retry(self, trial: JointPoint, a: Tensor, t: float) -> JointPoint: ...
+
+
+def _at_convergence(problem: JointProblem, p: JointPoint, h: JointPoint, trial: JointPoint, it: int) -> Mode:
+    """The end of the last step is the mode to round-off: taken where it is finite and its
+    Hessian positive definite, else ``p``."""
+    if math.isfinite(float(trial.psi)):
+        try:
+            return Mode(trial, problem.hessian(trial), it, True)
+        except NotPSDError:
+            pass
+    return Mode(p, h, it, True)
+
+
+def newton(problem: JointProblem, start: JointPoint, max_iter: int = 100) -> Mode:
+    """Newton's method with the library's Armijo backtracking (:data:`STEP_RULE`) for the joint
+    mode, from ``start``: the one loop of the population, in process and over shards."""
+    p, tol = start, default_tolerance(start.a.dtype)
+    first = next(STEP_RULE.lengths())
+    for it in range(1, max_iter + 1):
+        h = problem.hessian(p)
+        assert h.S_chol is not None and h.coupled is not None  # hessian() factorised it
+        da = torch.cholesky_solve((p.ga - h.coupled).unsqueeze(-1), h.S_chol).squeeze(-1)
+        trial = problem.step(h, p.a + first * da, da)
+        dec = float((p.ga * da).sum() + trial.dec)
+        if 0.5 * dec < tol:
+            return _at_convergence(problem, p, h, trial, it)
+
+        def moved(t: float, p: JointPoint = p, da: Tensor = da, trial: JointPoint = trial) -> JointPoint:
+            return trial if t == first else problem.retry(trial, p.a + t * da, t)
+
+        q = STEP_RULE.backtrack(moved, lambda q: float(q.psi), float(p.psi), dec)
+        if q is None:
+            return Mode(p, h, it, 0.5 * dec < STEP_RULE.stuck_tol)
+        p = q
+    warnings.warn(
+        f"Newton's method for the population's joint mode did not converge in {max_iter} iterations",
+        LaplaceConvergenceWarning,
+        stacklevel=2,
+    )
+    return Mode(p, problem.hessian(p), max_iter, False)
+
+
+def _factor(S: Tensor | None, a: Tensor) -> Tensor | None:
+    """The Cholesky factor of ``I + S`` (symmetrised), ``None`` where it is not positive definite."""
+    if S is None:
+        return None
+    S = 0.5 * (S + S.mT) + torch.eye(a.shape[0], dtype=a.dtype, device=a.device)
+    S_chol, info = torch.linalg.cholesky_ex(S)
+    return None if bool(info > 0) else S_chol
+
+
+@dataclass(frozen=True)
+class Gradient:
+    """The evidence's gradient, summed over the shards: in ``L_Z`` (``M x M``, chained through
+    ``k_m`` by the master) and in ``k_m``'s and ``k_g``'s free parameters."""
+
+    L_Z: Tensor
+    k_m: tuple[Tensor, ...]
+    k_g: tuple[Tensor, ...]
+
+
+class Shards:
+    """The population's joint problem over shards of people on a :class:`Host` (a
+    :class:`JointProblem`); between evaluations each shard rests where the last mode left it."""
+
+    def __init__(self, host: Host, data: Sequence[ShardData]):
+        self.host = host
+        self.handles: list[Any] = host.place(data)
+
+    def start(self, basis: Basis, a: Tensor) -> JointPoint:
+        """All shards at new hyperparameters and ``a``, each from where it last rested."""
+        return self._joint(a, self.host.map(shard_start, self.handles, basis, a), False)
+
+    def keep(self, mode: Mode) -> None:
+        """Rest the shards at this mode (their blocks freed) for the next evaluation's start."""
+        self.handles = self.host.map(shard_rest, mode.point.handles)
+
+    def hessian(self, p: JointPoint) -> JointPoint:
+        if p.S_chol is not None:
+            return p
+        S_chol = self._schur(p) if p.pd else None
+        if S_chol is not None:
+            return replace(p, S_chol=S_chol)
+        if p.fisher:
+            raise NotPSDError("the population's Fisher-scoring Hessian is not positive definite")
+        return self.hessian(self._joint(p.a, self.host.map(shard_fisher, p.handles), True))
+
+    def step(self, h: JointPoint, a: Tensor, da: Tensor) -> JointPoint:
+        return self._joint(a, self.host.map(shard_step, h.handles, a, da), False)
+
+    def retry(self, trial: JointPoint, a: Tensor, t: float) -> JointPoint:
+        return self._joint(a, self.host.map(shard_retry, trial.handles, a, t), False)
+
+    def _schur(self, p: JointPoint) -> Tensor | None:
+        """The factor of ``S = I + sum_s S_s`` (the shards' parts summed as they arrive), or
+        ``None`` where it is not positive definite."""
+        return _factor(self.host.total(schur_of, p.handles), p.a)
+
+    def _joint(self, a: Tensor, handles: list[Any], fisher: bool) -> JointPoint:
+        """The point of the shards' states ``handles``: their summaries summed; where the shards
+        are remote, with the Schur complement's parts in the same round (:func:`report`)."""
+        S_chol = None
+        if self.host.remote:
+            pairs = self.host.gather(report, handles)
+            parts = [pair[0] for pair in pairs]
+            S_chol = _factor(sum_or_none([pair[1] for pair in pairs]), a)
+        else:
+            parts = summaries(self.host, handles)
+        psi = sum(s.psi for s in parts) - 0.5 * (a * a).sum()
+        ga = sum(s.ga for s in parts) - a
+        dec = sum(s.dec for s in parts)
+        if not all(s.pd for s in parts):
+            return JointPoint(a, tuple(handles), psi, ga, False, None, None, fisher, dec)
+        coupled, logdet = sum(s.coupled for s in parts), sum(s.logdet for s in parts)
+        return JointPoint(a, tuple(handles), psi, ga, True, coupled, logdet, fisher, dec, S_chol)
+
+    def gradient(self, mode: Mode) -> Gradient:
+        """The evidence's gradient at ``mode`` (:mod:`torchpref.population.shards`): two rounds,
+        ``h`` and its coupling, then each shard's partial derivatives given ``w_a``."""
+        h = mode.hessian
+        assert h.S_chol is not None  # a mode's Hessian is positive definite
+        states = self.host.map(shard_cotangent, h.handles, h.S_chol)
+        cot = summaries(self.host, states)
+        rhs = sum(c.ha for c in cot) - sum(c.coupled for c in cot)
+        w_a = torch.cholesky_solve(rhs.unsqueeze(-1), h.S_chol).squeeze(-1)
+        parts = self.host.gather(shard_gradient, states, w_a, h.S_chol)
+        return Gradient(
+            sum(g.L_Z for g in parts),
+            tuple(sum(gs) for gs in zip(*(g.k_m for g in parts))),
+            tuple(sum(gs) for gs in zip(*(g.k_g for g in parts))),
         )
-        return Mode(p, H, fisher, max_iter, False)
-
-
-def evidence(layout: Layout, F: Factors, mode: Mode) -> Tensor:
-    """The Laplace evidence, differentiable in the hyperparameters that ``F`` (traced) and the
-    likelihoods carry: one Newton step from the detached mode with autograd on, then
-    ``log p(Y | f) - |a|^2 / 2 - |b|^2 / 2 - log|H| / 2`` there."""
-    p = evaluate(layout, F, mode.point.a, mode.point.b, fisher=mode.fisher)
-    detached = Factors(F.L_U.detach(), F.L_P.detach(), F.jitter_U, F.jitter_P)
-    da, db = solve(layout, detached, mode.hessian, p.ga, p.gb)
-    q = evaluate(layout, F, mode.point.a + da, mode.point.b + db, fisher=mode.fisher)
-    H = factorise(layout, F, q.weights)
-    return q.psi - 0.5 * H.logdet()

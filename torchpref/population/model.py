@@ -22,12 +22,16 @@ class Population:
     :func:`torchpref.save_population` / :func:`torchpref.load_population`.
 
     Attributes:
-        U: ``N x d`` distinct items of all people.
-        alpha: ``N``: ``E[m(x) | D] = k_m(x, U) alpha``.
-        L_U: ``N x N``, ``chol(k_m(U, U) + jitter I)``.
-        S_chol: ``N x N``, Cholesky factor of the Schur complement: ``Cov[a | D] = S^{-1}``.
+        U: ``M x d``, the items the mean is represented at: all people's distinct items for the
+            exact fit, the inducing items otherwise (``stats["mean"]`` says which).
+        alpha: ``M``: ``E[m(x) | D] = k_m(x, U) alpha``.
+        L_U: ``M x M``, ``chol(k_m(U, U) + jitter I)``.
+        S_chol: ``M x M``, Cholesky factor of the Schur complement: ``Cov[a | D] = S^{-1}``.
+        A: ``M x M``, ``I - S^{-1}``: what a new person's prior covariance needs of the
+            population, computed once (and saved) so that a person model costs ``O(M^2)`` per item.
         settings: the likelihoods' settings a person model is built with.
-        stats: people, distinct items, answers, evidence of the fit.
+        stats: people, distinct items, answers, evidence, which mean (``"exact"`` or
+            ``"inducing"``) and how many items it is represented at, and the fit's costs.
         names: the features' names (the objective space), if given to the fit.
     """
 
@@ -42,9 +46,11 @@ class Population:
         settings: dict[str, Any],
         stats: dict[str, Any] | None = None,
         names: tuple[str, ...] | None = None,
+        A: Tensor | None = None,
     ):
         self.k_m, self.k_g = k_m, k_g
         self.U, self.alpha, self.L_U, self.S_chol = U, alpha, L_U, S_chol
+        self.A = self.covariance_update(S_chol) if A is None else A
         self.settings = dict(settings)
         self.stats = dict(stats or {})
         self.names = None if names is None else tuple(str(n) for n in names)
@@ -65,7 +71,7 @@ class Population:
         names: Any = None,
     ) -> Population:
         """The population of a solved joint mode (whitened ``a`` of ``m(U) = L_U a``, and the
-        Schur complement's factor ``S_chol``: :func:`~torchpref.population.joint.find_mode`)."""
+        Schur complement's factor ``S_chol``: :func:`~torchpref.population.joint.newton`)."""
         with torch.no_grad():
             alpha = torch.linalg.solve_triangular(L_U.mT, a.detach().unsqueeze(-1), upper=True).squeeze(-1)
         return cls(k_m, k_g, U, alpha, L_U.detach(), S_chol.detach(), settings, stats, names)
@@ -74,6 +80,11 @@ class Population:
     def dim(self) -> int:
         """``d``, the number of features."""
         return int(self.U.shape[-1])
+
+    @property
+    def mean_kind(self) -> str:
+        """``"exact"`` (the mean at every distinct item) or ``"inducing"`` (at ``M`` of them)."""
+        return str(self.stats.get("mean", "exact"))
 
     @property
     def spread(self) -> float:
@@ -90,10 +101,12 @@ class Population:
                 f"this population was fitted on the objective space {list(self.names)}, not {list(names)}."
             )
 
-    def _A(self) -> Tensor:
-        N = self.S_chol.shape[-1]
-        A = torch.eye(N, dtype=self.S_chol.dtype) - torch.cholesky_inverse(self.S_chol)
-        return 0.5 * (A + A.mT)
+    @staticmethod
+    def covariance_update(S_chol: Tensor) -> Tensor:
+        """``A = I - S^{-1}`` (symmetrised), from the Schur complement's factor: ``O(M^3)``, once."""
+        with torch.no_grad():
+            A = torch.eye(S_chol.shape[-1], dtype=S_chol.dtype) - torch.cholesky_inverse(S_chol)
+            return 0.5 * (A + A.mT)
 
     def mean(self) -> PopulationMean:
         """The population's posterior mean utility as a GPyTorch ``Mean``."""
@@ -101,7 +114,7 @@ class Population:
 
     def covariance(self) -> PopulationCovariance:
         """A new person's prior covariance as a GPyTorch ``Kernel``."""
-        return PopulationCovariance(self.k_m, self.k_g, self.U, self.L_U, self._A())
+        return PopulationCovariance(self.k_m, self.k_g, self.U, self.L_U, self.A)
 
     def person_model(self, data: PreferenceData | Tensor | None = None, **kwargs: Any) -> PreferenceGP:
         r"""A new person's :class:`~torchpref.PreferenceGP` with the population's prior: mean
