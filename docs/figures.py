@@ -48,6 +48,8 @@ class Figure:
 
     def text(self) -> str:
         value = self.raw()
+        if value is None:  # a measurement that found no such value (e.g. a size at which shards never pay)
+            return "never"
         if self.fmt == "percent":
             return f"{100 * float(value):g} %"
         if self.fmt == "sci":  # 4e-8 style, one significant digit
