@@ -51,7 +51,7 @@ def test_its_rating_is_the_clipped_profiles_and_its_ranking_the_informations(see
     assert rank.kind == info.kind == "ranking" and rank.indices == info.indices
 
 
-@pytest.mark.parametrize("decide", ["information", "profile"])
+@pytest.mark.parametrize("decide", ["information", "profile", "sum"])
 def test_it_asks_the_larger_value_per_second_under_one_value(decide):
     model, X = _model(4)
     sel = InformationAndProfile(m=3, decide=decide)

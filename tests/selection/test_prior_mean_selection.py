@@ -58,6 +58,7 @@ SELECTORS = [
     lambda: ProfilePerSecond(m=3, num_samples=64),
     lambda: InformationAndProfile(m=3, num_samples=64),
     lambda: InformationAndProfile(m=3, num_samples=64, decide="profile"),
+    lambda: InformationAndProfile(m=3, num_samples=64, decide="sum"),
     lambda: ExpectedBestOption(m=3, num_samples=64),
     lambda: EpsilonExplore(InformationPerEffort(m=3, num_samples=64), 0.5),
 ]

@@ -119,6 +119,7 @@ SELECTORS: dict[str, Callable[[int], Selector]] = {
     "clipped profile + 0.5 random": lambda m: EpsilonExplore(ProfileVariancePerEffort(m=m, clipped=True), 0.5),
     "combination": lambda m: InformationAndProfile(m=m),
     "qEUBO": lambda m: ExpectedBestOption(m=m),
+    "information + profile": lambda m: InformationAndProfile(m=m, decide="sum"),
     "default": lambda m: default_selector(m + 1),
 }
 #: the selectors a run compares by default
@@ -369,5 +370,8 @@ def write_files(rows: list[dict], out: Path, meta: dict, start: float, load0: fl
 
 
 def default_name() -> str:
-    """The replay's name of today's :func:`~torchpref.selection.defaults.default_selector`."""
-    return {"UCBC": "UCBC"}.get(type(default_selector()).__name__, type(default_selector()).__name__)
+    """Today's :func:`~torchpref.selection.defaults.default_selector`: its class, and its ``decide``
+    where it has one."""
+    sel = default_selector()
+    decide = getattr(sel, "decide", None)
+    return type(sel).__name__ + (f"(decide={decide!r})" if decide is not None else "")

@@ -39,13 +39,14 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 import torch
-from gpytorch.kernels import AdditiveKernel
+from gpytorch.kernels import AdditiveKernel, Kernel
+from gpytorch.means import Mean
 from torch import Tensor
 
-from torchpref.data.preference_data import PreferenceData
 from torchpref.data.queries import Candidates
 from torchpref.experiments import runner
 from torchpref.experiments.replay import Person, load
@@ -153,18 +154,73 @@ def _fresh_pairs(f: Tensor, profile: RaterProfile, g: torch.Generator) -> Tensor
     return torch.stack([torch.where(first, a, b), torch.where(first, b, a)], -1)
 
 
+class PriorAtItems:
+    r"""A prior known at finitely many items (a batch's pools and the zero vector, the batch's
+    padding): the mean and covariance there of ``model_of(items)`` before any answer,
+    computed once, looked up by exact match (an item that is not one of them is refused by name).
+    For the population condition: ``pop.person_model``'s prior at the pools, without the
+    population's ``N^3``-sized products at every prediction (rail's ~800 distinct items)."""
+
+    def __init__(self, model_of: Callable[[Tensor], PreferenceGP], items: Tensor):
+        U = torch.unique(torch.cat([items, torch.zeros(1, items.shape[-1], dtype=items.dtype)]), dim=0)
+        with torch.no_grad():
+            prior = model_of(U).posterior(U).distribution  # a model of these items, no answers: the prior
+        self.U, self.mean = U, prior.mean.reshape(-1)
+        self.cov = prior.covariance_matrix.reshape(U.shape[0], U.shape[0])
+
+    def rows(self, x: Tensor) -> Tensor:
+        flat = x.reshape(-1, x.shape[-1])
+        dist, rows = (flat.unsqueeze(-2) - self.U.to(flat)).abs().amax(-1).min(-1)
+        if bool((dist > 1e-12).any()):
+            raise ValueError(f"item {flat[dist > 1e-12][0].tolist()} is not one of the prior's items.")
+        return rows.reshape(x.shape[:-1])
+
+
+class _LookupMean(Mean):
+    def __init__(self, prior: PriorAtItems):
+        super().__init__()
+        self.prior = prior
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.prior.mean.to(x)[self.prior.rows(x)]
+
+
+class _LookupKernel(Kernel):
+    def __init__(self, prior: PriorAtItems):
+        super().__init__()
+        self.prior = prior
+
+    def forward(self, x1: Tensor, x2: Tensor, diag: bool = False, last_dim_is_batch: bool = False, **params) -> Tensor:
+        r1, r2 = self.prior.rows(x1), self.prior.rows(x2)
+        cov = self.prior.cov.to(x1)
+        if diag:
+            return cov[r1, r2]
+        return cov[r1.unsqueeze(-1), r2.unsqueeze(-2)]
+
+
 def learner(pop: Population, twins: Sequence[Twin], condition: str, scale: float) -> BatchedPreferenceGP:
-    """The twins' starting model (no answers) in ``condition`` (module notes), batched."""
-    settings = dict(rating_scale=scale, rating_precision=LEARNER_PRECISION)
+    """The twins' starting model (no answers) in ``condition`` (module notes), batched. The
+    population condition's prior is ``pop.person_model``'s, looked up at the pools (:class:`PriorAtItems`)."""
+    settings: dict[str, Any] = dict(rating_scale=scale, rating_precision=LEARNER_PRECISION)
     if condition == "population":
-        models = [pop.person_model(PreferenceData.create(t.X), **settings) for t in twins]
+        prior = PriorAtItems(pop.person_model, torch.cat([t.X for t in twins]))
+        models = [
+            PreferenceGP(t.X, covar_module=_LookupKernel(prior), mean_module=_LookupMean(prior), **_likelihoods(pop), **settings)
+            for t in twins
+        ]  # fmt: skip
     elif condition == "no population":
         kernel = AdditiveKernel(pop.k_m, pop.k_g)
-        noise = float(pop.settings["comparison_noise"])
-        models = [PreferenceGP(t.X, covar_module=kernel, comparison_noise=noise, **settings) for t in twins]
+        models = [PreferenceGP(t.X, covar_module=kernel, **_likelihoods(pop), **settings) for t in twins]
     else:
         raise ValueError(f"unknown condition {condition!r}; choose from {list(CONDITIONS)}.")
     return BatchedPreferenceGP.from_models(models)
+
+
+def _likelihoods(pop: Population) -> dict:
+    """The population's likelihood settings but the ratings' (the learner's nominal person's)."""
+    return dict(
+        comparison_noise=float(pop.settings["comparison_noise"]), rating_levels=pop.settings.get("rating_levels")
+    )
 
 
 def twin_metrics(twins: Sequence[Twin], noise: float) -> Callable[[BatchedPreferenceGP], dict[str, Tensor]]:
@@ -232,7 +288,6 @@ def twin_batch(
             rec["repeats"] = [{k: r[k] for k in (*SCORES, "kinds")} for r in recs]
         out.append(rec)
     return out
-
 
 
 def _run_once(

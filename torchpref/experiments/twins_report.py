@@ -202,7 +202,9 @@ def plot(table: Sequence[dict], path: Path, effort: str = "plain") -> None:
     for i, (ds, cond) in enumerate(groups):
         for j, axis in enumerate(("questions", "seconds")):
             ax = axes[i][j]
-            here = [r for r in table if (r["dataset"], r["condition"], r["effort"], r["axis"]) == (ds, cond, effort, axis)]
+            here = [
+                r for r in table if (r["dataset"], r["condition"], r["effort"], r["axis"]) == (ds, cond, effort, axis)
+            ]
             for s in dict.fromkeys(r["strategy"] for r in here):
                 pts = [r for r in here if r["strategy"] == s]
                 ax.plot([r["x"] for r in pts], [r["concordance_mean"] for r in pts], label=s, lw=1.4)

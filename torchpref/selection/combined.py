@@ -11,7 +11,10 @@ the clipped profile's variance), then asks the one of larger value per second un
 ``decide``:
 
 * ``"information"`` (default): both valued by ``I(y; f)`` per second;
-* ``"profile"``: both valued by the clipped profile's expected variance reduction per second.
+* ``"profile"``: both valued by the clipped profile's expected variance reduction per second;
+* ``"sum"``: every query valued by both at once, ``I / I* + D / D*`` per second (``D`` the clipped
+  profile's reduction; ``I*``, ``D*`` the largest of each among the candidates' ratings, so that
+  the two count equally with no weight to choose), the rating and the ranking both picked by it.
 
 All on the same joint posterior samples (common random numbers from the trial's generator), under
 the model's own likelihoods; seconds default to the plain effort model's
@@ -39,7 +42,7 @@ from torchpref.simulation.raters import EffortModel
 
 __all__ = ["InformationAndProfile"]
 
-DECIDE = ("information", "profile")
+DECIDE = ("information", "profile", "sum")
 Value = Callable[[Tensor], Tensor]
 
 
@@ -51,7 +54,7 @@ class InformationAndProfile(PerEffortSelector):
         rating_cost: seconds of a rating (default the plain effort model's, 3.4).
         ranking_cost: seconds of a best-of-``m`` (default: the plain effort model's where
             ``rating_cost`` is not given either, else ``1 + (m - 1) / 4`` as every per-effort selector).
-        decide: ``"information"`` or ``"profile"``: the one value both are compared by.
+        decide: ``"information"``, ``"profile"`` or ``"sum"``: the one value both are compared by.
         num_samples: joint posterior samples.
         top_fraction: the clipped profile's top share.
         num_plausible: candidates considered for ratings (largest profile variance) and rankings
@@ -112,10 +115,30 @@ class InformationAndProfile(PerEffortSelector):
             return _reduction(P, mom, True)
 
         by_max = torch.argsort(p_max + tie, dim=-1, descending=True)
-        return dict(F=F, lik=lik, profile=profile, by_profile=by_profile, by_max=by_max)
+        prep = dict(F=F, lik=lik, profile=profile, by_profile=by_profile, by_max=by_max)
+        if self.decide == "sum":
+            self._scaled_sum(prep)
+        return prep
+
+    def _scaled_sum(self, prep: dict[str, Any]) -> None:
+        """``decide="sum"``: the value ``I / I* + D / D*`` (``D`` the clipped profile's reduction),
+        each over its largest value among the candidates' ratings, and those ratings' values."""
+        F, lik, profile = prep["F"], prep["lik"], prep["profile"]
+        T, S, N = F.shape
+        K = min(self.num_plausible, N)
+        cand = torch.cat([prep["by_profile"][:, :K], prep["by_max"][:, :K]], -1)  # T x 2K (repeats harmless)
+        P = rating_bin_probabilities(F.gather(2, cand.unsqueeze(1).expand(T, S, 2 * K)).mT, lik.rating, self.num_bins)
+        info, prof = sample_information(P), profile(P)  # T x 2K
+        tiny = torch.finfo(F.dtype).tiny
+        s_info, s_prof = info.amax(-1, keepdim=True).clamp_min(tiny), prof.amax(-1, keepdim=True).clamp_min(tiny)
+
+        def total(Q: Tensor) -> Tensor:  # T x R x S x Y -> T x R
+            return sample_information(Q) / s_info + profile(Q) / s_prof
+
+        prep.update(sum=total, rating_cand=cand, rating_sum=info / s_info + prof / s_prof)
 
     def _judge(self, prep: dict[str, Any]) -> Value:
-        return sample_information if self.decide == "information" else prep["profile"]
+        return {"information": sample_information, "profile": prep["profile"]}.get(self.decide) or prep["sum"]
 
     def scorers(self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Value, Value]:
         """The ``decide`` value (not per second) of a rating of rows ``T x R`` and of a ranking of
@@ -148,17 +171,21 @@ class InformationAndProfile(PerEffortSelector):
         F, lik = prep["F"], prep["lik"]
         T, S, N = F.shape
         K = min(self.num_plausible, N)
-        cand = prep["by_profile"][:, :K]
-        Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))
-        by_profile = prep["profile"](rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # T x K
-        rating_row = cand.gather(1, by_profile.argmax(-1, keepdim=True))  # T x 1
+        if self.decide == "sum":  # the rating of largest summed value
+            cand, by_value = prep["rating_cand"], prep["rating_sum"]
+        else:
+            cand = prep["by_profile"][:, :K]
+            Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))
+            by_value = prep["profile"](rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # T x K
+        rating_row = cand.gather(1, by_value.argmax(-1, keepdim=True))  # T x 1
         rate, rank = self._scorers(prep, self._judge(prep), self._judge(prep))
         rating_value = rate(rating_row).squeeze(-1) / self.query_cost(1)
         if K < max(self.m, 2):
             return rating_row.squeeze(-1), rating_value, None, torch.full_like(rating_value, -torch.inf)
         cand = prep["by_max"][:, :K]
         Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))
-        chosen, _ = greedy_choice_sets(Fc, lik.comparison, self.m, sample_information, start=0)
+        builder = prep["sum"] if self.decide == "sum" else sample_information
+        chosen, _ = greedy_choice_sets(Fc, lik.comparison, self.m, builder, start=0)
         rows = cand.gather(1, chosen)  # T x m
         ranking_value = rank(rows.unsqueeze(1)).squeeze(-1) / self.query_cost(self.m)
         return rating_row.squeeze(-1), rating_value, rows, ranking_value
@@ -177,7 +204,8 @@ class InformationAndProfile(PerEffortSelector):
         qr = query_items(queries)
         with torch.no_grad():
             prep = self._prepare(model, qr.X.unsqueeze(0), [generator])
-            by_profile, by_info = self._scorers(prep, prep["profile"], sample_information)
+            pickers = (prep["sum"], prep["sum"]) if self.decide == "sum" else (prep["profile"], sample_information)
+            by_profile, by_info = self._scorers(prep, *pickers)
             judge_rate, judge_rank = self._scorers(prep, self._judge(prep), self._judge(prep))
             best: tuple[float, int] | None = None
             for q, idx in qr.groups().items():
