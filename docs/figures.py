@@ -623,6 +623,7 @@ for _ss, _s in _TWINS_SEL.items():
         FIGURES[f"choice_{_ss}_met"] = Figure("default_choice.json", f"candidates.{_s}.criteria_met")
         FIGURES[f"choice_{_ss}_ideal_worse"] = Figure("default_choice.json", f"candidates.{_s}.idealised_worse_total")
 FIGURES["choice_criteria"] = Figure("default_choice.json", "candidates.UCBC.criteria")
+FIGURES["replay_rail_random"] = Figure("replay/replay.json", "summary.rail.random.accuracy.area", "{:.3f}")
 
 # the quiet speed run's table (docs/speed.md): each task and size against each peer
 for _task in ("mode", "fit", "posterior", "eubo"):

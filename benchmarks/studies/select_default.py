@@ -33,6 +33,8 @@ NEW = ("combination", "qEUBO")
 #: candidates added after the first runs: the sum of both values (twins, docs/selection.md)
 LATER = ("information + profile",)
 CANDIDATES = STORED + NEW + LATER
+#: the candidate the default is built as (``default_selector``: its plain seconds whatever the effort model)
+SHIPPED = "information + profile"
 #: the replay's and the twins' names of the candidates
 REPLAY_NAME = {"UCBC": "UCBC", "clipped profile": "clipped profile", "utility info": "information"}
 REPLAY_NAME.update({"combination": "combination", "qEUBO": "qEUBO", "information + profile": "information + profile"})
@@ -68,11 +70,16 @@ def merge(effort: str, out: Path | None = None) -> dict:
         for key, trials in json.loads((run / "suite_trials.json").read_text()).items():
             have = results[tuple(key.split("/"))]
             results[tuple(key.split("/"))] = [{**a, **b} for a, b in zip(have, trials)]
-    strategies = [s for s in CANDIDATES if s in next(iter(results.values()))[0]]
+    have = next(iter(results.values()))[0]
+    strategies = [s for s in CANDIDATES if s in have]
     summary = summarise(results, strategies, suite.METRICS, suite.effort_budgets(effort), [10, 20])
     counts = {s: _count(summary["verdicts"], s, "effort") for s in strategies}
     merged = {"effort": effort, "strategies": strategies, "equal_seconds_best_or_tied": counts}
     merged.update(verdicts=summary["verdicts"], fraction_ratings=summary["fraction_ratings"])
+    if "default" in have:  # the default as shipped (plain seconds) in the place of its registry twin
+        shipped = [s if s != SHIPPED else "default" for s in strategies]
+        other = summarise(results, shipped, suite.METRICS, suite.effort_budgets(effort), [10, 20])
+        merged["shipped_default"] = {"equal_seconds_best_or_tied": _count(other["verdicts"], "default", "effort")}
     write_json(out / "merged_summary.json", merged)
     print(effort, {s: f"{n}/{t}" for s, (n, t) in counts.items()})
     return merged
