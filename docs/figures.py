@@ -615,6 +615,57 @@ FIGURES["popul_shards_eff"] = Figure(_SHARDS, "model.efficiency", "{:.2f}")
 for _k in (2, 4, 8, 16):
     FIGURES[f"popul_shards_pays_k{_k}"] = Figure(_SHARDS, f"model.pays_from_people.{_k}", "{:,}")
 
+# twins of real people and the default's choice (issue 41; docs/selection.md): benchmarks/studies/twins.py,
+# the population replay (torchpref reproduce replay --population) and benchmarks/studies/select_default.py
+_TWINS_SEL = {
+    "random": "random mixed", "rankings": "random rankings", "ucbc": "UCBC", "info": "utility info",
+    "clipped": "clipped profile", "comb": "combination", "qeubo": "qEUBO", "sum": "information + profile",
+}  # fmt: skip
+for _ds, _dd in (("electricity", "elec"), ("rail", "rail")):
+    for _c, _cc in (("no population", "nopop"), ("population", "pop")):
+        _at = f"summary.plain.cells.{_ds}/{_c}.strategies"
+        FIGURES[f"twins_{_dd}_{_cc}_random_final"] = Figure(
+            "twins/twins.json", f"{_at}.random mixed.reach.baseline_final", "{:.3f}"
+        )
+        for _ss, _s in _TWINS_SEL.items():
+            _t = f"twins_{_dd}_{_cc}_{_ss}"
+            FIGURES[f"{_t}_area"] = Figure("twins/twins.json", f"{_at}.{_s}.concordance.area", "{:.3f}")
+            if _ss != "random":
+                FIGURES[f"{_t}_diff"] = Figure("twins/twins.json", f"{_at}.{_s}.concordance.mean_diff", "{:+.3f}")
+                FIGURES[f"{_t}_p"] = Figure("twins/twins.json", f"{_at}.{_s}.concordance.p_wilcoxon", "{:.2g}")
+                FIGURES[f"{_t}_reach"] = Figure("twins/twins.json", f"{_at}.{_s}.reach.median", "{:g}")
+                FIGURES[f"{_t}_curve"] = Figure("twins/twins.json", f"{_at}.{_s}.reach.mean_curve", "{}")
+_CANDIDATES = ("ucbc", "info", "clipped", "comb", "qeubo", "sum")
+for _e in ("plain", "trajectories"):
+    for _ss, _s in _TWINS_SEL.items():
+        FIGURES[f"twins_{_e}_bot_{_ss}"] = Figure("twins/twins.json", f"summary.{_e}.best_or_tied.{_s}.0")
+        if _ss in _CANDIDATES:
+            FIGURES[f"fam_{_e}_{_ss}"] = Figure(
+                f"select41_{_e}/merged_summary.json", f"equal_seconds_best_or_tied.{_s}.0"
+            )
+FIGURES["twins_plain_cells"] = Figure("twins/twins.json", "summary.plain.best_or_tied.random mixed.1")
+_REPLAY_SEL = {
+    "ucbc": "UCBC", "info": "information", "clipped": "clipped profile", "comb": "combination", "qeubo": "qEUBO",
+    "sum": "information + profile",
+}  # fmt: skip
+for _ds, _dd in (("electricity", "elec"), ("rail", "rail")):
+    _at = f"summary.{_ds}"
+    FIGURES[f"replaypop_{_dd}_random_acc"] = Figure(
+        "replay_population/replay.json", f"{_at}.random.accuracy.area", "{:.3f}"
+    )
+    FIGURES[f"replaypop_{_dd}_pairs"] = Figure("replay_population/replay.json", f"{_at}.random.pairs")
+    for _ss, _s in _REPLAY_SEL.items():
+        for _m, _mm in (("accuracy", "acc"), ("log_loss", "loss"), ("top1", "top1")):
+            _f = f"replaypop_{_dd}_{_ss}_{_mm}"
+            FIGURES[f"{_f}_diff"] = Figure("replay_population/replay.json", f"{_at}.{_s}.{_m}.diff", "{:+.3f}")
+            FIGURES[f"{_f}_p"] = Figure("replay_population/replay.json", f"{_at}.{_s}.{_m}.p", "{:.2g}")
+for _ss, _s in _TWINS_SEL.items():
+    if _ss in _CANDIDATES:
+        FIGURES[f"choice_{_ss}_met"] = Figure("default_choice.json", f"candidates.{_s}.criteria_met")
+        FIGURES[f"choice_{_ss}_ideal_worse"] = Figure("default_choice.json", f"candidates.{_s}.idealised_worse_total")
+FIGURES["choice_criteria"] = Figure("default_choice.json", "candidates.UCBC.criteria")
+FIGURES["replay_rail_random"] = Figure("replay/replay.json", "summary.rail.random.accuracy.area", "{:.3f}")
+
 # the quiet speed run's table (docs/speed.md): each task and size against each peer
 for _task in ("mode", "fit", "posterior", "eubo"):
     for _n in (20, 50, 100, 200, 500):

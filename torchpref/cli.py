@@ -2,8 +2,9 @@ r"""The ``torchpref`` command line.
 
     torchpref reproduce wave [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
     torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
-    torchpref reproduce replay [--people N] [--splits S] [--datasets D ...] [--seed S] [--data DIR] [--out DIR]
+    torchpref reproduce replay [--people N] [--splits S] [--datasets D ...] [--seed S] [--data DIR] [--out DIR] [--population]
     torchpref reproduce suite [--families F ...] [--strategies S ...] [--effort E] [--trials N] [--queries Q] [--seed S] [--out DIR]
+    torchpref reproduce twins [--twins N] [--folds F] [--datasets D ...] [--strategies S ...] [--queries Q] [--seed S] [--data DIR] [--out DIR]
     torchpref elicit lake [--session FILE]
     torchpref elicit --features items.csv [--id COLUMN] [--session FILE]
     torchpref fast-path build [--if-needed] | status
@@ -35,7 +36,8 @@ REPRODUCE = {
     "wave": "torchpref.experiments.wave",
     "lake": "torchpref.experiments.lake",
     "suite": "torchpref.experiments.suite",
-    "replay": "torchpref.experiments.replay",
+    "replay": "torchpref.experiments.replay_population",  # --population, else the replay's own run
+    "twins": "torchpref.experiments.twins",
 }
 ELICIT = "torchpref.frontends.elicit"
 SERVE = "torchpref.frontends.serve"
@@ -60,6 +62,8 @@ LEGEND = {
     "the model ranks best; share 5: fraction of trials whose chosen path is rated 5",
     "replay": "area: mean held-out comparison accuracy / top-1 over 1..n answers revealed; p: paired Wilcoxon "
     "against random over (person, split); see docs/suite.md",
+    "twins": "area: mean concordance of the posterior mean with the twin's true utility over questions 1..Q; "
+    "p: paired Wilcoxon against random over twins; see docs/selection.md",
     "suite": "mean ± standard error over the trials; WRMS and regret: lower is better; TP: true positives "
     "among the 15 best items (higher is better); see docs/suite.md",
 }
@@ -177,7 +181,38 @@ def _reproduce_parser(sub) -> None:
         help="selectors to compare with random (torchpref.experiments.replay.SELECTORS; default: random, UCBC, "
         "information, per second, information + 0.5 random)",
     )
+    rp.add_argument(
+        "--population", action="store_true", help="start each person from the population fitted without them"
+    )
+    rp.add_argument("--folds", type=positive_int, default=3, help="--population: leave-people-out folds (3)")
+    rp.add_argument(
+        "--random-orders", type=positive_int, default=5, help="--population: random orders averaged (default 5)"
+    )
+    rp.add_argument("--cache", default=None, help="folder of fitted populations (default ~/.cache/torchpref/twins)")
     rp.set_defaults(trials=None)
+    _twins_parser(rep_sub)
+
+
+def _twins_parser(rep_sub) -> None:
+    """``torchpref reproduce twins``'s arguments (docs/selection.md)."""
+    tw = rep_sub.add_parser("twins", help="selectors on twins of real people, with and without their population")
+    tw.add_argument("--twins", type=positive_int, default=20, help="twins per data set and fold (default 20)")
+    tw.add_argument("--folds", type=positive_int, default=3, help="leave-people-out folds, one population each (3)")
+    tw.add_argument("--datasets", nargs="+", choices=["electricity", "rail"], default=["electricity", "rail"])
+    tw.add_argument("--queries", type=positive_int, default=20, help="questions per twin (default 20)")
+    tw.add_argument("--seed", type=int, default=0, help="seed of the folds and twins (default 0)")
+    tw.add_argument("--data", default=None, help="folder of the data (default: benchmarks/studies/data of a clone)")
+    tw.add_argument("--out", default=None, help=f"output folder (default: a new folder in ./{RESULTS}/)")
+    tw.add_argument("--cache", default=None, help="folder of fitted populations (default ~/.cache/torchpref/twins)")
+    tw.add_argument(
+        "--strategies",
+        nargs="+",
+        default=None,
+        metavar="STRATEGY",
+        help="strategies to compare (torchpref.experiments.runner.STRATEGIES; default: "
+        "torchpref.experiments.twins.SELECTORS)",
+    )
+    tw.set_defaults(trials=None)
 
 
 def _elicit_parser(sub) -> None:

@@ -148,5 +148,15 @@ def test_ties_go_to_the_first_query_and_bad_lists_are_refused():
 
 
 def test_default_selector():
-    assert isinstance(torchpref.default_selector(), UCBC) and torchpref.default_selector().m == 5
-    assert torchpref.default_selector(3).m == 2
+    """The default (docs/selection.md): information and the clipped profile summed, per second of
+    the plain effort model; a session records it and rebuilds it from its header."""
+    from torchpref.selection.combined import InformationAndProfile
+    from torchpref.sessions.recorded import describe_selector, recorded_selector
+
+    sel = torchpref.default_selector()
+    assert isinstance(sel, InformationAndProfile) and sel.decide == "sum" and sel.m == 5
+    assert (sel.rating_cost, sel.ranking_cost) == (3.4, 6.1)
+    small = torchpref.default_selector(3)
+    assert small.m == 2 and small.ranking_cost == 3.4
+    desc = describe_selector(sel)
+    assert describe_selector(recorded_selector(desc)) == desc

@@ -41,7 +41,9 @@ from torch import Tensor
 from torchpref.data.queries import RankingQuery
 from torchpref.models.kernels import fixed_rbf_kernel
 from torchpref.models.preference_gp import PreferenceGP
+from torchpref.selection.combined import InformationAndProfile
 from torchpref.selection.defaults import default_selector
+from torchpref.selection.eubo import ExpectedBestOption
 from torchpref.selection.per_second import ProfilePerSecond
 from torchpref.selection.robust import EpsilonExplore
 from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomRankings, Selector
@@ -115,6 +117,10 @@ SELECTORS: dict[str, Callable[[int], Selector]] = {
     "information + 0.5 random": lambda m: EpsilonExplore(InformationPerEffort(m=m, target="utility"), 0.5),
     "clipped profile": lambda m: ProfileVariancePerEffort(m=m, clipped=True),
     "clipped profile + 0.5 random": lambda m: EpsilonExplore(ProfileVariancePerEffort(m=m, clipped=True), 0.5),
+    "combination": lambda m: InformationAndProfile(m=m),
+    "qEUBO": lambda m: ExpectedBestOption(m=m),
+    "information + profile": lambda m: InformationAndProfile(m=m, decide="sum"),
+    "default": lambda m: default_selector(m + 1),
 }
 #: the selectors a run compares by default
 DEFAULT_SELECTORS = ("random", "UCBC", "information", "per second", "information + 0.5 random")
@@ -153,16 +159,28 @@ def score(model: PreferenceGP, X: Tensor, held: list[tuple[tuple[int, ...], int]
     return sum(acc) / len(acc), sum(loss) / len(loss), sum(top) / len(top)
 
 
-def replay_person(person: Person, split: int, selector: Selector, seed: int) -> dict[str, list[float]]:
-    """One (person, split, selector) replay: the three metrics after 0 .. n_train revealed answers."""
+def replay_person(
+    person: Person,
+    split: int,
+    selector: Selector,
+    seed: int,
+    make_model: Callable[[Tensor, list[list[int]]], PreferenceGP] | None = None,
+    order: int = 0,
+) -> dict[str, list[float]]:
+    """One (person, split, selector) replay: the three metrics after 0 .. n_train revealed answers.
+
+    ``make_model(X, comparisons)`` builds the model of the answers revealed (default: the person's
+    own GP of the module notes; e.g. a population's person model); ``order > 0`` draws the
+    selector's random choices from another stream (the same split): another random order."""
+    make_model = _model if make_model is None else make_model
     g = torch.Generator().manual_seed(seed * 100_003 + split)
-    order = torch.randperm(len(person.choices), generator=g).tolist()
-    n_held = max(3, len(order) // 3)
-    held = [person.choices[i] for i in order[:n_held]]
-    pool = [person.choices[i] for i in order[n_held:]]
-    gen = torch.Generator().manual_seed(seed * 7919 + split * 31 + 1)
+    perm = torch.randperm(len(person.choices), generator=g).tolist()
+    n_held = max(3, len(perm) // 3)
+    held = [person.choices[i] for i in perm[:n_held]]
+    pool = [person.choices[i] for i in perm[n_held:]]
+    gen = torch.Generator().manual_seed(seed * 7919 + split * 31 + 1 + 1_000_003 * order)
     comparisons: list[list[int]] = []
-    model = _model(person.X, comparisons)
+    model = make_model(person.X, comparisons)
     out: dict[str, list[float]] = {"accuracy": [], "log_loss": [], "top1": []}
     n = len(pool)
     for k in range(n + 1):
@@ -173,7 +191,7 @@ def replay_person(person: Person, split: int, selector: Selector, seed: int) -> 
         queries = [RankingQuery(person.X[list(rows)], rows) for rows, _ in pool]
         i = selector.choose(model, queries, step=k, num_steps=n, generator=gen)
         comparisons += _comparisons(pool.pop(i))
-        model = _model(person.X, comparisons)
+        model = make_model(person.X, comparisons)
     return out
 
 
@@ -290,41 +308,56 @@ def plot(rows: list[dict], path: Path) -> None:
 def run(args: argparse.Namespace) -> int:
     """``torchpref reproduce replay``: run, write ``replay_rows.jsonl`` (as the replays finish),
     ``replay.csv`` (the curves), ``replay.json`` (areas and tests) and ``replay.png`` in ``args.out``."""
-    import json
-
-    from torchpref.experiments.results import write_json
-
     torch.set_num_threads(1)
+    out, data = prepare(args)
+    start, load0 = time.time(), os.getloadavg()[0]
+    with open(out / "replay_rows.jsonl", "w") as f:
+        chosen = {k: SELECTORS[k] for k in dict.fromkeys(["random", *args.selectors])}
+        rows = run_replay(data, tuple(args.datasets), args.people, args.splits, args.seed, chosen, on_row=keeper(f))
+    meta = {
+        "people": args.people,
+        "splits": args.splits,
+        "seed": args.seed,
+        "model": "RBF lengthscale sqrt(d)/2, outputscale 1, sigma_R 1, fixed; Laplace mode refit after each answer",
+    }
+    write_files(rows, out, meta, start, load0)
+    return 0
+
+
+def prepare(args: argparse.Namespace) -> tuple[Path, Path]:
+    """The run's output folder (made) and data folder (checked)."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     data = Path(args.data) if args.data else Path(__file__).resolve().parents[2] / "benchmarks" / "studies" / "data"
     if not (data / "electricity.csv.gz").is_file():
         raise FileNotFoundError(f"no replay data in {data}: give --data (benchmarks/studies/data of a clone).")
-    start, load0 = time.time(), os.getloadavg()[0]
-    with open(out / "replay_rows.jsonl", "w") as f:
+    return out, data
 
-        def keep(row: dict) -> None:
-            f.write(json.dumps(row) + "\n")
-            f.flush()
 
-        chosen = {k: SELECTORS[k] for k in dict.fromkeys(["random", *args.selectors])}
-        rows = run_replay(data, tuple(args.datasets), args.people, args.splits, args.seed, chosen, on_row=keep)
+def keeper(f) -> Callable[[dict], None]:
+    """Write each row to the open file ``f`` as a JSON line, flushed."""
+    import json
+
+    def keep(row: dict) -> None:
+        f.write(json.dumps(row) + "\n")
+        f.flush()
+
+    return keep
+
+
+def write_files(rows: list[dict], out: Path, meta: dict, start: float, load0: float) -> None:
+    """``replay.csv`` (the curves), ``replay.json`` (stamped: ``meta``, areas and tests) and
+    ``replay.png``; print the areas."""
+    from torchpref.experiments.results import write_json
+
     table = curves(rows)
     with open(out / "replay.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(table[0]))
         w.writeheader()
         w.writerows(table)
     summary = summarise(rows)
-    meta = {
-        "people": args.people,
-        "splits": args.splits,
-        "seed": args.seed,
-        "default_selector": default_name(),
-        "seconds": round(time.time() - start, 1),
-        "cpu_count": os.cpu_count(),
-        "load_average_start_end": [round(load0, 2), round(os.getloadavg()[0], 2)],
-        "model": "RBF lengthscale sqrt(d)/2, outputscale 1, sigma_R 1, fixed; Laplace mode refit after each answer",
-    }
+    meta = dict(meta, default_selector=default_name(), seconds=round(time.time() - start, 1))
+    meta.update(cpu_count=os.cpu_count(), load_average_start_end=[round(load0, 2), round(os.getloadavg()[0], 2)])
     write_json(out / "replay.json", {"meta": meta, "summary": summary})
     plot(rows, out / "replay.png")
     for ds, per in summary.items():
@@ -333,7 +366,6 @@ def run(args: argparse.Namespace) -> int:
             a, t = e["accuracy"], e["top1"]
             print(f"  {name:28s} {a['area']:.3f} ({_p_text(a)})  {t['area']:.3f} ({_p_text(t)})")
         print("  (p: n/a for random itself, and where fewer than 5 paired differences are non-zero)")
-    return 0
 
 
 def _p_text(entry: dict) -> str:
@@ -343,5 +375,8 @@ def _p_text(entry: dict) -> str:
 
 
 def default_name() -> str:
-    """The replay's name of today's :func:`~torchpref.selection.defaults.default_selector`."""
-    return {"UCBC": "UCBC"}.get(type(default_selector()).__name__, type(default_selector()).__name__)
+    """Today's :func:`~torchpref.selection.defaults.default_selector`: its class, and its ``decide``
+    where it has one."""
+    sel = default_selector()
+    decide = getattr(sel, "decide", None)
+    return type(sel).__name__ + (f"(decide={decide!r})" if decide is not None else "")

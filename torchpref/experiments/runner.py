@@ -41,6 +41,9 @@ from torch import Tensor
 
 from torchpref.models.kernels import fixed_rbf_kernel
 from torchpref.models.preference_gp import PreferenceGP
+from torchpref.selection.combined import InformationAndProfile
+from torchpref.selection.defaults import default_selector
+from torchpref.selection.eubo import ExpectedBestOption
 from torchpref.selection.per_second import ProfilePerSecond
 from torchpref.selection.robust import EpsilonExplore
 from torchpref.selection.strategies import (
@@ -183,7 +186,22 @@ _FACTORIES: dict[str, Callable[..., Selector]] = {
     "profile per second": lambda m, rating_cost, ranking_cost, **_: ProfilePerSecond(
         m=m, rating_seconds=rating_cost, ranking_seconds=ranking_cost
     ),
+    "combination": lambda m, gamma, rating_cost, ranking_cost: InformationAndProfile(
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma
+    ),
+    "combination (profile)": lambda m, gamma, rating_cost, ranking_cost: InformationAndProfile(
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma, decide="profile"
+    ),
+    "information + profile": lambda m, gamma, rating_cost, ranking_cost: InformationAndProfile(
+        m=m, rating_cost=rating_cost, ranking_cost=ranking_cost, gamma=gamma, decide="sum"
+    ),
+    "qEUBO": lambda m, gamma, **_: ExpectedBestOption(m=m, gamma=gamma),
+    # the sessions' default as shipped (its own costs, whatever a run's effort model): rankings of m
+    "default": lambda m, **_: default_selector(m + 1),
 }
+
+#: the strategies whose choices do not depend on the costs they are given (the rest weigh effort)
+EFFORT_FREE = ("UCBC", "random ratings", "random rankings", "random mixed", "UCB ratings", "qEUBO")
 
 #: every strategy :func:`make_selector` knows, by name
 STRATEGIES = tuple(_FACTORIES)

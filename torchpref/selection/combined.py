@@ -1,0 +1,219 @@
+r"""Rankings by expected information, ratings by the clipped profile, under one value per second.
+
+The two selectors that won somewhere (docs/suite.md) win on different answers: the expected
+information about the utility, ``I(y; f)`` (:class:`~torchpref.selection.strategies.InformationPerEffort`,
+``target="utility"``), is the one selector that beats random on real people's rankings; the
+clipped profile (:class:`~torchpref.selection.top_profile.ProfileVariancePerEffort`,
+``clipped=True``) wins the realistic families, where it asks ratings. :class:`InformationAndProfile`
+builds its best ranking as the first does (a best-of-``m`` built greedily for ``I(y; f)`` among the
+likeliest maximisers) and its best rating as the second does (the item whose rating most reduces
+the clipped profile's variance), then asks the one of larger value per second under **one** value,
+``decide``:
+
+* ``"information"`` (default): both valued by ``I(y; f)`` per second;
+* ``"profile"``: both valued by the clipped profile's expected variance reduction per second;
+* ``"sum"``: every query valued by both at once, ``I / I* + D / D*`` per second (``D`` the clipped
+  profile's reduction; ``I*``, ``D*`` the largest of each among the candidates' ratings, so that
+  the two count equally with no weight to choose), the rating and the ranking both picked by it.
+
+All on the same joint posterior samples (common random numbers from the trial's generator), under
+the model's own likelihoods; seconds default to the plain effort model's
+(:class:`~torchpref.simulation.raters.EffortModel`: a rating 3.4 s, a best-of-5 6.1 s).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchpref.acquisition.choice_sets import greedy_choice_sets
+from torchpref.acquisition.functions import rating_bin_probabilities
+from torchpref.acquisition.information import sample_information
+from torchpref.data.queries import Query
+from torchpref.models.defaults import preference_likelihood
+from torchpref.selection.choosing import query_items
+from torchpref.selection.samples import SelectorModel, joint_posterior, joint_samples
+from torchpref.selection.strategies import PerEffortSelector, effort_model
+from torchpref.selection.top_profile import _Moments, _reduction, top_profile
+from torchpref.simulation.raters import EffortModel
+
+__all__ = ["InformationAndProfile"]
+
+DECIDE = ("information", "profile", "sum")
+Value = Callable[[Tensor], Tensor]
+
+
+class InformationAndProfile(PerEffortSelector):
+    r"""Rankings by ``I(y; f)``, ratings by the clipped profile, one value per second (module notes).
+
+    Args:
+        m: items per ranking query.
+        rating_cost: seconds of a rating (default the plain effort model's, 3.4).
+        ranking_cost: seconds of a best-of-``m`` (default: the plain effort model's where
+            ``rating_cost`` is not given either, else ``1 + (m - 1) / 4`` as every per-effort selector).
+        decide: ``"information"``, ``"profile"`` or ``"sum"``: the one value both are compared by.
+        num_samples: joint posterior samples.
+        top_fraction: the clipped profile's top share.
+        num_plausible: candidates considered for ratings (largest profile variance) and rankings
+            (likeliest maximisers).
+        num_bins: bins of a rating's answer.
+        gamma: eq. 12's ``gamma``, to order candidates of equal probability of being the maximiser.
+
+    Raises:
+        ValueError: an unknown ``decide``, or the checks of the selectors it combines.
+    """
+
+    name = "information & clipped profile"
+
+    def __init__(
+        self,
+        m: int = 5,
+        rating_cost: float | None = None,
+        ranking_cost: float | None = None,
+        decide: str = "information",
+        num_samples: int = 256,
+        top_fraction: float = 0.2,
+        num_plausible: int = 15,
+        num_bins: int = 10,
+        gamma: float = 3.0,
+    ):
+        if rating_cost is None:  # the plain effort model's seconds (a ranking's too, unless given)
+            rating_cost = EffortModel.plain().rating()
+            if ranking_cost is None and not isinstance(m, bool) and int(m) == m and m >= 2:
+                ranking_cost = EffortModel.plain().ranking(int(m))
+        m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
+        if decide not in DECIDE:
+            raise ValueError(f"decide must be one of {DECIDE}, got {decide!r}.")
+        if num_samples < 2 or num_plausible < 1 or num_bins < 2 or not 0 < top_fraction < 1:
+            raise ValueError(
+                f"need num_samples >= 2, num_plausible >= 1, num_bins >= 2 and 0 < top_fraction < 1, got "
+                f"{num_samples}, {num_plausible}, {num_bins} and {top_fraction}."
+            )
+        self.m, self.rating_cost, self.ranking_cost, self.decide = m, rating_cost, ranking_cost, decide
+        self.num_samples, self.top_fraction, self.num_plausible = num_samples, top_fraction, num_plausible
+        self.num_bins, self.gamma = num_bins, gamma
+
+    def _prepare(self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]) -> dict[str, Any]:
+        """Samples ``F``, the profile's order and value, the maximisers' order, the likelihood."""
+        mean, cov = joint_posterior(model, X)
+        F, std = joint_samples(mean, cov, generators, self.num_samples)
+        T, S, N = F.shape
+        lik = preference_likelihood(model)
+        V = top_profile(F, max(1, min(N, round(self.top_fraction * N))), lik.rating, True)
+        var = V.var(-2)
+        by_profile = var.argsort(-1, descending=True)
+        n = max(1, int((var > 0).sum(-1).max()))
+        mom = _Moments.of(V.gather(2, by_profile[:, :n].unsqueeze(1).expand(T, S, n)))
+        p_max = torch.zeros_like(mean).scatter_add_(1, F.argmax(-1), torch.ones_like(F[..., 0])) / S
+        ucb = mean + self.gamma * std
+        tie = 1e-9 * torch.sigmoid(ucb - ucb.max(-1, keepdim=True).values)
+
+        def profile(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
+            return _reduction(P, mom, True)
+
+        by_max = torch.argsort(p_max + tie, dim=-1, descending=True)
+        prep = dict(F=F, lik=lik, profile=profile, by_profile=by_profile, by_max=by_max)
+        if self.decide == "sum":
+            self._scaled_sum(prep)
+        return prep
+
+    def _scaled_sum(self, prep: dict[str, Any]) -> None:
+        """``decide="sum"``: the value ``I / I* + D / D*`` (``D`` the clipped profile's reduction),
+        each over its largest value among the candidates' ratings, and those ratings' values."""
+        F, lik, profile = prep["F"], prep["lik"], prep["profile"]
+        T, S, N = F.shape
+        K = min(self.num_plausible, N)
+        cand = torch.cat([prep["by_profile"][:, :K], prep["by_max"][:, :K]], -1)  # T x 2K (repeats harmless)
+        P = rating_bin_probabilities(F.gather(2, cand.unsqueeze(1).expand(T, S, 2 * K)).mT, lik.rating, self.num_bins)
+        info, prof = sample_information(P), profile(P)  # T x 2K
+        tiny = torch.finfo(F.dtype).tiny
+        s_info, s_prof = info.amax(-1, keepdim=True).clamp_min(tiny), prof.amax(-1, keepdim=True).clamp_min(tiny)
+
+        def total(Q: Tensor) -> Tensor:  # T x R x S x Y -> T x R
+            return sample_information(Q) / s_info + profile(Q) / s_prof
+
+        prep.update(sum=total, rating_cand=cand, rating_sum=info / s_info + prof / s_prof)
+
+    def _judge(self, prep: dict[str, Any]) -> Value:
+        return {"information": sample_information, "profile": prep["profile"]}.get(self.decide) or prep["sum"]
+
+    def scorers(self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Value, Value]:
+        """The ``decide`` value (not per second) of a rating of rows ``T x R`` and of a ranking of
+        rows ``T x R x q``."""
+        prep = self._prepare(model, X, generators)
+        return self._scorers(prep, self._judge(prep), self._judge(prep))
+
+    def _scorers(self, prep: dict[str, Any], rating_value: Value, ranking_value: Value) -> tuple[Value, Value]:
+        F, lik = prep["F"], prep["lik"]
+        T, S, _ = F.shape
+
+        def rating_fn(rows: Tensor) -> Tensor:
+            Fr = F.gather(2, rows.unsqueeze(1).expand(T, S, rows.shape[1]))
+            return rating_value(rating_bin_probabilities(Fr.mT, lik.rating, self.num_bins))
+
+        def ranking_fn(rows: Tensor) -> Tensor:
+            R, q = rows.shape[1:]
+            Fr = F.gather(2, rows.reshape(T, 1, R * q).expand(T, S, R * q)).reshape(T, S, R, q).transpose(1, 2)
+            return ranking_value(lik.comparison.choice_probabilities(Fr))
+
+        return rating_fn, ranking_fn
+
+    def values(
+        self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
+        r"""``(rating rows T, rating values T, ranking rows T x m or None, ranking values T)``: the
+        rating of largest clipped-profile reduction and the ranking of largest ``I(y; f)``, each
+        valued by ``decide`` per second."""
+        prep = self._prepare(model, X, generators)
+        F, lik = prep["F"], prep["lik"]
+        T, S, N = F.shape
+        K = min(self.num_plausible, N)
+        if self.decide == "sum":  # the rating of largest summed value
+            cand, by_value = prep["rating_cand"], prep["rating_sum"]
+        else:
+            cand = prep["by_profile"][:, :K]
+            Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))
+            by_value = prep["profile"](rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # T x K
+        rating_row = cand.gather(1, by_value.argmax(-1, keepdim=True))  # T x 1
+        rate, rank = self._scorers(prep, self._judge(prep), self._judge(prep))
+        rating_value = rate(rating_row).squeeze(-1) / self.query_cost(1)
+        if K < max(self.m, 2):
+            return rating_row.squeeze(-1), rating_value, None, torch.full_like(rating_value, -torch.inf)
+        cand = prep["by_max"][:, :K]
+        Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))
+        builder = prep["sum"] if self.decide == "sum" else sample_information
+        chosen, _ = greedy_choice_sets(Fc, lik.comparison, self.m, builder, start=0)
+        rows = cand.gather(1, chosen)  # T x m
+        ranking_value = rank(rows.unsqueeze(1)).squeeze(-1) / self.query_cost(self.m)
+        return rating_row.squeeze(-1), rating_value, rows, ranking_value
+
+    def choose(
+        self,
+        model: SelectorModel,
+        queries: Sequence[Query],
+        *,
+        step: int = 0,
+        num_steps: int = 1,
+        generator: torch.Generator,
+    ) -> int:
+        """Among given queries: the rating of largest clipped-profile reduction and the ranking of
+        largest ``I(y; f)``, the one of larger ``decide`` value per second asked (ties to the first)."""
+        qr = query_items(queries)
+        with torch.no_grad():
+            prep = self._prepare(model, qr.X.unsqueeze(0), [generator])
+            pickers = (prep["sum"], prep["sum"]) if self.decide == "sum" else (prep["profile"], sample_information)
+            by_profile, by_info = self._scorers(prep, *pickers)
+            judge_rate, judge_rank = self._scorers(prep, self._judge(prep), self._judge(prep))
+            best: tuple[float, int] | None = None
+            for q, idx in qr.groups().items():
+                rows = torch.stack([qr.rows[i] for i in idx]).unsqueeze(0)  # 1 x R x q
+                pick = (by_profile(rows[..., 0]) if q == 1 else by_info(rows))[0].argmax()
+                one = rows[:, int(pick)].unsqueeze(1)
+                v = float((judge_rate(one[..., 0]) if q == 1 else judge_rank(one))[0, 0]) / self.query_cost(q)
+                if best is None or v > best[0] or (v == best[0] and idx[int(pick)] < best[1]):
+                    best = (v, idx[int(pick)])
+        assert best is not None
+        return best[1]
