@@ -686,7 +686,9 @@ FIGURES["soak_finished_kb_half"] = Figure("serve/soak.json", "summary.finished_s
 FIGURES["soak_open_kb"] = Figure("serve/soak.json", "restart.open_session_kb_slope", "{:.0f}")
 for _i, _q in enumerate(("p50", "p95", "p99")):
     FIGURES[f"soak_ms_{_q}"] = Figure("serve/soak.json", f"summary.answer_ms_p50_p95_p99.{_i}", "{:.0f}")
-    FIGURES[f"soak_plots_ms_{_q}"] = Figure("serve/soak.json", f"summary.answer_ms_during_plots_p50_p95_p99_n.{_i}", "{:.0f}")
+    FIGURES[f"soak_plots_ms_{_q}"] = Figure(
+        "serve/soak.json", f"summary.answer_ms_during_plots_p50_p95_p99_n.{_i}", "{:.0f}"
+    )
 FIGURES["soak_lost"] = Figure("serve/soak.json", "restart.lost_answers")
 FIGURES["soak_acknowledged"] = Figure("serve/soak.json", "restart.acknowledged_answers", "{:,}")
 FIGURES["soak_reopened"] = Figure("serve/soak.json", "restart.sessions_reopened")
@@ -697,20 +699,42 @@ FIGURES["soak_load_hi"] = Figure("serve/soak.json", "load_average.3", "{:.1f}")
 for _ds, _short in (("electricity", "elec"), ("rail", "rail")):
     for _k in (0, 2, 5, 10):
         for _c in ("online", "none"):
-            FIGURES[f"study_{_short}_k{_k}_{_c}"] = Figure("study/study_twins.json", f"summary.{_ds}.{_k}.after_20.{_c}", "{:.3f}")
-        FIGURES[f"study_{_short}_k{_k}_p"] = Figure("study/study_twins.json", f"summary.{_ds}.{_k}.after_20.p", "{:.1g}")
+            FIGURES[f"study_{_short}_k{_k}_{_c}"] = Figure(
+                "study/study_twins.json", f"summary.{_ds}.{_k}.after_20.{_c}", "{:.3f}"
+            )
+        FIGURES[f"study_{_short}_k{_k}_p"] = Figure(
+            "study/study_twins.json", f"summary.{_ds}.{_k}.after_20.p", "{:.1g}"
+        )
     FIGURES[f"study_{_short}_pairs"] = Figure("study/study_twins.json", f"summary.{_ds}.2.after_20.pairs")
 for _i, (_ds, _n) in enumerate((("elec", 10), ("elec", 50), ("elec", 200), ("rail", 10), ("rail", 50), ("rail", 200))):
     for _w in ("cold", "warm"):
         FIGURES[f"study_refit_{_ds}_{_n}_{_w}"] = Figure("study/study_twins.json", f"refit_cost.{_i}.{_w}_s", "{:.1f}")
 FIGURES["study_twins_load_lo"] = Figure("study/study_twins.json", "meta.load_average_start_end.1", "{:.0f}")
 FIGURES["study_twins_load_hi"] = Figure("study/study_twins.json", "meta.load_average_start_end.0", "{:.0f}")
-for _key in ("participants", "acknowledged", "kills", "kills_during_refit", "finished", "refits", "export_rows",
-             "answer_records_in_files", "report_figures_shown_in_chromium", "seconds"):
+for _key in (
+    "participants",
+    "acknowledged",
+    "kills",
+    "kills_during_refit",
+    "finished",
+    "refits",
+    "export_rows",
+    "answer_records_in_files",
+    "report_figures_shown_in_chromium",
+    "seconds",
+):
     FIGURES[f"study_run_{_key}"] = Figure("study/study_run.json", _key, "{:,}")
 FIGURES["study_run_per5"] = Figure("study/study_run.json", "refits_per_5_finished", "{:.2f}")
 FIGURES["study_run_load"] = Figure("study/study_run.json", "load_average_start_end.1", "{:.1f}")
-for _key in ("acknowledged", "kills", "kills_during_refit", "export_rows", "answer_records_in_files", "refits", "finished"):
+for _key in (
+    "acknowledged",
+    "kills",
+    "kills_during_refit",
+    "export_rows",
+    "answer_records_in_files",
+    "refits",
+    "finished",
+):
     FIGURES[f"study_kill_{_key}"] = Figure("study/study_run_kills.json", _key, "{:,}")
 FIGURES["study_kill_lost"] = Figure("study/study_run_kills.json", "lost", "{}")
 FIGURES["study_kill_load"] = Figure("study/study_run_kills.json", "load_average_start_end.1", "{:.1f}")

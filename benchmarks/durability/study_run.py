@@ -83,7 +83,9 @@ def main() -> int:
     ap.add_argument("--arrival", type=float, default=5.0, help="mean seconds between two participants' arrivals")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(OUT))
-    ap.add_argument("--name", default="study_run", help="the results file's name (study_run_kills for the run with kills)")
+    ap.add_argument(
+        "--name", default="study_run", help="the results file's name (study_run_kills for the run with kills)"
+    )
     args = ap.parse_args()
     random.seed(args.seed)
     tmp = Path(tempfile.mkdtemp(prefix="torchpref-study-"))

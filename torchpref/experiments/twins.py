@@ -39,8 +39,8 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 import torch
 from gpytorch.kernels import AdditiveKernel, Kernel
