@@ -11,8 +11,10 @@ def served(tmp_path):
     pytest.importorskip("starlette", reason="the serve extra (starlette) is not installed")
     pytest.importorskip("httpx", reason="starlette's test client needs httpx")
     from torchpref.frontends.serve.store import SessionStore
+    from torchpref.selection.strategies import UCBC
 
-    store = SessionStore(random_items(), tmp_path / "sessions", num_queries=8)
+    # UCBC: these tests need both kinds of question (the default asks ratings almost only)
+    store = SessionStore(random_items(), tmp_path / "sessions", num_queries=8, selector=UCBC(m=5))
     client = serve_client(store)
     sid = client.post("/api/new", json={}).json()["sid"]
     yield store, client, sid

@@ -183,14 +183,16 @@ def test_malformed_requests(served):
 
 
 def test_ties_and_levels_follow_the_settings(tmp_path):
-    store = SessionStore(_items(), tmp_path, num_queries=4, ties=False)
+    from torchpref.selection.strategies import UCBC
+
+    store = SessionStore(_items(), tmp_path, num_queries=4, ties=False, selector=UCBC(m=5))  # a ranking first
     c = _client(store)
     sid = c.post("/api/new", json={}).json()["sid"]
     st = c.get(f"/s/{sid}/state").json()
     assert st["question"]["kind"] == "ranking" and st["question"]["ties"] is False
     r = c.post(f"/s/{sid}/answer", json={"qid": st["qid"], "answer": None})
     assert r.status_code == 400 and "no preference" in r.json()["error"]
-    store2 = SessionStore(_items(), tmp_path / "t", num_queries=4)
+    store2 = SessionStore(_items(), tmp_path / "t", num_queries=4, selector=UCBC(m=5))
     c2 = _client(store2)
     sid2 = c2.post("/api/new", json={}).json()["sid"]
     st = c2.get(f"/s/{sid2}/state").json()

@@ -39,6 +39,7 @@ from torchpref.data.queries import InvalidAnswer, Query, RankingQuery, RatingQue
 from torchpref.frontends.serve.errors import AnswerRefused
 from torchpref.frontends.serve.items import ServeItems
 from torchpref.population.model import Population
+from torchpref.selection.strategies import Selector
 from torchpref.sessions.errors import SessionFileError
 from torchpref.sessions.records import AnswerRecord
 from torchpref.sessions.session import PreferenceSession
@@ -74,6 +75,7 @@ class NewSessionKeywords(TypedDict, total=False):
     ties: bool
     population: Population | None
     queries: tuple[Query, ...] | None
+    selector: Selector | None
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,8 @@ class NewSessions:
         population: a :class:`~torchpref.Population` each new session starts from (docs/population.md).
         queries: a fixed list of questions (rows of the items) the selector chooses among
             (``--question-list``: :func:`~torchpref.sessions.query_list.read_question_list`).
+        selector: the selector of every new session (``None``: :func:`~torchpref.default_selector`;
+            a resumed session keeps the one its file records).
     """
 
     num_queries: int = 14
@@ -96,6 +100,7 @@ class NewSessions:
     ties: bool = True
     population: Population | None = None
     queries: tuple[Query, ...] | None = None
+    selector: Selector | None = None
 
     @classmethod
     def of(cls, given: NewSessions | None, keywords: NewSessionKeywords, where: str) -> NewSessions:
@@ -175,6 +180,8 @@ class SessionStore:
             population=new.population,
             queries=None if new.queries is None else list(new.queries),
         )
+        if new.selector is not None:
+            self._kwargs["selector"] = new.selector
 
     # ------------------------------------------------------------ sessions
     def path(self, sid: str) -> Path:
