@@ -659,11 +659,15 @@ for _ds, _dd in (("electricity", "elec"), ("rail", "rail")):
             _f = f"replaypop_{_dd}_{_ss}_{_mm}"
             FIGURES[f"{_f}_diff"] = Figure("replay_population/replay.json", f"{_at}.{_s}.{_m}.diff", "{:+.3f}")
             FIGURES[f"{_f}_p"] = Figure("replay_population/replay.json", f"{_at}.{_s}.{_m}.p", "{:.2g}")
-for _ss, _s in _TWINS_SEL.items():
-    if _ss in _CANDIDATES:
-        FIGURES[f"choice_{_ss}_met"] = Figure("default_choice.json", f"candidates.{_s}.criteria_met")
-        FIGURES[f"choice_{_ss}_ideal_worse"] = Figure("default_choice.json", f"candidates.{_s}.idealised_worse_total")
-FIGURES["choice_criteria"] = Figure("default_choice.json", "candidates.UCBC.criteria")
+# the decision's table (benchmarks/studies/select_default.py decide), once default_choice.json exists
+if (ROOT / "benchmarks" / "results" / "default_choice.json").is_file():
+    for _ss, _s in _TWINS_SEL.items():
+        if _ss in _CANDIDATES:
+            FIGURES[f"choice_{_ss}_met"] = Figure("default_choice.json", f"candidates.{_s}.criteria_met")
+            FIGURES[f"choice_{_ss}_ideal_worse"] = Figure(
+                "default_choice.json", f"candidates.{_s}.idealised_worse_total"
+            )
+    FIGURES["choice_criteria"] = Figure("default_choice.json", "candidates.UCBC.criteria")
 FIGURES["replay_rail_random"] = Figure("replay/replay.json", "summary.rail.random.accuracy.area", "{:.3f}")
 
 # the quiet speed run's table (docs/speed.md): each task and size against each peer

@@ -34,6 +34,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 import torch
 from torch import Tensor
@@ -334,7 +335,7 @@ def prepare(args: argparse.Namespace) -> tuple[Path, Path]:
     return out, data
 
 
-def keeper(f) -> Callable[[dict], None]:
+def keeper(f: IO[str]) -> Callable[[dict], None]:
     """Write each row to the open file ``f`` as a JSON line, flushed."""
     import json
 

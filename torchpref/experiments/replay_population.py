@@ -12,6 +12,7 @@ compared with what random does on average, not with one lucky or unlucky order.
 
 from __future__ import annotations
 
+import argparse
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -126,7 +127,7 @@ def _replay_one(ds, person, pop, selectors, splits, seed, random_orders, on_row)
     return rows
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     """``torchpref reproduce replay``: with ``--population``, the replay with the population's
     prior (this module); without, :func:`torchpref.experiments.replay.run`."""
     from torchpref.experiments import replay

@@ -173,6 +173,8 @@ def check_settings(settings: Any, where: str) -> None:
 
 
 def check_space_and_stats(ck: dict[str, Any], d: int, where: str) -> None:
+    """Check a population file's recorded space (its dimension ``d`` and feature names) and its
+    statistics before anything is built from it; ``CheckpointError`` naming ``where`` otherwise."""
     space = ck.get("space")
     if not isinstance(space, dict) or space.get("dim") != d:
         raise CheckpointError(f"{where}: the space's dim does not match U's {d} features.")

@@ -55,6 +55,7 @@ class Traffic:
 
     @property
     def total(self) -> int:
+        """Bytes both ways."""
         return self.sent + self.received
 
 
@@ -65,13 +66,17 @@ class Host(Protocol):
     traffic: Traffic
     remote: bool
 
-    def place(self, data: Sequence[Any]) -> list[Any]: ...
+    def place(self, data: Sequence[Any]) -> list[Any]:
+        """Put each shard's data where the shards live; returns a handle per shard."""
 
-    def map(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]: ...
+    def map(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+        """Call ``fn(state, *shared)`` on every shard; the new states stay where the shards are."""
 
-    def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]: ...
+    def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+        """Call ``fn(state, *shared)`` on every shard and bring each (small) result here."""
 
-    def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any: ...
+    def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
+        """The sum over the shards of ``fn(state, *shared)``, brought here."""
 
 
 def sum_or_none(parts: Sequence[Any]) -> Any:
@@ -92,15 +97,18 @@ class InProcess:
         self.traffic = Traffic()
 
     def place(self, data: Sequence[Any]) -> list[Any]:
+        """The shards' data as they are (this process holds them)."""
         self.traffic.sent += nbytes(list(data))
         return list(data)
 
     def map(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+        """``fn`` on each state in turn, here."""
         self.traffic.sent += len(handles) * nbytes(shared)
         self.traffic.rounds += 1
         return [fn(h, *shared) for h in handles]
 
     def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+        """``fn`` on each state in turn, here; its results."""
         out = self.map(fn, handles, *shared)
         self.traffic.received += nbytes(out)
         return out
@@ -129,6 +137,7 @@ class OnExecutor(InProcess):
         self.copies = not isinstance(executor, ThreadPoolExecutor)
 
     def map(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+        """``fn`` on every state through the executor."""
         self.traffic.sent += len(handles) * nbytes(shared) + (nbytes(list(handles)) if self.copies else 0)
         self.traffic.rounds += 1
         futures = [self.executor.submit(fn, h, *shared) for h in handles]
@@ -137,6 +146,7 @@ class OnExecutor(InProcess):
         return out
 
     def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+        """``fn`` on every state through the executor; its results brought back."""
         out = self.map(fn, handles, *shared)
         self.traffic.received += 0 if self.copies else nbytes(out)
         return out
@@ -160,11 +170,13 @@ class OnDask:
         self._where: list[str] = []
 
     def place(self, data: Sequence[Any]) -> list[Any]:
+        """Scatter the shards' data to the Dask workers; a future per shard."""
         self.traffic.sent += nbytes(list(data))
         self._where = [self.workers[i % len(self.workers)] for i in range(len(data))]
         return [self.client.scatter(d, workers=[w], hash=False) for d, w in zip(data, self._where)]
 
     def map(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+        """``fn`` on every shard on its worker; the new states stay there (futures)."""
         self.traffic.sent += len(handles) * nbytes(shared)
         self.traffic.rounds += 1
         return [
@@ -173,11 +185,13 @@ class OnDask:
         ]
 
     def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+        """``fn`` on every shard on its worker; the results brought back."""
         out = self.client.gather(self.map(fn, handles, *shared))
         self.traffic.received += nbytes(out)
         return out
 
     def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
+        """The sum of ``fn`` over the shards, reduced on the workers and brought back."""
         return sum_or_none(self.gather(fn, handles, *shared))
 
 

@@ -100,11 +100,14 @@ class JointProblem(Protocol):
     the exact one is not positive definite), a step (the point at the step rule's first length
     along it) and a shorter one."""
 
-    def hessian(self, p: JointPoint) -> JointPoint: ...
+    def hessian(self, p: JointPoint) -> JointPoint:
+        """The point's Hessian factorised (Fisher weights where the exact one is not positive definite)."""
 
-    def step(self, h: JointPoint, a: Tensor, da: Tensor) -> JointPoint: ...
+    def step(self, h: JointPoint, a: Tensor, da: Tensor) -> JointPoint:
+        """The point at the step rule's first length along the Newton step ``da`` (and the shards' own)."""
 
-    def retry(self, trial: JointPoint, a: Tensor, t: float) -> JointPoint: ...
+    def retry(self, trial: JointPoint, a: Tensor, t: float) -> JointPoint:
+        """The same step at the shorter length ``t``."""
 
 
 def _at_convergence(problem: JointProblem, p: JointPoint, h: JointPoint, trial: JointPoint, it: int) -> Mode:
@@ -183,6 +186,7 @@ class Shards:
         self.handles = self.host.map(shard_rest, mode.point.handles)
 
     def hessian(self, p: JointPoint) -> JointPoint:
+        """The point's Hessian factorised over the shards (Fisher weights where needed)."""
         if p.S_chol is not None:
             return p
         S_chol = self._schur(p) if p.pd else None
@@ -193,9 +197,11 @@ class Shards:
         return self.hessian(self._joint(p.a, self.host.map(shard_fisher, p.handles), True))
 
     def step(self, h: JointPoint, a: Tensor, da: Tensor) -> JointPoint:
+        """The point at the step rule's first length along the Newton step, over the shards."""
         return self._joint(a, self.host.map(shard_step, h.handles, a, da), False)
 
     def retry(self, trial: JointPoint, a: Tensor, t: float) -> JointPoint:
+        """The same step at the shorter length ``t``, over the shards."""
         return self._joint(a, self.host.map(shard_retry, trial.handles, a, t), False)
 
     def _schur(self, p: JointPoint) -> Tensor | None:

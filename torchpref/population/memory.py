@@ -76,6 +76,7 @@ def estimate_peak(shards: Sequence[ShardSize], N: int, M: int, d: int) -> int:
 
 
 def gigabytes(b: float) -> str:
+    """``n`` bytes in gigabytes (for messages)."""
     return f"{b / 1e9:.3g} GB"
 
 

@@ -91,6 +91,7 @@ class Items:
 
     @classmethod
     def of(cls, people: Sequence[PreferenceData]) -> Items:
+        """The distinct items of ``people`` and where each person's items are among them."""
         X = torch.cat([p.train_X for p in people])
         U, ids = torch.unique(X, dim=0, return_inverse=True)
         sizes = torch.tensor([0] + [p.n for p in people])
