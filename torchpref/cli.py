@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import importlib
+import json
 import os
 import signal
 import sys
@@ -160,6 +161,12 @@ def _reproduce_parser(sub) -> None:
         help="strategies to compare, e.g. 'UCBC' 'profile per effort' (default: the suite's eight; "
         "any of torchpref.experiments.runner.STRATEGIES)",
     )
+    _replay_parser(rep_sub)
+    _twins_parser(rep_sub)
+
+
+def _replay_parser(rep_sub) -> None:
+    """``torchpref reproduce replay``'s arguments (docs/suite.md, docs/selection.md)."""
     rp = rep_sub.add_parser("replay", help="selectors replaying real people's recorded choices (docs/suite.md)")
     rp.add_argument("--people", type=positive_int, default=80, help="people per data set (default 80)")
     rp.add_argument("--splits", type=positive_int, default=3, help="train / held-out splits per person (default 3)")
@@ -190,7 +197,6 @@ def _reproduce_parser(sub) -> None:
     )
     rp.add_argument("--cache", default=None, help="folder of fitted populations (default ~/.cache/torchpref/twins)")
     rp.set_defaults(trials=None)
-    _twins_parser(rep_sub)
 
 
 def _twins_parser(rep_sub) -> None:
@@ -499,12 +505,8 @@ def _study(args) -> int:
         if args.world is None and args.features is None and not study_json.is_file():
             raise UsageError("a new study needs its items: a world (lake) or --features FILE")
         if args.world is None and args.features is None:  # an existing study: its own items
-            import json
-
-            settings = json.loads(study_json.read_text())
-            args.world = settings.get("world")
-            if args.world is None:
-                args.features = str(Path(args.folder) / "items.csv")
+            args.world = json.loads(study_json.read_text()).get("world")
+            args.features = None if args.world is not None else str(Path(args.folder) / "items.csv")
         if args.levels < 2:
             raise UsageError(f"--levels must be at least 2, got {args.levels}")
         return int(_import("torchpref.study.server").run(args) or 0)
