@@ -144,7 +144,7 @@ class PreferenceSession:
     Args:
         candidates: the items queries are built from: an ``N x d`` tensor (a finite pool), a
             :class:`~torchpref.FinitePool` or a :class:`~torchpref.BoxCandidates`.
-        selector: picks each query (default :class:`~torchpref.UCBC` with ``m = min(5, N)``; a
+        selector: picks each query (default :func:`~torchpref.default_selector`, with ``m = min(5, N - 1)``; a
             resumed file's recorded selector).
         model_factory: ``train_X -> PreferenceGP``, called with one ``1 x d`` unobserved anchor
             item (normalised); default :func:`default_session_model` (a resumed file's recorded
