@@ -105,7 +105,7 @@ def read(fh: IO[bytes], where: str) -> Any:
         ) from err
 
 
-def check_kind(ck: Any, where: str) -> int:
+def check_kind(ck: object, where: str) -> int:
     """The file's format and version (returned)."""
     if isinstance(ck, dict) and ck.get("format") == MODEL_FORMAT:
         raise CheckpointError(
@@ -121,7 +121,7 @@ def check_kind(ck: Any, where: str) -> int:
     return version
 
 
-def check_tensor_shapes(t: Any, version: int, where: str, size: int) -> None:
+def check_tensor_shapes(t: object, version: int, where: str, size: int) -> None:
     """The tensors' kinds, storage and shapes, before any is computed with."""
     names = TENSORS[version]
     if not isinstance(t, dict) or set(t) != set(names):
@@ -157,7 +157,7 @@ def check_tensor_values(t: dict[str, torch.Tensor], where: str) -> None:
         raise CheckpointError(f"{where}: A is not symmetric.")
 
 
-def check_settings(settings: Any, where: str) -> None:
+def check_settings(settings: object, where: str) -> None:
     """The likelihoods' settings: the known keys, finite positive numbers, levels ``None`` or ``>= 2``."""
     if not isinstance(settings, dict) or set(settings) != set(SETTINGS):
         raise CheckpointError(f"{where}: settings must be {sorted(SETTINGS)}.")
@@ -190,7 +190,7 @@ def check_space_and_stats(ck: dict[str, Any], d: int, where: str) -> None:
         raise CheckpointError(f"{where}: stats must map names to numbers or strings.")
 
 
-def check_kernel_state(state: Any, name: str, where: str) -> None:
+def check_kernel_state(state: object, name: str, where: str) -> None:
     """A kernel's ``state_dict``: tensors, dense, real, within their storage, finite (a
     constraint's bound may be infinite, not NaN)."""
     if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):

@@ -104,7 +104,7 @@ def _sizes(items: Items, bounds: list[tuple[int, int]], M: int) -> list[ShardSiz
     return out
 
 
-def _shard_count(items: Items, M: int, executor: Any, shards: Any) -> int:
+def _shard_count(items: Items, M: int, executor: object, shards: int | None) -> int:
     """The number of shards: ``shards`` if given; else, on an executor, two per worker; and at
     least enough that one shard's work fits :data:`SHARD_BYTES`."""
     if shards is not None:
@@ -121,11 +121,11 @@ def _shard_count(items: Items, M: int, executor: Any, shards: Any) -> int:
 
 def plan_fit(
     people: Sequence[PreferenceData],
-    inducing: Any,
+    inducing: int | str | None,
     method: str,
     k_m: Kernel,
-    executor: Any,
-    shards: Any,
+    executor: object,
+    shards: int | None,
     memory_limit: int | None,
 ) -> Plan:
     """The :class:`Plan` of a fit, refused (naming the estimate and the way out) where its peak
@@ -133,7 +133,7 @@ def plan_fit(
     items = Items.of(people)
     N, d = items.U.shape
     exact = inducing is None or (inducing == "auto" and N <= EXACT_ITEMS)
-    M = min(N if exact else (DEFAULT_INDUCING if inducing == "auto" else int(inducing)), N)
+    M = min(N if exact or inducing is None else (DEFAULT_INDUCING if inducing == "auto" else int(inducing)), N)
     bounds = shard_bounds(len(people), _shard_count(items, M, executor, shards))
     sizes = _sizes(items, bounds, M)
     peak = estimate_peak(sizes, N, M, d)
@@ -219,7 +219,7 @@ class Objective:
         return T - T.detach()
 
 
-def _lbfgs(loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, bar: Any) -> None:
+def _lbfgs(loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, bar: tqdm) -> None:
     """Minimise ``loss_fn()`` in ``params`` with L-BFGS (strong Wolfe line search)."""
     opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_change=1e-9)
 
@@ -233,7 +233,7 @@ def _lbfgs(loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, b
     opt.step(closure)
 
 
-def _refuse_fork(executor: Any) -> None:
+def _refuse_fork(executor: object) -> None:
     """A process pool that forks is refused by name: a child forked from a process whose torch
     has started its thread pools can deadlock in its first factorisation (seen in a test run)."""
     context = getattr(executor, "_mp_context", None)  # concurrent.futures.ProcessPoolExecutor's
@@ -244,14 +244,16 @@ def _refuse_fork(executor: Any) -> None:
         )
 
 
-def _check_settings(people: list[PreferenceData], names: Any, max_iter: Any, inducing: Any, method: Any) -> None:
+def _check_settings(
+    people: list[PreferenceData], names: object, max_iter: object, inducing: object, method: str
+) -> None:
     d = people[0].train_X.shape[-1]
-    if names is not None and (isinstance(names, str) or len(names) != d):
+    if names is not None and (not isinstance(names, Sequence) or isinstance(names, str) or len(names) != d):
         raise ValueError(f"feature_names must name the {d} features, got {names!r}.")
     if isinstance(max_iter, bool) or not isinstance(max_iter, numbers.Integral) or max_iter < 1:
         raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}.")
-    integer = isinstance(inducing, numbers.Integral) and not isinstance(inducing, bool)
-    if not (inducing is None or inducing == "auto" or (integer and inducing >= 1)):
+    positive = isinstance(inducing, numbers.Integral) and not isinstance(inducing, bool) and int(inducing) >= 1
+    if not (inducing is None or inducing == "auto" or positive):
         raise ValueError(f"inducing must be 'auto', None (exact) or a positive integer, got {inducing!r}.")
     if method not in METHODS:
         raise ValueError(f"inducing_method must be one of {list(METHODS)}, got {method!r}.")
@@ -305,7 +307,7 @@ def fit_population(
     inducing_method: str = "kmeans",
     memory_limit: int | None = None,
     progress: bool = False,
-    executor: Executor | Any | None = None,
+    executor: Executor | object | None = None,
     shards: int | None = None,
 ) -> Population:
     r"""The population of ``people`` (one :class:`~torchpref.data.preference_data.PreferenceData` each;
@@ -395,7 +397,7 @@ def population_objective(
     likelihood: tuple[float, float, float] = (1.0, 1.0, 80.0),
     inducing: int | str | None = "auto",
     inducing_method: str = "kmeans",
-    executor: Any = None,
+    executor: object = None,
     shards: int | None = None,
     memory_limit: int | None = None,
 ) -> tuple[Objective, Plan]:

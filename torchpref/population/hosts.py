@@ -29,7 +29,7 @@ from torch import Tensor
 from torchpref.population.shards import summary_of
 
 
-def nbytes(obj: Any) -> int:
+def nbytes(obj: object) -> int:
     """The bytes of the tensors (and 8 per number) in ``obj``: dataclasses, sequences, mappings
     and modules (their ``state_dict``) walked; anything else counts 0."""
     if isinstance(obj, Tensor):
@@ -66,16 +66,16 @@ class Host(Protocol):
     traffic: Traffic
     remote: bool
 
-    def place(self, data: Sequence[Any]) -> list[Any]:
+    def place(self, data: Sequence[object]) -> list[object]:
         """Put each shard's data where the shards live; returns a handle per shard."""
 
-    def map(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+    def map(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> list[object]:
         """Call ``fn(state, *shared)`` on every shard; the new states stay where the shards are."""
 
-    def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+    def gather(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> list[Any]:
         """Call ``fn(state, *shared)`` on every shard and bring each (small) result here."""
 
-    def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
+    def total(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> Any:
         """The sum over the shards of ``fn(state, *shared)``, brought here."""
 
 
@@ -96,30 +96,30 @@ class InProcess:
     def __init__(self) -> None:
         self.traffic = Traffic()
 
-    def place(self, data: Sequence[Any]) -> list[Any]:
+    def place(self, data: Sequence[object]) -> list[object]:
         """The shards' data as they are (this process holds them)."""
         self.traffic.sent += nbytes(list(data))
         return list(data)
 
-    def map(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+    def map(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> list[object]:
         """``fn`` on each state in turn, here."""
         self.traffic.sent += len(handles) * nbytes(shared)
         self.traffic.rounds += 1
         return [fn(h, *shared) for h in handles]
 
-    def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+    def gather(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> list[Any]:
         """``fn`` on each state in turn, here; its results."""
         out = self.map(fn, handles, *shared)
         self.traffic.received += nbytes(out)
         return out
 
-    def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
+    def total(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> Any:
         """The sum of ``fn``'s results (``None`` if one is), added up as they come: one at a time here."""
         self.traffic.sent += len(handles) * nbytes(shared)
         self.traffic.rounds += 1
-        out = None
+        out: Any = None
         for h in handles:
-            part = fn(h, *shared)
+            part: Any = fn(h, *shared)
             if part is None:
                 return None
             self.traffic.received += nbytes(part)
@@ -136,7 +136,7 @@ class OnExecutor(InProcess):
         self.executor = executor
         self.copies = not isinstance(executor, ThreadPoolExecutor)
 
-    def map(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+    def map(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> list[object]:
         """``fn`` on every state through the executor."""
         self.traffic.sent += len(handles) * nbytes(shared) + (nbytes(list(handles)) if self.copies else 0)
         self.traffic.rounds += 1
@@ -145,13 +145,13 @@ class OnExecutor(InProcess):
         self.traffic.received += nbytes(out) if self.copies else 0
         return out
 
-    def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+    def gather(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> list[Any]:
         """``fn`` on every state through the executor; its results brought back."""
         out = self.map(fn, handles, *shared)
         self.traffic.received += 0 if self.copies else nbytes(out)
         return out
 
-    def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
+    def total(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> Any:
         return sum_or_none(self.gather(fn, handles, *shared))
 
 
@@ -169,13 +169,13 @@ class OnDask:
             raise ValueError("the Dask client has no workers to place the population's shards on.")
         self._where: list[str] = []
 
-    def place(self, data: Sequence[Any]) -> list[Any]:
+    def place(self, data: Sequence[object]) -> list[object]:
         """Scatter the shards' data to the Dask workers; a future per shard."""
         self.traffic.sent += nbytes(list(data))
         self._where = [self.workers[i % len(self.workers)] for i in range(len(data))]
         return [self.client.scatter(d, workers=[w], hash=False) for d, w in zip(data, self._where)]
 
-    def map(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+    def map(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> list[object]:
         """``fn`` on every shard on its worker; the new states stay there (futures)."""
         self.traffic.sent += len(handles) * nbytes(shared)
         self.traffic.rounds += 1
@@ -184,13 +184,13 @@ class OnDask:
             for h, w in zip(handles, self._where)
         ]
 
-    def gather(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> list[Any]:
+    def gather(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> list[Any]:
         """``fn`` on every shard on its worker; the results brought back."""
         out = self.client.gather(self.map(fn, handles, *shared))
         self.traffic.received += nbytes(out)
         return out
 
-    def total(self, fn: Callable[..., Any], handles: Sequence[Any], *shared: Any) -> Any:
+    def total(self, fn: Callable[..., object], handles: Sequence[object], *shared: object) -> Any:
         """The sum of ``fn`` over the shards, reduced on the workers and brought back."""
         return sum_or_none(self.gather(fn, handles, *shared))
 
@@ -204,7 +204,7 @@ def summaries(host: Host, handles: Sequence[Any]) -> list[Any]:
     return out
 
 
-def _dask_client(executor: Any) -> Any:
+def _dask_client(executor: object) -> Any:
     """The Dask client behind ``executor`` (a ``distributed.Client`` or its ``get_executor()``), or
     ``None``. Dask's executor brings every result back to the caller, which would send each shard's
     state here on every round, so its client is used directly."""
@@ -216,15 +216,21 @@ def _dask_client(executor: Any) -> Any:
     return getattr(executor, "_client", None)  # distributed.cfexecutor.ClientExecutor keeps it there
 
 
-def host_for(executor: Any) -> Host:
+def host_for(executor: object) -> Host:
     """The :class:`Host` for ``fit_population``'s ``executor`` (``None``: this process)."""
     if executor is None:
         return InProcess()
     client = _dask_client(executor)
-    return OnDask(client) if client is not None else OnExecutor(executor)
+    if client is not None:
+        return OnDask(client)
+    if not isinstance(executor, Executor):
+        raise ValueError(
+            f"executor must be a concurrent.futures.Executor or a Dask client, got {type(executor).__name__}."
+        )
+    return OnExecutor(executor)
 
 
-def workers_of(executor: Any) -> int | None:
+def workers_of(executor: object) -> int | None:
     """How many workers ``executor`` says it has, where it says."""
     client = _dask_client(executor)
     if client is not None:

@@ -37,7 +37,7 @@ class NotAPopulation(TypeError, ValueError):
     ``ValueError``, so that either ``except`` catches it)."""
 
 
-def as_population(obj: Any) -> Population:
+def as_population(obj: object) -> Population:
     """``obj`` if it is a :class:`~torchpref.Population`.
 
     Raises:

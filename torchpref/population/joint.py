@@ -29,7 +29,7 @@ import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Protocol
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -62,7 +62,7 @@ class JointPoint:
     complement's factor ``S_chol`` once formed (:meth:`JointProblem.hessian`)."""
 
     a: Tensor
-    handles: tuple[Any, ...]
+    handles: tuple[object, ...]
     psi: Tensor
     ga: Tensor
     pd: bool
@@ -150,6 +150,14 @@ def newton(problem: JointProblem, start: JointPoint, max_iter: int = 100) -> Mod
     return Mode(p, problem.hessian(p), max_iter, False)
 
 
+def _add(parts: Sequence[Tensor]) -> Tensor:
+    """The sum of the shards' ``parts`` (at least one)."""
+    out = parts[0]
+    for p in parts[1:]:
+        out = out + p
+    return out
+
+
 def _factor(S: Tensor | None, a: Tensor) -> Tensor | None:
     """The Cholesky factor of ``I + S`` (symmetrised), ``None`` where it is not positive definite."""
     if S is None:
@@ -175,7 +183,7 @@ class Shards:
 
     def __init__(self, host: Host, data: Sequence[ShardData]):
         self.host = host
-        self.handles: list[Any] = host.place(data)
+        self.handles: list[object] = host.place(data)
 
     def start(self, basis: Basis, a: Tensor) -> JointPoint:
         """All shards at new hyperparameters and ``a``, each from where it last rested."""
@@ -209,7 +217,7 @@ class Shards:
         ``None`` where it is not positive definite."""
         return _factor(self.host.total(schur_of, p.handles), p.a)
 
-    def _joint(self, a: Tensor, handles: list[Any], fisher: bool) -> JointPoint:
+    def _joint(self, a: Tensor, handles: list[object], fisher: bool) -> JointPoint:
         """The point of the shards' states ``handles``: their summaries summed; where the shards
         are remote, with the Schur complement's parts in the same round (:func:`report`)."""
         S_chol = None
@@ -219,12 +227,12 @@ class Shards:
             S_chol = _factor(sum_or_none([pair[1] for pair in pairs]), a)
         else:
             parts = summaries(self.host, handles)
-        psi = sum(s.psi for s in parts) - 0.5 * (a * a).sum()
-        ga = sum(s.ga for s in parts) - a
-        dec = sum(s.dec for s in parts)
+        psi = _add([s.psi for s in parts]) - 0.5 * (a * a).sum()
+        ga = _add([s.ga for s in parts]) - a
+        dec = _add([s.dec for s in parts])
         if not all(s.pd for s in parts):
             return JointPoint(a, tuple(handles), psi, ga, False, None, None, fisher, dec)
-        coupled, logdet = sum(s.coupled for s in parts), sum(s.logdet for s in parts)
+        coupled, logdet = _add([s.coupled for s in parts]), _add([s.logdet for s in parts])
         return JointPoint(a, tuple(handles), psi, ga, True, coupled, logdet, fisher, dec, S_chol)
 
     def gradient(self, mode: Mode) -> Gradient:
@@ -234,11 +242,11 @@ class Shards:
         assert h.S_chol is not None  # a mode's Hessian is positive definite
         states = self.host.map(shard_cotangent, h.handles, h.S_chol)
         cot = summaries(self.host, states)
-        rhs = sum(c.ha for c in cot) - sum(c.coupled for c in cot)
+        rhs = _add([c.ha for c in cot]) - _add([c.coupled for c in cot])
         w_a = torch.cholesky_solve(rhs.unsqueeze(-1), h.S_chol).squeeze(-1)
         parts = self.host.gather(shard_gradient, states, w_a, h.S_chol)
         return Gradient(
-            sum(g.L_Z for g in parts),
-            tuple(sum(gs) for gs in zip(*(g.k_m for g in parts))),
-            tuple(sum(gs) for gs in zip(*(g.k_g for g in parts))),
+            _add([g.L_Z for g in parts]),
+            tuple(_add(list(gs)) for gs in zip(*(g.k_m for g in parts))),
+            tuple(_add(list(gs)) for gs in zip(*(g.k_g for g in parts))),
         )

@@ -2,6 +2,7 @@ r""":class:`Population`: a fitted population prior, and a new person's model fro
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -45,7 +46,7 @@ class Population:
         S_chol: Tensor,
         settings: dict[str, Any],
         stats: dict[str, Any] | None = None,
-        names: tuple[str, ...] | None = None,
+        names: Sequence[str] | None = None,
         A: Tensor | None = None,
     ):
         self.k_m, self.k_g = k_m, k_g
@@ -68,7 +69,7 @@ class Population:
         S_chol: Tensor,
         settings: dict,
         stats: dict,
-        names: Any = None,
+        names: Sequence[str] | None = None,
     ) -> Population:
         """The population of a solved joint mode (whitened ``a`` of ``m(U) = L_U a``, and the
         Schur complement's factor ``S_chol``: :func:`~torchpref.population.joint.newton`)."""

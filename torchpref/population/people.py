@@ -6,7 +6,6 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from botorch.exceptions.warnings import InputDataWarning
@@ -23,7 +22,7 @@ from torchpref.population.shards import ShardData
 MAX_SCATTER_ITEMS = 3200
 
 
-def check_people(people: Any) -> list[PreferenceData]:
+def check_people(people: object) -> list[PreferenceData]:
     """``people`` as a list of float64 :class:`~torchpref.data.preference_data.PreferenceData`.
 
     Warns (BoTorch's ``InputDataWarning``, as :class:`~torchpref.PreferenceGP` does) when the

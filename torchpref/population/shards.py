@@ -30,7 +30,6 @@ differentiates its own (in ``L_Z``, ``k_m``'s and ``k_g``'s parameters) and the 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from gpytorch.kernels import Kernel
@@ -158,7 +157,7 @@ class Resting:
     b: Tensor
 
 
-def summary_of(state: Any) -> Any:
+def summary_of(state: ShardState | CotangentState) -> Summary | Cotangent:
     """A state's summary (run where the state lives, so that only the summary travels)."""
     return state.summary
 
@@ -235,7 +234,9 @@ def _coupled(data: ShardData, prior: Prior, blocks: Blocks, g: Tensor) -> Tensor
     return prior.Phi.mT @ scatter_vector(data.layout, c, prior.Phi.shape[0])
 
 
-def _blocks(lay: Layout, L_P: Tensor, f: Tensor, weights: Any, fisher: Tensor | None) -> tuple[Any, Tensor | None]:
+def _blocks(
+    lay: Layout, L_P: Tensor, f: Tensor, weights: tuple[Tensor, ...], fisher: Tensor | None
+) -> tuple[Blocks | None, Tensor | None]:
     """The people's blocks, with Fisher weights for those whose exact block is not positive
     definite (``(None, fisher)`` if even those are not)."""
     try:
@@ -255,8 +256,8 @@ def _point(
     a: Tensor,
     b: Tensor,
     fisher: Tensor | None = None,
-    step: Any = None,
-    dec: Any = None,
+    step: tuple[Tensor, Tensor] | None = None,
+    dec: Tensor | None = None,
 ) -> ShardState:
     """The shard at ``(a, b)`` (no autograd), Fisher weights for the people in ``fisher`` and
     for any whose exact block is not positive definite."""
