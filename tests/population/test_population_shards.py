@@ -121,10 +121,12 @@ def test_sharded_fit_on_processes_is_the_in_process_fit():
     _same_population(here, there, 1e-4)
 
 
-def test_a_forking_process_pool_is_refused_by_name():
+def test_a_forking_process_pool_and_a_non_executor_are_refused_by_name():
     with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork")) as ex:
         with pytest.raises(ValueError, match="spawn"):
             fit_population(_people(), max_iter=1, executor=ex)
+    with pytest.raises(ValueError, match="executor must be a concurrent.futures.Executor or a Dask client, got int"):
+        fit_population(_people(), max_iter=1, executor=5)
 
 
 @pytest.mark.slow
