@@ -28,7 +28,7 @@ from torchpref.population.fit import fit_population
 from torchpref.population.io import save_population
 from torchpref.sessions.journal import read_session_file
 from torchpref.sessions.model_state import build_data
-from torchpref.sessions.records import AnswerRecord, parse_record
+from torchpref.sessions.records import AnswerRecord, records_in_force
 from torchpref.study.folder import StudyFolder
 
 __all__ = ["RefitRunner", "finished_participants", "person_data", "refit"]
@@ -48,20 +48,14 @@ def person_data(path: Path) -> tuple[PreferenceData, dict, int]:
     header, raw, _ = read_session_file(path)
     if header is None:
         raise ValueError(f"session file {path} is empty.")
-    records = [parse_record(r) for r in raw]
-    in_force: dict[int, AnswerRecord] = {}
-    for r in records:
-        if isinstance(r, AnswerRecord):
-            in_force[r.seq] = r
-        else:
-            in_force.pop(r.undoes, None)
+    in_force = [AnswerRecord.from_json(r) for r in records_in_force(raw)]
     lo, hi = torch.tensor(header["bounds"], dtype=torch.float64)
     pool = torch.tensor(header["candidates"]["items"], dtype=torch.float64)
 
     def transform(X: torch.Tensor) -> torch.Tensor:
         return (X - lo) / (hi - lo)
 
-    data, _ = build_data(transform(pool[:1]), list(in_force.values()), transform, DEFAULT_RATING_EPS, None)
+    data, _ = build_data(transform(pool[:1]), in_force, transform, DEFAULT_RATING_EPS, None)
     return data, header, len(in_force)
 
 
