@@ -246,6 +246,7 @@ def _elicit_parser(sub) -> None:
         help="ask only these questions: one per line, the items' row numbers (0-based, comma-separated; "
         "one row: rate it, several: pick the best of them); the selector chooses among them",
     )
+    _selector_arg(el)
     el.add_argument(
         "--seed", type=int, default=None, help="seed of a new session (default 0; a resumed session keeps its own)"
     )
@@ -278,10 +279,23 @@ def _serve_parser(sub) -> None:
         help="ask only these questions (the format of elicit's --question-list: one per line, the items' "
         "0-based row numbers, comma-separated; one row: rate it, several: pick the best of them)",
     )
+    _selector_arg(sv)
     sv.add_argument("--levels", type=positive_int, default=5, help="rating levels 1..K (default 5)")
     sv.add_argument("--no-ties", action="store_true", help="no 'no preference' button")
     sv.add_argument("--seed", type=int, default=0, help="seed of new sessions (and of the lake; default 0)")
     _network_args(sv)
+
+
+def _selector_arg(p) -> None:
+    """``--selector NAME`` (``elicit``, ``serve``): torchpref.selection.defaults.named_selector."""
+    p.add_argument(
+        "--selector",
+        choices=("default", "ucbc", "information", "random"),
+        default=None,
+        help="how a new session picks its questions: default (expected information and the clipped profile per "
+        "second), ucbc (the paper's: rankings early, ratings late), information, random (default: default; a "
+        "resumed session keeps the one its file records)",
+    )
 
 
 def _network_args(sv) -> None:
@@ -325,6 +339,7 @@ def _study_parser(sub) -> None:
     sv.add_argument("--image-column", metavar="COLUMN", help="the CSV column naming each item's image file")
     sv.add_argument("--image-dir", metavar="DIR", help="the folder of the images (default: the CSV's folder)")
     sv.add_argument("--queries", type=positive_int, default=14, help="questions per participant (default 14)")
+    _selector_arg(sv)
     sv.add_argument("--levels", type=positive_int, default=5, help="rating levels 1..K (default 5)")
     sv.add_argument("--no-ties", action="store_true", help="no 'no preference' button")
     sv.add_argument("--seed", type=int, default=0, help="seed of the sessions (and of the lake; default 0)")

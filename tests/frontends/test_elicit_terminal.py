@@ -48,7 +48,8 @@ def next_query(child) -> tuple[int, str, str] | None:
 @pytest.mark.slow  # a long loop (27-38 s here): make test-slow, which CI runs
 def test_lake_elicitation_14_queries_with_bad_answers_undo_and_help(tmp_path):
     session, out = tmp_path / "lake.jsonl", tmp_path / "figures"
-    child = spawn("lake", "--session", session, "--out", out, "--queries", 14, "--seed", 0)
+    # the paper's UCBC asks both kinds (the default asks the lake's paths ratings: docs/selection.md)
+    child = spawn("lake", "--session", session, "--out", out, "--queries", 14, "--seed", 0, "--selector", "ucbc")
     operator = LakeOperator()
     bad_seen = {"rating": 0, "ranking": 0}
     undone = helped = False

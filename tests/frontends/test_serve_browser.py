@@ -43,7 +43,10 @@ LETTERS = "ABCDEFGHIJ"
 def server(tmp_path):
     items = write_items(tmp_path, n=30, d=3)
     srv = Server(
-        ["--features", str(items), "--image-column", "picture", "--sessions", "sessions", "--queries", "20"], tmp_path
+        # UCBC asks both kinds (the default rates each item once first: docs/selection.md)
+        ["--features", str(items), "--image-column", "picture", "--sessions", "sessions", "--queries", "20"]
+        + ["--selector", "ucbc"],
+        tmp_path,
     )
     srv.start()
     yield srv
@@ -259,7 +262,7 @@ def test_lake_page(tmp_path, browser):
     """``torchpref serve lake``: each path drawn on its map, answered by keyboard; a best-of-5
     question in a 1280 px window gives each map at least 340 px, Shift + a letter (or a click)
     enlarges one, Escape closes it, and the recommendation is one line until opened."""
-    srv = Server(["lake", "--sessions", "sessions", "--queries", "10"], tmp_path)
+    srv = Server(["lake", "--sessions", "sessions", "--queries", "10", "--selector", "ucbc"], tmp_path)
     srv.start()
     shots = {}
     try:

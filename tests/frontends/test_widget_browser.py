@@ -51,12 +51,13 @@ CHROMIUM_ARGS = [
 
 NOTEBOOK_CODE = """\
 from torchpref.lake import make_scenario
+from torchpref import UCBC
 from torchpref.sessions.session import PreferenceSession
 from torchpref.frontends.widgets import PreferenceWidget, lake_renderer
 
 scenario = make_scenario(seed=0, paths_per_planner=10)
 session = PreferenceSession(scenario.train_X, session_file={session_file!r}, num_queries=4,
-                            names=["distance", "information"])
+                            names=["distance", "information"], selector=UCBC(m=5))
 PreferenceWidget(session, lake_renderer(scenario), noun="path")
 """
 

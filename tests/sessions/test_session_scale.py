@@ -63,11 +63,11 @@ def test_incremental_session_undo_and_resume_agree_with_a_full_replay(tmp_path):
     path = tmp_path / "s.jsonl"
     s = busy_session(path, X)
     Z = s.transform(X)
-    ref = s._replay(s._active)  # the reference: every answer in force told one by one
+    ref = s._replay(s._active())  # the reference: every answer in force told one by one
     live = posterior(s.model, Z)
     for a, b in zip(live, posterior(ref, Z), strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-10)
-    data, _ = build_data(s._anchor, s._active, s.transform, ref.rating_eps, ref.rating_levels)
+    data, _ = build_data(s._anchor, s._active(), s.transform, ref.rating_eps, ref.rating_levels)
     for field in ("train_X", "comparisons", "ratings", "rating_index", "ties"):
         assert torch.equal(getattr(data, field), getattr(ref.data, field)), field
     q = s.ask()

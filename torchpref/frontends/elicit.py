@@ -31,7 +31,7 @@ from torch import Tensor
 
 from torchpref.data.features import FeaturesError, printable, read_features_csv
 from torchpref.data.queries import Query, RankingQuery, first_unique_rows
-from torchpref.selection.defaults import default_selector
+from torchpref.selection.defaults import named_selector
 from torchpref.sessions.errors import SessionFileCorrupt, SessionFileError, SessionMismatchError
 from torchpref.sessions.query_list import read_question_list
 from torchpref.sessions.session import PreferenceSession, read_session_file
@@ -303,7 +303,7 @@ def _open_session(
     if n < 2:
         raise SessionFileError("need at least two distinct items to elicit preferences.")
     kwargs = dict(
-        selector=default_selector(n),
+        selector=None if getattr(args, "selector", None) is None else named_selector(args.selector, n),
         queries=question_list(getattr(args, "question_list", None), world.X),
         seed=seed,
         num_queries=args.queries,

@@ -9,11 +9,13 @@ their population, the population replay of real people, the realistic and ideali
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from torchpref.selection.combined import InformationAndProfile
-from torchpref.selection.strategies import Selector
+from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomMixed, Selector
 from torchpref.simulation.raters import EffortModel
 
-__all__ = ["default_ranking_size", "default_selector"]
+__all__ = ["SELECTOR_NAMES", "default_ranking_size", "default_selector", "named_selector"]
 
 
 def default_ranking_size(num_items: int | None) -> int:
@@ -33,3 +35,29 @@ def default_selector(num_items: int | None = None) -> Selector:
     m = default_ranking_size(num_items)
     effort = EffortModel.plain()
     return InformationAndProfile(m=m, rating_cost=effort.rating(), ranking_cost=effort.ranking(m), decide="sum")
+
+
+#: name -> factory(num_items): the selectors ``torchpref elicit`` and ``serve`` take by name (``--selector``)
+_NAMED: dict[str, Callable[[int | None], Selector]] = {
+    "default": lambda n: default_selector(n),
+    "ucbc": lambda n: UCBC(m=default_ranking_size(n)),
+    "information": lambda n: InformationPerEffort(m=default_ranking_size(n), target="utility"),
+    "random": lambda n: RandomMixed(m=default_ranking_size(n)),
+}
+SELECTOR_NAMES = tuple(_NAMED)
+
+
+def named_selector(name: str, num_items: int | None = None) -> Selector:
+    """The selector called ``name`` for a pool of ``num_items`` distinct items (``None``: a box),
+    with ``m = default_ranking_size(num_items)``: ``"default"`` (:func:`default_selector`),
+    ``"ucbc"`` (the paper's :class:`~torchpref.UCBC`, which asks rankings early and ratings late),
+    ``"information"`` (:class:`~torchpref.selection.strategies.InformationPerEffort` of the utility)
+    or ``"random"`` (:class:`~torchpref.selection.strategies.RandomMixed`: a random rating or
+    best-of-``m``, even odds).
+
+    Raises:
+        ValueError: an unknown name, listing the known ones.
+    """
+    if name not in _NAMED:
+        raise ValueError(f"unknown selector {name!r}: one of {', '.join(SELECTOR_NAMES)}.")
+    return _NAMED[name](num_items)

@@ -570,10 +570,15 @@ def run(args: argparse.Namespace) -> int:
         from torchpref.sessions.query_list import read_question_list
 
         queries = tuple(read_question_list(args.question_list, items.X))
+    selector = None
+    if getattr(args, "selector", None) is not None:
+        from torchpref.selection.defaults import named_selector
+
+        selector = named_selector(args.selector, items.X.unique(dim=0).shape[0])
     serve(
         items,
         sessions=args.sessions,
-        new=NewSessions(args.queries, args.seed, args.levels, not args.no_ties, population, queries),
+        new=NewSessions(args.queries, args.seed, args.levels, not args.no_ties, population, queries, selector),
         listen=Listen(args.host, args.port, args.allow_remote, args.token),
         limits=PoolLimits(max_open=args.max_open, idle_close=args.idle_close, finished_close=args.finished_close),
     )
