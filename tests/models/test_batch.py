@@ -284,3 +284,74 @@ def test_batch_copies_hyperparameters():
     batch.add_observations(1, torch.rand(1, 1, dtype=torch.float64), ratings=[0.3], rating_index=[0])
     batch.add_observations(1, torch.rand(1, 1, dtype=torch.float64), ratings=[0.4], rating_index=[0])
     assert torch.allclose(batch.marginals(X)[1][0], before[0], atol=1e-9)
+
+
+def test_ties_levels_and_prior_mean_go_through_the_batch_and_its_trial_models():
+    """A batch of models with 5 rating levels, "no preference" answers and a prior mean: ties
+    added per trial (and by the batched loop, where a user says "no preference") give each trial
+    the model one would get alone, and ``trial_model`` keeps the levels, the tie likelihood and the
+    mean."""
+    from gpytorch.means import LinearMean
+
+    from torchpref.models.preference_gp import PreferenceGP
+
+    g = torch.Generator().manual_seed(5)
+
+    def model():
+        mean = LinearMean(1).double()
+        mean.weights.data.fill_(1.5)
+        mean.bias.data.fill_(0.2)
+        X = torch.rand(3, 1, generator=g, dtype=torch.float64)
+        return PreferenceGP(
+            X,
+            torch.tensor([[0, 1]]),
+            torch.tensor([4.0]),
+            torch.tensor([2]),
+            rating_levels=5,
+            ties=torch.tensor([[1, 2]]),
+            mean_module=mean,
+        )
+
+    models = [model(), model()]
+    batch = BatchedPreferenceGP.from_models(models)
+    X_new = torch.rand(3, 1, generator=g, dtype=torch.float64)
+    for b, m in enumerate(models):
+        m.add_observations(
+            X_new, ties=torch.tensor([[0, 1 + b]]), ratings=torch.tensor([b + 1.0]), rating_index=torch.tensor([2])
+        )
+        batch.add_observations(
+            b, X_new, ties=torch.tensor([[0, 1 + b]]), ratings=torch.tensor([b + 1.0]), rating_index=torch.tensor([2])
+        )
+    X = torch.rand(2, 9, 1, generator=g, dtype=torch.float64)
+    mean, var = batch.marginals(X)
+    for b, m in enumerate(models):
+        single = batch.trial_model(b)
+        assert single.rating_levels == 5 and single.data.ties.shape[0] == 2
+        assert isinstance(single.mean_module, LinearMean) and single.mean_module is not batch.model.mean_module
+        for ref in (m, single):
+            m1, v1 = ref.marginals(X[b])
+            assert torch.allclose(mean[b], m1, atol=1e-6) and torch.allclose(var[b], v1, atol=1e-6)
+    assert (mean - X.squeeze(-1) * 1.5).abs().max() < 3  # the prior mean is in force, not zero
+
+
+def test_the_batched_loop_records_no_preference_answers():
+    class Indifferent:
+        def rate(self, x):
+            return 0.5
+
+        def choose(self, X):
+            return None  # "no preference" among the items shown
+
+    g = torch.Generator().manual_seed(0)
+    models = [
+        wave.make_model(torch.rand(2, 1, generator=g, dtype=torch.float64), torch.tensor([[0, 1]])) for _ in range(2)
+    ]
+    batch = BatchedPreferenceGP.from_models(models)
+    pool = FinitePool(torch.linspace(0, 1, 12, dtype=torch.float64).unsqueeze(-1))
+    gens = [torch.Generator().manual_seed(k) for k in range(2)]
+    hist = run_active_learning_batch(
+        batch, [Indifferent(), Indifferent()], pool, RandomMixed(m=3, p_ranking=1.0), 3, generators=gens
+    )
+    for b in range(2):
+        assert len(hist[b].records) == 3 and batch.data(b).ties.shape[0] == 9  # 3 pairs per best-of-3
+    assert torch.isfinite(batch.marginals(torch.rand(2, 4, 1, dtype=torch.float64))[0]).all()

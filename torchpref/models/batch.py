@@ -84,30 +84,27 @@ class BatchedPreferenceGP:
         comparisons: Tensor | None = None,
         ratings: Tensor | None = None,
         rating_index: Tensor | None = None,
+        ties: Tensor | None = None,
     ) -> None:
         r"""Add items and observations to one trial, as :meth:`PreferenceGP.add_observations`
-        (validated first: on error nothing changes)."""
+        (``ties``: "no preference" pairs; validated first: on error nothing changes)."""
         if not 0 <= trial < self.num_trials:
             raise ValueError(f"trial must be in 0..{self.num_trials - 1}, got {trial}.")
-        self._data[trial] = self._data[trial].add(X, comparisons, ratings, rating_index, rating_eps=self.rating_eps)
+        self._data[trial] = self._data[trial].add(
+            X, comparisons, ratings, rating_index, rating_eps=self.rating_eps, ties=ties
+        )
         self._changed = True
 
     def trial_model(self, trial: int) -> PreferenceGP:
-        """A stand-alone :class:`~torchpref.PreferenceGP` of one trial (same hyperparameters)."""
-        d, t, lik = self._data[trial], self.model, self.likelihood
-        return PreferenceGP(
-            d.train_X,
-            d.comparisons,
-            d.ratings,
-            d.rating_index,
-            covar_module=copy.deepcopy(t.covar_module),  # its own: fitting it changes no trial
-            comparison_noise=float(lik.comparison.comparison_noise),
-            rating_scale=float(lik.rating.rating_scale),
-            rating_precision=float(lik.rating.rating_precision),
-            rating_eps=t.rating_eps,
-            max_newton_iter=t.max_newton_iter,
-            laplace_dtype=t._laplace_dtype,
-        )
+        """A stand-alone :class:`~torchpref.PreferenceGP` of one trial: the trials' kernel,
+        likelihoods (rating, comparison and tie), prior mean and solver settings, copied (fitting
+        it changes no trial), with that trial's data."""
+        if not 0 <= trial < self.num_trials:
+            raise ValueError(f"trial must be in 0..{self.num_trials - 1}, got {trial}.")
+        model = copy.copy(self.model)  # not the batch's solved state: only its modules, copied below
+        model._data, model._cache = self._data[trial], None
+        model = copy.deepcopy(model)
+        return model.replace_data(self._data[trial])
 
     # ------------------------------------------------------------------ inference
     def _current(self) -> PreferenceGP:

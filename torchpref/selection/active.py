@@ -123,8 +123,8 @@ class _Trial:
     def __init__(self, model: BatchedPreferenceGP, trial: int):
         self.model, self.trial = model, trial
 
-    def add_observations(self, X=None, comparisons=None, ratings=None, rating_index=None):
-        self.model.add_observations(self.trial, X, comparisons, ratings, rating_index)
+    def add_observations(self, X=None, comparisons=None, ratings=None, rating_index=None, ties=None):
+        self.model.add_observations(self.trial, X, comparisons, ratings, rating_index, ties)
 
 
 def run_active_learning_batch(
