@@ -182,3 +182,34 @@ def test_save_model_onto_the_longest_legal_file_name(tmp_path, name):
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # no temporary file left
     loaded = torchpref.load_model(tmp_path / name)
     assert torch.equal(loaded.train_inputs[0], model.train_inputs[0])
+
+
+def test_load_model_refuses_a_compressed_archive_a_fifo_and_a_directory_before_reading(tmp_path):
+    """A checkpoint whose records are compressed (a few kilobytes that expand to gigabytes under
+    ``torch.load``), a FIFO (``torch.load`` would wait on it forever), a directory and a file that
+    is no archive are each refused by name, without reading them; the file save_model wrote loads."""
+    import zipfile
+
+    model = _model()
+    path = tmp_path / "m.pt"
+    torchpref.save_model(model, path)
+    with zipfile.ZipFile(path) as zin, zipfile.ZipFile(tmp_path / "deflated.pt", "w") as out:
+        for info in zin.infolist():
+            out.writestr(info.filename, zin.read(info.filename), compress_type=zipfile.ZIP_DEFLATED)
+    with pytest.raises(CheckpointError, match="deflated.pt is not a file save_model wrote: .* compressed"):
+        torchpref.load_model(tmp_path / "deflated.pt")
+    os.mkfifo(tmp_path / "fifo.pt")
+    with pytest.raises(CheckpointError, match=r"fifo.pt is not a regular file \(a FIFO\)"):
+        torchpref.load_model(tmp_path / "fifo.pt")
+    with pytest.raises(IsADirectoryError, match="not a torchpref.PreferenceGP checkpoint"):
+        torchpref.load_model(tmp_path)
+    with pytest.raises(FileNotFoundError, match="save_model writes one"):
+        torchpref.load_model(tmp_path / "none.pt")
+    (tmp_path / "text.pt").write_text("not a checkpoint")
+    with pytest.raises(CheckpointError, match="text.pt is not a torchpref.PreferenceGP checkpoint: not an archive"):
+        torchpref.load_model(tmp_path / "text.pt")
+    (tmp_path / "cut.pt").write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(CheckpointError, match="cut.pt is a damaged torchpref.PreferenceGP checkpoint"):
+        torchpref.load_model(tmp_path / "cut.pt")
+    loaded = torchpref.load_model(path)
+    assert torch.equal(loaded.train_inputs[0], model.train_inputs[0])

@@ -24,14 +24,17 @@ holding code) or one whose contents are not a checkpoint's raises :class:`Checkp
 
 from __future__ import annotations
 
+import errno
+import io
 import numbers
 import os
 import pickle
 import stat
 import tempfile
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, cast
 
 import torch
 from botorch.models.transforms.input import InputTransform
@@ -208,7 +211,9 @@ def load_model(
 
     Raises:
         CheckpointError: (a ``ValueError``) if ``source`` is not a readable torchpref model
-            checkpoint (truncated, damaged, another kind of file, entries missing or of the
+            checkpoint (truncated, damaged, another kind of file, not a regular file (a FIFO is
+            refused without waiting on it), an archive whose records are compressed or larger
+            than the file, entries missing or of the
             wrong kind or range, complex, non-finite or out-of-constraint hyperparameters,
             tensors larger than their storage, more than ``max_items`` items), or its
             hyperparameters do not fit the kernel / input transform given (naming the keys).
@@ -256,23 +261,78 @@ def load_model(
     return model
 
 
-def _read(path: str | os.PathLike, map_location) -> Any:
-    """``torch.load(path, weights_only=True)``, its many failure types for a file that is no
-    checkpoint turned into one :class:`CheckpointError`."""
+def open_regular(path: str | os.PathLike, what: str, writer: str) -> tuple[IO[bytes], int]:
+    """``path`` opened for reading, with its size, if it is a regular file (``what``: the kind of
+    file expected, ``writer``: the function that writes one, both for the messages).
+
+    Raises:
+        FileNotFoundError: no file at ``path`` (naming it).
+        IsADirectoryError: a directory.
+        CheckpointError: a FIFO, socket or device (refused without reading it: opened non-blocking).
+    """
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
-    except (FileNotFoundError, IsADirectoryError, PermissionError):
-        raise
-    except pickle.UnpicklingError as err:
-        raise CheckpointError(
-            f"{path} is not a {FORMAT} checkpoint: it holds something other than tensors and "
-            "plain values, or is not a file written by torch.save; not loaded."
-        ) from err
-    except Exception as err:
-        raise CheckpointError(
-            f"{path} is not a readable {FORMAT} checkpoint (truncated, damaged or another kind "
-            f"of file): {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
-        ) from err
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except FileNotFoundError:
+        raise FileNotFoundError(
+            errno.ENOENT, f"no {what} at this path (torchpref.{writer} writes one)", str(path)
+        ) from None
+    except IsADirectoryError:  # where a directory cannot be opened for reading
+        raise IsADirectoryError(errno.EISDIR, f"a directory, not a {what}", str(path)) from None
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode):
+        os.close(fd)
+        if stat.S_ISDIR(info.st_mode):
+            raise IsADirectoryError(errno.EISDIR, f"a directory, not a {what}", str(path))
+        kind = "a FIFO" if stat.S_ISFIFO(info.st_mode) else "a socket or device"
+        raise CheckpointError(f"{path} is not a regular file ({kind}); a {what} is one {writer} wrote.")
+    return os.fdopen(fd, "rb"), int(info.st_size)
+
+
+def check_archive(fh: IO[bytes], size: int, where: str, what: str, writer: str) -> None:
+    """The file is a zip archive (``torch.save``'s) whose records are stored uncompressed, none
+    larger than the file: nothing ``torch.load`` then allocates can exceed the file's size (a
+    compressed record of a few kilobytes could expand to gigabytes). Leaves ``fh`` at its start.
+
+    Raises:
+        CheckpointError: not a zip archive, an unreadable one, or a record compressed or larger
+            than the file (naming ``where`` and the record).
+    """
+    if fh.read(4) != b"PK\x03\x04":
+        raise CheckpointError(f"{where} is not a {what}: not an archive written by torch.save ({writer} writes one).")
+    fh.seek(0)
+    try:
+        records = zipfile.ZipFile(fh).infolist()
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
+        raise CheckpointError(f"{where} is a damaged {what} (truncated or corrupted: {err}); not loaded.") from err
+    for r in records:
+        if r.compress_type != zipfile.ZIP_STORED or r.file_size > size:
+            raise CheckpointError(
+                f"{where} is not a file {writer} wrote: its record {r.filename!r} is compressed or expands "
+                f"to {r.file_size} bytes, more than the file's {size}; not loaded."
+            )
+    fh.seek(0)
+
+
+def _read(path: str | os.PathLike, map_location) -> Any:
+    """``torch.load(path, weights_only=True)`` of a regular file holding ``torch.save``'s archive
+    of stored records (:func:`open_regular`, :func:`check_archive`), its many failure types for a
+    file that is no checkpoint turned into one :class:`CheckpointError`."""
+    what = f"{FORMAT} checkpoint"
+    fh, size = open_regular(path, what, "save_model")
+    with fh:
+        check_archive(fh, size, str(path), what, "save_model")
+        try:
+            return torch.load(cast(io.BufferedReader, fh), map_location=map_location, weights_only=True)
+        except pickle.UnpicklingError as err:
+            raise CheckpointError(
+                f"{path} is not a {what}: it holds something other than tensors and "
+                "plain values, or is not a file written by torch.save; not loaded."
+            ) from err
+        except Exception as err:
+            raise CheckpointError(
+                f"{path} is not a readable {what} (truncated, damaged or another kind "
+                f"of file): {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+            ) from err
 
 
 def _check_contents(ck: object, where: str, max_items: int | None = MAX_ITEMS) -> dict[str, Any]:

@@ -20,12 +20,9 @@ In this order, each refusal a :class:`~torchpref.models.checkpoint.CheckpointErr
 
 from __future__ import annotations
 
-import errno
 import io
 import math
 import os
-import stat
-import zipfile
 from typing import IO, Any, cast
 
 import torch
@@ -33,6 +30,8 @@ from gpytorch.kernels import Kernel
 
 from torchpref.models.checkpoint import FORMAT as MODEL_FORMAT
 from torchpref.models.checkpoint import CheckpointError, _check_loaded_values, _check_tensor
+from torchpref.models.checkpoint import check_archive as archive_check
+from torchpref.models.checkpoint import open_regular as archive_open
 
 FORMAT = "torchpref.Population"
 VERSIONS = (1, 2)
@@ -46,51 +45,15 @@ SETTINGS: dict[str, type | tuple[type, ...]] = {
 
 
 def open_regular(path: str | os.PathLike) -> tuple[IO[bytes], int]:
-    """``path`` opened for reading, with its size, if it is a regular file.
-
-    Raises:
-        FileNotFoundError: no file at ``path`` (naming it).
-        IsADirectoryError: a directory.
-        CheckpointError: a FIFO, socket or device (refused without reading it).
-    """
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
-    except FileNotFoundError:
-        raise FileNotFoundError(
-            errno.ENOENT, "no population file at this path (torchpref.save_population writes one)", str(path)
-        ) from None
-    except IsADirectoryError:  # where a directory cannot be opened for reading
-        raise IsADirectoryError(errno.EISDIR, "a directory, not a population file", str(path)) from None
-    info = os.fstat(fd)
-    if not stat.S_ISREG(info.st_mode):
-        os.close(fd)
-        if stat.S_ISDIR(info.st_mode):
-            raise IsADirectoryError(errno.EISDIR, "a directory, not a population file", str(path))
-        kind = "a FIFO" if stat.S_ISFIFO(info.st_mode) else "a socket or device"
-        raise CheckpointError(f"{path} is not a regular file ({kind}); a population file is one save_population wrote.")
-    return os.fdopen(fd, "rb"), int(info.st_size)
+    """``path`` opened for reading, with its size, if it is a regular file
+    (:func:`torchpref.models.checkpoint.open_regular`, in a population file's words)."""
+    return archive_open(path, "population file", "save_population")
 
 
 def check_archive(fh: IO[bytes], size: int, where: str) -> None:
-    """The file is a zip archive (``torch.save``'s) whose records are stored, none larger than the file."""
-    if fh.read(4) != b"PK\x03\x04":
-        raise CheckpointError(
-            f"{where} is not a population file: not an archive written by torch.save (save_population writes one)."
-        )
-    fh.seek(0)
-    try:
-        records = zipfile.ZipFile(fh).infolist()
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
-        raise CheckpointError(
-            f"{where} is a damaged population file (truncated or corrupted: {err}); not loaded."
-        ) from err
-    for r in records:
-        if r.compress_type != zipfile.ZIP_STORED or r.file_size > size:
-            raise CheckpointError(
-                f"{where} is not a file save_population wrote: its record {r.filename!r} is compressed or expands "
-                f"to {r.file_size} bytes, more than the file's {size}; not loaded."
-            )
-    fh.seek(0)
+    """The file is a zip archive (``torch.save``'s) whose records are stored, none larger than the
+    file (:func:`torchpref.models.checkpoint.check_archive`, in a population file's words)."""
+    archive_check(fh, size, where, "population file", "save_population")
 
 
 def read(fh: IO[bytes], where: str) -> Any:
