@@ -29,7 +29,7 @@ STALE_NOTE = " (measured on an older version)"
 class Figure:
     file: str  # under benchmarks/results/
     key: str
-    fmt: str = "{}"  # a str.format pattern, or one of "percent", "sci"
+    fmt: str = "{}"  # a str.format pattern, or one of "percent", "sci", "ms"
 
     def raw(self) -> float | int | str:
         path = ROOT / "benchmarks" / "results" / self.file
@@ -52,6 +52,8 @@ class Figure:
             return "never"
         if self.fmt == "percent":
             return f"{100 * float(value):g} %"
+        if self.fmt == "ms":  # seconds shown in milliseconds
+            return f"{1000 * float(value):.1f} ms"
         if self.fmt == "sci":  # 4e-8 style, one significant digit
             mantissa, exponent = f"{float(value):.0e}".split("e")
             return f"{mantissa}e{int(exponent)}"
@@ -698,6 +700,9 @@ FIGURES["soak_acknowledged"] = Figure("serve/soak.json", "restart.acknowledged_a
 FIGURES["soak_reopened"] = Figure("serve/soak.json", "restart.sessions_reopened")
 FIGURES["soak_load_lo"] = Figure("serve/soak.json", "load_average.0", "{:.1f}")
 FIGURES["soak_load_hi"] = Figure("serve/soak.json", "load_average.3", "{:.1f}")
+FIGURES["soak_per_hour"] = Figure("serve/soak.json", "summary.sessions_per_hour_in_run", "{:,.0f}")
+FIGURES["soak_cpu_ms"] = Figure("serve/soak.json", "summary.server_cpu_s_per_answer", "ms")
+FIGURES["soak_per_hour_cpu"] = Figure("serve/soak.json", "summary.participants_per_hour_cpu_bound", "{:,.0f}")
 
 # the study on twins and the study over HTTP (docs/study.md)
 for _ds, _short in (("electricity", "elec"), ("rail", "rail")):
@@ -742,6 +747,24 @@ for _key in (
     FIGURES[f"study_kill_{_key}"] = Figure("study/study_run_kills.json", _key, "{:,}")
 FIGURES["study_kill_lost"] = Figure("study/study_run_kills.json", "lost", "{}")
 FIGURES["study_kill_load"] = Figure("study/study_run_kills.json", "load_average_start_end.1", "{:.1f}")
+
+# the compiled path's threads and person models (benchmarks/speed/speed_fast_path.py, make results; issue 42)
+_FAST = "fast_path/speed_fast_path.json"
+for _i, _n in enumerate((20, 50, 100, 200)):
+    for _key in ("quiet_limited_cpu_s", "quiet_unlimited_cpu_s", "loaded_limited_cpu_s"):
+        FIGURES[f"fast_{_key.removesuffix('_cpu_s')}_{_n}"] = Figure(_FAST, f"load.{_i}.{_key}", "ms")
+    for _key in (
+        "limited_loaded_over_quiet_cpu",
+        "unlimited_loaded_over_quiet_cpu",
+        "quiet_unlimited_cpu_over_wall_max",
+        "loaded_limited_cpu_over_wall_max",
+    ):
+        FIGURES[f"fast_{_key}_{_n}"] = Figure(_FAST, f"load.{_i}.{_key}", "{:.2f}")
+    for _j, _task in enumerate(("fit", "solve")):
+        FIGURES[f"fast_person_{_task}_{_n}"] = Figure(_FAST, f"person.{2 * _i + _j}.speedup_cpu", "{:.1f}×")
+        for _side in ("compiled", "torch"):
+            FIGURES[f"fast_person_{_task}_{_n}_{_side}"] = Figure(_FAST, f"person.{2 * _i + _j}.{_side}_cpu_s", "ms")
+FIGURES["fast_load_start"] = Figure(_FAST, "meta.load_average_at_start.0", "{:.1f}")
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")

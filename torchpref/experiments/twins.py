@@ -83,6 +83,7 @@ SELECTORS = (
     "clipped profile",
     "combination",
     "combination (profile)",
+    "information + profile",  # the default (torchpref.default_selector)
     "qEUBO",
 )
 BASELINE = "random mixed"
