@@ -540,3 +540,16 @@ def test_favicon_and_a_friendly_not_found_page(served):
     api = c.get("/nowhere", headers={"accept": "application/json"})
     assert api.status_code == 404 and "no page" in api.json()["error"]
     assert "favicon.ico" in c.get(f"/s/{sid}/").text  # every page names its icon
+
+
+def test_warm_up_leaves_no_file_and_no_session(tmp_path):
+    """``serve`` asks and answers one throwaway question before it listens (the first participant's
+    first answers were the soak's slowest): nothing of it is written or kept, and a session given
+    out afterwards starts at question 1 as any other."""
+    store = SessionStore(_items(), tmp_path / "s", num_queries=3)
+    store.warm_up()
+    assert list((tmp_path / "s").iterdir()) == [] and store.pool.open_sids == []
+    c = _client(store)
+    sid = c.post("/api/new", json={}).json()["sid"]
+    assert c.get(f"/s/{sid}/state").json()["answered"] == 0
+    assert [p.name for p in (tmp_path / "s").iterdir()] == [f"{sid}.session.jsonl"]

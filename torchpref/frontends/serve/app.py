@@ -499,6 +499,7 @@ def serve_store(
         store.close()
         torch.set_num_threads(before)
         raise
+    store.warm_up()  # the process's first fit before the first participant's (about a second)
     prerender = store.items.prerender_in_background()  # beyond the cache's size (none for most pools)
     try:
         path = f"s/{store.sids[0]}/" if store.fixed else ""

@@ -213,6 +213,25 @@ class SessionStore:
         self.pool.recovered()
         return sid
 
+    def warm_up(self) -> None:
+        """Ask and answer one question of a throwaway session kept in memory (no file, no
+        participant), so that the process's first fit, selection and compiled-path load are paid
+        before the first participant arrives rather than in their first answers (docs/serve.md, the
+        soak). A failure here is not reported: the participants' own sessions meet and report it."""
+        if self.fixed:
+            return
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                session = PreferenceSession(self.items.X, **self._kwargs)
+                q = session.ask()
+                mid = (self.num_levels + 1) // 2 if self.num_levels is not None else 0.5
+                session.tell(q, mid if q.kind == "rating" else 0)
+                session.ask()
+                session.close()
+        except Exception:  # a warm-up only: nothing depends on it
+            pass
+
     def _discard(self, sid: str) -> None:
         """Remove what a failed creation of ``sid`` left (its file holds no answer: it was never given out)."""
         for p in (self.path(sid), self.path(sid).with_name(self.path(sid).name + ".mode")):
