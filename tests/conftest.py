@@ -40,3 +40,18 @@ def helpers():
             "random_comparisons": staticmethod(random_comparisons),
         },
     )
+
+
+@pytest.fixture
+def deflated_copy():
+    """``copy(src, dst)``: the ``torch.save`` archive ``src`` rewritten to ``dst`` with every record
+    compressed (what the checkpoint and population loaders must refuse: it expands under ``torch.load``)."""
+    import zipfile
+
+    def copy(src, dst):
+        with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as out:
+            for info in zin.infolist():
+                out.writestr(info.filename, zin.read(info.filename), compress_type=zipfile.ZIP_DEFLATED)
+        return dst
+
+    return copy

@@ -184,18 +184,14 @@ def test_save_model_onto_the_longest_legal_file_name(tmp_path, name):
     assert torch.equal(loaded.train_inputs[0], model.train_inputs[0])
 
 
-def test_load_model_refuses_a_compressed_archive_a_fifo_and_a_directory_before_reading(tmp_path):
+def test_load_model_refuses_a_compressed_archive_a_fifo_and_a_directory_before_reading(tmp_path, deflated_copy):
     """A checkpoint whose records are compressed (a few kilobytes that expand to gigabytes under
     ``torch.load``), a FIFO (``torch.load`` would wait on it forever), a directory and a file that
     is no archive are each refused by name, without reading them; the file save_model wrote loads."""
-    import zipfile
-
     model = _model()
     path = tmp_path / "m.pt"
     torchpref.save_model(model, path)
-    with zipfile.ZipFile(path) as zin, zipfile.ZipFile(tmp_path / "deflated.pt", "w") as out:
-        for info in zin.infolist():
-            out.writestr(info.filename, zin.read(info.filename), compress_type=zipfile.ZIP_DEFLATED)
+    deflated_copy(path, tmp_path / "deflated.pt")
     with pytest.raises(CheckpointError, match="deflated.pt is not a file save_model wrote: .* compressed"):
         torchpref.load_model(tmp_path / "deflated.pt")
     os.mkfifo(tmp_path / "fifo.pt")

@@ -105,12 +105,10 @@ def test_a_crafted_expanded_tensor_is_refused_before_it_is_copied(pop, tmp_path)
     assert M < 20_000
 
 
-def test_a_compressed_record_and_tensors_larger_than_the_file_are_refused(pop, tmp_path):
+def test_a_compressed_record_and_tensors_larger_than_the_file_are_refused(pop, tmp_path, deflated_copy):
     path = tmp_path / "pop.pt"
     torchpref.save_population(pop, path)
-    with zipfile.ZipFile(path) as zin, zipfile.ZipFile(tmp_path / "deflated.pt", "w") as out:
-        for info in zin.infolist():
-            out.writestr(info.filename, zin.read(info.filename), compress_type=zipfile.ZIP_DEFLATED)
+    deflated_copy(path, tmp_path / "deflated.pt")
     with pytest.raises(CheckpointError, match="compressed or expands"):
         torchpref.load_population(tmp_path / "deflated.pt")
     g = torch.Generator().manual_seed(5)
