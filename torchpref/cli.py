@@ -4,6 +4,7 @@ r"""The ``torchpref`` command line.
     torchpref reproduce lake [--trials N] [--queries Q] [--seed S] [--out DIR] [--workers W]
     torchpref reproduce replay [--people N] [--splits S] [--datasets D ...] [--seed S] [--data DIR] [--out DIR] [--population]
     torchpref reproduce suite [--families F ...] [--strategies S ...] [--effort E] [--trials N] [--queries Q] [--seed S] [--out DIR]
+    torchpref reproduce sushi --data DIR [--people N] [--train N] [--seeds S] [--conditions C ...] [--out DIR]
     torchpref reproduce twins [--twins N] [--folds F] [--datasets D ...] [--strategies S ...] [--queries Q] [--seed S] [--data DIR] [--out DIR]
     torchpref elicit lake [--session FILE]
     torchpref elicit --features items.csv [--id COLUMN] [--session FILE]
@@ -39,6 +40,7 @@ REPRODUCE = {
     "suite": "torchpref.experiments.suite",
     "replay": "torchpref.experiments.replay_population",  # --population, else the replay's own run
     "twins": "torchpref.experiments.twins",
+    "sushi": "torchpref.experiments.sushi_report",
 }
 ELICIT = "torchpref.frontends.elicit"
 SERVE = "torchpref.frontends.serve"
@@ -65,6 +67,8 @@ LEGEND = {
     "against random over (person, split); see docs/suite.md",
     "twins": "area: mean concordance of the posterior mean with the twin's true utility over questions 1..Q; "
     "p: paired Wilcoxon against random over twins; see docs/selection.md",
+    "sushi": "concordance of the posterior mean with the person's ranking / ratings on pairs touching a held-out "
+    "item, at equal seconds; see docs/real_raters.md",
     "suite": "mean ± standard error over the trials; WRMS and regret: lower is better; TP: true positives "
     "among the 15 best items (higher is better); see docs/suite.md",
 }
@@ -82,6 +86,17 @@ def positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """An argparse type: a whole number >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
     return value
 
 
@@ -162,7 +177,33 @@ def _reproduce_parser(sub) -> None:
         "any of torchpref.experiments.runner.STRATEGIES)",
     )
     _replay_parser(rep_sub)
+    _sushi_parser(rep_sub)
     _twins_parser(rep_sub)
+
+
+def _sushi_parser(rep_sub) -> None:
+    """``torchpref reproduce sushi``'s arguments (docs/real_raters.md)."""
+    sp = rep_sub.add_parser("sushi", help="real people who both rated and ranked (SUSHI; docs/real_raters.md)")
+    sp.add_argument(
+        "--data",
+        default=None,
+        help="the folder of the SUSHI release (sushi3-2016, from https://www.kamishima.net/sushi/; or "
+        "$TORCHPREF_SUSHI_DATA): torchpref ships none of it",
+    )
+    sp.add_argument("--people", type=positive_int, default=200, help="people replayed (default 200)")
+    sp.add_argument("--train", type=positive_int, default=400, help="people the population is fitted on (400)")
+    sp.add_argument(
+        "--calibration", type=non_negative_int, default=300, help="people of the rating-model table (300; 0: skip)"
+    )
+    sp.add_argument("--seeds", type=positive_int, default=3, help="askable / held-out splits per person (3)")
+    sp.add_argument("--queries", type=positive_int, default=8, help="questions per person (8: 27 s of ratings)")
+    sp.add_argument("--seed", type=int, default=0, help="seed of the draws of people (default 0)")
+    sp.add_argument("--conditions", nargs="+", choices=["none", "population"], default=["none", "population"])
+    sp.add_argument(
+        "--policies", nargs="+", default=None, metavar="POLICY", help="default: torchpref.experiments.sushi.POLICIES"
+    )
+    sp.add_argument("--out", default=None, help=f"output folder (default: a new folder in ./{RESULTS}/)")
+    sp.set_defaults(trials=None)
 
 
 def _replay_parser(rep_sub) -> None:

@@ -303,7 +303,7 @@ def _open_session(
     if n < 2:
         raise SessionFileError("need at least two distinct items to elicit preferences.")
     kwargs = dict(
-        selector=None if getattr(args, "selector", None) is None else named_selector(args.selector, n),
+        selector=None if getattr(args, "selector", None) is None else named_selector(args.selector, n, NUM_LEVELS),
         queries=question_list(getattr(args, "question_list", None), world.X),
         seed=seed,
         num_queries=args.queries,

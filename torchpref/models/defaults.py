@@ -7,6 +7,7 @@ import math
 from dataclasses import asdict, dataclass, fields, replace
 from typing import TypedDict
 
+import torch
 from gpytorch.constraints import GreaterThan
 from gpytorch.kernels import RBFKernel, ScaleKernel
 from gpytorch.module import Module
@@ -79,7 +80,11 @@ class PreferenceLikelihood(Module):
     ) -> PreferenceLikelihood:
         r"""The model's likelihoods from its settings (:class:`~torchpref.models.preference_gp.PreferenceGP`'s
         arguments of the same names): a Beta rating likelihood, or for ``rating_levels`` an ordinal
-        one whose ``level_noise`` defaults to ``sqrt(pi) sigma_B / sqrt(nu + 1)``."""
+        one whose ``level_noise`` defaults to ``sqrt(pi) sigma_B / sqrt(nu + 1)``.
+
+        A learned Beta precision (``learn``) has a prior, :func:`rating_precision_prior` centred on
+        the given ``nu``: without one the evidence of a few ratings that the mode can fit exactly grows
+        without bound in ``nu`` (docs/likelihoods.md, "Learning the rating precision")."""
         positive = shared_constraint("positive")  # the model's likelihoods share their default constraints
         comparison = PairwiseProbitLikelihood(comparison_noise, learn=learn, comparison_noise_constraint=positive)
         if rating_levels is None:
@@ -89,6 +94,7 @@ class PreferenceLikelihood(Module):
                 learn=learn,
                 rating_scale_constraint=positive,
                 rating_precision_constraint=shared_constraint("precision"),
+                rating_precision_prior=rating_precision_prior(rating_precision) if learn else None,
             )
         else:
             if cut_points is None:
@@ -99,6 +105,29 @@ class PreferenceLikelihood(Module):
         return cls(
             comparison, rating, TieLikelihood(tie_threshold, comparison, learn=learn, tie_threshold_constraint=positive)
         )
+
+
+#: ``nu`` of the Beta rating likelihood of a *person's* model: a session's default model, a
+#: population's people and a study's participants. Real ratings on a coarse scale are much noisier
+#: than the paper's simulated ``nu = 80``: chosen on real people who both rated and ranked (SUSHI,
+#: ``torchpref reproduce sushi``; docs/real_raters.md), where ratings and the ranking together then
+#: predict better than either alone. :class:`LikelihoodSettings` keeps the paper's 80 as
+#: ``PreferenceGP``'s own default.
+PERSON_RATING_PRECISION = 3.0
+
+#: the spread, in natural-log units, of a learned rating precision's prior (:func:`rating_precision_prior`)
+RATING_PRECISION_LOG_SD = 1.0
+
+
+def rating_precision_prior(rating_precision: float) -> LogNormalPrior:
+    r"""The prior of a learned Beta precision ``nu``: log-normal with median the setting's ``nu`` and
+    log-sd :data:`RATING_PRECISION_LOG_SD` (a factor ``e`` either way is one sd). It keeps the
+    learned ``nu`` finite: a few ratings the mode fits exactly otherwise drive it to the constraint's
+    bound (``1e6``)."""
+    return LogNormalPrior(
+        torch.tensor(math.log(float(rating_precision)), dtype=torch.float64),
+        torch.tensor(RATING_PRECISION_LOG_SD, dtype=torch.float64),
+    )
 
 
 class LikelihoodKeywords(TypedDict, total=False):

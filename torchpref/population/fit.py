@@ -28,7 +28,7 @@ from tqdm.auto import tqdm
 
 from torchpref.data.preference_data import PreferenceData
 from torchpref.inference.numerics import cholesky_jittered
-from torchpref.models.defaults import PreferenceLikelihood, default_covar_module
+from torchpref.models.defaults import PERSON_RATING_PRECISION, PreferenceLikelihood, default_covar_module
 from torchpref.population.hosts import host_for, workers_of
 from torchpref.population.inducing import METHODS, choose_items
 from torchpref.population.joint import Gradient, Shards, newton
@@ -298,7 +298,7 @@ def fit_population(
     k_g: Kernel | None = None,
     comparison_noise: float = 1.0,
     rating_scale: float = 1.0,
-    rating_precision: float = 80.0,
+    rating_precision: float = PERSON_RATING_PRECISION,
     fit: bool = True,
     max_iter: int = 100,
     feature_names: Sequence[str] | None = None,
@@ -318,7 +318,9 @@ def fit_population(
         k_m, k_g: the kernels of the mean and of a person's deviation (default
             :func:`~torchpref.models.defaults.default_covar_module` each, with its priors).
         comparison_noise, rating_scale, rating_precision: the likelihoods' settings, fixed, as
-            :class:`~torchpref.PreferenceGP`'s (ordinal people: ``rating_levels`` from the data).
+            :class:`~torchpref.PreferenceGP`'s (ordinal people: ``rating_levels`` from the data);
+            the precision a person's (:data:`~torchpref.models.defaults.PERSON_RATING_PRECISION`), as a
+            session's.
         fit: optimise the kernels' hyperparameters (L-BFGS on the evidence); ``False`` keeps them.
         max_iter: L-BFGS iterations.
         feature_names: the features' names (the objective space), kept with the population (and
@@ -394,7 +396,7 @@ def population_objective(
     k_m: Kernel | None = None,
     k_g: Kernel | None = None,
     *,
-    likelihood: tuple[float, float, float] = (1.0, 1.0, 80.0),
+    likelihood: tuple[float, float, float] = (1.0, 1.0, PERSON_RATING_PRECISION),
     inducing: int | str | None = "auto",
     inducing_method: str = "kmeans",
     executor: object = None,

@@ -14,7 +14,13 @@ the clipped profile's variance), then asks the one of larger value per second un
 * ``"profile"``: both valued by the clipped profile's expected variance reduction per second;
 * ``"sum"``: every query valued by both at once, ``I / I* + D / D*`` per second (``D`` the clipped
   profile's reduction; ``I*``, ``D*`` the largest of each among the candidates' ratings, so that
-  the two count equally with no weight to choose), the rating and the ranking both picked by it.
+  the two count equally with no weight to choose), the rating and the ranking both picked by it;
+* ``"order"``: every query valued by the information its answer carries about the **order** of the
+  ``num_plausible`` likeliest maximisers: ``sum I(y; 1[f_i > f_j])`` over their pairs
+  (:func:`~torchpref.acquisition.information.membership_information`, pairs whose order is nearly
+  known left out). A rating tells the order only through where it puts one item among the others:
+  what it says about the person's overall level (a shift of every ``f``) counts for nothing, as it
+  orders nothing. A ranking is all order.
 
 All on the same joint posterior samples (common random numbers from the trial's generator), under
 the model's own likelihoods; seconds default to the plain effort model's
@@ -31,18 +37,20 @@ from torch import Tensor
 
 from torchpref.acquisition.choice_sets import greedy_choice_sets
 from torchpref.acquisition.functions import rating_bin_probabilities
-from torchpref.acquisition.information import sample_information
+from torchpref.acquisition.information import membership_information, sample_information
+from torchpref.data.effort import EffortModel
 from torchpref.data.queries import Query
 from torchpref.models.defaults import preference_likelihood
 from torchpref.selection.choosing import query_items
 from torchpref.selection.samples import SelectorModel, joint_posterior, joint_samples
 from torchpref.selection.strategies import PerEffortSelector, effort_model
 from torchpref.selection.top_profile import _Moments, _reduction, top_profile
-from torchpref.simulation.raters import EffortModel
 
 __all__ = ["InformationAndProfile"]
 
-DECIDE = ("information", "profile", "sum")
+DECIDE = ("information", "profile", "sum", "order")
+#: the fewest samples of each order of a pair for the pair to count (``decide="order"``)
+ORDER_MIN_COUNT = 8
 Value = Callable[[Tensor], Tensor]
 
 
@@ -54,13 +62,21 @@ class InformationAndProfile(PerEffortSelector):
         rating_cost: seconds of a rating (default the plain effort model's, 3.4).
         ranking_cost: seconds of a best-of-``m`` (default: the plain effort model's where
             ``rating_cost`` is not given either, else ``1 + (m - 1) / 4`` as every per-effort selector).
-        decide: ``"information"``, ``"profile"`` or ``"sum"``: the one value both are compared by.
+        decide: ``"information"``, ``"profile"``, ``"sum"`` or ``"order"``: the one value both are
+            compared by.
         num_samples: joint posterior samples.
         top_fraction: the clipped profile's top share.
         num_plausible: candidates considered for ratings (largest profile variance) and rankings
             (likeliest maximisers).
         num_bins: bins of a rating's answer.
         gamma: eq. 12's ``gamma``, to order candidates of equal probability of being the maximiser.
+        effort: the :class:`~torchpref.data.effort.EffortModel` that prices every question in
+            seconds (default: the plain effort model where no cost is given; given costs keep the
+            selector's own units).
+        choose_size: ask the best-of-``q``, ``2 <= q <= m``, of largest value per second: the
+            first ``q`` items of a set built greedily from the most valuable pair (a small pool whose
+            best is known gains more from a pair than from showing the same five again);
+            ``False``: always ``m``, built from the likeliest maximiser.
 
     Raises:
         ValueError: an unknown ``decide``, or the checks of the selectors it combines.
@@ -79,12 +95,19 @@ class InformationAndProfile(PerEffortSelector):
         num_plausible: int = 15,
         num_bins: int = 10,
         gamma: float = 3.0,
+        *,
+        effort: EffortModel | dict[str, float] | None = None,
+        choose_size: bool = False,
     ):
-        if rating_cost is None:  # the plain effort model's seconds (a ranking's too, unless given)
+        if effort is None and rating_cost is None and ranking_cost is None:
+            effort = EffortModel.plain()
+        elif rating_cost is None:  # the plain effort model's seconds of a rating, the ranking's as given
             rating_cost = EffortModel.plain().rating()
-            if ranking_cost is None and not isinstance(m, bool) and int(m) == m and m >= 2:
-                ranking_cost = EffortModel.plain().ranking(int(m))
-        m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
+        m, rating_cost, ranking_cost = effort_model(
+            m, 1.0 if rating_cost is None else rating_cost, ranking_cost, effort
+        )
+        self.effort = None if effort is None else EffortModel.of(effort).as_dict()
+        self.choose_size = bool(choose_size)
         if decide not in DECIDE:
             raise ValueError(f"decide must be one of {DECIDE}, got {decide!r}.")
         if num_samples < 2 or num_plausible < 1 or num_bins < 2 or not 0 < top_fraction < 1:
@@ -118,6 +141,16 @@ class InformationAndProfile(PerEffortSelector):
         prep = dict(F=F, lik=lik, profile=profile, by_profile=by_profile, by_max=by_max)
         if self.decide == "sum":
             self._scaled_sum(prep)
+        if self.decide == "order":
+            K = min(self.num_plausible, N)
+            top = F.gather(2, by_max[:, :K].unsqueeze(1).expand(T, S, K))
+            iu = torch.triu_indices(K, K, 1, device=F.device)
+            Z = top[..., iu[0]] > top[..., iu[1]]  # T x S x K(K-1)/2: the order of each pair
+
+            def order(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
+                return membership_information(P, Z, ORDER_MIN_COUNT, True)
+
+            prep.update(order=order)
         return prep
 
     def _scaled_sum(self, prep: dict[str, Any]) -> None:
@@ -138,7 +171,7 @@ class InformationAndProfile(PerEffortSelector):
         prep.update(sum=total, rating_cand=cand, rating_sum=info / s_info + prof / s_prof)
 
     def _judge(self, prep: dict[str, Any]) -> Value:
-        return {"information": sample_information, "profile": prep["profile"]}.get(self.decide) or prep["sum"]
+        return {"information": sample_information, "profile": prep["profile"]}.get(self.decide) or prep[self.decide]
 
     def scorers(self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Value, Value]:
         """The ``decide`` value (not per second) of a rating of rows ``T x R`` and of a ranking of
@@ -173,6 +206,10 @@ class InformationAndProfile(PerEffortSelector):
         K = min(self.num_plausible, N)
         if self.decide == "sum":  # the rating of largest summed value
             cand, by_value = prep["rating_cand"], prep["rating_sum"]
+        elif self.decide == "order":  # the likeliest maximiser whose rating orders most
+            cand = prep["by_max"][:, :K]
+            Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))
+            by_value = prep["order"](rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))
         else:
             cand = prep["by_profile"][:, :K]
             Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))
@@ -184,10 +221,19 @@ class InformationAndProfile(PerEffortSelector):
             return rating_row.squeeze(-1), rating_value, None, torch.full_like(rating_value, -torch.inf)
         cand = prep["by_max"][:, :K]
         Fc = F.gather(2, cand.unsqueeze(1).expand(T, S, K))
-        builder = prep["sum"] if self.decide == "sum" else sample_information
-        chosen, _ = greedy_choice_sets(Fc, lik.comparison, self.m, builder, start=0)
+        builder = prep[self.decide] if self.decide in ("sum", "order") else sample_information
+        # from the likeliest maximiser, or with choose_size from the most valuable pair (a small
+        # pool's top, once known, would otherwise be in every set, and its answer foretold)
+        chosen, _ = greedy_choice_sets(Fc, lik.comparison, self.m, builder, start=None if self.choose_size else 0)
         rows = cand.gather(1, chosen)  # T x m
         ranking_value = rank(rows.unsqueeze(1)).squeeze(-1) / self.query_cost(self.m)
+        if self.choose_size:  # the greedy set's prefix of largest value per second; the rest -1
+            size = torch.full_like(ranking_value, self.m, dtype=torch.long)
+            for q in range(2, self.m):
+                v = rank(rows[:, :q].unsqueeze(1)).squeeze(-1) / self.query_cost(q)
+                better = v > ranking_value
+                ranking_value, size = torch.where(better, v, ranking_value), torch.where(better, q, size)
+            rows = torch.where(torch.arange(self.m, device=rows.device) < size.unsqueeze(-1), rows, -1)
         return rating_row.squeeze(-1), rating_value, rows, ranking_value
 
     def choose(
@@ -204,7 +250,10 @@ class InformationAndProfile(PerEffortSelector):
         qr = query_items(queries)
         with torch.no_grad():
             prep = self._prepare(model, qr.X.unsqueeze(0), [generator])
-            pickers = (prep["sum"], prep["sum"]) if self.decide == "sum" else (prep["profile"], sample_information)
+            if self.decide in ("sum", "order"):
+                pickers = (prep[self.decide], prep[self.decide])
+            else:
+                pickers = (prep["profile"], sample_information)
             by_profile, by_info = self._scorers(prep, *pickers)
             judge_rate, judge_rank = self._scorers(prep, self._judge(prep), self._judge(prep))
             best: tuple[float, int] | None = None

@@ -30,10 +30,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchpref.data.effort import EffortModel
 from torchpref.models.defaults import preference_likelihood
 from torchpref.selection.samples import SelectorModel, joint_posterior, joint_samples
 from torchpref.selection.top_profile import ProfileVariancePerEffort, _Moments, _reduction, top_profile
-from torchpref.simulation.raters import EffortModel
 
 __all__ = ["ProfilePerSecond"]
 

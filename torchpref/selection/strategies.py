@@ -24,6 +24,7 @@ from torchpref.acquisition.functions import (
     sample_information,
     top_set_membership,
 )
+from torchpref.data.effort import EffortModel
 from torchpref.data.queries import Query, ranking_query, rating_query
 from torchpref.models.defaults import preference_likelihood
 from torchpref.selection.choosing import QueryRows, choose_by_scores, query_items, ranking_cost, uniform_among
@@ -42,10 +43,17 @@ def _ranking_size(m: int) -> int:
     return int(m)
 
 
-def effort_model(m: int, rating_cost: float, ranking_cost: float | None) -> tuple[int, float, float]:
-    """``m`` checked, and the efforts of a rating and a best-of-``m`` ranking (default
-    ``1 + (m - 1) / 4``: one judgement and reading ``m - 1`` more items at a quarter each)."""
+def effort_model(
+    m: int, rating_cost: float, ranking_cost: float | None, effort: EffortModel | dict[str, float] | None = None
+) -> tuple[int, float, float]:
+    """``m`` checked, and the efforts of a rating and a best-of-``m`` ranking: ``effort``'s seconds
+    where an :class:`~torchpref.data.effort.EffortModel` is given, else ``rating_cost`` and
+    ``ranking_cost`` (default ``1 + (m - 1) / 4``: one judgement and reading ``m - 1`` more items at
+    a quarter each)."""
     m = _ranking_size(m)
+    if effort is not None:
+        effort = EffortModel.of(effort)
+        return m, effort.rating(), effort.ranking(m)
     ranking_cost = 1.0 + (m - 1) / 4 if ranking_cost is None else ranking_cost
     if not (rating_cost > 0 and ranking_cost > 0):
         raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
@@ -118,6 +126,10 @@ class PerEffortSelector(Selector):
     rating_cost: float
     ranking_cost: float
     m: int
+    #: the seconds of every question where set (:class:`~torchpref.data.effort.EffortModel`): a
+    #: best-of-``q`` of any size priced by it; else ``rating_cost`` / ``ranking_cost`` in the
+    #: selector's own units
+    effort: EffortModel | dict[str, float] | None = None
 
     def values(
         self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
@@ -136,6 +148,9 @@ class PerEffortSelector(Selector):
 
     def query_cost(self, q: int) -> float:
         """The effort of a rating (``q = 1``) or of a best-of-``q``."""
+        if self.effort is not None:
+            effort = EffortModel.of(self.effort)
+            return effort.rating() if q == 1 else effort.ranking(q)
         rating, ranking = self.rating_cost, self.ranking_cost
         return rating if q == 1 else ranking_cost(rating, ranking, self.m, q)
 
@@ -165,11 +180,17 @@ class PerEffortSelector(Selector):
         with torch.no_grad():
             rating_row, rating_value, ranking_rows, ranking_value = self.values(model, X, generators)
         return [
-            ranking_query(X[b], indices[b], ranking_rows[b])
+            ranking_query(X[b], indices[b], shown(ranking_rows[b]))
             if ranking_rows is not None and bool(ranking_value[b] > rating_value[b])
             else rating_query(X[b], indices[b], int(rating_row[b]))
             for b in range(X.shape[0])
         ]
+
+
+def shown(rows: Tensor) -> Tensor:
+    """A ranking's rows as :meth:`PerEffortSelector.values` gives them, without the ``-1`` that pad
+    a smaller set than ``m``."""
+    return rows[rows >= 0]
 
 
 class RandomRatings(Selector):
@@ -470,6 +491,8 @@ class InformationPerEffort(Selector):
         bias_correction: ``target="top"``: correct the information estimates' finite-sample
             bias (:func:`~torchpref.acquisition.functions.membership_information`).
         level_edges: ``target="top+levels"``: the rating-scale edges of the levels.
+        effort: an :class:`~torchpref.data.effort.EffortModel` pricing every question in seconds
+            (instead of ``rating_cost`` and ``ranking_cost``).
     """
 
     name = "info per effort"
@@ -488,8 +511,11 @@ class InformationPerEffort(Selector):
         min_count: int = 8,
         bias_correction: bool = True,
         level_edges: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8),
+        *,
+        effort: EffortModel | dict[str, float] | None = None,
     ):
-        m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
+        m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost, effort)
+        self.effort = None if effort is None else EffortModel.of(effort).as_dict()
         if target not in ("top", "top+levels", "maximizer", "utility"):
             raise ValueError(f"target must be 'top', 'top+levels', 'maximizer' or 'utility', got {target!r}.")
         if not all(0 < e < 1 for e in level_edges):

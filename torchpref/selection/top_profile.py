@@ -47,6 +47,7 @@ from torch import Tensor
 from torchpref.acquisition.choice_sets import greedy_choice_sets
 from torchpref.acquisition.functions import rating_bin_probabilities
 from torchpref.acquisition.information import top_set_membership
+from torchpref.data.effort import EffortModel
 from torchpref.models.defaults import preference_likelihood
 from torchpref.selection.samples import SelectorModel, joint_posterior, joint_samples, sample_scorers
 from torchpref.selection.strategies import PerEffortSelector, effort_model
@@ -149,6 +150,8 @@ class ProfileVariancePerEffort(PerEffortSelector):
         num_plausible: candidates considered for ratings and rankings.
         num_bins: bins of a rating's answer.
         clipped: value the clipped profile ``max(r(f_i), tau)`` instead (:func:`top_profile`).
+        effort: an :class:`~torchpref.data.effort.EffortModel` pricing every question in seconds
+            (instead of ``rating_cost`` and ``ranking_cost``).
     """
 
     name = "profile per effort"
@@ -163,8 +166,11 @@ class ProfileVariancePerEffort(PerEffortSelector):
         num_plausible: int = 15,
         num_bins: int = 10,
         clipped: bool = False,
+        *,
+        effort: EffortModel | dict[str, float] | None = None,
     ):
-        m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost)
+        m, rating_cost, ranking_cost = effort_model(m, rating_cost, ranking_cost, effort)
+        self.effort = None if effort is None else EffortModel.of(effort).as_dict()
         if num_samples < 2 or num_plausible < 1 or num_bins < 2:
             raise ValueError(
                 f"need num_samples >= 2, num_plausible >= 1 and num_bins >= 2, got {num_samples}, "

@@ -218,7 +218,7 @@ class PreferenceSession:
         self._sizes: dict[int, Sizes] = {}
         self._modes: dict[int, Tensor] = {}
         self._mode_floats = 0
-        self.selector = selector if selector is not None else default_selector(self._n_pool)
+        self.selector = selector if selector is not None else default_selector(self._n_pool, self.num_levels)
         self._queries = self._query_list(queries, selector)
         self.model_factory = model_factory if model_factory is not None else default_session_model
         self.path = None if session_file is None else Path(session_file)

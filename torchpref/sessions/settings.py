@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from torchpref.data.queries import BoxCandidates, Candidates, FinitePool, as_integer
+from torchpref.models.defaults import PERSON_RATING_PRECISION
 from torchpref.models.preference_gp import PreferenceGP, default_covar_module
 from torchpref.population.model import Population
 from torchpref.selection import defaults as selection_defaults
@@ -114,16 +115,22 @@ def default_ranking_size(num_items: int) -> int:
     return selection_defaults.default_ranking_size(num_items)
 
 
+#: ``nu`` of a session's Beta rating likelihood (eqs. 5-6): a person's
+#: (:data:`~torchpref.models.defaults.PERSON_RATING_PRECISION`)
+RATING_PRECISION = PERSON_RATING_PRECISION
+
+
 def default_session_model(train_X: Tensor) -> PreferenceGP:
     r"""The default model of a session: :class:`~torchpref.PreferenceGP` on inputs normalised to the
-    unit cube, an RBF kernel with lengthscale 0.2 and outputscale ``sigma_f^2 = 1`` (eq. 1), and the
-    model's default likelihood settings (``sigma_R = 0.1``, ``sigma_B = 1``, ``nu = 80``, tie
-    threshold ``tau = 0.1``), all fixed. A person can answer "no preference", so strict choices are
+    unit cube, an RBF kernel with lengthscale 0.2 and outputscale ``sigma_f^2 = 1`` (eq. 1), the
+    model's default comparison and tie settings (``sigma_R = 1``, ``sigma_B = 1``, tie threshold
+    ``tau = 0.1``) and a person's rating precision ``nu = 3``
+    (:data:`~torchpref.models.defaults.PERSON_RATING_PRECISION`, calibrated on real raters), all fixed. A person can answer "no preference", so strict choices are
     the tie likelihood's upper category (``ties_offered=True``, docs/likelihoods.md)."""
     kernel = default_covar_module(train_X.shape[-1]).to(train_X)
     kernel.base_kernel.lengthscale = 0.2
     kernel.outputscale = 1.0
-    return PreferenceGP(train_X, covar_module=kernel, ties_offered=True)
+    return PreferenceGP(train_X, covar_module=kernel, ties_offered=True, rating_precision=RATING_PRECISION)
 
 
 def as_items(X: object, dim: int, name: str) -> Tensor:

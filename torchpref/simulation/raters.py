@@ -29,81 +29,19 @@ from dataclasses import asdict, dataclass, field, replace
 import torch
 from torch import Tensor
 
+from torchpref.data.effort import (  # the effort model's owner; importable from here too
+    CHOICE_SECONDS,  # noqa: F401
+    PER_EXTRA_OPTION_SECONDS,  # noqa: F401
+    RATING_SECONDS,  # noqa: F401
+    TRAJECTORY_VIEW_SECONDS,  # noqa: F401
+    EffortModel,
+    _check,
+)
 from torchpref.data.preference_data import likert_to_unit, unit_to_likert
 from torchpref.likelihoods.pairwise_beta import rating_link
 from torchpref.simulation.users import RATING_CLAMP, SimulatedUser, sample_beta
 
 __all__ = ["EffortModel", "RaterProfile", "RealisticUser", "precision_for_noise"]
-
-#: a 1-7 Likert rating: 3.3-3.5 s; pick 1 of 2: 3.4 s; pick 1 of 12: 12.2-12.5 s (Gaillard et al. 2025, FIRE)
-RATING_SECONDS = 3.4
-CHOICE_SECONDS = 3.4
-PER_EXTRA_OPTION_SECONDS = 0.9
-#: the trajectory-viewing effort model's seconds per option shown (an assumption: watching one
-#: short path or behaviour; ROIAL's exoskeleton trials took ~87 s each, Li, Tucker et al. 2021)
-TRAJECTORY_VIEW_SECONDS = 10.0
-
-
-def _check(name: str, value: float, low: float = 0.0, high: float = math.inf, closed: bool = True) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}.") from None
-    ok = (low <= v if closed else low < v) and v <= high and math.isfinite(v)
-    if not ok:
-        raise ValueError(f"{name} must lie in {'[' if closed else '('}{low}, {high}], got {value!r}.")
-    return v
-
-
-@dataclass(frozen=True)
-class EffortModel:
-    r"""Seconds per answer: a rating ``r + v``, a best-of-``m`` choice ``c + e (m - 2) + v m``.
-
-    ``r`` (``rating_seconds``), ``c`` (``choice_seconds``, a pair) and ``e``
-    (``per_extra_option``) are FIRE's online measurements (a 1-7 rating 3.3-3.5 s, a pair 3.4 s,
-    a 12-image grid 12.2-12.5 s: about 0.9 s per extra option); ``v`` (``view_seconds``) is the
-    time to look at one option, zero for a plain stimulus (an image seen at a glance), the viewing
-    time of a trajectory or behaviour where each option must be watched.
-
-    Example:
-        >>> EffortModel.plain().ranking(5), EffortModel.trajectories().ranking(5)
-        (6.1, 56.1)
-    """
-
-    rating_seconds: float = RATING_SECONDS
-    choice_seconds: float = CHOICE_SECONDS
-    per_extra_option: float = PER_EXTRA_OPTION_SECONDS
-    view_seconds: float = 0.0
-
-    def __post_init__(self):
-        for name in ("rating_seconds", "choice_seconds", "per_extra_option", "view_seconds"):
-            _check(name, getattr(self, name))
-        if self.rating_seconds + self.view_seconds <= 0 or self.choice_seconds + 2 * self.view_seconds <= 0:
-            raise ValueError(f"an answer must take some time, got {self}.")
-
-    @classmethod
-    def plain(cls) -> EffortModel:
-        """Plain stimuli: FIRE's seconds, no viewing time."""
-        return cls()
-
-    @classmethod
-    def trajectories(cls, view_seconds: float = TRAJECTORY_VIEW_SECONDS) -> EffortModel:
-        """Options that must be watched: FIRE's seconds plus ``view_seconds`` per option shown."""
-        return cls(view_seconds=view_seconds)
-
-    def rating(self) -> float:
-        """Seconds of one rating (one option shown)."""
-        return round(self.rating_seconds + self.view_seconds, 12)
-
-    def ranking(self, m: int) -> float:
-        """Seconds of one best-of-``m`` choice (``m`` options shown)."""
-        if int(m) != m or m < 2:
-            raise ValueError(f"a choice shows m >= 2 options, got m={m!r}.")
-        return round(self.choice_seconds + self.per_extra_option * (m - 2) + self.view_seconds * m, 12)
-
-    def costs(self, m: int) -> dict[str, float]:
-        """``{"rating": seconds, "ranking": seconds of a best-of-m}``, as the loop's ``costs``."""
-        return {"rating": self.rating(), "ranking": self.ranking(m)}
 
 
 def precision_for_noise(latent_sd: float, rating_scale: float) -> float:

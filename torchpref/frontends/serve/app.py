@@ -582,7 +582,7 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "selector", None) is not None:
         from torchpref.selection.defaults import named_selector
 
-        selector = named_selector(args.selector, items.X.unique(dim=0).shape[0])
+        selector = named_selector(args.selector, items.X.unique(dim=0).shape[0], args.levels)
     serve(
         items,
         sessions=args.sessions,
