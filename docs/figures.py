@@ -29,7 +29,7 @@ STALE_NOTE = " (measured on an older version)"
 class Figure:
     file: str  # under benchmarks/results/
     key: str
-    fmt: str = "{}"  # a str.format pattern, or one of "percent", "sci", "ms"
+    fmt: str = "{}"  # a str.format pattern, or one of "percent", "percent2", "sci", "ms"
 
     def raw(self) -> float | int | str:
         path = ROOT / "benchmarks" / "results" / self.file
@@ -52,6 +52,8 @@ class Figure:
             return "never"
         if self.fmt == "percent":
             return f"{100 * float(value):g} %"
+        if self.fmt == "percent2":  # a share, to a tenth of a percent
+            return f"{round(100 * float(value), 1):g} %"
         if self.fmt == "ms":  # seconds shown in milliseconds
             return f"{1000 * float(value):.1f} ms"
         if self.fmt == "sci":  # 4e-8 style, one significant digit
@@ -703,6 +705,43 @@ FIGURES["soak_load_hi"] = Figure("serve/soak.json", "load_average.3", "{:.1f}")
 FIGURES["soak_per_hour"] = Figure("serve/soak.json", "summary.sessions_per_hour_in_run", "{:,.0f}")
 FIGURES["soak_cpu_ms"] = Figure("serve/soak.json", "summary.server_cpu_s_per_answer", "ms")
 FIGURES["soak_per_hour_cpu"] = Figure("serve/soak.json", "summary.participants_per_hour_cpu_bound", "{:,.0f}")
+
+# real people who rate and rank (torchpref reproduce sushi; docs/real_raters.md)
+_SUSHI, _RATING_MODEL = "sushi/sushi.json", "sushi/rating_model.json"
+FIGURES["sushi_seconds"] = Figure(_SUSHI, "meta.seconds", "{:,.0f}")
+FIGURES["sushi_load"] = Figure(_SUSHI, "meta.load_average_start_end.0", "{:.1f}")
+FIGURES["sushi_people"] = Figure(_SUSHI, "meta.people")
+FIGURES["sushi_calib_people"] = Figure(_RATING_MODEL, "people")
+_REFS = (("r", "all ratings"), ("k", "the ranking"), ("b", "both"))
+_TGT = (("rank", "ranking"), ("rate", "ratings"))
+for _i, _nu in enumerate((1, 2, 3, 5, 10, 20, 80)):
+    FIGURES[f"sushi_nu{_nu}_ev"] = Figure(_RATING_MODEL, f"rows.{_i}.evidence_both", "{:,.0f}")
+    for _r, _ref in _REFS:
+        for _t, _target in _TGT:
+            FIGURES[f"sushi_nu{_nu}_{_r}_{_t}"] = Figure(_RATING_MODEL, f"rows.{_i}.{_ref}:{_target}", "{:.3f}")
+for _c in ("none", "population"):
+    _C = f"summary.conditions.{_c}"
+    for _r, _ref in _REFS:
+        for _t, _target in _TGT:
+            FIGURES[f"sushi_{_c}_ref_{_r}_{_t}"] = Figure(_SUSHI, f"{_C}.references.{_ref}.{_target}", "{:.3f}")
+    for _key, _name in (
+        ("b_r_rank", "both_vs_ratings_on_ranking"),
+        ("b_k_rate", "both_vs_ranking_on_ratings"),
+        ("b_k_rank", "both_vs_ranking_on_ranking"),
+        ("b_r_rate", "both_vs_ratings_on_ratings"),
+    ):
+        FIGURES[f"sushi_{_c}_p_{_key}"] = Figure(_SUSHI, f"{_C}.tests.{_name}.p_wilcoxon", "{:.2g}")
+        FIGURES[f"sushi_{_c}_d_{_key}"] = Figure(_SUSHI, f"{_C}.tests.{_name}.mean_diff", "{:+.3f}")
+    FIGURES[f"sushi_{_c}_default_ratings"] = Figure(_SUSHI, f"{_C}.policies.default.rating_share_first6", "percent2")
+    for _k in range(5):
+        _T = f"{_C}.tests.default_vs_best_single_kind.ranking.{_k}"
+        FIGURES[f"sushi_{_c}_best_{_k}"] = Figure(_SUSHI, f"{_T}.best_single_kind")
+        FIGURES[f"sushi_{_c}_diff_{_k}"] = Figure(_SUSHI, f"{_T}.mean_diff", "{:+.3f}")
+        FIGURES[f"sushi_{_c}_pd_{_k}"] = Figure(_SUSHI, f"{_T}.p_wilcoxon", "{:.2g}")
+    for _k, _b in enumerate(("6.8", "27.2")):
+        FIGURES[f"sushi_{_c}_default_at_{_k}"] = Figure(
+            _SUSHI, f"{_C}.policies.default.ranking.by_seconds.{4 * _k}", "{:.3f}"
+        )
 
 # the study on twins and the study over HTTP (docs/study.md)
 for _ds, _short in (("electricity", "elec"), ("rail", "rail")):

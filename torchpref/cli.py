@@ -195,6 +195,7 @@ def _sushi_parser(rep_sub) -> None:
     sp.add_argument(
         "--calibration", type=non_negative_int, default=300, help="people of the rating-model table (300; 0: skip)"
     )
+    sp.add_argument("--rating-model-only", action="store_true", help="write the rating-model table only")
     sp.add_argument("--seeds", type=positive_int, default=3, help="askable / held-out splits per person (3)")
     sp.add_argument("--queries", type=positive_int, default=8, help="questions per person (8: 27 s of ratings)")
     sp.add_argument("--seed", type=int, default=0, help="seed of the draws of people (default 0)")

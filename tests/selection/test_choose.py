@@ -148,15 +148,20 @@ def test_ties_go_to_the_first_query_and_bad_lists_are_refused():
 
 
 def test_default_selector():
-    """The default (docs/selection.md): information and the clipped profile summed, per second of
-    the plain effort model; a session records it and rebuilds it from its header."""
+    """The default (docs/selection.md, docs/real_raters.md): information about the order of the
+    likeliest maximisers, per second of the plain effort model, rankings of the size worth most, a
+    rating valued by the levels it can take; a session records it and rebuilds it from its header."""
+    from torchpref.data.effort import EffortModel
     from torchpref.selection.combined import InformationAndProfile
     from torchpref.sessions.recorded import describe_selector, recorded_selector
 
     sel = torchpref.default_selector()
-    assert isinstance(sel, InformationAndProfile) and sel.decide == "sum" and sel.m == 5
-    assert (sel.rating_cost, sel.ranking_cost) == (3.4, 6.1)
+    assert isinstance(sel, InformationAndProfile) and sel.decide == "order" and sel.m == 5 and sel.choose_size
+    assert (sel.rating_cost, sel.ranking_cost) == (3.4, 6.1) and sel.num_bins == 10
+    effort = EffortModel.plain()
+    assert [sel.query_cost(q) for q in range(1, 6)] == [effort.rating()] + [effort.ranking(q) for q in range(2, 6)]
     small = torchpref.default_selector(3)
     assert small.m == 2 and small.ranking_cost == 3.4
+    assert torchpref.default_selector(10, num_levels=5).num_bins == 5
     desc = describe_selector(sel)
-    assert describe_selector(recorded_selector(desc)) == desc
+    assert "unrecorded" not in desc and describe_selector(recorded_selector(desc)) == desc

@@ -37,7 +37,8 @@ from torchpref.experiments.twins import PriorAtItems, _LookupKernel, _LookupMean
 from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.models.preference_gp import PreferenceGP
 from torchpref.population.model import Population
-from torchpref.selection.defaults import default_ranking_size, named_selector
+from torchpref.selection.active import _Trial
+from torchpref.selection.defaults import named_selector
 from torchpref.selection.one_kind import OneKind
 from torchpref.selection.strategies import PerEffortSelector, RandomRankings, RandomRatings, Selector
 from torchpref.sessions.settings import default_session_model
@@ -49,7 +50,9 @@ __all__ = [
     "POLICIES",
     "Split",
     "at_budgets",
+    "concordance",
     "person_data",
+    "population_prior",
     "references",
     "replay",
     "split",
@@ -243,14 +246,6 @@ def replay(
     return out
 
 
-class _Trial:
-    def __init__(self, model: BatchedPreferenceGP, trial: int):
-        self.model, self.trial = model, trial
-
-    def add_observations(self, X=None, comparisons=None, ratings=None, rating_index=None, ties=None):
-        self.model.add_observations(self.trial, X, comparisons, ratings, rating_index, ties)
-
-
 def _pool_row(pool: Tensor, x: Tensor) -> int:
     return int((pool - x).abs().amax(-1).argmin())
 
@@ -309,6 +304,3 @@ def references(splits: Sequence[Split], prior: PriorAtItems | None) -> dict[str,
         scores = metrics(mean)
         out[name] = [{k: float(v[b]) for k, v in scores.items()} for b in range(len(splits))]
     return out
-
-
-__all__ += ["concordance", "default_ranking_size", "population_prior"]

@@ -240,6 +240,9 @@ def run(args: argparse.Namespace) -> int:
     if calibration:
         table = rating_model_table(data, calibration, tqdm)
         write_json(out / "rating_model.json", {"people": len(calibration), "rows": table})
+        _print_table(table)
+    if args.rating_model_only:
+        return 0
     pop = _fit_population(data, train, args.seed) if "population" in args.conditions else None
     prior = None if pop is None else sushi.population_prior(pop, data)
     runs: dict = {c: {p: [] for p in policies} for c in args.conditions}
@@ -273,6 +276,13 @@ def run(args: argparse.Namespace) -> int:
     plot(summary, out / "sushi.png")
     _print(summary)
     return 0
+
+
+def _print_table(rows: list[dict]) -> None:
+    print("rating precision: evidence (ratings + ranking; ratings) and held-out concordance of all answers")
+    for r in rows:
+        refs = " ".join(f"{k}={v:.3f}" for k, v in r.items() if ":" in k)
+        print(f"  nu {r['precision']:5g}: {r['evidence_both']:10.1f} {r['evidence_ratings']:10.1f}  {refs}")
 
 
 def _print(summary: dict) -> None:
