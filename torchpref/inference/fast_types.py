@@ -17,8 +17,25 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-#: status codes of the compiled calls (:mod:`torchpref.inference._compiled`)
+#: status codes of the compiled calls (:mod:`torchpref.inference._compiled`; 6 is internal there);
+#: a fit's :data:`STALLED`: stopped at its last good point where no line search finds a step (SciPy's
+#: ``ABNORMAL_TERMINATION_IN_LNSRCH``); :data:`WEAK_STEP`: a line search's step with sufficient
+#: decrease but not the curvature condition (internal to the fit)
 OK, NOT_PD, NOT_FINITE, NOT_CONVERGED, LINE_SEARCH_FAILED, FISHER = 0, 1, 2, 3, 4, 5
+STALLED, WEAK_STEP = 7, 8
+#: the statuses of a result the caller uses
+SUCCESS = (OK, STALLED)
+#: the statuses' names, for messages and reports
+STATUS_NAMES = {
+    OK: "ok",
+    NOT_PD: "not positive definite",
+    NOT_FINITE: "not finite",
+    NOT_CONVERGED: "not converged",
+    LINE_SEARCH_FAILED: "line search failed",
+    FISHER: "Fisher weights at the mode",
+    STALLED: "stalled: no line search step from the last good point",
+    WEAK_STEP: "weak step",
+}
 #: the likelihood of an :class:`Answers` row
 PROBIT, BETA = 0, 1
 #: kernel kinds: GPyTorch's RBF, and Matern with nu = 1/2, 3/2, 5/2
@@ -84,6 +101,44 @@ class FitState(NamedTuple):
     w: np.ndarray
     jitter: np.ndarray
     iterations: np.ndarray
+
+
+class NewtonResult(NamedTuple):
+    """What :func:`~torchpref.inference._compiled.newton` returns: the whitened mode ``a``, ``B``'s
+    Cholesky factor ``M`` there, the answers' weights, Newton's iterations, the status and the last
+    Newton decrement."""
+
+    a: np.ndarray
+    M: np.ndarray
+    weights: np.ndarray
+    iterations: int
+    status: int
+    decrement: float
+
+
+class LossResult(NamedTuple):
+    """What :func:`~torchpref.inference._compiled_fit.fit_loss` returns: BoTorch's loss, its
+    gradient in the raw parameters and the status."""
+
+    loss: float
+    grad: np.ndarray
+    status: int
+
+
+class FitResult(NamedTuple):
+    """What :func:`~torchpref.inference._compiled_fit.fit_lbfgs` returns: the raw parameters, the
+    loss there, the status (:data:`OK` or :data:`STALLED` on success), L-BFGS's iterations and the
+    loss evaluations."""
+
+    x: np.ndarray
+    loss: float
+    status: int
+    iterations: int
+    evaluations: int
+
+
+#: each entry point's result, by name (:func:`torchpref.inference.fast_path.call` wraps the tuples)
+RESULTS: dict[str, type] = {"newton": NewtonResult, "fit_loss": LossResult, "fit_lbfgs": FitResult}
 
 
 def floats(x: npt.ArrayLike, ndim: int = 1) -> np.ndarray:

@@ -127,6 +127,9 @@ class StrictPreferenceLikelihood(Likelihood):
     """
 
     log_concave = True  # its weights in W are never negative
+    #: the compiled path (:mod:`torchpref.inference._compiled`) knows this likelihood; a subclass
+    #: (which may change its derivatives or link) is solved by the torch solver unless it says so too
+    compiled_kind = "strict"
 
     def __init__(self, tie: TieLikelihood):
         super().__init__()

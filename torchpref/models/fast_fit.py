@@ -84,6 +84,8 @@ class LaplaceModel(Protocol):
 
     def _adopt_mode(self, L: Tensor, jitter: float, mode: ModeResult) -> None: ...
 
+    last_fit: FitReport | None
+
 
 class LaplaceMLL(Protocol):
     """What the compiled fit reads and sets of a
@@ -243,25 +245,44 @@ def compiled_problem(mll: LaplaceMLL) -> CompiledFit | None:
     return CompiledFit(ft.floats(X.numpy(), 2), rows[0], spec, params, f0, rows[1], tol, model.max_newton_iter)
 
 
-def run(problem: CompiledFit) -> ft.FitState | None:
+@dataclass(frozen=True)
+class FitReport:
+    """How the last ``fit_gpytorch_mll`` of a model went (``model.last_fit``): which solver fitted
+    it (``"compiled"``: one numba call, :func:`run`; ``"torch"``: BoTorch's routine on the torch
+    solver), how it stopped or why the compiled fit did not answer (``status``), and, for a compiled
+    fit, L-BFGS's iterations and loss evaluations."""
+
+    solver: str
+    status: str
+    iterations: int | None = None
+    evaluations: int | None = None
+
+
+def run(problem: CompiledFit) -> tuple[ft.FitState | None, FitReport]:
     """The whole fit in one compiled call (:func:`torchpref.inference._compiled_fit.fit_lbfgs`:
-    L-BFGS with SciPy's L-BFGS-B stopping rules, from the model's raw parameters); sets the
-    parameters and returns the final mode and factors on success, leaves the parameters unchanged
-    and returns ``None`` otherwise."""
+    L-BFGS with SciPy's L-BFGS-B stopping rules, from the model's raw parameters): on success
+    (converged, or stalled at its last good point after at least one step: SciPy's abnormal
+    termination in the line search) the parameters are set and the final mode and factors returned
+    with the report; otherwise the parameters are left unchanged and ``None`` returned, with the
+    report saying why."""
     p = problem
     x0 = ft.floats(np.concatenate([t.detach().reshape(-1).numpy() for t in p.params.values()]))
     state = ft.fit_state(p.f0, p.answers.first.shape[0])
     out = call("fit_lbfgs", x0, p.X, p.answers, p.spec, state, float(p.tol), int(p.max_iter))
-    if out is None or out[2] != ft.OK:
-        return None
-    x = out[0]
+    if out is None:
+        return None, FitReport("torch", "the compiled fit raised or is off in this process")
+    name = ft.STATUS_NAMES.get(out.status, str(out.status))
+    report = FitReport("compiled", name, int(out.iterations), int(out.evaluations))
+    if out.status not in ft.SUCCESS or (out.status == ft.STALLED and out.iterations == 0):
+        return None, FitReport("torch", f"the compiled fit stopped: {name}", report.iterations, report.evaluations)
+    x = out.x
     with torch.no_grad():
         offset = 0
         for t in p.params.values():
             n = t.numel()
             t.copy_(torch.from_numpy(x[offset : offset + n].copy()).reshape(t.shape))
             offset += n
-    return state
+    return state, report
 
 
 def hand_back(model: LaplaceModel, problem: CompiledFit, state: ft.FitState) -> None:
@@ -271,7 +292,7 @@ def hand_back(model: LaplaceModel, problem: CompiledFit, state: ft.FitState) -> 
     weights = tuple(part[None] for part in torch.split(w, list(problem.sizes)))
     one, no = torch.ones(1, dtype=torch.bool), torch.zeros(1, dtype=torch.bool)
     a, f, M = (torch.from_numpy(v)[None] for v in (state.a, state.f, state.M))
-    mode = ModeResult(a, f, M, weights, int(state.iterations[0]), one, no)
+    mode = ModeResult(a, f, M, weights, int(state.iterations[0]), one, no, solver="compiled")
     model._adopt_mode(torch.from_numpy(state.L)[None], float(state.jitter[0]), mode)
 
 
@@ -298,14 +319,22 @@ def fit_laplace(
 
     default = closure is None and closure_kwargs is None and not optimizer_kwargs
     default = default and kwargs.get("optimizer", fit_gpytorch_mll_scipy) is fit_gpytorch_mll_scipy
+    report = FitReport("torch", "arguments other than the defaults were given")
     if default:
         problem = compiled_problem(mll) if setting() != "off" else None
-        state = None if problem is None or compiled() is None else run(problem)
-        if problem is not None and state is not None:
-            _leave_in_eval(mll)
-            hand_back(mll.model, problem, state)
-            return mll
+        if problem is None:
+            report = FitReport("torch", "the compiled fit does not apply to this model or setting")
+        elif compiled() is None:
+            report = FitReport("torch", "the compiled path is not loaded in this process")
+        else:
+            state, report = run(problem)
+            if state is not None:
+                _leave_in_eval(mll)
+                hand_back(mll.model, problem, state)
+                mll.model.last_fit = report
+                return mll
     kwargs.pop("optimizer", None) if kwargs.get("optimizer") is None else None
+    mll.model.last_fit = report
     return _fit_fallback(
         mll, closure=closure, closure_kwargs=closure_kwargs, optimizer_kwargs=optimizer_kwargs, **kwargs
     )
