@@ -210,23 +210,34 @@ def test_hostile_problems_agree_or_fall_back(seed, compiled_path):
 
 @needs_numba
 def test_unsupported_models_use_the_torch_solver(compiled_path):
-    """Ordinal ratings, float32 and a learnable likelihood go to the torch solver even when the
-    compiled path is forced (bit for bit the same results)."""
+    """A likelihood subclass that does not declare itself compiled (it may change the derivatives)
+    and float32 go to the torch solver even when the compiled path is forced (bit for bit the same
+    results; the model's mode and last fit say so). Ordinal levels, ties and lapses are compiled:
+    ``test_fast_path_kinds.py``."""
+    from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
+    from torchpref.models.defaults import PreferenceLikelihood
+
+    class OwnProbit(PairwiseProbitLikelihood):
+        pass
+
     X, C = _problem(9, 15)
-    levels, ri = torch.tensor([1, 3, 5, 2, 4]), torch.arange(5)
     ref = {}
     for mode in ("off", "on"):
         with fast_path.fast_path(mode), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            model = PreferenceGP(
-                X, comparisons=C, ratings=levels, rating_index=ri, rating_levels=5, covar_module=_kernel("rbf", 2)
+            model = PreferenceGP(X, comparisons=C, covar_module=_kernel("rbf", 2))
+            lik = model.likelihood
+            model.likelihood = PreferenceLikelihood(
+                OwnProbit(float(lik.comparison.comparison_noise)), lik.rating, lik.tie
             )
             fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+            assert model.last_fit.solver == "torch" and model.mode.solver == "torch"
             ref[mode] = model.covar_module.outputscale.detach().clone()
             m32 = PreferenceGP(
                 X.float(), comparisons=C, covar_module=_kernel("rbf", 2).float(), laplace_dtype=torch.float32
             )
             ref[mode + "32"] = m32.mode.f
+            assert m32.mode.solver == "torch"
     assert torch.equal(ref["on"], ref["off"]) and torch.equal(ref["on32"], ref["off32"])
 
 

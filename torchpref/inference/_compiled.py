@@ -1,7 +1,8 @@
 r"""The compiled small-problem path (issues 33 and 42): the Laplace mode and the second-order
 corrected evidence with its gradient in ``K``, for one problem on the CPU in float64, with probit
-comparisons (eq. 3) and Beta ratings (eqs. 4-7), each comparison or rating optionally shifted by a
-prior mean's offset (a population's person model). The hyperparameter fit built on them is
+comparisons (eq. 3; strict choices where ties were offered), Beta ratings (eqs. 4-7; a person's gain
+and offset on the link), ties and ordinal levels (Gaussian intervals) and comparisons with lapses,
+each optionally shifted by a prior mean's offset (a population's person model). The hyperparameter fit built on them is
 :mod:`torchpref.inference._compiled_fit`.
 
 The torch solver (:mod:`torchpref.inference.newton`, :mod:`torchpref.inference.laplace`) is the
@@ -30,7 +31,7 @@ import math
 import numpy as np
 from numba import njit
 
-from torchpref.inference.fast_types import FISHER, NOT_CONVERGED, NOT_FINITE, NOT_PD, OK, PROBIT
+from torchpref.inference.fast_types import FISHER, INTERVAL, LAPSE, NOT_CONVERGED, NOT_FINITE, NOT_PD, OK, PROBIT
 from torchpref.inference.step_rule import STEP_RULE
 
 BELOW_ZERO = 6  # internal: a converged point below Psi(0), which no mode is (retried from zeros)
@@ -114,6 +115,73 @@ def beta_rating(eta, u, c, nu):
 
 
 @njit(cache=True)
+def mills(z):
+    """The Mills ratio ``(1 - Phi(z)) / phi(z)`` for ``z >= 0`` (below 8 from ``erfc``, above by
+    its continued fraction), so that ``Phi(-z) = phi(z) mills(z)`` keeps tails free of underflow
+    (``erfcx(z / sqrt 2) = sqrt(2 / pi) mills(z)``)."""
+    if z < 8.0:
+        return 0.5 * math.erfc(z / math.sqrt(2.0)) * math.exp(0.5 * z * z + LOG_2PI_HALF)
+    t = z
+    for k in range(60, 0, -1):
+        t = z + k / t
+    return 1.0 / t
+
+
+@njit(cache=True)
+def interval(eta, lower, upper, s):
+    """``(log P, d log P / d eta, w = -d^2 log P, d w / d eta)`` of ``P = Phi((upper - eta) / s) -
+    Phi((lower - eta) / s)`` (``lower`` may be ``-inf``, ``upper`` ``inf``), as
+    :func:`torchpref.inference.numerics.normal_interval` computes them: intervals across zero by
+    ``erf``, intervals in a tail mirrored below zero and written ``Phi(hi) (1 - Phi(lo) / Phi(hi))``
+    with Mills ratios, accurate in both tails. Log-concave: ``w >= 0``."""
+    a_inf, b_inf = upper == np.inf, lower == -np.inf
+    a = 0.0 if a_inf else (upper - eta) / s
+    b = 0.0 if b_inf else (lower - eta) / s
+    mirror = (not b_inf) and b > 0.0
+    hi, hi_inf = (-b, b_inf) if mirror else (a, a_inf)
+    lo, lo_inf = (-a, a_inf) if mirror else (b, b_inf)
+    if hi_inf or hi > 0.0:  # across zero
+        ea = 1.0 if a_inf else math.erf(a / math.sqrt(2.0))
+        eb = -1.0 if b_inf else math.erf(b / math.sqrt(2.0))
+        log_p = math.log(0.5 * (ea - eb))
+        r_a = 0.0 if a_inf else math.exp(-0.5 * a * a - LOG_2PI_HALF - log_p)
+        r_b = 0.0 if b_inf else math.exp(-0.5 * b * b - LOG_2PI_HALF - log_p)
+    else:  # in the lower tail (after mirroring): Phi(hi) (1 - q), q = Phi(lo) / Phi(hi)
+        m_hi = mills(-hi)
+        e, q = 0.0, 0.0
+        if not lo_inf:
+            lo = min(lo, hi - 1e-300)
+            e = math.exp(-0.5 * (lo - hi) * (lo + hi))  # phi(lo) / phi(hi)
+            q = e * mills(-lo) / m_hi
+        log_p = -0.5 * hi * hi - LOG_2PI_HALF + math.log(m_hi) + math.log1p(-q)
+        r_hi = 1.0 / (m_hi * (1.0 - q))
+        r_a, r_b = (e * r_hi, r_hi) if mirror else (r_hi, e * r_hi)
+    d1 = (r_b - r_a) / s
+    p2 = (b * r_b - a * r_a) / (s * s)  # (d^2 P / d eta^2) / P
+    p3 = ((1.0 - a * a) * r_a - (1.0 - b * b) * r_b) / (s * s * s)  # (d^3 P / d eta^3) / P
+    d2 = p2 - d1 * d1
+    d3 = p3 - 3.0 * d1 * p2 + 2.0 * d1 * d1 * d1
+    return log_p, d1, -d2, -d3
+
+
+@njit(cache=True)
+def lapse_probit(eta, s, eps):
+    """``(log p, l', w = -l'', d w / d eta, Fisher weight)`` of ``p = eps / 2 + (1 - eps) Phi(eta / s)``
+    as :class:`~torchpref.likelihoods.person.LapseProbitLikelihood` writes them (not log-concave:
+    its Fisher weight ``l'^2 p / (1 - p)`` where the exact ``B`` is not positive definite)."""
+    z = eta / s
+    log_keep = math.log1p(-eps)
+    log_half_eps = math.log(0.5 * eps)
+    log_p = np.logaddexp(log_half_eps, log_keep + log_cdf_mills(z)[0])
+    log_1mp = np.logaddexp(log_half_eps, log_keep + log_cdf_mills(-z)[0])
+    q = math.exp(log_keep - 0.5 * z * z - LOG_2PI_HALF - log_p)  # (1 - eps) phi(z) / p
+    d1 = q / s
+    w = (z * q + q * q) / (s * s)
+    dw = -((z * z - 1.0) * q + 3.0 * z * q * q + 2.0 * q * q * q) / (s * s * s)
+    return log_p, d1, w, dw, d1 * d1 * math.exp(log_p - log_1mp)
+
+
+@njit(cache=True)
 def answer_terms(f, ans):
     """``(log p, d log p / d f, weights w, d w / d eta, Fisher weights)`` of the rows of ``ans`` at ``f``."""
     n, m = f.shape[0], ans.first.shape[0]
@@ -123,9 +191,15 @@ def answer_terms(f, ans):
     for k in range(m):
         i, j = ans.first[k], ans.second[k]
         eta = f[i] + ans.offset[k] - (f[j] if j >= 0 else 0.0)
-        if ans.kind[k] == PROBIT:
-            lp, d1, wk, dwk = probit(eta, ans.probit_scale)
+        kind = ans.kind[k]
+        if kind == PROBIT:
+            lp, d1, wk, dwk = probit(eta, ans.scale[k])
             fk = wk
+        elif kind == INTERVAL:
+            lp, d1, wk, dwk = interval(eta, ans.lower[k], ans.upper[k], ans.scale[k])
+            fk = wk
+        elif kind == LAPSE:
+            lp, d1, wk, dwk, fk = lapse_probit(eta, ans.scale[k], ans.lapse[k])
         else:
             lp, d1, wk, dwk, fk = beta_rating(eta, ans.target[k], ans.rating_scale, ans.rating_precision)
         ll += lp

@@ -39,7 +39,7 @@ import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple, TypeVar, cast, overload
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, TypeVar, overload
 
 import torch
 from torch import Tensor
@@ -382,53 +382,100 @@ def known(likelihood: object, kind: str) -> bool:
     return not any(name in own for name in replaced)
 
 
-def _term_rows(term: Term) -> tuple[int, Tensor, Tensor, Tensor, float] | None:
-    """One unmasked term of one problem as compiled rows: ``(kind, first, second, offset, probit
-    scale)``, or ``None`` where the compiled path does not compute its likelihood. A strict
-    comparison where ties were offered (``Phi((eta - tau) / s)``) is a probit comparison shifted by
-    ``-tau``."""
+class Rows(NamedTuple):
+    """One observation term's compiled rows (:class:`~torchpref.inference.fast_types.Answers`'
+    columns, ``m`` each): its kind, items, offsets (the prior mean's, and a strict choice's
+    ``-tau``), targets, scales, interval bounds and lapse rates; ``beta``: a rating likelihood's
+    ``(link scale, precision)`` (``None`` for any other kind)."""
+
+    kind: int
+    first: Tensor
+    second: Tensor
+    offset: Tensor
+    target: Tensor
+    scale: Tensor
+    lower: Tensor
+    upper: Tensor
+    lapse: Tensor
+    beta: tuple[float, float] | None = None
+
+
+def _value(x: Tensor | float) -> float:
+    """A likelihood's scalar parameter as a float (detached: it may be trainable)."""
+    return float(torch.as_tensor(x).detach())
+
+
+def _f64(x: Tensor | float, m: int) -> Tensor:
+    return torch.as_tensor(x, dtype=torch.float64).detach().expand(m).clone()
+
+
+def _term_rows(term: Term) -> Rows | None:
+    """One unmasked term of one problem as compiled rows, or ``None`` where the compiled path does
+    not compute its likelihood: probit comparisons, strict choices where ties were offered
+    (``Phi((eta - tau) / s)``: a probit shifted by ``-tau``), comparisons with lapses, ties and
+    ordinal levels (Gaussian intervals), and Beta ratings of any precision, a person's gain ``g``
+    and offset ``b`` on their link included (``Phi((g eta + b) / c0)`` is ``Phi((eta + b / g) / (c0 / g))``)."""
     lik: Any = term.likelihood
     if term.mask is not None and not bool(term.mask.all()):
         return None
-    offset = torch.zeros(term.size, dtype=torch.float64) if term.offset is None else term.offset[0].detach()
+    m = term.size
+    offset = _f64(0.0, m) if term.offset is None else term.offset[0].detach().to(torch.float64).clone()
+    item = term.index[0, :, 0]
     pair = term.coef == (1.0, -1.0) and term.target is None
+    second = term.index[0, :, 1] if pair else torch.full_like(item, -1)
+    zero, lo, hi = _f64(0.0, m), _f64(-math.inf, m), _f64(math.inf, m)
     if pair and known(lik, "probit"):
-        return ft.PROBIT, term.index[0, :, 0], term.index[0, :, 1], offset, float(lik.scale)
+        return Rows(ft.PROBIT, item, second, offset, zero, _f64(lik.scale, m), lo, hi, zero)
     if pair and known(lik, "strict"):
-        tau = float(lik.tie.tie_threshold)
-        return ft.PROBIT, term.index[0, :, 0], term.index[0, :, 1], offset - tau, float(lik.tie.comparison.scale)
-    if known(lik, "beta") and term.coef == (1.0,) and term.target is not None:
-        return ft.BETA, term.index[0, :, 0], torch.full_like(term.index[0, :, 0], -1), offset, math.nan
+        tau, scale = _value(lik.tie.tie_threshold), lik.tie.comparison.scale
+        return Rows(ft.PROBIT, item, second, offset - tau, zero, _f64(scale, m), lo, hi, zero)
+    if pair and known(lik, "lapse"):
+        return Rows(ft.LAPSE, item, second, offset, zero, _f64(lik.scale, m), lo, hi, _f64(lik.lapse_rate, m))
+    if pair and known(lik, "tie"):
+        tau = _value(lik.tie_threshold)
+        return Rows(
+            ft.INTERVAL, item, second, offset, zero, _f64(lik.comparison.scale, m), -tau + zero, tau + zero, zero
+        )
+    single = term.coef == (1.0,) and term.target is not None
+    if single and known(lik, "ordinal"):
+        levels = lik.check_levels(term.target[0].detach())
+        cuts = torch.cat([lo[:1], lik.cut_points.detach().to(torch.float64), hi[:1]])
+        return Rows(
+            ft.INTERVAL, item, second, offset, zero, _f64(lik.level_noise, m), cuts[levels - 1], cuts[levels], zero
+        )
+    target = None if term.target is None else term.target[0].detach().to(torch.float64)
+    if single and target is not None and known(lik, "beta"):
+        beta = (math.sqrt(2.0) * _value(lik.rating_scale), _value(lik.rating_precision))
+        return Rows(ft.BETA, item, second, offset, target, zero, lo, hi, zero, beta)
+    if single and target is not None and known(lik, "person_rating"):
+        g, b = _value(lik.rating_gain), _value(lik.rating_offset)
+        if not g > 0.0:
+            return None  # a gain constrained otherwise: the torch solver
+        beta = (math.sqrt(2.0) * _value(lik.rating_scale) / g, _value(lik.rating_precision))
+        return Rows(ft.BETA, item, second, offset + b / g, target, zero, lo, hi, zero, beta)
     return None
 
 
 def answers(obs: Observations) -> ft.Answers | None:
-    """One problem's unmasked comparisons (probit, or strict where ties were offered) and Beta
-    ratings (with their prior-mean offsets) as :class:`~torchpref.inference.fast_types.Answers`, or
-    ``None`` for anything else."""
+    """One problem's unmasked observations as :class:`~torchpref.inference.fast_types.Answers` (the
+    kinds :func:`_term_rows` knows, with their prior-mean offsets), or ``None`` where any term is
+    of another kind or masked, or two rating likelihoods differ."""
     if obs.batch != 1 or not obs.terms:
         return None
-    rows, scales, beta = [], set(), cast(Any, None)
+    rows: list[Rows] = []
     for term in obs.terms:  # the terms' order: the weights come back in it
-        row = _term_rows(term)
-        if row is None:
+        found = _term_rows(term)
+        if found is None:
             return None
-        kind, first, second, offset, scale = row
-        if kind == ft.BETA:
-            if beta is not None:
-                return None  # one rating likelihood
-            beta = term.likelihood
-        else:
-            scales.add(scale)
-        target = torch.zeros(term.size, dtype=torch.float64) if term.target is None else term.target[0].detach()
-        rows.append((first, second, torch.full((term.size,), kind), offset, target))
-    if len(scales) > 1:
-        return None  # comparisons of two noise levels
-    cols = [torch.cat([r[c] for r in rows]).numpy() for c in range(5)]
-    probit = scales.pop() if scales else 1.0
-    c = 1.0 if beta is None else math.sqrt(2.0) * float(beta.rating_scale)  # the exact class's link
-    nu = 1.0 if beta is None else float(beta.rating_precision)
-    return ft.answers(cols[0], cols[1], cols[2], cols[3], cols[4], probit, c, nu)
+        rows.append(found)
+    betas = {r.beta for r in rows if r.beta is not None}
+    if len(betas) > 1:
+        return None  # two rating likelihoods of different links or precisions
+    c, nu = betas.pop() if betas else (1.0, 1.0)
+    cols = [torch.cat([getattr(r, name) for r in rows]).numpy() for name in Rows._fields[1:9]]
+    kinds = torch.cat([torch.full((r.first.shape[0],), r.kind) for r in rows]).numpy()
+    first, second, offset, target, scale, lower, upper, lapse = cols
+    return ft.answers(first, second, kinds, offset, target, scale, lower, upper, lapse, c, nu)
 
 
 def mode_applies(L: Tensor, obs: Observations) -> bool:

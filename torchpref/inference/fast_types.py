@@ -37,7 +37,7 @@ STATUS_NAMES = {
     WEAK_STEP: "weak step",
 }
 #: the likelihood of an :class:`Answers` row
-PROBIT, BETA = 0, 1
+PROBIT, BETA, INTERVAL, LAPSE = 0, 1, 2, 3
 #: kernel kinds: GPyTorch's RBF, and Matern with nu = 1/2, 3/2, 5/2
 RBF, MATERN12, MATERN32, MATERN52 = 0, 1, 2, 3
 #: prior kinds on a positive hyperparameter
@@ -46,17 +46,30 @@ NO_PRIOR, LOG_NORMAL, GAMMA = 0, 1, 2
 
 class Answers(NamedTuple):
     """One problem's observations, one row each: the predictor of row ``k`` is
-    ``eta_k = f[first_k] - f[second_k] + offset_k`` (``second_k = -1``: a rating, ``f[first_k] +
-    offset_k``), scored by the probit (``kind_k = PROBIT``, scale ``probit_scale = sqrt 2 sigma_R``)
-    or the Beta rating likelihood (``BETA``: the rating ``target_k``, link scale ``rating_scale =
-    sqrt 2 sigma_B``, precision ``rating_precision = nu``)."""
+    ``eta_k = f[first_k] - f[second_k] + offset_k`` (``second_k = -1``: an item's own, ``f[first_k] +
+    offset_k``), scored by its kind ``kind_k``:
+
+    * :data:`PROBIT`: ``Phi(eta / scale_k)`` (eq. 3, ``scale = sqrt 2 sigma_R``; a strict choice
+      where ties were offered is ``Phi((eta - tau) / scale)``: its offset carries ``-tau``);
+    * :data:`BETA`: the rating ``target_k ~ Beta(nu mu, nu (1 - mu))``, ``mu = Phi(eta / c)`` with
+      ``c = rating_scale`` (``sqrt 2 sigma_B``; a person's gain ``g`` and offset ``b`` divide it by
+      ``g`` and add ``b / g`` to the offset) and ``nu = rating_precision``;
+    * :data:`INTERVAL`: ``Phi((upper_k - eta) / scale_k) - Phi((lower_k - eta) / scale_k)`` (a tie,
+      ``(-tau, tau)``; an ordinal level ``k``, ``(c_{k-1}, c_k)``; either bound may be infinite);
+    * :data:`LAPSE`: ``lapse_k / 2 + (1 - lapse_k) Phi(eta / scale_k)`` (a comparison with lapses).
+
+    Unused columns of a row hold ``0`` (``scale``, ``lapse``, ``target``) or ``-inf`` / ``inf``
+    (``lower`` / ``upper``)."""
 
     first: np.ndarray
     second: np.ndarray
     kind: np.ndarray
     offset: np.ndarray
     target: np.ndarray
-    probit_scale: float
+    scale: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    lapse: np.ndarray
     rating_scale: float
     rating_precision: float
 
@@ -163,7 +176,10 @@ def answers(
     kind: npt.ArrayLike,
     offset: npt.ArrayLike,
     target: npt.ArrayLike,
-    probit_scale: float,
+    scale: npt.ArrayLike,
+    lower: npt.ArrayLike,
+    upper: npt.ArrayLike,
+    lapse: npt.ArrayLike,
     rating_scale: float,
     rating_precision: float,
 ) -> Answers:
@@ -174,7 +190,10 @@ def answers(
         ints(kind),
         floats(offset),
         floats(target),
-        float(probit_scale),
+        floats(scale),
+        floats(lower),
+        floats(upper),
+        floats(lapse),
         float(rating_scale),
         float(rating_precision),
     )

@@ -1,0 +1,180 @@
+"""The compiled path's likelihood kinds beyond probit comparisons and Beta ratings (issue 52): the
+models sessions, ``serve``, the study and person models build. Strict choices where ties were
+offered (a probit shifted by ``-tau``), "no preference" ties and ordinal levels (Gaussian
+intervals), comparisons with lapses and a person's rating link (gain and offset) are solved compiled
+and agree with the torch solver (the reference); their compiled derivatives equal the likelihoods'
+(tested against autograd in ``tests/likelihoods``); a compiled fit of a model that offers ties;
+and a session's served answers are answered by the compiled solver."""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from botorch.fit import fit_gpytorch_mll
+
+from torchpref import LaplaceMarginalLogLikelihood, PreferenceGP
+from torchpref.inference import fast_path
+from torchpref.inference.numerics import normal_interval
+from torchpref.likelihoods.person import LapseProbitLikelihood
+from torchpref.models.calibration import calibrate_person
+from torchpref.sessions.session import PreferenceSession
+
+D = torch.float64
+needs_numba = pytest.mark.skipif(not fast_path.available(), reason="numba is not installed (the fast extra)")
+
+
+@pytest.fixture(scope="module")
+def compiled_path():
+    with fast_path.fast_path("on"):
+        functions = fast_path.warm_up()
+    assert functions is not None, fast_path.status()
+    return functions
+
+
+@needs_numba
+@pytest.mark.parametrize(
+    "lower,upper,scale",
+    [(-0.1, 0.1, 0.14), (-math.inf, -1.19, 0.2), (1.19, math.inf, 0.2), (-0.36, 0.36, 0.2), (0.1, math.inf, 0.5)],
+)
+def test_interval_derivatives_match_normal_interval(lower, upper, scale, compiled_path):
+    """A Gaussian interval's compiled log probability and three derivatives equal
+    :func:`~torchpref.inference.numerics.normal_interval`'s, from one tail to the other (``eta``
+    up to 60 scales away: the tail branches and the continued fraction)."""
+    from torchpref.inference import _compiled
+
+    eta = torch.linspace(-60 * scale, 60 * scale, 241, dtype=D)
+    lp, d1, d2, d3 = normal_interval(upper - eta, lower - eta, scale, third=True)
+    got = np.array([_compiled.interval.py_func(float(e), lower, upper, scale) for e in eta])
+    # the k-th derivative cancels terms of order (z / s)^k far in a tail (z the standardised
+    # distance): both computations are good to about 1e-16 (1 + |z|)^k / s^k there
+    z = (eta.abs().numpy() + max(abs(b) for b in (lower, upper) if math.isfinite(b))) / scale
+    for col, ref in enumerate((lp, d1, -d2, -d3)):
+        ref = ref.numpy()
+        err = np.abs(got[:, col] - ref) / np.maximum(np.abs(ref), ((1 + z) / scale) ** col)
+        assert err.max() < 1e-12, (col, err.max())
+
+
+@needs_numba
+def test_lapse_derivatives_match_the_likelihood(compiled_path):
+    """The compiled lapse probit's log probability, derivatives and Fisher weight equal
+    :class:`LapseProbitLikelihood`'s across its range (its negative exact weights included)."""
+    from torchpref.inference import _compiled
+
+    lik = LapseProbitLikelihood(0.3, 0.07).double()
+    eta = torch.linspace(-12, 12, 121, dtype=D)
+    lp, d1, d2 = lik.derivatives(eta)
+    d3, fisher = lik.third_derivative(eta), lik.fisher(eta)
+    s, eps = float(lik.scale), float(lik.lapse_rate)
+    got = np.array([_compiled.lapse_probit.py_func(float(e), s, eps) for e in eta])
+    assert (got[:, 2] < 0).any()  # the range reaches where the exact weight is negative
+    for col, ref in enumerate((lp, d1, -d2, -d3, fisher)):
+        ref = ref.detach().numpy()
+        err = np.abs(got[:, col] - ref) / np.maximum(1.0, np.abs(ref))
+        assert err.max() < 1e-12, (col, err.max())
+
+
+def _data(seed: int, n: int):
+    g = torch.Generator().manual_seed(seed)
+    X = torch.rand(n, 2, generator=g, dtype=D)
+    u = torch.sin(5 * X[:, 0]) + X[:, 1]
+    i = torch.randint(0, n, (2 * n,), generator=g)
+    j = (i + torch.randint(1, n, (2 * n,), generator=g)) % n
+    C = torch.stack([torch.where(u[i] > u[j], i, j), torch.where(u[i] > u[j], j, i)], -1)
+    ties = torch.stack([torch.arange(0, n - 1, 3), torch.arange(1, n, 3)], -1)
+    idx = torch.randperm(n, generator=g)[: n // 3]
+    ratings = torch.special.ndtr(u[idx] / 1.5).clamp(0.02, 0.98)
+    return X, C, ties, idx, ratings, u
+
+
+def _models():
+    """Each kind's model: ``(name, builder)``; builders take the data and return a model."""
+
+    def session(X, C, T, idx, r, u):  # the session model: strict choices with ties offered, ties, Beta ratings
+        return PreferenceGP(X, C, r, idx, ties=T, ties_offered=True, rating_precision=5.0)
+
+    def ordinal(X, C, T, idx, r, u):  # ratings as levels 1..5 (the study's Likert answers)
+        levels = (1 + (r * 5).floor().clamp(0, 4)).to(D)
+        return PreferenceGP(X, C, levels, idx, ties=T, rating_levels=5, ties_offered=True)
+
+    def person(X, C, T, idx, r, u):  # lapses on the comparisons, a person's gain and offset on the ratings
+        model = PreferenceGP(X, C, r, idx, ties=T)
+        return calibrate_person(model, rating_offset=0.3, rating_gain=1.4, lapse_rate=0.08)
+
+    return [("session", session), ("ordinal", ordinal), ("person", person)]
+
+
+@needs_numba
+@pytest.mark.parametrize("seed,n", [(0, 9), (1, 40), (2, 120)])
+@pytest.mark.parametrize("name,build", _models(), ids=[m[0] for m in _models()])
+def test_each_kind_is_solved_compiled_and_agrees(name, build, seed, n, compiled_path):
+    """The mode of each model is the compiled solver's (``mode.solver``) and equals the torch
+    solver's: modes to 1e-9, ``B``'s factor and the weights to 1e-9 relative, the evidence to 1e-7."""
+    data = _data(seed, n)
+    out = {}
+    for mode in ("off", "on"):
+        with fast_path.fast_path(mode), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = build(*data)
+            out[mode] = (model.mode, float(model.log_marginal_likelihood().detach()))
+    (ref, e_ref), (got, e_got) = out["off"], out["on"]
+    assert ref.solver == "torch" and got.solver == "compiled"
+    assert float((got.f - ref.f).abs().max()) < 1e-9 * max(1.0, float(ref.f.abs().max()))
+    assert float((got.M - ref.M).abs().max()) < 1e-9 * float(ref.M.abs().max())
+    for w1, w0 in zip(got.weights, ref.weights):
+        assert float((w1 - w0).abs().max()) < 1e-9 * max(1.0, float(w0.abs().max()))
+    assert abs(e_got - e_ref) < 1e-7 * max(1.0, abs(e_ref))
+
+
+@needs_numba
+def test_a_model_that_offers_ties_is_fitted_compiled(compiled_path):
+    """``fit_gpytorch_mll`` of a model with strict choices, ties and Beta ratings of precision 5 (its
+    likelihood fixed): the compiled fit answers, and ends at least as high as BoTorch's routine on
+    the torch solver (to 1e-6 relative)."""
+    from gpytorch.kernels import RBFKernel, ScaleKernel
+    from gpytorch.priors import GammaPrior, LogNormalPrior
+
+    X, C, T, idx, r, _ = _data(5, 30)
+    fitted = {}
+    for mode in ("off", "on"):
+        kernel = ScaleKernel(
+            RBFKernel(ard_num_dims=2, lengthscale_prior=LogNormalPrior(1.76, 1.73)),
+            outputscale_prior=GammaPrior(2.0, 1.0),
+        ).to(D)
+        model = PreferenceGP(X, C, r, idx, ties=T, ties_offered=True, rating_precision=5.0, covar_module=kernel)
+        with fast_path.fast_path(mode), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+            fitted[mode] = (model.last_fit, float(LaplaceMarginalLogLikelihood(model)().detach()))
+    assert fitted["off"][0].solver == "torch" and fitted["on"][0].solver == "compiled"
+    assert fitted["on"][0].status == "ok"
+    assert fitted["on"][1] >= fitted["off"][1] - 1e-6 * abs(fitted["off"][1])
+
+
+@needs_numba
+def test_served_answers_are_answered_by_the_compiled_solver(compiled_path):
+    """A session (the default model: strict choices where ties are offered, Beta ratings) told
+    choices, a rating and a "no preference", each followed by the next question, as ``serve``
+    does: every model that answered was solved by the compiled solver."""
+    g = torch.Generator().manual_seed(0)
+    X = torch.rand(30, 2, generator=g, dtype=D) * torch.tensor([100.0, 5.0], dtype=D)
+    solvers = []
+    with fast_path.fast_path("on"):
+        session = PreferenceSession(X, seed=1)
+        session.tell_choice(X[[0, 5, 10]], 1)
+        solvers.append(session.model.mode.solver)
+        session.tell_rating(X[3], 4)
+        solvers.append(session.model.mode.solver)
+        session.tell_no_preference(X[[20, 21]])
+        solvers.append(session.model.mode.solver)
+        for _ in range(3):
+            q = session.ask()
+            if q.kind == "rating":
+                session.tell(q, 3)
+            else:
+                session.tell(q, 0)
+            solvers.append(session.model.mode.solver)
+        terms = {type(t.likelihood).__name__ for t in session.model._state().obs.terms}
+    assert {"StrictPreferenceLikelihood", "TieLikelihood", "BetaRatingLikelihood"} <= terms
+    assert solvers == ["compiled"] * len(solvers)
