@@ -436,14 +436,15 @@ def _term_rows(term: Term) -> Rows | None:
         return Rows(
             ft.INTERVAL, item, second, offset, zero, _f64(lik.comparison.scale, m), -tau + zero, tau + zero, zero
         )
-    single = term.coef == (1.0,) and term.target is not None
-    if single and known(lik, "ordinal"):
-        levels = lik.check_levels(term.target[0].detach())
+    given = term.target
+    single = term.coef == (1.0,) and given is not None
+    if single and given is not None and known(lik, "ordinal"):
+        levels = lik.check_levels(given[0].detach())
         cuts = torch.cat([lo[:1], lik.cut_points.detach().to(torch.float64), hi[:1]])
         return Rows(
             ft.INTERVAL, item, second, offset, zero, _f64(lik.level_noise, m), cuts[levels - 1], cuts[levels], zero
         )
-    target = None if term.target is None else term.target[0].detach().to(torch.float64)
+    target = None if given is None else given[0].detach().to(torch.float64)
     if single and target is not None and known(lik, "beta"):
         beta = (math.sqrt(2.0) * _value(lik.rating_scale), _value(lik.rating_precision))
         return Rows(ft.BETA, item, second, offset, target, zero, lo, hi, zero, beta)
