@@ -416,3 +416,43 @@ def test_compiled_calls_run_blas_on_torch_s_threads_and_restore_them(own_state):
         torch.set_num_threads(threads)
     assert len(inside) == 3 and all(set(counts.values()) == {1} for counts in inside), inside
     assert set(after.values()) == {3}, after
+
+
+@needs_numba
+def test_build_does_nothing_when_the_cache_is_current(monkeypatch, capsys, own_state):
+    """``torchpref fast-path build`` with this installation's cache in place says so and compiles
+    nothing; ``--force`` rebuilds; a build says beforehand that it takes about 2 minutes."""
+    from torchpref import cli
+
+    assert fast_path.warm_up() is not None or fast_path.build(progress=None)
+    built = []
+    monkeypatch.setattr(fast_path, "build", lambda progress=None: built.append(1))
+    assert cli.main(["fast-path", "build"]) == 0
+    out = capsys.readouterr().out
+    assert "is current for this installation: nothing to build" in out and built == []
+    assert cli.main(["fast-path", "build", "--force"]) == 0
+    assert built == [1] and "about 2 minutes" in capsys.readouterr().out
+
+
+def test_every_function_a_fast_path_message_names_exists(monkeypatch, own_state):
+    """The warning of a missing cache names the command and a function to build it: that function
+    exists (it once named ``torchpref.fast_path.build()``, which does not)."""
+    import importlib
+    import re
+
+    from torchpref.inference import fast_cache
+
+    def unusable():
+        raise fast_cache.CacheUnusable("no compiled cache has been built here")
+
+    monkeypatch.setattr(fast_cache, "load", unusable)
+    own_state.functions, own_state.failed, own_state.missing, own_state.warned = None, None, None, set()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fast_path._load("auto")
+    (message,) = [str(w.message) for w in caught if issubclass(w.category, fast_path.FastPathWarning)]
+    named = re.findall(r"(torchpref(?:\.\w+)+)\(\)", message)
+    assert named and fast_cache.COMMAND in message
+    for dotted in named:
+        module, name = dotted.rsplit(".", 1)
+        assert callable(getattr(importlib.import_module(module), name)), dotted
