@@ -1,19 +1,20 @@
 r"""BoTorch's ``fit_gpytorch_mll`` for a :class:`~torchpref.models.preference_gp.PreferenceGP`: the
-whole fit compiled where it applies, BoTorch's own routine otherwise (issues 33 and 42).
+whole fit compiled where it applies, BoTorch's own routine otherwise (issues 33, 42 and 52).
 
 ``fit_gpytorch_mll(mll)`` calls the model's ``custom_fit`` (BoTorch's hook for models with their
 own fitting routine), which comes here. Where the compiled path applies
-(:mod:`torchpref.inference.fast_path`: one problem, CPU, float64, probit comparisons and Beta
-ratings, a fixed prior mean or none, and here a ``ScaleKernel`` of an ``RBFKernel`` or
+(:mod:`torchpref.inference.fast_path`: one problem, CPU, float64, the likelihoods it knows with
+their parameters fixed, a fixed prior mean or none, and here a ``ScaleKernel`` of an ``RBFKernel`` or
 ``MaternKernel`` with softplus-constrained lengthscales and outputscale, LogNormal / Gamma priors or
 none, nothing else trainable and no other prior) the whole L-BFGS fit is one compiled call
 (:func:`torchpref.inference._compiled_fit.fit_lbfgs`: kernel matrix and its derivatives, Newton
 warm-started from the last mode, the evidence and its written-out gradient, the priors and the
 constraints' chain rule, from the model's raw parameters), and its last mode and factors become the
-model's posterior cache (the next prediction solves nothing). Anything else, any failure of the
-compiled evaluation (a kernel matrix that is not positive definite, a Newton solve that does not
-converge) and any stop other than success or the iteration limit, goes to BoTorch's
-``_fit_fallback`` from the starting values, so that retries, warnings and errors are exactly BoTorch's.
+model's posterior cache (the next prediction solves nothing). Anything else, and a compiled fit
+that fails at its first evaluation (a kernel matrix that is not positive definite, a Newton solve
+that does not converge) or stalls before any step, goes to BoTorch's ``_fit_fallback`` from the
+starting values, so that retries, warnings and errors are exactly BoTorch's. Either way the model's
+``last_fit`` (:class:`FitReport`) says which solver fitted and how it stopped.
 """
 
 from __future__ import annotations
