@@ -178,3 +178,58 @@ def test_served_answers_are_answered_by_the_compiled_solver(compiled_path):
         terms = {type(t.likelihood).__name__ for t in session.model._state().obs.terms}
     assert {"StrictPreferenceLikelihood", "TieLikelihood", "BetaRatingLikelihood"} <= terms
     assert solvers == ["compiled"] * len(solvers)
+
+
+@needs_numba
+@pytest.mark.parametrize("seed", range(6))
+def test_hostile_ties_levels_and_lapses_agree_or_fall_back(seed, compiled_path):
+    """Comparisons, ties and levels that contradict each other, a comparison noise of 1e-3 and a
+    lapse rate of 0.3 (Newton meets the lapses' negative weights and takes Fisher steps), a
+    prior mean far away: wherever the torch solver finds the mode, the compiled one finds the same
+    (or hands the problem to the torch solver, whose answer it then is)."""
+    from gpytorch.means import ConstantMean
+
+    g = torch.Generator().manual_seed(100 + seed)
+    n = 14
+    X = torch.rand(n, 2, generator=g, dtype=D)
+    C = torch.randint(0, n, (30, 2), generator=g)
+    C = C[C[:, 0] != C[:, 1]]
+    T = torch.cat([C[:4], C[:4].flip(-1)])  # ties of pairs also answered strictly, both ways
+    levels = torch.randint(1, 6, (n,), generator=g).to(D)
+    mean = ConstantMean().to(D).requires_grad_(False)
+    mean.constant.fill_(5.0 * math.sin(seed))
+
+    def build(kind: str):
+        if kind == "levels":
+            model = PreferenceGP(
+                X,
+                C,
+                levels,
+                torch.arange(n),
+                ties=T,
+                rating_levels=5,
+                ties_offered=True,
+                comparison_noise=1e-3,
+                mean_module=mean,
+            )
+        else:
+            model = PreferenceGP(X, C, ties=T, comparison_noise=1e-3, mean_module=mean)
+            model = calibrate_person(model, lapse_rate=0.3)
+        return model
+
+    for kind in ("levels", "lapses"):
+        out = {}
+        for mode in ("off", "on"):
+            with fast_path.fast_path(mode), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                try:
+                    model = build(kind)
+                    out[mode] = (model.mode, float(model.log_marginal_likelihood().detach()))
+                except Exception as err:  # the torch solver's own named errors, the same on both paths
+                    out[mode] = type(err).__name__
+        if isinstance(out["off"], str):
+            assert out["on"] == out["off"]
+            continue
+        (ref, e_ref), (got, e_got) = out["off"], out["on"]
+        assert float((got.f - ref.f).abs().max()) < 1e-8 * max(1.0, float(ref.f.abs().max())), kind
+        assert abs(e_got - e_ref) < 1e-7 * max(1.0, abs(e_ref)), kind
