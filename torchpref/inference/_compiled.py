@@ -31,7 +31,7 @@ import math
 import numpy as np
 from numba import njit
 
-from torchpref.inference.fast_types import FISHER, INTERVAL, LAPSE, NOT_CONVERGED, NOT_FINITE, NOT_PD, OK, PROBIT
+from torchpref.inference.fast_types import BETA, FISHER, INTERVAL, LAPSE, NOT_CONVERGED, NOT_FINITE, NOT_PD, OK, PROBIT
 from torchpref.inference.step_rule import STEP_RULE
 
 BELOW_ZERO = 6  # internal: a converged point below Psi(0), which no mode is (retried from zeros)
@@ -112,6 +112,29 @@ def beta_rating(eta, u, c, nu):
     l3 = -(nu**3) * (pa2 - pb2) * dmu**3 + 2.0 * r_a**3 - 2.0 * r_b**3
     third = l3 + 3.0 * F * t / c + g * (t * t - 1.0) / (c * c)
     return lp, g, F + t * g / c, -third, F
+
+
+@njit(cache=True)
+def beta_rating_dnu(eta, u, c, nu):
+    """``(d log p / d nu, d l' / d nu, d w / d nu)`` of :func:`beta_rating` (``w = -l''``): with
+    ``a = nu mu``, ``b = nu (1 - mu)`` and ``psi(x) = psi(x + 1) - 1 / x`` as there,
+    ``d log p / d nu = mu log u + (1 - mu) log(1 - u) + psi(nu) - mu psi(a + 1) - (1 - mu) psi(b + 1) + 2 / nu``,
+    ``d l' / d nu = (log u - log(1 - u) - psi(a + 1) + psi(b + 1) - nu (mu psi'(a + 1) - (1 - mu) psi'(b + 1))) mu'``
+    and ``d w / d nu = dF / d nu + t / c d l' / d nu`` with
+    ``dF / d nu = (2 nu (psi'(a + 1) + psi'(b + 1)) + nu^2 (mu psi''(a + 1) + (1 - mu) psi''(b + 1))) mu'^2``."""
+    t = eta / c
+    log_mu = log_cdf_mills(t)[0]
+    log_1mmu = log_cdf_mills(-t)[0]
+    mu, nmu = math.exp(log_mu), math.exp(log_1mmu)
+    dmu = math.exp(-0.5 * t * t - LOG_2PI_HALF) / c
+    lu, l1u = math.log(u), math.log1p(-u)
+    pa0, pa1, pa2 = polygammas(nu * mu + 1.0)
+    pb0, pb1, pb2 = polygammas(nu * nmu + 1.0)
+    pnu = polygammas(nu + 1.0)[0] - 1.0 / nu
+    dl = mu * lu + nmu * l1u + pnu - mu * pa0 - nmu * pb0 + 2.0 / nu
+    dg = (lu - l1u - pa0 + pb0 - nu * (mu * pa1 - nmu * pb1)) * dmu
+    dF = (2.0 * nu * (pa1 + pb1) + nu * nu * (mu * pa2 + nmu * pb2)) * dmu * dmu
+    return dl, dg, dF + t * dg / c
 
 
 @njit(cache=True)
@@ -398,9 +421,12 @@ def newton_from(L, ans, starts, tol, max_iter):
 
 @njit(cache=True)
 def evidence(L, ans, a, M, w):
-    r"""``(log q, G)``: the second-order corrected Laplace evidence at the mode ``a`` and its
-    gradient in ``K``, ``G = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``
-    (:func:`torchpref.inference.laplace.laplace_evidence`)."""
+    r"""``(log q, G, d log q / d nu)``: the second-order corrected Laplace evidence at the mode ``a``,
+    its gradient in ``K``, ``G = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``,
+    and its derivative in the Beta ratings' precision ``nu``, ``sum_k (d l_k / d nu - s_k (d w_k /
+    d nu) / 2) - (Sigma h)^T (d grad l / d nu) / 2`` at the fixed mode (``s_k = Sigma_ii`` of the
+    rated item; the mode's implicit dependence through ``h``), as
+    :func:`torchpref.inference.laplace.laplace_evidence` does for a likelihood parameter."""
     n, m = L.shape[0], ans.first.shape[0]
     ll, g, _, dw, _ = answer_terms(L @ a, ans)
     V = np.linalg.solve(M, np.ascontiguousarray(L.T))  # M^-1 L^T: Sigma = V^T V
@@ -430,7 +456,14 @@ def evidence(L, ans, a, M, w):
     for i in range(n):
         logdet += math.log(M[i, i])
     value = ll - 0.5 * (a @ a) - logdet + 0.5 * (grad_a @ step) - 0.5 * (h @ (L @ step))
-    return value, G
+    f = L @ a
+    dnu = 0.0
+    for k in range(m):
+        if ans.kind[k] == BETA:
+            i = ans.first[k]
+            dl, dg, dw_nu = beta_rating_dnu(f[i] + ans.offset[k], ans.target[k], ans.rating_scale, ans.rating_precision)
+            dnu += dl - 0.5 * Sigma[i, i] * dw_nu - 0.5 * Sigma_h[i] * dg
+    return value, G, dnu
 
 
 @njit(cache=True)

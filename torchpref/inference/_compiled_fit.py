@@ -29,8 +29,10 @@ from torchpref.inference.fast_types import (
     NOT_PD,
     OK,
     RBF,
+    SIGMOID,
     STALLED,
     WEAK_STEP,
+    Answers,
 )
 
 #: SciPy's L-BFGS-B defaults, which BoTorch's fit uses: memory, ``ftol``, ``gtol``, iteration limit
@@ -103,20 +105,20 @@ def kernel_gradient(X, ls, outputscale, kind, G):
 
 @njit(cache=True)
 def mode_and_evidence(X, ans, kind, ls, outputscale, state, tol, max_iter):
-    """One fit evaluation: ``(log q, d log q / d ls, d log q / d outputscale, status)``, Newton
+    """One fit evaluation: ``(log q, d log q / d ls, d log q / d outputscale, d log q / d nu, status)``, Newton
     warm-started from ``state.f`` (:func:`~torchpref.inference._compiled.newton` retries cold if that fails); on success ``state`` holds the new mode and factors."""
     n = X.shape[0]
     K = kernel_matrix(X, ls, outputscale, kind)
     L, jitter, ok = jittered_cholesky(K)
     if not ok:
-        return 0.0, np.zeros(ls.shape[0]), 0.0, NOT_PD
+        return 0.0, np.zeros(ls.shape[0]), 0.0, 0.0, NOT_PD
     starts = state.f.reshape(1, state.f.shape[0]) if state.f.shape[0] == n else np.empty((0, n))
     a, M, w, its, status, _ = newton(L, ans, starts, tol, max_iter)  # retried cold if the warm start fails
     if status != OK:
-        return 0.0, np.zeros(ls.shape[0]), 0.0, status
-    value, G = evidence(L, ans, a, M, w)
-    if not np.isfinite(value):
-        return 0.0, np.zeros(ls.shape[0]), 0.0, NOT_FINITE
+        return 0.0, np.zeros(ls.shape[0]), 0.0, 0.0, status
+    value, G, gnu = evidence(L, ans, a, M, w)
+    if not (np.isfinite(value) and np.isfinite(gnu)):
+        return 0.0, np.zeros(ls.shape[0]), 0.0, 0.0, NOT_FINITE
     gls, gos = kernel_gradient(X, ls, outputscale, kind, G)
     if state.f.shape[0] == n:
         state.f[:] = L @ a
@@ -126,7 +128,7 @@ def mode_and_evidence(X, ans, kind, ls, outputscale, state, tol, max_iter):
         state.w[:] = w
         state.jitter[0] = jitter
         state.iterations[0] = its
-    return value, gls, gos, OK
+    return value, gls, gos, gnu, OK
 
 
 @njit(cache=True)
@@ -135,6 +137,35 @@ def softplus(x):
     if x > 20.0:
         return x, 1.0
     return math.log1p(math.exp(x)), 1.0 / (1.0 + math.exp(-x))
+
+
+@njit(cache=True)
+def constrained(x, transform, lower, upper):
+    """GPyTorch's constraint of a raw value and its derivative: ``softplus(x) + lower``
+    (:data:`SOFTPLUS`, ``GreaterThan``) or ``lower + (upper - lower) sigmoid(x)`` (:data:`SIGMOID`, ``Interval``)."""
+    if transform == SIGMOID:
+        sig = 1.0 / (1.0 + math.exp(-x))
+        return lower + (upper - lower) * sig, (upper - lower) * sig * (1.0 - sig)
+    v, dv = softplus(x)
+    return v + lower, dv
+
+
+@njit(cache=True)
+def with_precision(ans, nu):
+    """``ans`` with the Beta ratings' precision ``nu``."""
+    return Answers(
+        ans.first,
+        ans.second,
+        ans.kind,
+        ans.offset,
+        ans.target,
+        ans.scale,
+        ans.lower,
+        ans.upper,
+        ans.lapse,
+        ans.rating_scale,
+        nu,
+    )
 
 
 @njit(cache=True)
@@ -175,7 +206,13 @@ def fit_loss(x, X, ans, spec, state, tol, max_iter):
         outputscale += spec.os_lower
         pr, gprior_os = log_prior(outputscale, spec.os_prior)
         lp += pr
-    value, gls, gos, status = mode_and_evidence(X, ans, spec.kernel, ls, outputscale, state, tol, max_iter)
+    nu, dnu = ans.rating_precision, 0.0
+    if spec.nu_index >= 0:
+        nu, dnu = constrained(x[spec.nu_index], spec.nu_transform, spec.nu_lower, spec.nu_upper)
+        ans = with_precision(ans, nu)
+    pr, gprior_nu = log_prior(nu, spec.nu_prior)  # a fixed precision's prior too: BoTorch's loss has it
+    lp += pr
+    value, gls, gos, gnu, status = mode_and_evidence(X, ans, spec.kernel, ls, outputscale, state, tol, max_iter)
     grad = np.zeros(x.shape[0])
     if status != OK:
         return 0.0, grad, status
@@ -184,6 +221,8 @@ def fit_loss(x, X, ans, spec, state, tol, max_iter):
         grad[spec.ls_start + c] = -(total + gprior_ls[c]) * dls[c]
     if spec.os_index >= 0:
         grad[spec.os_index] = -(gos + gprior_os) * dos
+    if spec.nu_index >= 0:
+        grad[spec.nu_index] = -(gnu + gprior_nu) * dnu
     return -(value + lp), grad, OK
 
 

@@ -42,6 +42,8 @@ PROBIT, BETA, INTERVAL, LAPSE = 0, 1, 2, 3
 RBF, MATERN12, MATERN32, MATERN52 = 0, 1, 2, 3
 #: prior kinds on a positive hyperparameter
 NO_PRIOR, LOG_NORMAL, GAMMA = 0, 1, 2
+#: constraint transforms of a raw parameter: GPyTorch's ``GreaterThan`` (softplus) and ``Interval`` (sigmoid)
+SOFTPLUS, SIGMOID = 0, 1
 
 
 class Answers(NamedTuple):
@@ -89,7 +91,10 @@ class FitSpec(NamedTuple):
     """What the raw parameters ``x`` of a fit are: the lengthscales are ``softplus(x[ls_start :
     ls_start + ls_count]) + ls_lower`` (one shared value when ``ls_count = 1``), the outputscale
     ``softplus(x[os_index]) + os_lower`` (``fixed_outputscale`` where ``os_index < 0``), of a
-    kernel of kind ``kernel`` (:data:`RBF`, ...), each with its prior."""
+    kernel of kind ``kernel`` (:data:`RBF`, ...), each with its prior; and, where ``nu_index >= 0``,
+    the Beta ratings' precision ``nu`` (:data:`SOFTPLUS`: ``softplus(x[nu_index]) + nu_lower``;
+    :data:`SIGMOID`: GPyTorch's ``Interval``, ``nu_lower + (nu_upper - nu_lower) sigmoid(x[nu_index])``)
+    with its prior (where ``nu_index < 0`` the answers' own precision, fixed)."""
 
     kernel: int
     ls_start: int
@@ -100,6 +105,11 @@ class FitSpec(NamedTuple):
     os_lower: float
     os_prior: Prior
     fixed_outputscale: float
+    nu_index: int
+    nu_transform: int
+    nu_lower: float
+    nu_upper: float
+    nu_prior: Prior
 
 
 class FitState(NamedTuple):
@@ -214,8 +224,13 @@ def fit_spec(
     os_lower: float,
     os_prior: tuple,
     fixed_outputscale: float,
+    nu_index: int = -1,
+    nu_transform: int = SOFTPLUS,
+    nu_lower: float = 0.0,
+    nu_upper: float = 0.0,
+    nu_prior: tuple = (NO_PRIOR, 0.0, 0.0, 0.0),
 ) -> FitSpec:
-    """A :class:`FitSpec` with its fields' types fixed."""
+    """A :class:`FitSpec` with its fields' types fixed (by default the ratings' precision fixed)."""
     return FitSpec(
         int(kernel),
         int(ls_start),
@@ -226,6 +241,11 @@ def fit_spec(
         float(os_lower),
         prior(*os_prior),
         float(fixed_outputscale),
+        int(nu_index),
+        int(nu_transform),
+        float(nu_lower),
+        float(nu_upper),
+        prior(*nu_prior),
     )
 
 

@@ -26,7 +26,7 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import torch
-from gpytorch.constraints import GreaterThan, Positive
+from gpytorch.constraints import GreaterThan, Interval, Positive
 from gpytorch.kernels import Kernel, MaternKernel, RBFKernel, ScaleKernel
 from gpytorch.module import Module
 from gpytorch.priors import GammaPrior, LogNormalPrior, Prior
@@ -34,7 +34,7 @@ from torch import Tensor
 
 import torchpref.inference.fast_types as ft
 from torchpref.data.preference_data import PreferenceData
-from torchpref.inference.fast_path import FIT_MAX_ITEMS, answers, call, compiled, setting
+from torchpref.inference.fast_path import FIT_MAX_ITEMS, answers, call, compiled, known, setting
 from torchpref.inference.laplace import ModeResult, Observations
 from torchpref.inference.numerics import default_tolerance
 from torchpref.inference.padding import PaddedData
@@ -141,6 +141,23 @@ def _constraint(module: Module, name: str) -> float | None:
     return float(c.lower_bound)
 
 
+def _nu_constraint(module: Module) -> tuple[int, float, float] | None:
+    """``(transform, lower, upper)`` of the rating precision's constraint: GPyTorch's ``Interval``
+    with its sigmoid, or a ``GreaterThan`` / ``Positive`` with torch's default softplus; else ``None``."""
+    c = module.constraint_for_parameter_name("raw_rating_precision")
+    if type(c) is Interval and c.enforced and getattr(c, "_transform", None) is torch.sigmoid:
+        return ft.SIGMOID, float(c.lower_bound), float(c.upper_bound)
+    lower = _constraint(module, "raw_rating_precision")
+    return None if lower is None else (ft.SOFTPLUS, lower, 0.0)
+
+
+def _rating(model: LaplaceModel) -> Module | None:
+    """The model's Beta rating likelihood, where the compiled path knows it (its precision may be
+    fitted), else ``None``."""
+    rating = getattr(getattr(model, "likelihood", None), "rating", None)
+    return rating if rating is not None and known(rating, "beta") else None
+
+
 def _prior(prior: Prior | None) -> ft.Prior | None:
     """The compiled :class:`~torchpref.inference.fast_types.Prior` of a GPyTorch prior, or ``None``;
     its ``const`` computed as the prior computes it (in its parameters' dtype)."""
@@ -169,41 +186,70 @@ def _kernel(model: LaplaceModel, d: int) -> tuple[int, torch.nn.Module, torch.nn
     return kind, base, scale
 
 
-def _priors(model: LaplaceModel, base: torch.nn.Module, scale: torch.nn.Module | None) -> dict[str, Any] | None:
-    """The kernel's two priors (``"ls"``, ``"os"``), or ``None`` where the model has any other."""
-    found: dict[str, Any] = {"ls": None, "os": None}
+def _priors(
+    model: LaplaceModel, base: torch.nn.Module, scale: torch.nn.Module | None, rating: Module | None
+) -> dict[str, Any] | None:
+    """The kernel's two priors (``"ls"``, ``"os"``) and the Beta rating precision's (``"nu"``), or
+    ``None`` where the model has any other."""
+    found: dict[str, Any] = {"ls": None, "os": None, "nu": None}
     for module in model.modules():
         for name, (prior, _, _) in getattr(module, "_priors", {}).items():
             if module is base and name == "lengthscale_prior":
                 found["ls"] = prior
             elif module is scale and name == "outputscale_prior":
                 found["os"] = prior
+            elif rating is not None and module is rating and name == "rating_precision_prior":
+                found["nu"] = prior
             else:
                 return None
     return found
 
 
-def _spec(mll: LaplaceMLL, kind: int, base, scale, priors) -> tuple[ft.FitSpec, dict] | None:
+def _spec(mll: LaplaceMLL, kind: int, base, scale, priors, rating) -> tuple[ft.FitSpec, dict] | None:
     """The compiled fit's :class:`~torchpref.inference.fast_types.FitSpec` and the trainable
     parameters in BoTorch's order (that of ``named_parameters``, as ``get_parameters_and_bounds``),
-    or ``None``."""
+    or ``None``. Trainable may be the kernel's lengthscales and outputscale and the Beta ratings'
+    precision (issue 52), nothing else."""
     params = {name: p for name, p in mll.named_parameters() if p.requires_grad}
     wanted = [base.raw_lengthscale] + ([] if scale is None else [scale.raw_outputscale])
+    learn_nu = rating is not None and rating.raw_rating_precision.requires_grad
+    wanted += [rating.raw_rating_precision] if learn_nu else []
     if len(params) != len(wanted) or {id(p) for p in params.values()} != {id(p) for p in wanted}:
         return None
     ls_lower = _constraint(base, "raw_lengthscale")
     os_lower = 0.0 if scale is None else _constraint(scale, "raw_outputscale")
-    ls_prior, os_prior = _prior(priors["ls"]), _prior(priors["os"])
+    nu_constraint = _nu_constraint(rating) if learn_nu else (ft.SOFTPLUS, 0.0, 0.0)
+    ls_prior, os_prior, nu_prior = _prior(priors["ls"]), _prior(priors["os"]), _prior(priors["nu"])
     if ls_lower is None or os_lower is None or ls_prior is None or os_prior is None:
         return None
-    count, ls_start, os_index, offset = base.raw_lengthscale.numel(), 0, -1, 0
+    if nu_constraint is None or nu_prior is None:
+        return None
+    nu_transform, nu_lower, nu_upper = nu_constraint
+    count, ls_start, os_index, nu_index, offset = base.raw_lengthscale.numel(), 0, -1, -1, 0
     for t in params.values():
         if t is base.raw_lengthscale:
             ls_start = offset
+        elif learn_nu and t is rating.raw_rating_precision:
+            nu_index = offset
         else:
             os_index = offset
         offset += t.numel()
-    spec = ft.fit_spec(kind, ls_start, count, ls_lower, ls_prior, os_index, os_lower, os_prior, 1.0)
+    spec = ft.fit_spec(
+        kind,
+        ls_start,
+        count,
+        ls_lower,
+        ls_prior,
+        os_index,
+        os_lower,
+        os_prior,
+        1.0,
+        nu_index,
+        nu_transform,
+        nu_lower,
+        nu_upper,
+        nu_prior,
+    )
     return spec, params
 
 
@@ -234,12 +280,15 @@ def compiled_problem(mll: LaplaceMLL) -> CompiledFit | None:
     if kernel is None:
         return None
     kind, base, scale = kernel
-    priors = _priors(model, base, scale)
-    found = None if priors is None else _spec(mll, kind, base, scale, priors)
+    rating = _rating(model)
+    priors = _priors(model, base, scale, rating)
+    found = None if priors is None else _spec(mll, kind, base, scale, priors, rating)
     rows = None if found is None else _answers(model, X)
     if found is None or rows is None:
         return None
     spec, params = found
+    if rating is not None:  # the answers' precision is the model's (also where none is a rating: its prior's value)
+        rows = (rows[0]._replace(rating_precision=float(rating.rating_precision.detach())), rows[1])
     cache = model._cache
     f0 = cache.mode.f[0].detach().numpy().copy() if cache is not None else np.zeros(X.shape[0])
     tol = default_tolerance(torch.float64)
