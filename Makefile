@@ -15,7 +15,9 @@ $(STAMP): pyproject.toml
 	# range in pyproject.toml installs nothing more
 	$(BIN)/pip install --quiet "$(TORCH)"
 	$(BIN)/pip install --quiet -e ".[test,notebooks,benchmarks]"
-	# the compiled small-problem path (numba, in the test extra): compiled here, once, never by a fit
+	# the compiled small-problem path (numba, in the test extra): compiled here, once (about 2
+	# minutes), never by a fit; nothing to do where the cache is current
+	@echo "compiling torchpref's compiled fast path once (about 2 minutes) ..."
 	$(BIN)/torchpref fast-path build --if-needed
 	touch $(STAMP)
 
@@ -34,8 +36,8 @@ demo: $(STAMP)
 
 # `make test`: the suite without the tests marked slow (kills, browsers, long loops, the longer
 # grids); `make test-slow`: only those. CI (CI=true) runs both, then the checks.
-# `make fast-path`: compile the compiled path for this checkout (after its sources changed; a
-# minute), or say that its cache is current (docs/speed.md, "The compiled path")
+# `make fast-path`: compile the compiled path for this checkout (after its sources changed; about
+# 2 minutes), or say that its cache is current (docs/speed.md, "The compiled path")
 fast-path: $(STAMP)
 	$(BIN)/torchpref fast-path build --if-needed
 

@@ -787,6 +787,13 @@ for _key in (
 FIGURES["study_kill_lost"] = Figure("study/study_run_kills.json", "lost", "{}")
 FIGURES["study_kill_load"] = Figure("study/study_run_kills.json", "load_average_start_end.1", "{:.1f}")
 
+# the compiled fit's line search across problems (benchmarks/speed/speed_line_search.py; issue 52)
+_LS = "line_search/speed_line_search.json"
+FIGURES["ls_fits"] = Figure(_LS, "summary.fits")
+FIGURES["ls_fallbacks"] = Figure(_LS, "summary.fallbacks")
+FIGURES["ls_max_evaluations"] = Figure(_LS, "summary.max_evaluations")
+FIGURES["ls_load_start"] = Figure(_LS, "summary.load_avg_start.0", "{:.1f}")
+
 # the compiled path's threads and person models (benchmarks/speed/speed_fast_path.py, make results; issue 42)
 _FAST = "fast_path/speed_fast_path.json"
 for _i, _n in enumerate((20, 50, 100, 200)):

@@ -41,7 +41,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     )
     from torchpref.data.queries import BoxCandidates, FinitePool, InvalidAnswer, RankingQuery, RatingQuery
     from torchpref.frontends.serve import serve
-    from torchpref.inference.fast_path import fast_path
+    from torchpref.inference.fast_path import fast_path, set_fast_path
     from torchpref.inference.laplace import LaplaceConvergenceWarning
     from torchpref.inference.numerics import JitterWarning, LaplaceNumericalError, NotPSDError
     from torchpref.likelihoods.ordinal import OrdinalRatingLikelihood, StrictPreferenceLikelihood, TieLikelihood
@@ -116,6 +116,7 @@ _EXPORTS = {
     "evaluation_grid": "simulation.utility_functions",
     "expected_rating": "simulation.metrics",
     "fast_path": "inference.fast_path",
+    "set_fast_path": "inference.fast_path",
     "FinitePool": "data.queries",
     "fit_model": "selection.active",
     "History": "selection.active",

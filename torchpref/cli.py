@@ -8,7 +8,7 @@ r"""The ``torchpref`` command line.
     torchpref reproduce twins [--twins N] [--folds F] [--datasets D ...] [--strategies S ...] [--queries Q] [--seed S] [--data DIR] [--out DIR]
     torchpref elicit lake [--session FILE]
     torchpref elicit --features items.csv [--id COLUMN] [--session FILE]
-    torchpref fast-path build [--if-needed] | status
+    torchpref fast-path build [--if-needed] [--force] | status
     torchpref --version
 
 Each subcommand lives in its own module, imported only when it runs. Every argument is checked
@@ -135,10 +135,15 @@ def build_parser() -> argparse.ArgumentParser:
     _serve_parser(sub)
     _study_parser(sub)
     fast = sub.add_parser("fast-path", help="build (compile) the compiled small-problem path, or say where it stands")
-    fast.add_argument("action", choices=("build", "status"), help="build: compile it now (about a minute); status: say")
     fast.add_argument(
-        "--if-needed", action="store_true", help="build only where numba is installed and no usable cache is"
+        "action",
+        choices=("build", "status"),
+        help="build: compile it (about 2 minutes) unless the cache is current; status: say where it stands",
     )
+    fast.add_argument(
+        "--if-needed", action="store_true", help="and nothing (exit 0) where numba is not installed or usable"
+    )
+    fast.add_argument("--force", action="store_true", help="rebuild even if the cache is current")
     return parser
 
 
@@ -581,8 +586,9 @@ def _study(args) -> int:
 
 
 def _fast_path(args) -> int:
-    """``torchpref fast-path build``: compile the compiled path into its cache (progress on
-    stdout, the cache's folder at the end); ``status``: the setting, the cache and whether it loads."""
+    """``torchpref fast-path build``: compile the compiled path into its cache (progress on stdout,
+    the cache's folder at the end), or say that the cache is current and do nothing (``--force``
+    rebuilds it); ``status``: the setting, the cache and whether it loads."""
     from torchpref.inference import fast_cache, fast_path
 
     if args.action == "status":
@@ -591,9 +597,13 @@ def _fast_path(args) -> int:
     if args.if_needed and fast_cache.problem() is not None:
         print(f"torchpref fast-path: nothing to build: {fast_cache.problem()}")
         return 0
-    if args.if_needed and fast_path.loads():
-        print(f"torchpref fast-path: the cache in {fast_path.cache_folder()} is this installation's")
+    if not args.force and fast_cache.problem() is None and fast_path.loads():
+        print(
+            f"torchpref fast-path: the cache in {fast_path.cache_folder()} is current for this installation: "
+            "nothing to build (--force rebuilds it)"
+        )
         return 0
+    print("torchpref fast-path: compiling the compiled path for this installation (about 2 minutes, once) ...")
     try:
         fast_path.build(progress=lambda line: print(line, flush=True))
     except fast_cache.CacheUnusable as exc:

@@ -284,7 +284,7 @@ def main() -> None:
         args.sizes, args.person_sizes, args.repeats = [20, 100], [20, 100], 3
     torch.set_num_threads(args.threads)
     warnings.simplefilter("ignore")
-    fp.fast_path("on")
+    fp.set_fast_path("on")
     if fp.warm_up() is None:
         sys.exit(f"the compiled path is not available: {fp.status()}")
     if args.child_load:

@@ -46,7 +46,7 @@ for _ in range(3):
 from torchpref.inference import fast_path as fp
 print(json.dumps({"imports_s": t_import, "first_fit_wall_s": times[0][0], "first_fit_cpu_s": times[0][1],
                   "second_fit_wall_s": times[1][0], "second_fit_cpu_s": times[1][1], "third_fit_wall_s": times[2][0],
-                  "compiled_loaded": fp._state["functions"] is not None, "numba_imported": "numba" in sys.modules}))
+                  "compiled_loaded": fp.STATE.functions is not None, "numba_imported": "numba" in sys.modules}))
 """
 
 COMPILE = r"""

@@ -71,7 +71,7 @@ sys.path.insert(0, str(HERE))
 import bench_common as bc  # noqa: E402
 
 from torchpref.experiments.stamp import stamped  # noqa: E402
-from torchpref.inference.fast_path import fast_path, setting, warm_up  # noqa: E402
+from torchpref.inference.fast_path import fast_path, set_fast_path, setting, warm_up  # noqa: E402
 
 RESULTS = HERE.parent / "results"
 SIZES = [20, 50, 100, 200, 500]
@@ -379,7 +379,7 @@ def main() -> None:
         args.tasks = ["mode", "fit", "eubo"]  # the posterior: botorch-rust's takes 51 s a call at n = 500
         args.slow_n = 500  # n = 500: one timing per library (botorch-rust's EUBO takes 30-50 s a call)
     if args.paths == "torch":
-        fast_path("off")
+        set_fast_path("off")
     else:
         warm_up()  # load (or compile) the compiled path before any timing
     args.out.mkdir(parents=True, exist_ok=True)

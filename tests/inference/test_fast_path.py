@@ -210,23 +210,34 @@ def test_hostile_problems_agree_or_fall_back(seed, compiled_path):
 
 @needs_numba
 def test_unsupported_models_use_the_torch_solver(compiled_path):
-    """Ordinal ratings, float32 and a learnable likelihood go to the torch solver even when the
-    compiled path is forced (bit for bit the same results)."""
+    """A likelihood subclass that does not declare itself compiled (it may change the derivatives)
+    and float32 go to the torch solver even when the compiled path is forced (bit for bit the same
+    results; the model's mode and last fit say so). Ordinal levels, ties and lapses are compiled:
+    ``test_fast_path_kinds.py``."""
+    from torchpref.likelihoods.pairwise_beta import PairwiseProbitLikelihood
+    from torchpref.models.defaults import PreferenceLikelihood
+
+    class OwnProbit(PairwiseProbitLikelihood):
+        pass
+
     X, C = _problem(9, 15)
-    levels, ri = torch.tensor([1, 3, 5, 2, 4]), torch.arange(5)
     ref = {}
     for mode in ("off", "on"):
         with fast_path.fast_path(mode), warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            model = PreferenceGP(
-                X, comparisons=C, ratings=levels, rating_index=ri, rating_levels=5, covar_module=_kernel("rbf", 2)
+            model = PreferenceGP(X, comparisons=C, covar_module=_kernel("rbf", 2))
+            lik = model.likelihood
+            model.likelihood = PreferenceLikelihood(
+                OwnProbit(float(lik.comparison.comparison_noise)), lik.rating, lik.tie
             )
             fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
+            assert model.last_fit.solver == "torch" and model.mode.solver == "torch"
             ref[mode] = model.covar_module.outputscale.detach().clone()
             m32 = PreferenceGP(
                 X.float(), comparisons=C, covar_module=_kernel("rbf", 2).float(), laplace_dtype=torch.float32
             )
             ref[mode + "32"] = m32.mode.f
+            assert m32.mode.solver == "torch"
     assert torch.equal(ref["on"], ref["off"]) and torch.equal(ref["on32"], ref["off32"])
 
 
@@ -269,7 +280,8 @@ def test_package_works_without_numba():
 def test_custom_fit_routes_only_the_default_fit_of_a_supported_model(monkeypatch, compiled_path):
     """BoTorch's ``fit_gpytorch_mll`` comes to ``custom_fit``: the compiled fit runs for the default
     call of a supported model; arguments, learnable likelihoods and a failed compiled fit go to
-    BoTorch's own routine, which still fits."""
+    BoTorch's own routine, which still fits; the model's ``last_fit`` says which solver fitted and
+    why, and its mode which solver found it."""
     from torchpref.models import fast_fit
 
     calls = []
@@ -278,16 +290,28 @@ def test_custom_fit_routes_only_the_default_fit_of_a_supported_model(monkeypatch
     X, C = _problem(10, 12)
     with fast_path.fast_path("on"), warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(_model(X, C)))
+        compiled = _model(X, C)
+        assert compiled.last_fit is None
+        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(compiled))
         assert calls == [1]
-        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(_model(X, C)), optimizer_kwargs={"options": {"maxiter": 5}})
+        assert compiled.last_fit.solver == "compiled" and compiled.last_fit.status == "ok"
+        assert compiled.last_fit.evaluations >= compiled.last_fit.iterations >= 1
+        assert compiled.mode.solver == "compiled"
+        asked = _model(X, C)
+        fit_gpytorch_mll(LaplaceMarginalLogLikelihood(asked), optimizer_kwargs={"options": {"maxiter": 5}})
+        assert asked.last_fit.solver == "torch" and "arguments" in asked.last_fit.status
         learnable = PreferenceGP(X, comparisons=C, covar_module=_kernel("rbf", 2), learn_likelihood=True)
         fit_gpytorch_mll(LaplaceMarginalLogLikelihood(learnable))
-        assert calls == [1]
-        monkeypatch.setattr(fast_fit, "run", lambda p: None)  # a compiled fit that gave up
+        assert calls == [1] and learnable.last_fit.solver == "torch"
+        assert "does not apply" in learnable.last_fit.status
+        gave_up = fast_fit.FitReport("torch", "the compiled fit stopped: not positive definite")
+        monkeypatch.setattr(fast_fit, "run", lambda p: (None, gave_up))  # a compiled fit that gave up
         model = _model(X, C)
         mll = fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
     assert not mll.training and float(model.covar_module.outputscale) != 1.0
+    assert model.last_fit is gave_up
+    with fast_path.fast_path("off"):
+        assert _model(X, C).mode.solver == "torch"
 
 
 @needs_numba
@@ -301,7 +325,7 @@ def test_a_compiled_arithmetic_error_falls_back_for_that_call_only(monkeypatch, 
     X, C = _problem(11, 10)
     with fast_path.fast_path("off"):
         f_ref = _model(X, C).mode.f
-    monkeypatch.setitem(fast_path._state, "functions", {**compiled_path, "newton": raising, "fit_lbfgs": raising})
+    monkeypatch.setattr(fast_path.STATE, "functions", {**compiled_path, "newton": raising, "fit_lbfgs": raising})
     with fast_path.fast_path("on"), warnings.catch_warnings():
         warnings.simplefilter("error", fast_path.FastPathWarning)
         model = _model(X, C)
@@ -311,7 +335,7 @@ def test_a_compiled_arithmetic_error_falls_back_for_that_call_only(monkeypatch, 
             warnings.simplefilter("error", fast_path.FastPathWarning)
             fit_gpytorch_mll(LaplaceMarginalLogLikelihood(model))
     assert float(model.covar_module.outputscale) != 1.0
-    assert fast_path._state["failed"] is None
+    assert fast_path.STATE.failed is None
 
 
 @needs_numba

@@ -7,6 +7,7 @@ when read; compiled calls run BLAS on torch's thread count and restore the libra
 The end-to-end cases run a short script (:data:`PROBE`: three fits and a mode) in a fresh process
 against a copy of a built cache (:func:`built_cache`) damaged in one way each."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -60,8 +61,7 @@ for entry in os.listdir("/proc"):
             continue
         if int(fields[1]) == os.getpid():
             children.append(int(entry))
-state = getattr(fast_path, "_state", {})
-used = state.get("functions", state.get("module")) is not None
+used = fast_path.STATE.functions is not None
 print(json.dumps({"warnings": seen, "used": used, "compiles": compiles, "children": children,
                   "finite": all(v == v for v in values) and bool(torch.isfinite(f).all())}))
 """
@@ -276,10 +276,10 @@ def test_on_compiles_in_the_caller_with_a_progress_line(tmp_path):
 @pytest.fixture
 def own_state(monkeypatch):
     """This process's compiled-path state, restored after the test."""
-    saved = dict(fast_path._state)
-    yield fast_path._state
-    fast_path._state.clear()
-    fast_path._state.update(saved)
+    saved = dataclasses.replace(fast_path.STATE, warned=set(fast_path.STATE.warned))
+    yield fast_path.STATE
+    for f in dataclasses.fields(saved):
+        setattr(fast_path.STATE, f.name, getattr(saved, f.name))
 
 
 def _mode(setting: str = "on"):
@@ -296,7 +296,7 @@ def _mode(setting: str = "on"):
 def test_a_failing_compiled_call_falls_back_once_per_process(failure, own_state):
     """A compiled call that raises anything but an arithmetic error, or returns non-finite values
     with an OK status: the torch solver answers, one warning, and the path stays off for the process."""
-    functions = fast_path.warm_up() or fast_path.build(progress=None) and fast_path._state["functions"]
+    functions = fast_path.warm_up() or fast_path.build(progress=None) and fast_path.STATE.functions
     real = functions["newton"]
 
     def broken(*args):
@@ -305,7 +305,7 @@ def test_a_failing_compiled_call_falls_back_once_per_process(failure, own_state)
         a, M, w, it, status, dec = real(*args)
         return a * float("nan"), M, w, it, status, dec
 
-    own_state["functions"] = {**functions, "newton": broken}
+    own_state.functions = {**functions, "newton": broken}
     reference = _mode("off")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -313,7 +313,7 @@ def test_a_failing_compiled_call_falls_back_once_per_process(failure, own_state)
     assert torch.equal(first, reference) and torch.equal(second, reference)
     said = [w for w in caught if issubclass(w.category, fast_path.FastPathWarning)]
     assert len(said) == 1 and "torch solver answers" in str(said[0].message)
-    assert own_state["functions"] is None and own_state["failed"] is not None
+    assert own_state.functions is None and own_state.failed is not None
     assert fast_path.compiled() is None
 
 
@@ -344,17 +344,24 @@ def test_interleaved_blocks_in_two_threads_leave_each_its_own_setting(monkeypatc
 
 
 def test_called_alone_the_setting_is_the_process_s(monkeypatch):
-    """``fast_path(mode)`` called alone sets the whole process's setting (other threads too); a
-    block inside a thread still wins there."""
+    """``set_fast_path(mode)`` sets the whole process's setting at once (other threads too); a
+    block inside a thread still wins there; ``set_fast_path(None)`` goes back to the environment's;
+    ``fast_path(mode)`` alone (not entered) changes nothing."""
     monkeypatch.delenv(fast_path.ENV, raising=False)
-    monkeypatch.setitem(fast_path._process, "setting", None)
-    fast_path.fast_path("off")
+    monkeypatch.setattr(fast_path.STATE, "setting", None)
+    fast_path.fast_path("on")  # a context manager: nothing until entered
+    assert fast_path.setting() == "auto"
+    fast_path.set_fast_path("off")
     seen = []
     worker = threading.Thread(target=lambda: seen.append(fast_path.setting()))
     worker.start(), worker.join(10)
     with fast_path.fast_path("on"):
         inner = fast_path.setting()
     assert seen == ["off"] and inner == "on" and fast_path.setting() == "off"
+    fast_path.set_fast_path(None)
+    assert fast_path.setting() == "auto"
+    with pytest.raises(ValueError, match="'of'"):
+        fast_path.set_fast_path("of")
 
 
 def test_a_mistyped_environment_value_is_named_at_start(monkeypatch, capsys):
@@ -380,7 +387,7 @@ def test_compiled_calls_run_blas_on_torch_s_threads_and_restore_them(own_state):
     at the user's own count."""
     from threadpoolctl import ThreadpoolController, threadpool_limits
 
-    functions = fast_path.warm_up() or (fast_path.build(progress=None) and fast_path._state["functions"])
+    functions = fast_path.warm_up() or (fast_path.build(progress=None) and fast_path.STATE.functions)
     real = functions["newton"]
     inside, gate = [], threading.Barrier(2, timeout=10)
 
@@ -392,7 +399,7 @@ def test_compiled_calls_run_blas_on_torch_s_threads_and_restore_them(own_state):
             gate.wait()
         return real(*args)
 
-    own_state["functions"] = {**functions, "newton": watched}
+    own_state.functions = {**functions, "newton": watched}
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -409,3 +416,43 @@ def test_compiled_calls_run_blas_on_torch_s_threads_and_restore_them(own_state):
         torch.set_num_threads(threads)
     assert len(inside) == 3 and all(set(counts.values()) == {1} for counts in inside), inside
     assert set(after.values()) == {3}, after
+
+
+@needs_numba
+def test_build_does_nothing_when_the_cache_is_current(monkeypatch, capsys, own_state):
+    """``torchpref fast-path build`` with this installation's cache in place says so and compiles
+    nothing; ``--force`` rebuilds; a build says beforehand that it takes about 2 minutes."""
+    from torchpref import cli
+
+    assert fast_path.warm_up() is not None or fast_path.build(progress=None)
+    built = []
+    monkeypatch.setattr(fast_path, "build", lambda progress=None: built.append(1))
+    assert cli.main(["fast-path", "build"]) == 0
+    out = capsys.readouterr().out
+    assert "is current for this installation: nothing to build" in out and built == []
+    assert cli.main(["fast-path", "build", "--force"]) == 0
+    assert built == [1] and "about 2 minutes" in capsys.readouterr().out
+
+
+def test_every_function_a_fast_path_message_names_exists(monkeypatch, own_state):
+    """The warning of a missing cache names the command and a function to build it: that function
+    exists (it once named ``torchpref.fast_path.build()``, which does not)."""
+    import importlib
+    import re
+
+    from torchpref.inference import fast_cache
+
+    def unusable():
+        raise fast_cache.CacheUnusable("no compiled cache has been built here")
+
+    monkeypatch.setattr(fast_cache, "load", unusable)
+    own_state.functions, own_state.failed, own_state.missing, own_state.warned = None, None, None, set()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fast_path._load("auto")
+    (message,) = [str(w.message) for w in caught if issubclass(w.category, fast_path.FastPathWarning)]
+    named = re.findall(r"(torchpref(?:\.\w+)+)\(\)", message)
+    assert named and fast_cache.COMMAND in message
+    for dotted in named:
+        module, name = dotted.rsplit(".", 1)
+        assert callable(getattr(importlib.import_module(module), name)), dotted

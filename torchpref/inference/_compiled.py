@@ -1,7 +1,8 @@
 r"""The compiled small-problem path (issues 33 and 42): the Laplace mode and the second-order
 corrected evidence with its gradient in ``K``, for one problem on the CPU in float64, with probit
-comparisons (eq. 3) and Beta ratings (eqs. 4-7), each comparison or rating optionally shifted by a
-prior mean's offset (a population's person model). The hyperparameter fit built on them is
+comparisons (eq. 3; strict choices where ties were offered), Beta ratings (eqs. 4-7; a person's gain
+and offset on the link), ties and ordinal levels (Gaussian intervals) and comparisons with lapses,
+each optionally shifted by a prior mean's offset (a population's person model). The hyperparameter fit built on them is
 :mod:`torchpref.inference._compiled_fit`.
 
 The torch solver (:mod:`torchpref.inference.newton`, :mod:`torchpref.inference.laplace`) is the
@@ -30,7 +31,7 @@ import math
 import numpy as np
 from numba import njit
 
-from torchpref.inference.fast_types import FISHER, NOT_CONVERGED, NOT_FINITE, NOT_PD, OK, PROBIT
+from torchpref.inference.fast_types import BETA, FISHER, INTERVAL, LAPSE, NOT_CONVERGED, NOT_FINITE, NOT_PD, OK, PROBIT
 from torchpref.inference.step_rule import STEP_RULE
 
 BELOW_ZERO = 6  # internal: a converged point below Psi(0), which no mode is (retried from zeros)
@@ -114,6 +115,96 @@ def beta_rating(eta, u, c, nu):
 
 
 @njit(cache=True)
+def beta_rating_dnu(eta, u, c, nu):
+    """``(d log p / d nu, d l' / d nu, d w / d nu)`` of :func:`beta_rating` (``w = -l''``): with
+    ``a = nu mu``, ``b = nu (1 - mu)`` and ``psi(x) = psi(x + 1) - 1 / x`` as there,
+    ``d log p / d nu = mu log u + (1 - mu) log(1 - u) + psi(nu) - mu psi(a + 1) - (1 - mu) psi(b + 1) + 2 / nu``,
+    ``d l' / d nu = (log u - log(1 - u) - psi(a + 1) + psi(b + 1) - nu (mu psi'(a + 1) - (1 - mu) psi'(b + 1))) mu'``
+    and ``d w / d nu = dF / d nu + t / c d l' / d nu`` with
+    ``dF / d nu = (2 nu (psi'(a + 1) + psi'(b + 1)) + nu^2 (mu psi''(a + 1) + (1 - mu) psi''(b + 1))) mu'^2``."""
+    t = eta / c
+    log_mu = log_cdf_mills(t)[0]
+    log_1mmu = log_cdf_mills(-t)[0]
+    mu, nmu = math.exp(log_mu), math.exp(log_1mmu)
+    dmu = math.exp(-0.5 * t * t - LOG_2PI_HALF) / c
+    lu, l1u = math.log(u), math.log1p(-u)
+    pa0, pa1, pa2 = polygammas(nu * mu + 1.0)
+    pb0, pb1, pb2 = polygammas(nu * nmu + 1.0)
+    pnu = polygammas(nu + 1.0)[0] - 1.0 / nu
+    dl = mu * lu + nmu * l1u + pnu - mu * pa0 - nmu * pb0 + 2.0 / nu
+    dg = (lu - l1u - pa0 + pb0 - nu * (mu * pa1 - nmu * pb1)) * dmu
+    dF = (2.0 * nu * (pa1 + pb1) + nu * nu * (mu * pa2 + nmu * pb2)) * dmu * dmu
+    return dl, dg, dF + t * dg / c
+
+
+@njit(cache=True)
+def mills(z):
+    """The Mills ratio ``(1 - Phi(z)) / phi(z)`` for ``z >= 0`` (below 8 from ``erfc``, above by
+    its continued fraction), so that ``Phi(-z) = phi(z) mills(z)`` keeps tails free of underflow
+    (``erfcx(z / sqrt 2) = sqrt(2 / pi) mills(z)``)."""
+    if z < 8.0:
+        return 0.5 * math.erfc(z / math.sqrt(2.0)) * math.exp(0.5 * z * z + LOG_2PI_HALF)
+    t = z
+    for k in range(60, 0, -1):
+        t = z + k / t
+    return 1.0 / t
+
+
+@njit(cache=True)
+def interval(eta, lower, upper, s):
+    """``(log P, d log P / d eta, w = -d^2 log P, d w / d eta)`` of ``P = Phi((upper - eta) / s) -
+    Phi((lower - eta) / s)`` (``lower`` may be ``-inf``, ``upper`` ``inf``), as
+    :func:`torchpref.inference.numerics.normal_interval` computes them: intervals across zero by
+    ``erf``, intervals in a tail mirrored below zero and written ``Phi(hi) (1 - Phi(lo) / Phi(hi))``
+    with Mills ratios, accurate in both tails. Log-concave: ``w >= 0``."""
+    a_inf, b_inf = upper == np.inf, lower == -np.inf
+    a = 0.0 if a_inf else (upper - eta) / s
+    b = 0.0 if b_inf else (lower - eta) / s
+    mirror = (not b_inf) and b > 0.0
+    hi, hi_inf = (-b, b_inf) if mirror else (a, a_inf)
+    lo, lo_inf = (-a, a_inf) if mirror else (b, b_inf)
+    if hi_inf or hi > 0.0:  # across zero
+        ea = 1.0 if a_inf else math.erf(a / math.sqrt(2.0))
+        eb = -1.0 if b_inf else math.erf(b / math.sqrt(2.0))
+        log_p = math.log(0.5 * (ea - eb))
+        r_a = 0.0 if a_inf else math.exp(-0.5 * a * a - LOG_2PI_HALF - log_p)
+        r_b = 0.0 if b_inf else math.exp(-0.5 * b * b - LOG_2PI_HALF - log_p)
+    else:  # in the lower tail (after mirroring): Phi(hi) (1 - q), q = Phi(lo) / Phi(hi)
+        m_hi = mills(-hi)
+        e, q = 0.0, 0.0
+        if not lo_inf:
+            lo = min(lo, hi - 1e-300)
+            e = math.exp(-0.5 * (lo - hi) * (lo + hi))  # phi(lo) / phi(hi)
+            q = e * mills(-lo) / m_hi
+        log_p = -0.5 * hi * hi - LOG_2PI_HALF + math.log(m_hi) + math.log1p(-q)
+        r_hi = 1.0 / (m_hi * (1.0 - q))
+        r_a, r_b = (e * r_hi, r_hi) if mirror else (r_hi, e * r_hi)
+    d1 = (r_b - r_a) / s
+    p2 = (b * r_b - a * r_a) / (s * s)  # (d^2 P / d eta^2) / P
+    p3 = ((1.0 - a * a) * r_a - (1.0 - b * b) * r_b) / (s * s * s)  # (d^3 P / d eta^3) / P
+    d2 = p2 - d1 * d1
+    d3 = p3 - 3.0 * d1 * p2 + 2.0 * d1 * d1 * d1
+    return log_p, d1, -d2, -d3
+
+
+@njit(cache=True)
+def lapse_probit(eta, s, eps):
+    """``(log p, l', w = -l'', d w / d eta, Fisher weight)`` of ``p = eps / 2 + (1 - eps) Phi(eta / s)``
+    as :class:`~torchpref.likelihoods.person.LapseProbitLikelihood` writes them (not log-concave:
+    its Fisher weight ``l'^2 p / (1 - p)`` where the exact ``B`` is not positive definite)."""
+    z = eta / s
+    log_keep = math.log1p(-eps)
+    log_half_eps = math.log(0.5 * eps)
+    log_p = np.logaddexp(log_half_eps, log_keep + log_cdf_mills(z)[0])
+    log_1mp = np.logaddexp(log_half_eps, log_keep + log_cdf_mills(-z)[0])
+    q = math.exp(log_keep - 0.5 * z * z - LOG_2PI_HALF - log_p)  # (1 - eps) phi(z) / p
+    d1 = q / s
+    w = (z * q + q * q) / (s * s)
+    dw = -((z * z - 1.0) * q + 3.0 * z * q * q + 2.0 * q * q * q) / (s * s * s)
+    return log_p, d1, w, dw, d1 * d1 * math.exp(log_p - log_1mp)
+
+
+@njit(cache=True)
 def answer_terms(f, ans):
     """``(log p, d log p / d f, weights w, d w / d eta, Fisher weights)`` of the rows of ``ans`` at ``f``."""
     n, m = f.shape[0], ans.first.shape[0]
@@ -123,9 +214,15 @@ def answer_terms(f, ans):
     for k in range(m):
         i, j = ans.first[k], ans.second[k]
         eta = f[i] + ans.offset[k] - (f[j] if j >= 0 else 0.0)
-        if ans.kind[k] == PROBIT:
-            lp, d1, wk, dwk = probit(eta, ans.probit_scale)
+        kind = ans.kind[k]
+        if kind == PROBIT:
+            lp, d1, wk, dwk = probit(eta, ans.scale[k])
             fk = wk
+        elif kind == INTERVAL:
+            lp, d1, wk, dwk = interval(eta, ans.lower[k], ans.upper[k], ans.scale[k])
+            fk = wk
+        elif kind == LAPSE:
+            lp, d1, wk, dwk, fk = lapse_probit(eta, ans.scale[k], ans.lapse[k])
         else:
             lp, d1, wk, dwk, fk = beta_rating(eta, ans.target[k], ans.rating_scale, ans.rating_precision)
         ll += lp
@@ -324,9 +421,12 @@ def newton_from(L, ans, starts, tol, max_iter):
 
 @njit(cache=True)
 def evidence(L, ans, a, M, w):
-    r"""``(log q, G)``: the second-order corrected Laplace evidence at the mode ``a`` and its
-    gradient in ``K``, ``G = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``
-    (:func:`torchpref.inference.laplace.laplace_evidence`)."""
+    r"""``(log q, G, d log q / d nu)``: the second-order corrected Laplace evidence at the mode ``a``,
+    its gradient in ``K``, ``G = (alpha alpha^T - (W - W Sigma W) - (I - W Sigma) h alpha^T) / 2``,
+    and its derivative in the Beta ratings' precision ``nu``, ``sum_k (d l_k / d nu - s_k (d w_k /
+    d nu) / 2) - (Sigma h)^T (d grad l / d nu) / 2`` at the fixed mode (``s_k = Sigma_ii`` of the
+    rated item; the mode's implicit dependence through ``h``), as
+    :func:`torchpref.inference.laplace.laplace_evidence` does for a likelihood parameter."""
     n, m = L.shape[0], ans.first.shape[0]
     ll, g, _, dw, _ = answer_terms(L @ a, ans)
     V = np.linalg.solve(M, np.ascontiguousarray(L.T))  # M^-1 L^T: Sigma = V^T V
@@ -356,7 +456,14 @@ def evidence(L, ans, a, M, w):
     for i in range(n):
         logdet += math.log(M[i, i])
     value = ll - 0.5 * (a @ a) - logdet + 0.5 * (grad_a @ step) - 0.5 * (h @ (L @ step))
-    return value, G
+    f = L @ a
+    dnu = 0.0
+    for k in range(m):
+        if ans.kind[k] == BETA:
+            i = ans.first[k]
+            dl, dg, dw_nu = beta_rating_dnu(f[i] + ans.offset[k], ans.target[k], ans.rating_scale, ans.rating_precision)
+            dnu += dl - 0.5 * Sigma[i, i] * dw_nu - 0.5 * Sigma_h[i] * dg
+    return value, G, dnu
 
 
 @njit(cache=True)

@@ -29,10 +29,17 @@ from torchpref.inference.fast_types import (
     NOT_PD,
     OK,
     RBF,
+    SIGMOID,
+    STALLED,
+    WEAK_STEP,
+    Answers,
 )
 
 #: SciPy's L-BFGS-B defaults, which BoTorch's fit uses: memory, ``ftol``, ``gtol``, iteration limit
 LBFGS_MEMORY, LBFGS_FTOL, LBFGS_GTOL, LBFGS_MAXITER = 10, 2.220446049250313e-09, 1e-5, 15000
+#: L-BFGS-B's strong Wolfe constants (``dcsrch``'s ``ftol`` and ``gtol``), its relative bracket
+#: width at which a line search stops (``xtol``), and the trials one search may take
+WOLFE_DECREASE, WOLFE_CURVATURE, LINE_SEARCH_XTOL, LINE_SEARCH_TRIALS = 1e-3, 0.9, 0.1, 20
 
 
 @njit(cache=True)
@@ -98,20 +105,20 @@ def kernel_gradient(X, ls, outputscale, kind, G):
 
 @njit(cache=True)
 def mode_and_evidence(X, ans, kind, ls, outputscale, state, tol, max_iter):
-    """One fit evaluation: ``(log q, d log q / d ls, d log q / d outputscale, status)``, Newton
+    """One fit evaluation: ``(log q, d log q / d ls, d log q / d outputscale, d log q / d nu, status)``, Newton
     warm-started from ``state.f`` (:func:`~torchpref.inference._compiled.newton` retries cold if that fails); on success ``state`` holds the new mode and factors."""
     n = X.shape[0]
     K = kernel_matrix(X, ls, outputscale, kind)
     L, jitter, ok = jittered_cholesky(K)
     if not ok:
-        return 0.0, np.zeros(ls.shape[0]), 0.0, NOT_PD
+        return 0.0, np.zeros(ls.shape[0]), 0.0, 0.0, NOT_PD
     starts = state.f.reshape(1, state.f.shape[0]) if state.f.shape[0] == n else np.empty((0, n))
     a, M, w, its, status, _ = newton(L, ans, starts, tol, max_iter)  # retried cold if the warm start fails
     if status != OK:
-        return 0.0, np.zeros(ls.shape[0]), 0.0, status
-    value, G = evidence(L, ans, a, M, w)
-    if not np.isfinite(value):
-        return 0.0, np.zeros(ls.shape[0]), 0.0, NOT_FINITE
+        return 0.0, np.zeros(ls.shape[0]), 0.0, 0.0, status
+    value, G, gnu = evidence(L, ans, a, M, w)
+    if not (np.isfinite(value) and np.isfinite(gnu)):
+        return 0.0, np.zeros(ls.shape[0]), 0.0, 0.0, NOT_FINITE
     gls, gos = kernel_gradient(X, ls, outputscale, kind, G)
     if state.f.shape[0] == n:
         state.f[:] = L @ a
@@ -121,7 +128,7 @@ def mode_and_evidence(X, ans, kind, ls, outputscale, state, tol, max_iter):
         state.w[:] = w
         state.jitter[0] = jitter
         state.iterations[0] = its
-    return value, gls, gos, OK
+    return value, gls, gos, gnu, OK
 
 
 @njit(cache=True)
@@ -130,6 +137,35 @@ def softplus(x):
     if x > 20.0:
         return x, 1.0
     return math.log1p(math.exp(x)), 1.0 / (1.0 + math.exp(-x))
+
+
+@njit(cache=True)
+def constrained(x, transform, lower, upper):
+    """GPyTorch's constraint of a raw value and its derivative: ``softplus(x) + lower``
+    (:data:`SOFTPLUS`, ``GreaterThan``) or ``lower + (upper - lower) sigmoid(x)`` (:data:`SIGMOID`, ``Interval``)."""
+    if transform == SIGMOID:
+        sig = 1.0 / (1.0 + math.exp(-x))
+        return lower + (upper - lower) * sig, (upper - lower) * sig * (1.0 - sig)
+    v, dv = softplus(x)
+    return v + lower, dv
+
+
+@njit(cache=True)
+def with_precision(ans, nu):
+    """``ans`` with the Beta ratings' precision ``nu``."""
+    return Answers(
+        ans.first,
+        ans.second,
+        ans.kind,
+        ans.offset,
+        ans.target,
+        ans.scale,
+        ans.lower,
+        ans.upper,
+        ans.lapse,
+        ans.rating_scale,
+        nu,
+    )
 
 
 @njit(cache=True)
@@ -170,7 +206,13 @@ def fit_loss(x, X, ans, spec, state, tol, max_iter):
         outputscale += spec.os_lower
         pr, gprior_os = log_prior(outputscale, spec.os_prior)
         lp += pr
-    value, gls, gos, status = mode_and_evidence(X, ans, spec.kernel, ls, outputscale, state, tol, max_iter)
+    nu, dnu = ans.rating_precision, 0.0
+    if spec.nu_index >= 0:
+        nu, dnu = constrained(x[spec.nu_index], spec.nu_transform, spec.nu_lower, spec.nu_upper)
+        ans = with_precision(ans, nu)
+    pr, gprior_nu = log_prior(nu, spec.nu_prior)  # a fixed precision's prior too: BoTorch's loss has it
+    lp += pr
+    value, gls, gos, gnu, status = mode_and_evidence(X, ans, spec.kernel, ls, outputscale, state, tol, max_iter)
     grad = np.zeros(x.shape[0])
     if status != OK:
         return 0.0, grad, status
@@ -179,6 +221,8 @@ def fit_loss(x, X, ans, spec, state, tol, max_iter):
         grad[spec.ls_start + c] = -(total + gprior_ls[c]) * dls[c]
     if spec.os_index >= 0:
         grad[spec.os_index] = -(gos + gprior_os) * dos
+    if spec.nu_index >= 0:
+        grad[spec.nu_index] = -(gnu + gprior_nu) * dnu
     return -(value + lp), grad, OK
 
 
@@ -203,54 +247,133 @@ def two_loop(g, S, Y, rho, count, head):
 
 
 @njit(cache=True)
-def wolfe_search(x, fx, gx, d, t, X, ans, spec, state, tol, max_iter):
-    """A step along ``d`` satisfying the strong Wolfe conditions with L-BFGS-B's constants
-    (sufficient decrease ``1e-3``, curvature ``0.9``), bracketed by bisection and extended by
-    doubling: ``(x, loss, grad, status)``; :data:`LINE_SEARCH_FAILED` after 60 trials. On success
-    the last evaluation was at the returned point (``state`` holds its mode)."""
+def cubic_step(lo, f_lo, g_lo, hi, f_hi, g_hi):
+    """The minimiser of the cubic through ``(lo, f_lo, g_lo)`` and ``(hi, f_hi, g_hi)`` (derivatives
+    along the search direction), safeguarded into the middle 80% of the interval (its midpoint where
+    the cubic has no minimiser there or a value is not finite): Nocedal & Wright's eq. 3.59."""
+    width = hi - lo
+    mid = lo + 0.5 * width
+    if not (np.isfinite(f_hi) and np.isfinite(g_hi)):
+        return mid
+    d1 = g_lo + g_hi - 3.0 * (f_lo - f_hi) / (lo - hi)
+    disc = d1 * d1 - g_lo * g_hi
+    if not disc >= 0.0:
+        return mid
+    d2 = math.copysign(math.sqrt(disc), hi - lo)
+    denom = g_hi - g_lo + 2.0 * d2
+    if denom == 0.0 or not np.isfinite(denom):
+        return mid
+    t = hi - (hi - lo) * (g_hi + d2 - d1) / denom
+    a, b = min(lo, hi), max(lo, hi)
+    margin = 0.1 * (b - a)
+    if not np.isfinite(t):
+        return mid
+    return min(max(t, a + margin), b - margin)
+
+
+@njit(cache=True)
+def wolfe_search(x, fx, gx, d, t, floor, X, ans, spec, state, tol, max_iter):
+    """A step along the descent direction ``d`` from ``x`` with L-BFGS-B's strong Wolfe constants
+    (sufficient decrease :data:`WOLFE_DECREASE`, curvature :data:`WOLFE_CURVATURE`): Nocedal &
+    Wright's bracketing (algorithm 3.5: longer steps while the loss still falls steeply) and zoom
+    (algorithm 3.6: safeguarded cubic interpolation inside the bracket). A trial whose evaluation
+    fails (a kernel matrix not positive definite, a mode that does not converge) counts as too
+    long a step. Before any trial has decreased the loss enough, the search gives up once the decrease
+    it predicts, ``-t grad^T d``, is below ``floor`` (L-BFGS-B's ``ftol`` scaled by the loss: less than
+    the fit counts as progress, and of the order of the loss's noise from the mode's tolerance).
+    Returns ``(x, loss, grad, status, evaluations)``:
+
+    * :data:`OK`: the strong Wolfe conditions hold at the returned point;
+    * :data:`WEAK_STEP`: the bracket shrank to round-off or the trials ran out, and the returned
+      point is the trial of lowest loss with sufficient decrease (as MINPACK-2's ``dcsrch``, which
+      L-BFGS-B accepts with a warning);
+    * :data:`LINE_SEARCH_FAILED`: no trial decreased the loss enough; ``x`` is returned.
+
+    ``state`` holds the mode of the last successful evaluation, not necessarily the returned point's.
+    """
     gd = gx @ d
-    lo, hi = 0.0, np.inf
-    for _ in range(60):
+    lo, f_lo, g_lo = 0.0, fx, gd  # the best trial with sufficient decrease (0: none yet)
+    x_lo, gx_lo = x, gx
+    hi, f_hi, g_hi = np.inf, np.inf, np.inf
+    evaluations = 0
+    for _ in range(LINE_SEARCH_TRIALS):
+        evaluations += 1
         xn = x + t * d
         fn, gn, status = fit_loss(xn, X, ans, spec, state, tol, max_iter)
-        if status != OK:
-            return x, fx, gx, status
         gnd = gn @ d
-        if not fn <= fx + 1e-3 * t * gd or gnd > -0.9 * gd:
-            hi = t  # not enough decrease, or past the minimum along d
-        elif gnd < 0.9 * gd:
-            lo = t  # still descending steeply: a longer step
+        if status != OK or not np.isfinite(fn):
+            hi, f_hi, g_hi = t, np.inf, np.inf  # too far: the evaluation failed
+        elif fn > fx + WOLFE_DECREASE * t * gd or fn >= f_lo:
+            hi, f_hi, g_hi = t, fn, gnd  # not enough decrease: the minimiser is short of t
+        elif abs(gnd) <= -WOLFE_CURVATURE * gd:
+            return xn, fn, gn, OK, evaluations
+        elif gnd * (hi - lo) >= 0.0 if hi < np.inf else gnd >= 0.0:
+            # past a minimiser: it lies between t and the old best
+            hi, f_hi, g_hi = lo, f_lo, g_lo
+            lo, f_lo, g_lo, x_lo, gx_lo = t, fn, gnd, xn, gn
         else:
-            return xn, fn, gn, OK
-        t = 0.5 * (lo + hi) if hi < np.inf else 2.0 * t
-    return x, fx, gx, LINE_SEARCH_FAILED
+            lo, f_lo, g_lo, x_lo, gx_lo = t, fn, gnd, xn, gn  # still descending: keep it, go on
+        if hi == np.inf:
+            t = 4.0 * t  # no bracket yet: a longer step
+            continue
+        if lo == 0.0 and -hi * gd <= floor:
+            break  # no step of a decrease the fit could tell from noise
+        if abs(hi - lo) <= LINE_SEARCH_XTOL * max(abs(lo), abs(hi)):
+            break  # the bracket is down to round-off
+        t = cubic_step(lo, f_lo, g_lo, hi, f_hi, g_hi)
+    if lo > 0.0:
+        return x_lo, f_lo, gx_lo, WEAK_STEP, evaluations
+    return x, fx, gx, LINE_SEARCH_FAILED, evaluations
 
 
 @njit(cache=True)
 def fit_lbfgs(x0, X, ans, spec, state, tol, max_iter):
     """The whole fit in one call: L-BFGS on :func:`fit_loss` from the raw parameters ``x0``, with
     SciPy's L-BFGS-B stopping rules, defaults, first step (unit length along the gradient) and
-    line-search constants (unbounded, as BoTorch's softplus-constrained parameters are; the line
-    search brackets by bisection where L-BFGS-B's interpolates): ``(x, loss, status, iterations)``.
-    On success ``state`` holds the mode and factors at the returned ``x``."""
+    line-search constants (unbounded, as BoTorch's softplus-constrained parameters are): ``(x,
+    loss, status, iterations, evaluations)`` (:class:`~torchpref.inference.fast_types.FitResult`).
+
+    A line search that ends on a weak step (:data:`WEAK_STEP`) is accepted, as L-BFGS-B accepts
+    ``dcsrch``'s warnings. Where one finds no step at all, the fit has converged if the decrease the
+    direction predicts, ``-grad^T d``, is below ``ftol`` times the loss (the loss near its minimum
+    is noisy at about the mode's tolerance, and a step of that gain would meet the ``ftol`` stopping
+    rule anyway); otherwise the search is retried along the steepest descent with the memory
+    cleared, as L-BFGS-B does, and if that fails too the fit stops at the last good point with
+    :data:`STALLED` (L-BFGS-B's ``ABNORMAL_TERMINATION_IN_LNSRCH``). A failure of the first
+    evaluation is returned as its status. On success ``state`` holds the mode and factors at the
+    returned ``x`` (re-evaluated there where the last evaluation was elsewhere)."""
     k = x0.shape[0]
     x = x0.copy()
     fx, gx, status = fit_loss(x, X, ans, spec, state, tol, max_iter)
+    evaluations = 1
     if status != OK:
-        return x, fx, status, 0
+        return x, fx, status, 0, evaluations
     S, Y = np.zeros((LBFGS_MEMORY, k)), np.zeros((LBFGS_MEMORY, k))
     rho = np.zeros(LBFGS_MEMORY)
     count, head = 0, 0
+    synced = True  # state holds the mode at x
+    stop, iterations = OK, LBFGS_MAXITER
     for it in range(LBFGS_MAXITER):
         if np.max(np.abs(gx)) <= LBFGS_GTOL:
-            return x, fx, OK, it
+            stop, iterations = OK, it
+            break
         d = -two_loop(gx, S, Y, rho, count, head)
         if not gx @ d < 0.0:
             d, count = -gx, 0
         t = 1.0 if count else 1.0 / math.sqrt(d @ d)  # L-BFGS-B's first step: unit length
-        xn, fn, gn, status = wolfe_search(x, fx, gx, d, t, X, ans, spec, state, tol, max_iter)
-        if status != OK:
-            return x, fx, status, it
+        floor = LBFGS_FTOL * max(abs(fx), 1.0)
+        xn, fn, gn, status, used = wolfe_search(x, fx, gx, d, t, floor, X, ans, spec, state, tol, max_iter)
+        evaluations += used
+        if status == LINE_SEARCH_FAILED and -(gx @ d) > floor and count:
+            count = 0  # as L-BFGS-B: forget the memory, retry along the steepest descent
+            d = -gx
+            t = 1.0 / math.sqrt(d @ d)
+            xn, fn, gn, status, used = wolfe_search(x, fx, gx, d, t, floor, X, ans, spec, state, tol, max_iter)
+            evaluations += used
+        if status == LINE_SEARCH_FAILED:
+            synced = False  # the trials moved state's mode away from x
+            stop, iterations = (OK if -(gx @ d) <= floor else STALLED), it
+            break
         sv, yv = xn - x, gn - gx
         sy = sv @ yv
         if sy > 2.220446049250313e-16 * (yv @ yv):
@@ -259,6 +382,13 @@ def fit_lbfgs(x0, X, ans, spec, state, tol, max_iter):
             count = min(count + 1, LBFGS_MEMORY)
         done = (fx - fn) <= LBFGS_FTOL * max(abs(fx), abs(fn), 1.0)
         x, fx, gx = xn, fn, gn
+        synced = status == OK
         if done:
-            return x, fx, OK, it + 1
-    return x, fx, OK, LBFGS_MAXITER
+            stop, iterations = OK, it + 1
+            break
+    if not synced:
+        fx, gx, status = fit_loss(x, X, ans, spec, state, tol, max_iter)
+        evaluations += 1
+        if status != OK:
+            return x, fx, status, iterations, evaluations
+    return x, fx, stop, iterations, evaluations

@@ -106,17 +106,30 @@ def identity() -> dict[str, str]:
 
 
 def example_arguments() -> dict[str, tuple]:
-    """Arguments of each entry point of the types the library passes (a 3-item problem with a
-    comparison and a rating): their numba types are the signatures compiled and loaded."""
+    """Arguments of each entry point of the types the library passes (a 3-item problem with a row
+    of each kind): their numba types are the signatures compiled and loaded."""
     X = ft.floats([[0.0, 0.0], [0.5, 0.2], [0.9, 0.7]], 2)
-    ans = ft.answers([0, 2], [1, -1], [ft.PROBIT, ft.BETA], [0.0, 0.1], [0.0, 0.6], 1.4, 1.4, 20.0)
+    inf = np.inf
+    ans = ft.answers(
+        [0, 2, 1, 2, 0],
+        [1, -1, 2, -1, 2],
+        [ft.PROBIT, ft.BETA, ft.INTERVAL, ft.INTERVAL, ft.LAPSE],
+        [0.0, 0.1, 0.0, 0.0, 0.0],
+        [0.0, 0.6, 0.0, 0.0, 0.0],
+        [1.4, 0.0, 1.4, 0.2, 1.4],
+        [-inf, -inf, -0.1, -0.4, -inf],
+        [inf, inf, 0.1, 0.4, inf],
+        [0.0, 0.0, 0.0, 0.0, 0.05],
+        1.4,
+        20.0,
+    )
     spec = ft.fit_spec(ft.RBF, 0, 2, 1e-4, (ft.LOG_NORMAL, 1.7, 1.7, -1.5), 2, 0.0, (ft.GAMMA, 2.0, 2.0, 0.0), 1.0)
     x0 = ft.floats(np.zeros(3))
     L = ft.floats(np.linalg.cholesky(np.eye(3) + 0.5), 2)
     return {
         "newton": (L, ans, ft.floats(np.zeros((1, 3)), 2), 1e-11, 100),
-        "fit_lbfgs": (x0, X, ans, spec, ft.fit_state(np.zeros(3), 2), 1e-11, 100),
-        "fit_loss": (x0, X, ans, spec, ft.fit_state(np.zeros(3), 2), 1e-11, 100),
+        "fit_lbfgs": (x0, X, ans, spec, ft.fit_state(np.zeros(3), 5), 1e-11, 100),
+        "fit_loss": (x0, X, ans, spec, ft.fit_state(np.zeros(3), 5), 1e-11, 100),
     }
 
 

@@ -1,9 +1,9 @@
 r"""Which solver runs: the compiled small-problem path (:mod:`torchpref.inference._compiled`,
 numba) or the torch solver, and the setting that forces either (docs/speed.md, "The compiled path").
 
-The setting, in order of precedence: :func:`fast_path` as a context manager (``with
-torchpref.fast_path("off"): ...``, for the calling thread only), :func:`fast_path` called alone
-(``torchpref.fast_path("on")``: the whole process, until changed), else the environment variable
+The setting, in order of precedence: the context manager :class:`fast_path` (``with
+torchpref.fast_path("off"): ...``, for the calling thread only), :func:`set_fast_path`
+(``torchpref.set_fast_path("on")``: the whole process, at once, until changed), else the environment variable
 ``TORCHPREF_FAST_PATH`` (checked when read: a value other than :data:`SETTINGS` raises a
 ``ValueError`` naming it), else ``"auto"``:
 
@@ -14,7 +14,7 @@ torchpref.fast_path("off"): ...``, for the calling thread only), :func:`fast_pat
   It is loaded at the first solve it applies to, never compiled: without a usable cache the torch
   solver answers and one :class:`FastPathWarning` per process names the command.
 * ``"on"``: the compiled path wherever it applies; without a usable cache it is built in the
-  calling process first (about a minute, with a progress line on stderr).
+  calling process first (about 2 minutes, with a progress line on stderr).
 
 No fit or solve ever starts a process. Any failure of the compiled path (its cache fails to load,
 a compiled call raises anything but an arithmetic error of the problem, or returns a non-finite
@@ -22,8 +22,9 @@ result) falls back to the torch solver, with one warning per process, and the co
 used again by that process. The compiled calls run BLAS and LAPACK on torch's thread count
 (``torch.get_num_threads()``), restoring the libraries' own counts when the last one returns.
 
-It applies to one problem (no batch), on the CPU, in float64, with probit comparisons and Beta
-ratings (each optionally shifted by a prior mean: a population's person model), and, for a fit,
+It applies to one problem (no batch), on the CPU, in float64, with probit comparisons (strict
+choices where ties were offered too) and Beta ratings of any precision (each optionally shifted by a
+prior mean: a population's person model), and, for a fit,
 the stationary kernels :mod:`torchpref.models.fast_fit` lists. numba is imported on the first solve
 that uses it, never at ``import torchpref``.
 """
@@ -36,15 +37,16 @@ import sys
 import threading
 import warnings
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, TypeVar, overload
 
 import torch
 from torch import Tensor
 
 import torchpref.inference.fast_cache as fast_cache
 import torchpref.inference.fast_types as ft
-from torchpref.inference.observations import Observations
+from torchpref.inference.observations import Observations, Term
 
 if TYPE_CHECKING:
     from threadpoolctl import LibController
@@ -58,20 +60,30 @@ SETTINGS = ("auto", "on", "off")
 #: from 500 items on ``auto`` is the torch solver, as before (docs/speed.md)
 MODE_MAX_ITEMS = 400
 FIT_MAX_ITEMS = 400
-BETA_CLASS = "torchpref.likelihoods.pairwise_beta.BetaRatingLikelihood"
-#: where each entry point returns its status
-STATUS_AT = {"newton": 4, "fit_lbfgs": 2, "fit_loss": 2}
 
 
 class FastPathWarning(UserWarning):
     """The compiled path is not used in this process (once per process, with the reason)."""
 
 
+@dataclass
+class PathState:
+    """This process's compiled path: the loaded entry points (``None`` before a load or after a
+    failure), their cache folder, why the path is off for the process (``failed``: a failure;
+    ``missing``: no usable cache under ``"auto"``), the process-wide setting
+    (:func:`set_fast_path`; ``None``: the environment's) and the warnings already given."""
+
+    functions: dict[str, Any] | None = None
+    folder: Path | None = None
+    failed: str | None = None
+    missing: str | None = None
+    setting: str | None = None
+    warned: set[str] = field(default_factory=set)
+
+
 _lock = threading.RLock()
 _local = threading.local()  # .stack: this thread's context-manager settings, innermost last
-_process: dict[str, str | None] = {"setting": None}  # fast_path(mode) called alone
-#: the loaded entry points, their cache folder, and why the path is off for this process
-_state: dict[str, Any] = {"functions": None, "folder": None, "failed": None, "missing": None}
+STATE = PathState()
 
 
 def check_setting(value: str | None = None) -> str:
@@ -95,35 +107,35 @@ def setting() -> str:
     stack = getattr(_local, "stack", None)
     if stack:
         return stack[-1]
-    return _process["setting"] or check_setting()
+    return STATE.setting or check_setting()
 
 
-class fast_path:  # lower case: used as a function and a context manager, like torch.no_grad
-    """Force the compiled path (``"on"``), the torch solver (``"off"``) or let each call choose
-    (``"auto"``). As a context manager it applies inside the block, to the calling thread only
-    (other threads keep theirs); called alone, to the whole process until changed (when the
-    returned object is released: at once, in CPython, for ``torchpref.fast_path("on")``)."""
+def set_fast_path(mode: str | None) -> None:
+    """Set the whole process's setting (every thread outside a :func:`fast_path` block) at once,
+    until changed; ``None``: back to the environment variable's (``"auto"`` without one)."""
+    checked = None if mode is None else check_setting(mode)
+    with _lock:
+        STATE.setting = checked
+
+
+class fast_path:  # lower case: a context manager used like torch.no_grad
+    """Inside the block, force the compiled path (``"on"``), the torch solver (``"off"``) or let each
+    call choose (``"auto"``), for the calling thread only (other threads keep theirs); the whole
+    process's setting is :func:`set_fast_path`'s. The mode is checked when the object is made (a
+    ``ValueError`` naming it); nothing changes until the block is entered."""
 
     def __init__(self, mode: str):
         self.mode = check_setting(mode)
-        self._entered = False
 
-    def __enter__(self) -> fast_path:
-        self._entered = True
+    def __enter__(self) -> str:
         stack = getattr(_local, "stack", None)
         if stack is None:
             stack = _local.stack = []
         stack.append(self.mode)
-        return self
+        return self.mode
 
     def __exit__(self, *exc: object) -> None:
         _local.stack.pop()
-
-    def __del__(self) -> None:
-        if getattr(self, "_entered", True) or not hasattr(self, "mode"):
-            return
-        with _lock:
-            _process["setting"] = self.mode
 
 
 def available() -> bool:
@@ -133,16 +145,16 @@ def available() -> bool:
 
 
 def _warn_once(key: str, message: str) -> None:
-    if _state.get("warned_" + key):
+    if key in STATE.warned:
         return
-    _state["warned_" + key] = True
+    STATE.warned.add(key)
     warnings.warn(message, FastPathWarning, stacklevel=4)
 
 
 def _disable(reason: str) -> None:
     """The compiled path is off for the rest of this process (one warning)."""
     with _lock:
-        _state["functions"], _state["failed"] = None, reason
+        STATE.functions, STATE.failed = None, reason
     _warn_once("failed", f"the compiled fast path is off in this process: {reason}; the torch solver answers")
 
 
@@ -153,10 +165,10 @@ def compiled() -> dict[str, Any] | None:
     mode = setting()
     if mode == "off":
         return None
-    functions = _state["functions"]
-    if functions is not None or _state["failed"] is not None:
+    functions = STATE.functions
+    if functions is not None or STATE.failed is not None:
         return functions
-    if mode == "auto" and _state["missing"] is not None:
+    if mode == "auto" and STATE.missing is not None:
         return None
     if not available():
         if fast_cache.installed():  # installed, but shadowed or blocked: said once
@@ -165,26 +177,27 @@ def compiled() -> dict[str, Any] | None:
             )
         return None
     with _lock:
-        if _state["functions"] is None and _state["failed"] is None:
+        if STATE.functions is None and STATE.failed is None:
             _load(mode)
-    return _state["functions"]
+    return STATE.functions
 
 
 def _load(mode: str) -> None:
     try:
-        _state["functions"], _state["folder"] = fast_cache.load()
+        STATE.functions, STATE.folder = fast_cache.load()
         return
     except fast_cache.CacheUnusable as err:
         reason = str(err)
     if mode == "auto":
-        _state["missing"] = reason
+        STATE.missing = reason
         _warn_once(
             "missing",
             f"the compiled fast path is not used: {reason}. Run `{fast_cache.COMMAND}` (or "
-            "torchpref.fast_path.build()) once to compile it for this installation; the torch solver answers",
+            "torchpref.inference.fast_path.build()) once to compile it for this installation (about 2 minutes); "
+            "the torch solver answers",
         )
         return
-    print(f"torchpref: {reason}; compiling the fast path in this process (about a minute) ...", file=sys.stderr)
+    print(f"torchpref: {reason}; compiling the fast path in this process (about 2 minutes) ...", file=sys.stderr)
     try:
         build(progress=None)
     except Exception as err:
@@ -201,7 +214,7 @@ def build(progress: Callable[[str], None] | None = print) -> fast_cache.Built:
     """
     with _lock:
         built, functions = fast_cache.build(progress)
-        _state.update(functions=functions, folder=built.folder, failed=None, missing=None)
+        STATE.functions, STATE.folder, STATE.failed, STATE.missing = functions, built.folder, None, None
     if progress is not None:
         progress(f"the compiled fast path is built: {sum(built.seconds.values()):.0f} s; cache in {built.folder}")
     return built
@@ -221,8 +234,8 @@ def status() -> str:
         lines.append(f"cache: built for this installation ({', '.join(fast_cache.identity().values())})")
     except fast_cache.CacheUnusable as err:
         lines.append(f"cache: not usable: {err}; run `{fast_cache.COMMAND}`")
-    if _state["failed"] is not None:
-        lines.append(f"off in this process: {_state['failed']}")
+    if STATE.failed is not None:
+        lines.append(f"off in this process: {STATE.failed}")
     return "\n".join(lines)
 
 
@@ -233,13 +246,13 @@ def loads() -> bool:
     except fast_cache.CacheUnusable:
         return False
     with _lock:
-        _state.update(functions=functions, folder=path, failed=None, missing=None)
+        STATE.functions, STATE.folder, STATE.failed, STATE.missing = functions, path, None, None
     return True
 
 
 def cache_folder() -> Path | None:
     """The loaded cache's folder (``None`` before a load)."""
-    return _state["folder"]
+    return STATE.folder
 
 
 def warm_up() -> dict[str, Any] | None:
@@ -316,23 +329,30 @@ class _BlasThreads:
 BLAS_THREADS = _BlasThreads()
 
 
-def call(name: str, *args: object) -> tuple | None:
-    """Entry point ``name``'s result on ``args``, or ``None`` where the torch solver must answer:
+@overload
+def call(name: Literal["newton"], *args: object) -> ft.NewtonResult | None: ...
+@overload
+def call(name: Literal["fit_loss"], *args: object) -> ft.LossResult | None: ...
+@overload
+def call(name: Literal["fit_lbfgs"], *args: object) -> ft.FitResult | None: ...
+def call(name: str, *args: object) -> Any:
+    """Entry point ``name``'s result on ``args`` as its named result (:data:`~torchpref.inference.fast_types.RESULTS`),
+    or ``None`` where the torch solver must answer:
     the path is not loaded, the problem met an arithmetic error (``ArithmeticError``, ``ValueError``
     from numba's arithmetic, where torch gives inf or NaN: silently, for this call), or the call
-    failed otherwise (any other exception, or a non-finite result with an OK status: the path is off
-    for the rest of the process, with one warning)."""
-    functions = _state["functions"]
+    failed otherwise (any other exception, or a non-finite result with a successful status: the path
+    is off for the rest of the process, with one warning)."""
+    functions = STATE.functions
     if functions is None:
         return None
     try:
-        out = BLAS_THREADS.run(functions[name], *args)
+        out = ft.RESULTS[name](*BLAS_THREADS.run(functions[name], *args))
     except (ArithmeticError, ValueError):
         return None
     except Exception as err:
         _disable(f"its {name} raised {type(err).__name__}: {err}")
         return None
-    if out[STATUS_AT[name]] == ft.OK and not _finite(out):
+    if out.status in ft.SUCCESS and not _finite(out):
         _disable(f"its {name} returned non-finite values with an OK status")
         return None
     return out
@@ -350,54 +370,113 @@ def _finite(values: Iterable[object]) -> bool:
     return True
 
 
-def known_probit(likelihood: object) -> bool:
-    """Whether ``likelihood`` is one the compiled path computes: its class declares
-    ``compiled_kind = "probit"`` itself (not inherited) and no derivative is replaced on the object."""
-    if type(likelihood).__dict__.get("compiled_kind") != "probit":
+def known(likelihood: object, kind: str) -> bool:
+    """Whether ``likelihood`` is one the compiled path computes as ``kind``: its class declares
+    ``compiled_kind = kind`` itself (not inherited: a subclass may change its derivatives or link,
+    as :class:`~torchpref.likelihoods.person.PersonRatingLikelihood` does) and no derivative is
+    replaced on the object."""
+    if type(likelihood).__dict__.get("compiled_kind") != kind:
         return False
     own = getattr(likelihood, "__dict__", {})
-    return not any(name in own for name in ("derivatives", "third_derivative", "scale", "log_prob"))
+    replaced = ("derivatives", "third_derivative", "scale", "log_prob", "_link", "fisher", "_bounds")
+    return not any(name in own for name in replaced)
 
 
-def known_beta(likelihood: object) -> bool:
-    """Whether ``likelihood`` is exactly the Beta rating likelihood (not a subclass, which may change
-    its link: :class:`~torchpref.likelihoods.person.PersonRatingLikelihood`), nothing replaced."""
-    cls = type(likelihood)
-    if f"{cls.__module__}.{cls.__qualname__}" != BETA_CLASS:
-        return False
-    own = getattr(likelihood, "__dict__", {})
-    return not any(name in own for name in ("derivatives", "third_derivative", "_link", "fisher", "log_prob"))
+class Rows(NamedTuple):
+    """One observation term's compiled rows (:class:`~torchpref.inference.fast_types.Answers`'
+    columns, ``m`` each): its kind, items, offsets (the prior mean's, and a strict choice's
+    ``-tau``), targets, scales, interval bounds and lapse rates; ``beta``: a rating likelihood's
+    ``(link scale, precision)`` (``None`` for any other kind)."""
+
+    kind: int
+    first: Tensor
+    second: Tensor
+    offset: Tensor
+    target: Tensor
+    scale: Tensor
+    lower: Tensor
+    upper: Tensor
+    lapse: Tensor
+    beta: tuple[float, float] | None = None
+
+
+def _value(x: Tensor | float) -> float:
+    """A likelihood's scalar parameter as a float (detached: it may be trainable)."""
+    return float(torch.as_tensor(x).detach())
+
+
+def _f64(x: Tensor | float, m: int) -> Tensor:
+    return torch.as_tensor(x, dtype=torch.float64).detach().expand(m).clone()
+
+
+def _term_rows(term: Term) -> Rows | None:
+    """One unmasked term of one problem as compiled rows, or ``None`` where the compiled path does
+    not compute its likelihood: probit comparisons, strict choices where ties were offered
+    (``Phi((eta - tau) / s)``: a probit shifted by ``-tau``), comparisons with lapses, ties and
+    ordinal levels (Gaussian intervals), and Beta ratings of any precision, a person's gain ``g``
+    and offset ``b`` on their link included (``Phi((g eta + b) / c0)`` is ``Phi((eta + b / g) / (c0 / g))``)."""
+    lik: Any = term.likelihood
+    if term.mask is not None and not bool(term.mask.all()):
+        return None
+    m = term.size
+    offset = _f64(0.0, m) if term.offset is None else term.offset[0].detach().to(torch.float64).clone()
+    item = term.index[0, :, 0]
+    pair = term.coef == (1.0, -1.0) and term.target is None
+    second = term.index[0, :, 1] if pair else torch.full_like(item, -1)
+    zero, lo, hi = _f64(0.0, m), _f64(-math.inf, m), _f64(math.inf, m)
+    if pair and known(lik, "probit"):
+        return Rows(ft.PROBIT, item, second, offset, zero, _f64(lik.scale, m), lo, hi, zero)
+    if pair and known(lik, "strict"):
+        tau, scale = _value(lik.tie.tie_threshold), lik.tie.comparison.scale
+        return Rows(ft.PROBIT, item, second, offset - tau, zero, _f64(scale, m), lo, hi, zero)
+    if pair and known(lik, "lapse"):
+        return Rows(ft.LAPSE, item, second, offset, zero, _f64(lik.scale, m), lo, hi, _f64(lik.lapse_rate, m))
+    if pair and known(lik, "tie"):
+        tau = _value(lik.tie_threshold)
+        return Rows(
+            ft.INTERVAL, item, second, offset, zero, _f64(lik.comparison.scale, m), -tau + zero, tau + zero, zero
+        )
+    given = term.target
+    single = term.coef == (1.0,) and given is not None
+    if single and given is not None and known(lik, "ordinal"):
+        levels = lik.check_levels(given[0].detach())
+        cuts = torch.cat([lo[:1], lik.cut_points.detach().to(torch.float64), hi[:1]])
+        return Rows(
+            ft.INTERVAL, item, second, offset, zero, _f64(lik.level_noise, m), cuts[levels - 1], cuts[levels], zero
+        )
+    target = None if given is None else given[0].detach().to(torch.float64)
+    if single and target is not None and known(lik, "beta"):
+        beta = (math.sqrt(2.0) * _value(lik.rating_scale), _value(lik.rating_precision))
+        return Rows(ft.BETA, item, second, offset, target, zero, lo, hi, zero, beta)
+    if single and target is not None and known(lik, "person_rating"):
+        g, b = _value(lik.rating_gain), _value(lik.rating_offset)
+        if not g > 0.0:
+            return None  # a gain constrained otherwise: the torch solver
+        beta = (math.sqrt(2.0) * _value(lik.rating_scale) / g, _value(lik.rating_precision))
+        return Rows(ft.BETA, item, second, offset + b / g, target, zero, lo, hi, zero, beta)
+    return None
 
 
 def answers(obs: Observations) -> ft.Answers | None:
-    """One problem's unmasked probit comparisons and Beta ratings (with their prior-mean offsets)
-    as :class:`~torchpref.inference.fast_types.Answers`, or ``None`` for anything else."""
+    """One problem's unmasked observations as :class:`~torchpref.inference.fast_types.Answers` (the
+    kinds :func:`_term_rows` knows, with their prior-mean offsets), or ``None`` where any term is
+    of another kind or masked, or two rating likelihoods differ."""
     if obs.batch != 1 or not obs.terms:
         return None
-    rows: dict[int, tuple] = {}
-    for term in obs.terms:
-        lik = term.likelihood
-        if term.mask is not None and not bool(term.mask.all()):
+    rows: list[Rows] = []
+    for term in obs.terms:  # the terms' order: the weights come back in it
+        found = _term_rows(term)
+        if found is None:
             return None
-        if known_probit(lik) and term.coef == (1.0, -1.0) and term.target is None:
-            kind, first, second = ft.PROBIT, term.index[0, :, 0], term.index[0, :, 1]
-        elif known_beta(lik) and term.coef == (1.0,) and term.target is not None:
-            kind, first, second = ft.BETA, term.index[0, :, 0], torch.full_like(term.index[0, :, 0], -1)
-        else:
-            return None
-        if kind in rows:
-            return None  # one likelihood of each kind
-        offset = torch.zeros(term.size, dtype=torch.float64) if term.offset is None else term.offset[0].detach()
-        target = torch.zeros(term.size, dtype=torch.float64) if term.target is None else term.target[0].detach()
-        rows[kind] = (first, second, offset, target, lik)
-    order = list(rows)  # the terms' order: the weights come back in it
-    cols = [torch.cat([rows[k][c] for k in order]).numpy() for c in range(4)]
-    kinds = torch.cat([torch.full((rows[k][0].shape[0],), k) for k in order]).numpy()
-    probit = float(rows[ft.PROBIT][4].scale) if ft.PROBIT in rows else 1.0
-    beta = rows[ft.BETA][4] if ft.BETA in rows else None
-    c = 1.0 if beta is None else math.sqrt(2.0) * float(beta.rating_scale)  # the exact class's link
-    nu = 1.0 if beta is None else float(beta.rating_precision)
-    return ft.answers(cols[0], cols[1], kinds, cols[2], cols[3], probit, c, nu)
+        rows.append(found)
+    betas = {r.beta for r in rows if r.beta is not None}
+    if len(betas) > 1:
+        return None  # two rating likelihoods of different links or precisions
+    c, nu = betas.pop() if betas else (1.0, 1.0)
+    cols = [torch.cat([getattr(r, name) for r in rows]).numpy() for name in Rows._fields[1:9]]
+    kinds = torch.cat([torch.full((r.first.shape[0],), r.kind) for r in rows]).numpy()
+    first, second, offset, target, scale, lower, upper, lapse = cols
+    return ft.answers(first, second, kinds, offset, target, scale, lower, upper, lapse, c, nu)
 
 
 def mode_applies(L: Tensor, obs: Observations) -> bool:
@@ -409,13 +488,25 @@ def mode_applies(L: Tensor, obs: Observations) -> bool:
     return setting() == "on" or n <= MODE_MAX_ITEMS
 
 
-def solve_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], max_iter: int, tol: float) -> tuple | None:
-    """The Laplace mode of one problem (``L``: ``1 x n x n``) on the compiled path: ``(a, f, M,
-    weights per term, iterations)`` as tensors, or ``None`` where the torch solver answers (the
+class CompiledMode(NamedTuple):
+    """A mode solved on the compiled path, as tensors: whitened ``a``, ``f = L a``, ``B``'s factor
+    ``M``, the weights of each observation term and Newton's iterations."""
+
+    a: Tensor
+    f: Tensor
+    M: Tensor
+    weights: tuple[Tensor, ...]
+    iterations: int
+
+
+def solve_mode(
+    L: Tensor, obs: Observations, starts: tuple[Tensor, ...], max_iter: int, tol: float
+) -> CompiledMode | None:
+    """The Laplace mode of one problem (``L``: ``1 x n x n``) on the compiled path, or ``None`` where the torch solver answers (the
     path does not apply or is not loaded, or the compiled Newton did not converge, met a non-finite
     step or needed Fisher weights at its end: the torch solver's warnings and errors are then its own)."""
     mode = setting()
-    if mode == "off" or _state["failed"] is not None or (mode == "auto" and _state["missing"] is not None):
+    if mode == "off" or STATE.failed is not None or (mode == "auto" and STATE.missing is not None):
         return None
     if not mode_applies(L, obs):
         return None
@@ -428,9 +519,10 @@ def solve_mode(L: Tensor, obs: Observations, starts: tuple[Tensor, ...], max_ite
     Ln = ft.floats(L[0].detach().numpy(), 2)
     S = np.stack([f.detach().to(L).reshape(n).numpy() for f in starts]) if starts else np.empty((0, n))
     out = call("newton", Ln, ans, ft.floats(S, 2), float(tol), int(max_iter))
-    if out is None or out[4] != ft.OK:
+    if out is None or out.status != ft.OK:
         return None
-    a, M, w, iterations, _, _ = out
     sizes = [t.size for t in obs.terms]
-    weights = tuple(torch.from_numpy(part) for part in np.split(w, np.cumsum(sizes)[:-1]))
-    return torch.from_numpy(a), torch.from_numpy(Ln @ a), torch.from_numpy(M), weights, int(iterations)
+    weights = tuple(torch.from_numpy(part) for part in np.split(out.weights, np.cumsum(sizes)[:-1]))
+    return CompiledMode(
+        torch.from_numpy(out.a), torch.from_numpy(Ln @ out.a), torch.from_numpy(out.M), weights, int(out.iterations)
+    )

@@ -58,6 +58,7 @@ class ModeResult:
     iterations: int
     converged: ProblemMask
     fisher_fallback: ProblemMask  # exact B not PD at the mode, the Fisher W used instead
+    solver: str = "torch"  # which solver found it: "compiled" (numba, fast_path) or "torch"
 
     def select(self, index: int | slice | Tensor) -> ModeResult:
         """The problems ``index`` (an int drops the batch dimension)."""
@@ -171,9 +172,9 @@ def _compiled_mode(
     out = solve_mode(L, obs, () if f0 is None else (f0 if isinstance(f0, tuple) else (f0,)), max_iter, tol)
     if out is None:
         return None
-    a, f, M, weights, iterations = out
     one, no = torch.ones(1, dtype=torch.bool), torch.zeros(1, dtype=torch.bool)
-    return ModeResult(a[None], f[None], M[None], tuple(w[None] for w in weights), iterations, one, no)
+    weights = tuple(w[None] for w in out.weights)
+    return ModeResult(out.a[None], out.f[None], out.M[None], weights, out.iterations, one, no, solver="compiled")
 
 
 def predicted_mode(f: Tensor, cache: PredictiveCache, L: Tensor) -> Tensor:

@@ -50,6 +50,10 @@ class TieLikelihood(_ScalarParamsMixin, Likelihood):
 
     log_concave = True  # its weights in W are never negative
 
+    #: the compiled path (:mod:`torchpref.inference._compiled`) knows this likelihood; a subclass
+    #: (which may change its derivatives) is solved by the torch solver unless it says so too
+    compiled_kind = "tie"
+
     def __init__(
         self,
         tie_threshold: float = 0.1,
@@ -127,6 +131,9 @@ class StrictPreferenceLikelihood(Likelihood):
     """
 
     log_concave = True  # its weights in W are never negative
+    #: the compiled path (:mod:`torchpref.inference._compiled`) knows this likelihood; a subclass
+    #: (which may change its derivatives or link) is solved by the torch solver unless it says so too
+    compiled_kind = "strict"
 
     def __init__(self, tie: TieLikelihood):
         super().__init__()
@@ -195,6 +202,10 @@ class OrdinalRatingLikelihood(_ScalarParamsMixin, Likelihood):
     """
 
     log_concave = True  # its weights in W are never negative
+
+    #: the compiled path (:mod:`torchpref.inference._compiled`) knows this likelihood; a subclass
+    #: (which may change its derivatives) is solved by the torch solver unless it says so too
+    compiled_kind = "ordinal"
 
     def __init__(
         self,

@@ -225,6 +225,10 @@ class BetaRatingLikelihood(_ScalarParamsMixin, Likelihood):
         "``nu`` (eqs. 4-7): the precision of a rating's Beta distribution (larger: less noisy ratings).",
     )
 
+    #: the compiled path (:mod:`torchpref.inference._compiled`) knows this likelihood; a subclass
+    #: (which may change its derivatives or link) is solved by the torch solver unless it says so too
+    compiled_kind = "beta"
+
     def mean_link(self, f: Tensor) -> Tensor:
         r"""``mu = Phi(f / (sqrt 2 sigma_B))``, eq. 7 (:func:`rating_link`)."""
         return torch.special.ndtr(self._link(f)[1])

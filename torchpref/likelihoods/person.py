@@ -116,6 +116,11 @@ class PersonRatingLikelihood(BetaRatingLikelihood):
 
     rating_gain = scalar_parameter("rating_gain", "``g``: the person's gain on the rating link.")
 
+    #: the compiled path (:mod:`torchpref.inference._compiled`) knows this likelihood (a Beta rating
+    #: with the link scale divided by ``g`` and ``b / g`` added to the predictor); a subclass is
+    #: solved by the torch solver unless it says so too
+    compiled_kind = "person_rating"
+
     @property
     def rating_offset(self) -> Tensor:
         """``b``: the person's offset on the rating link (latent units)."""
@@ -176,6 +181,10 @@ class LapseProbitLikelihood(PairwiseProbitLikelihood):
     """
 
     log_concave = False
+
+    #: the compiled path (:mod:`torchpref.inference._compiled`) knows this likelihood; a subclass
+    #: (which may change its derivatives) is solved by the torch solver unless it says so too
+    compiled_kind = "lapse"
 
     def __init__(
         self,

@@ -35,8 +35,8 @@ _PLAIN = frozenset(
 )  # not bound methods: ``setattr(m, "f", m.f)`` (a monkeypatch undone) changes nothing
 #: Attributes that do not change the posterior: the train / eval flag (its transitions reset the
 #: model's cache explicitly) and the model's once-only scaling warning,
-#: warm start and cache itself.
-_NOT_STRUCTURE = frozenset({"training", "_scaling_warned", "_warm_f", "_cache"})
+#: warm start, cache itself and the report of its last fit.
+_NOT_STRUCTURE = frozenset({"training", "_scaling_warned", "_warm_f", "_cache", "last_fit"})
 
 
 def _setting(value: object) -> bool:

@@ -50,7 +50,7 @@ from torchpref.models.defaults import (  # noqa: F401  (MIN_LENGTHSCALE, PAPER_F
     default_covar_module,
 )
 from torchpref.models.fantasy import condition_batch, fantasize
-from torchpref.models.fast_fit import Closure, fit_laplace
+from torchpref.models.fast_fit import Closure, FitReport, fit_laplace
 from torchpref.models.pairwise_interface import (
     TrainDataMismatchError,
     _check_strict,
@@ -238,6 +238,8 @@ class PreferenceGP(Model, GP):
             self.to(device=X.device, dtype=X.dtype)
         self._data: PreferenceData | PaddedData = data
         self._cache: PosteriorState | None = None
+        #: how the last ``fit_gpytorch_mll`` went: which solver fitted, how it stopped (``None``: not fitted)
+        self.last_fit: FitReport | None = None
         self._transitions = 0  # train / eval switches: part of the cache's key
         self._warm_f: Tensor | None = None
         self._fit_input_transform()
