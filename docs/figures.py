@@ -29,7 +29,7 @@ STALE_NOTE = " (measured on an older version)"
 class Figure:
     file: str  # under benchmarks/results/
     key: str
-    fmt: str = "{}"  # a str.format pattern, or one of "percent", "percent2", "sci", "ms"
+    fmt: str = "{}"  # a str.format pattern, or one of "percent", "percent2", "kb_mb", "sci", "ms"
 
     def raw(self) -> float | int | str:
         path = ROOT / "benchmarks" / "results" / self.file
@@ -52,6 +52,8 @@ class Figure:
             return "never"
         if self.fmt == "percent":
             return f"{100 * float(value):g} %"
+        if self.fmt == "kb_mb":  # kilobytes shown in megabytes
+            return f"{float(value) / 1000:.0f}"
         if self.fmt == "percent2":  # a share, to a tenth of a percent
             return f"{round(100 * float(value), 1):g} %"
         if self.fmt == "ms":  # seconds shown in milliseconds
@@ -692,6 +694,10 @@ for _group, _g in (("all", "all"), ("n < 100", "small"), ("100 <= n < 500", "mid
 FIGURES["soak_finished_kb"] = Figure("serve/soak.json", "summary.finished_session_kb_slope", "{:.0f}")
 FIGURES["soak_finished_kb_half"] = Figure("serve/soak.json", "summary.finished_session_kb_slope_second_half", "{:.0f}")
 FIGURES["soak_open_kb"] = Figure("serve/soak.json", "restart.open_session_kb_slope", "{:.0f}")
+FIGURES["soak_files_max"] = Figure("serve/soak.json", "summary.session_files_max_in_run")
+FIGURES["soak_worker_mb"] = Figure("serve/soak.json", "summary.worker_rss_kb_max", "kb_mb")
+FIGURES["replay_seconds"] = Figure("replay/replay.json", "meta.seconds", "{:.1f}")
+FIGURES["replay_load"] = Figure("replay/replay.json", "meta.load_average_start_end.0", "{:.1f}")
 for _i, _q in enumerate(("p50", "p95", "p99")):
     FIGURES[f"soak_ms_{_q}"] = Figure("serve/soak.json", f"summary.answer_ms_p50_p95_p99.{_i}", "{:.0f}")
     FIGURES[f"soak_plots_ms_{_q}"] = Figure(
