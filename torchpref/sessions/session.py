@@ -52,6 +52,7 @@ from torchpref.models.preference_gp import PreferenceGP
 from torchpref.population.model import Population
 from torchpref.selection.choosing import query_items
 from torchpref.selection.defaults import default_selector
+from torchpref.selection.shortlist import for_pool
 from torchpref.selection.strategies import Selector
 from torchpref.sessions.errors import (  # noqa: F401  (the errors stay importable from here, as before)
     SessionFileChanged,
@@ -485,12 +486,13 @@ class PreferenceSession:
             return self._choose_from_list(self._queries, step, gen)
         X, idx = self._candidates.draw(gen)
         rows = torch.arange(X.shape[0])  # a pool draws each distinct item once (FinitePool)
-        q = self.selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)
+        selector = for_pool(self.selector, self._n_pool)  # a large pool: its shortlist (docs/selection.md)
+        q = selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)
         if isinstance(q, RatingQuery) and idx is not None:  # never a second rating while unrated items are left
             keep = unrated_rows(idx, self._journal.in_force.values(), _row(q), getattr(self.selector, "m", 2))
             if keep is not None:
                 X, idx = X[keep], idx[keep]
-                q = self.selector.select(self.model, self.transform(X), rows[: len(keep)], step, self.num_queries, gen)
+                q = selector.select(self.model, self.transform(X), rows[: len(keep)], step, self.num_queries, gen)
         if isinstance(q, RatingQuery):
             r = _row(q)
             return RatingQuery(X[r], None if idx is None else int(idx[r]))
