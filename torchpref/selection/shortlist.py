@@ -132,7 +132,7 @@ def _answered(model: SelectorModel, X: Tensor, chunk: int) -> list[Tensor]:
     """Per trial, the rows of ``X`` (``T x N x d``) equal to an item the model was told about."""
     T = X.shape[0]
     if isinstance(model, BatchedPreferenceGP):
-        seen = [model.data(b).X for b in range(T)]
+        seen = [model.data(b).train_X for b in range(T)]
     elif isinstance(model, PreferenceGP) and isinstance(model.train_X, Tensor) and model.train_X.dim() == 2:
         seen = [model.train_X]
     else:
