@@ -45,7 +45,6 @@ from torchpref.data.queries import (
     Query,
     RankingQuery,
     RatingQuery,
-    first_unique_rows,
     record_answer,
 )
 from torchpref.models.preference_gp import PreferenceGP
@@ -205,7 +204,8 @@ class PreferenceSession:
         self._settings, self._candidates = settings, settings.candidates
         self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
         self.num_queries, self.num_levels, self.names = settings.num_queries, settings.num_levels, settings.names
-        self._n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
+        pool = self._candidates
+        self._n_pool = pool.distinct_rows.numel() if isinstance(pool, FinitePool) else None
         model_factory = population_factory(population, model_factory, settings.dim, settings.names)
         check_callables(selector, model_factory)
         self._lock, self._pid = threading.RLock(), os.getpid()

@@ -140,8 +140,11 @@ def as_items(X: object, dim: int, name: str) -> Tensor:
         t = t.unsqueeze(0)
     if t.dim() != 2 or t.shape[-1] != dim:
         raise ValueError(f"{name} must be m x {dim}, got shape {tuple(t.shape)}.")
-    if not torch.isfinite(t).all():
-        raise ValueError(f"{name} must be finite, got {t.tolist()}.")
+    finite = torch.isfinite(t).all(-1)
+    if not finite.all():
+        bad = torch.nonzero(~finite).reshape(-1)
+        more = f" ({bad.numel()} rows are not)" if bad.numel() > 1 else ""
+        raise ValueError(f"{name} must be finite: row {int(bad[0])} is {t[bad[0]].tolist()}{more}.")
     return t
 
 
@@ -160,7 +163,9 @@ def _candidates_spec(candidates) -> tuple[Candidates, dict, Tensor, Tensor]:
         candidates = FinitePool(as_items(candidates, candidates.shape[-1], "candidates"))
     if isinstance(candidates, FinitePool):
         pool = as_items(candidates.X, candidates.X.shape[-1], "the pool's items").to(torch.float64)
-        return FinitePool(pool), {"kind": "pool", "items": pool.tolist()}, pool.min(0).values, pool.max(0).values
+        if pool is not candidates.X:  # not already float64 N x d: a pool of the converted items
+            candidates = FinitePool(pool)
+        return candidates, {"kind": "pool", "items": pool.tolist()}, pool.min(0).values, pool.max(0).values
     if isinstance(candidates, BoxCandidates):
         b = candidates.bounds.to(torch.float64)
         spec = {"kind": "box", "bounds": b.tolist(), "num": candidates.num}
