@@ -17,11 +17,14 @@ resident memory) by:
 ``setup_s`` is the session's construction (validating the pool, its header) and the 12 answers.
 
 ``--accuracy``: at pools where the exact choice fits (``N`` of 500, 1,000 and 2,000, ``d = 4``,
-``--seeds`` sessions each, 12 answers as above), the default selector's choice over the pool and
-its choice over the pool's shortlist (:class:`~torchpref.selection.shortlist.Shortlisted`, size
-256), both on the same samples (same generator); how often they are the same question, and the
-value the shortlist's question gives up, valued as the exact selector values questions (its
-``scorers`` on the whole pool, per second).
+``--seeds`` sessions each, 12 answers as above), the default selector's choice over the pool, its
+choice over the pool's shortlist (:class:`~torchpref.selection.shortlist.Shortlisted`, size 256)
+from the same generator, and its choice over the pool from another generator; how often the
+first two are the same question, and the value each of the others gives up against the exact
+choice, valued as the exact selector values questions (its ``scorers`` on the whole pool, per
+second) on independent samples (``EVAL_SAMPLES`` of them: valued on its own samples, the exact
+choice would win by its own noise). The other generator's loss is the noise floor: what the exact
+selector gives up against itself.
 
 Writes ``results/large_pools/cost.json`` / ``cost.csv`` / ``cost.png`` and ``accuracy.json`` /
 ``accuracy.csv``, stamped (load average included: timings under load are not a quiet machine's).
@@ -50,6 +53,7 @@ ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results" / "large_pools"
 SIZES = [1000, 3000, 10_000, 30_000, 100_000, 300_000, 1_000_000]
 METHODS = ("session", "exact", "botorch_qeubo")
+EVAL_SAMPLES = 2048
 
 
 def _rss_mb() -> float:
@@ -104,7 +108,9 @@ def one(N: int, d: int, method: str, seed: int) -> dict:
         from botorch.optim import optimize_acqf_discrete
         from botorch.sampling import SobolQMCNormalSampler
 
-        acq = qExpectedUtilityOfBestOption(pref_model=s.model, sampler=SobolQMCNormalSampler(torch.Size([256]), seed=seed))
+        acq = qExpectedUtilityOfBestOption(
+            pref_model=s.model, sampler=SobolQMCNormalSampler(torch.Size([256]), seed=seed)
+        )
         optimize_acqf_discrete(acq, q=2, choices=s.transform(X), max_batch_size=2048)
         kind = "ranking"
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
@@ -115,7 +121,10 @@ def one(N: int, d: int, method: str, seed: int) -> dict:
 
 
 def accuracy_row(N: int, seed: int) -> dict:
-    """The exact choice and the shortlist's, valued by the exact selector's scorers."""
+    """The exact choice, the exact selector's choice with other random numbers, and the
+    shortlist's, all valued by the exact selector on independent samples (more of them)."""
+    import copy
+
     from torchpref.data.queries import RatingQuery
     from torchpref.selection.defaults import default_selector
     from torchpref.selection.shortlist import Shortlisted
@@ -123,11 +132,15 @@ def accuracy_row(N: int, seed: int) -> dict:
     s, X = answered_session(N, 4, seed)
     Xt, idx = s.transform(X), torch.arange(N)
     sel = default_selector(N)
-    gen = lambda: torch.Generator().manual_seed(1000 + seed)  # noqa: E731
-    exact = sel.select(s.model, Xt, idx, 12, 14, gen())
-    short = Shortlisted(sel).select(s.model, Xt, idx, 12, 14, gen())
+    gen = lambda k: torch.Generator().manual_seed(k)  # noqa: E731
+    exact = sel.select(s.model, Xt, idx, 12, 14, gen(1000 + seed))
+    other = sel.select(s.model, Xt, idx, 12, 14, gen(2000 + seed))
+    short = Shortlisted(sel).select(s.model, Xt, idx, 12, 14, gen(1000 + seed))
+    judge = copy.copy(sel)
+    if hasattr(judge, "num_samples"):
+        judge.num_samples = EVAL_SAMPLES
     with torch.no_grad():
-        rate, rank = sel.scorers(s.model, Xt.unsqueeze(0), [gen()])
+        rate, rank = judge.scorers(s.model, Xt.unsqueeze(0), [gen(5000 + seed)])
 
     def value(q) -> float:
         if isinstance(q, RatingQuery):
@@ -135,10 +148,11 @@ def accuracy_row(N: int, seed: int) -> dict:
         return float(rank(torch.tensor([[list(q.indices)]]))[0, 0]) / sel.query_cost(len(q.indices))
 
     rows = lambda q: [q.index] if isinstance(q, RatingQuery) else sorted(q.indices)  # noqa: E731
-    ve, vs = value(exact), value(short)
+    ve, vo, vs = value(exact), value(other), value(short)
     return dict(
         N=N, seed=seed, exact_kind=exact.kind, short_kind=short.kind, same=rows(exact) == rows(short),
-        exact_value=ve, short_value=vs, given_up=(ve - vs) / abs(ve) if ve else 0.0,
+        exact_value=ve, other_seed_value=vo, short_value=vs,
+        given_up=(ve - vs) / abs(ve) if ve else 0.0, other_seed_given_up=(ve - vo) / abs(ve) if ve else 0.0,
     )  # fmt: skip
 
 
@@ -234,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
                 runs=len(rs),
                 same_share=sum(r["same"] for r in rs) / len(rs),
                 mean_given_up=sum(r["given_up"] for r in rs) / len(rs),
+                mean_other_seed_given_up=sum(r["other_seed_given_up"] for r in rs) / len(rs),
                 worst_given_up=max(r["given_up"] for r in rs),
             )
         _write("accuracy", rows, {"by_N": by_n, "load_at_start": load0, "load_at_end": os.getloadavg()})

@@ -13,11 +13,15 @@ instead of the pool, chosen in passes over the pool in chunks of ``chunk`` rows 
    (its correlation with the incumbent counted). An item's probability of being the maximiser
    is at most its probability of beating the incumbent, so an item left out by this ranking is
    no likelier to be the maximiser than the last one kept by it;
-3. the shortlist, ``size`` distinct items in this order: the items already answered about that
-   are in the pool (up to an eighth), the incumbent and the items likeliest to beat it (up to a
-   half), the items of largest upper confidence bound ``mu + gamma s`` (up to a quarter), the
-   items of largest ``s`` (up to an eighth), then the next likeliest to beat the incumbent until
-   ``size`` are kept.
+3. the shortlist, ``size`` distinct items taken in this order, each kind up to its share: the
+   items already answered about that are in the pool (an eighth), the largest posterior means (an
+   eighth), the likeliest to beat the incumbent (an eighth), the largest upper confidence bounds
+   ``mu + gamma s`` (an eighth), the items nearest the edge of the pool's top share ``straddle =
+   1.96 s - |mu - e|`` (``e`` the posterior mean of rank ``top_fraction * N``, the wrapped
+   selector's ``top_fraction`` or 0.2; an eighth), items at evenly spaced ranks of the posterior
+   mean over the whole pool (three eighths: a miniature of the pool, so that what a selector
+   reads relative to its candidates, a top share, the best rating's value, stays close to the
+   pool's), then the next likeliest to beat the incumbent until ``size`` are kept.
 
 The wrapped selector then chooses among the shortlist exactly as it would among a pool of those
 items. What it can miss: a question worth most for an item outside all four rankings (an item
@@ -154,12 +158,18 @@ def _answered(model: SelectorModel, X: Tensor, chunk: int) -> list[Tensor]:
 
 
 def shortlist_rows(
-    model: SelectorModel, X: Tensor, size: int = SHORTLIST_SIZE, gamma: float = 3.0, chunk: int = CHUNK
+    model: SelectorModel,
+    X: Tensor,
+    size: int = SHORTLIST_SIZE,
+    gamma: float = 3.0,
+    chunk: int = CHUNK,
+    top_fraction: float = 0.2,
 ) -> Tensor:
     r"""``T x size`` distinct rows of each trial's candidates ``X`` (``T x N x d``, ``N > size``)
-    in the module's order: answered items, the incumbent and the likeliest to beat it, the largest
-    UCBs, the largest standard deviations, then the next likeliest to beat the incumbent. Cost
-    linear in ``N``; memory ``O(chunk)`` besides a few ``T x N`` vectors."""
+    in the module's order (answered items, largest means, likeliest to beat the incumbent, largest
+    UCBs, nearest the edge of the top ``top_fraction``, evenly spaced ranks of the mean, then the
+    next likeliest to beat the incumbent). Cost linear in ``N`` besides one sort of the ``N``
+    means; memory ``O(chunk)`` besides a few ``T x N`` vectors."""
     T, N, _ = X.shape
     size, chunk = _check_size("size", size, 1), _check_size("chunk", chunk, 1)
     if N <= size:
@@ -172,15 +182,21 @@ def shortlist_rows(
         best = mean.argmax(-1)  # T
         beat = _beat_order(model, X, mean, std, best, size, chunk)
         ucb = mean + gamma * std
+        k = max(1, min(N, round(top_fraction * N)))
+        edge = mean.topk(k, dim=-1).values[:, -1:]  # the top share's edge in the posterior means
+        straddle = 1.96 * std - (mean - edge).abs()
         answered = _answered(model, X, chunk)
         rows = []
         for b in range(T):
             by_beat = beat[b].topk(size).indices
+            spread = mean[b].argsort(descending=True)[torch.linspace(0, N - 1, 3 * size // 8).round().long()]
             quotas = (
                 (answered[b][: size // 8], size // 8),
-                (by_beat, size // 2),
-                (ucb[b].topk(size // 4).indices, size // 4),
-                (std[b].topk(size // 8).indices, size // 8),
+                (mean[b].topk(size // 8).indices, size // 8),
+                (by_beat, size // 8),
+                (ucb[b].topk(size // 8).indices, size // 8),
+                (straddle[b].topk(size // 8).indices, size // 8),
+                (spread, 3 * size // 8),
                 (by_beat, size),
             )
             kept: dict[int, None] = {}
@@ -232,7 +248,8 @@ class Shortlisted(Selector):
         T, N, d = X.shape
         if N <= self.size:
             return self._inner(model, X, list(indices), step, num_steps, generators)
-        rows = shortlist_rows(model, X, self.size, self.gamma, self.chunk)  # T x K
+        share = getattr(self.selector, "top_fraction", 0.2)
+        rows = shortlist_rows(model, X, self.size, self.gamma, self.chunk, share)  # T x K
         Xs = X.gather(1, rows.unsqueeze(-1).expand(*rows.shape, d))
         inner_idx = [rows[b] if indices[b] is None else indices[b][rows[b]] for b in range(T)]
         out = self._inner(model, Xs, inner_idx, step, num_steps, generators)
