@@ -106,7 +106,7 @@ def _beat_order(
 
     Since ``sd(f_i - f_b) <= s_i + s_b`` and ``mu_i <= mu_b``, ``z_i <= (mu_i - mu_b) / (s_i +
     s_b)``: the pairs' joint posteriors are computed in the order of that bound, a block at a time,
-    until the bound of the next item is below the ``size``-th largest exact score so far."""
+    until the bound of the next item is no larger than the ``size``-th largest exact score so far."""
     T, N, _ = X.shape
     tiny = torch.finfo(mean.dtype).tiny
     ar = torch.arange(T)
@@ -127,7 +127,7 @@ def _beat_order(
         if done >= N:
             break
         kth = z.topk(min(size, done), dim=-1).values[:, -1]  # T
-        if bool((bound.gather(1, order[:, done : done + 1]).squeeze(-1) < kth).all()):
+        if bool((bound.gather(1, order[:, done : done + 1]).squeeze(-1) <= kth).all()):
             break
     return z
 

@@ -251,6 +251,7 @@ class PreferenceSession:
         self._digest = header_digest(file_header)
         if not created:  # resumed: the file's settings must be this session's
             self._settings.check_header(file_header, self.path)
+            self._check_pool_records(file_header)
             self._queries = resumed_queries(file_header, gave_queries, self._queries, self.path)
             self.selector, self.model_factory = resume_settings(
                 file_header,
@@ -262,6 +263,20 @@ class PreferenceSession:
                 new_model=self._new_model,
                 migrate=migrate,
             )
+
+    def _check_pool_records(self, header: dict) -> None:
+        """A file whose header records its pool by reference: each answer's items are its pool rows
+        (what the file's format checks where the header holds the items)."""
+        if "items" in header["candidates"] or self._pool is None:
+            return
+        for rec in self._journal.records:
+            rows = getattr(rec, "pool_indices", None)
+            if rows:
+                items = torch.tensor(rec.items, dtype=torch.float64)
+                if max(rows) >= self._pool.shape[0] or not torch.equal(self._pool[list(rows)], items):
+                    raise SessionFileError(
+                        f"session file {self.path}, answer {rec.seq}: the items are not the pool's rows {list(rows)}."
+                    )
 
     def _new_header(self, metadata: dict | None) -> dict:
         """A new file's header: the settings, and the model and selector the session starts with."""
