@@ -121,6 +121,10 @@ __all__ = [
 ]
 
 
+PREDICT_CHUNK = 65536
+"""Rows per chunk of :meth:`PreferenceSession.predict`."""
+
+
 class ResumeOptions(TypedDict, total=False):
     """What :meth:`PreferenceSession.load` may be given besides the file and its candidates: the
     constructor's other keywords (the file's header gives the seed and bounds, and by default the
@@ -413,8 +417,10 @@ class PreferenceSession:
         """Posterior mean and standard deviation of the utility at the rows of ``X`` (``N x d``)."""
         X = as_items(X, self.dim, "X")
         with self._guarded(), torch.no_grad():
-            post = self.model.posterior(self.transform(X).unsqueeze(-2))
-        return post.mean.reshape(-1), post.variance.reshape(-1).clamp_min(0).sqrt()
+            Xt = self.transform(X)  # the marginals, a chunk of rows at a time (a large pool's too)
+            parts = [self.model.marginals(Xt[s : s + PREDICT_CHUNK]) for s in range(0, max(1, len(Xt)), PREDICT_CHUNK)]
+        mean, var = (torch.cat(t) for t in zip(*parts))
+        return mean, var.clamp_min(0).sqrt()
 
     def expected_rating(self, X: Tensor) -> Tensor:
         """Expected rating in ``[0, 1]`` at the rows of ``X`` (``N x d``) (eq. 11)."""
