@@ -40,6 +40,7 @@ are.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -75,7 +76,7 @@ def _marginals(model: SelectorModel, X: Tensor) -> tuple[Tensor, Tensor]:
     if isinstance(model, (PreferenceGP, BatchedPreferenceGP)):
         mean, var = model.marginals(X)
     else:  # any BoTorch model (T = 1)
-        post = model.posterior(X.unsqueeze(-2))
+        post: Any = model.posterior(X.unsqueeze(-2))  # any posterior with a mean and a variance
         mean, var = post.mean[..., 0, 0], post.variance[..., 0, 0]
     return mean.reshape(X.shape[:2]), var.reshape(X.shape[:2])
 
@@ -89,7 +90,7 @@ def _pairs(model: SelectorModel, X: Tensor, xb: Tensor) -> tuple[Tensor, Tensor]
         mean, cov = model._current()._predict(X2.transpose(0, 1).to(model.model.train_X))  # c x T x 2 (x 2)
         mean, cov = mean.transpose(0, 1), cov.transpose(0, 1)
     else:
-        post = model.posterior(X2[0])  # c x 2 x d: c posteriors of two points (T = 1)
+        post: Any = model.posterior(X2[0])  # c x 2 x d: c Gaussian posteriors of two points (T = 1)
         mean = post.mean[..., 0].unsqueeze(0)
         cov = post.distribution.covariance_matrix.unsqueeze(0)
     diff_mean = mean[..., 0] - mean[..., 1]
@@ -251,7 +252,7 @@ class Shortlisted(Selector):
         share = getattr(self.selector, "top_fraction", 0.2)
         rows = shortlist_rows(model, X, self.size, self.gamma, self.chunk, share)  # T x K
         Xs = X.gather(1, rows.unsqueeze(-1).expand(*rows.shape, d))
-        inner_idx = [rows[b] if indices[b] is None else indices[b][rows[b]] for b in range(T)]
+        inner_idx = [rows[b] if idx is None else idx[rows[b]] for b, idx in enumerate(indices)]
         out = self._inner(model, Xs, inner_idx, step, num_steps, generators)
         return [_without_rows(q) if indices[b] is None else q for b, q in enumerate(out)]
 

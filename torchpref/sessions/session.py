@@ -274,8 +274,8 @@ class PreferenceSession:
         if "items" in header["candidates"] or self._pool is None:
             return
         for rec in self._journal.records:
-            rows = getattr(rec, "pool_indices", None)
-            if rows:
+            if isinstance(rec, AnswerRecord) and rec.pool_indices:
+                rows = rec.pool_indices
                 items = torch.tensor(rec.items, dtype=torch.float64)
                 if max(rows) >= self._pool.shape[0] or not torch.equal(self._pool[list(rows)], items):
                     raise SessionFileError(
