@@ -26,8 +26,11 @@ second) on independent samples (``EVAL_SAMPLES`` of them: valued on its own samp
 choice would win by its own noise). The other generator's loss is the noise floor: what the exact
 selector gives up against itself.
 
-Writes ``results/large_pools/cost.json`` / ``cost.csv`` / ``cost.png`` and ``accuracy.json`` /
-``accuracy.csv``, stamped (load average included: timings under load are not a quiet machine's).
+``--serve``: ``torchpref serve``'s path in process over a features CSV of 10,000 and 100,000 rows
+(:func:`serve_path`).
+
+Writes ``results/large_pools/cost.json`` / ``cost.csv`` / ``cost.png``, ``accuracy.json`` /
+``accuracy.csv`` and ``serve.json`` / ``serve.csv``, stamped (load average included: timings under load are not a quiet machine's).
 
 Usage::
 
@@ -156,6 +159,58 @@ def accuracy_row(N: int, seed: int) -> dict:
     )  # fmt: skip
 
 
+def serve_path(N: int, d: int, folder: Path) -> dict:
+    """``torchpref serve``'s path over ``N`` items in process (Starlette's test client): reading a
+    ``N``-row features CSV, a new participant and the page's first question, 12 answers, the summary
+    page, its plot and the three downloads, each timed (wall seconds of the request), with the
+    participant's session file's size and the process's peak memory (the drawing process's not
+    included)."""
+    from torchpref.frontends.serve.items import items_from_csv
+    from torchpref.frontends.serve.store import SessionStore
+    from torchpref.testing.serve import serve_client
+
+    torch.set_num_threads(1)
+    g = torch.Generator().manual_seed(0)
+    X = torch.rand(N, d, generator=g, dtype=torch.float64)
+    csv_path = folder / "items.csv"
+    with open(csv_path, "w") as fh:
+        fh.write("id," + ",".join(f"f{k}" for k in range(d)) + "\n")
+        fh.writelines(f"item{i}," + ",".join(repr(v) for v in r) + "\n" for i, r in enumerate(X.tolist()))
+    out: dict = {"N": N, "d": d}
+    t = time.perf_counter()
+    items = items_from_csv(csv_path)
+    out["read_csv_s"] = time.perf_counter() - t
+    store = SessionStore(items, folder / "sessions", num_queries=14)
+    client = serve_client(store)
+
+    def timed(key: str, call):
+        t = time.perf_counter()
+        r = call()
+        out[key] = time.perf_counter() - t
+        if r.status_code != 200:
+            raise RuntimeError(f"{key}: {r.status_code} {r.text[:200]}")
+        return r
+
+    sid = timed("new_participant_s", lambda: client.post("/api/new", json={})).json()["sid"]
+    timed("first_page_s", lambda: client.get(f"/s/{sid}/"))
+    answers = []
+    for _ in range(12):
+        st = timed("state_s", lambda: client.get(f"/s/{sid}/state")).json()
+        body = {"qid": st["qid"], "answer": 4 if st["question"]["kind"] == "rating" else 0}
+        timed("answer_s", lambda: client.post(f"/s/{sid}/answer", json=body))
+        answers.append(out["answer_s"])
+    out["answer_median_s"], out["answer_max_s"] = sorted(answers)[6], max(answers)
+    timed("summary_s", lambda: client.get(f"/s/{sid}/summary"))
+    timed("utility_png_first_s", lambda: client.get(f"/s/{sid}/utility.png"))  # starts the drawing process
+    timed("utility_png_s", lambda: client.get(f"/s/{sid}/utility.png?x=0&y=2"))  # another plot, process warm
+    for what in ("session.jsonl", "answers.csv", "model.pt"):
+        timed(f"download_{what}_s", lambda: client.get(f"/s/{sid}/download/{what}"))
+    out["session_file_kb"] = store.path(sid).stat().st_size / 1024
+    out["peak_rss_mb"] = _rss_mb()
+    store.close()
+    return out
+
+
 def _spawn(args: list[str], timeout: float) -> dict | None:
     env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     try:
@@ -214,6 +269,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--one", nargs=4, metavar=("N", "D", "METHOD", "SEED"))
     ap.add_argument("--accuracy-one", nargs=2, metavar=("N", "SEED"))
     ap.add_argument("--accuracy", action="store_true")
+    ap.add_argument("--serve", action="store_true", help="time serve's path over 10,000 and 100,000 items")
+    ap.add_argument("--serve-one", nargs=2, metavar=("N", "D"))
     ap.add_argument("--sizes", type=int, nargs="+", default=SIZES)
     ap.add_argument("--dims", type=int, nargs="+", default=[4, 16])
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
@@ -225,14 +282,28 @@ def main(argv: list[str] | None = None) -> int:
     if args.one:
         print(json.dumps(one(int(args.one[0]), int(args.one[1]), args.one[2], int(args.one[3]))))
         return 0
+    if args.serve_one:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            print(json.dumps(serve_path(int(args.serve_one[0]), int(args.serve_one[1]), Path(tmp))))
+        return 0
     if args.accuracy_one:
         torch.set_num_threads(1)
         print(json.dumps(accuracy_row(int(args.accuracy_one[0]), int(args.accuracy_one[1]))))
         return 0
-    import torchpref.selection.shortlist  # noqa: F401  (loaded here so that the stamp names what the children ran)
+    import torchpref.selection.shortlist
     from torchpref.sessions.session import PreferenceSession  # noqa: F401
 
     load0 = os.getloadavg()
+    if args.serve:
+        import torchpref.frontends.serve.store  # noqa: F401  (for the stamp)
+
+        rows = [r for N in (10_000, 100_000) if (r := _spawn(["--serve-one", str(N), "4"], args.timeout))]
+        for r in rows:
+            print(r, flush=True)
+        _write("serve", rows, {"load_at_start": load0, "load_at_end": os.getloadavg(), "threads": 1})
+        return 0
     if args.accuracy:
         rows = []
         for N in (500, 1000, 2000):
