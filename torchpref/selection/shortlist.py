@@ -106,8 +106,9 @@ def _beat_order(
     and for every item whose bound could reach them, ``-inf`` for the others, ``+inf`` for ``b``.
 
     Since ``sd(f_i - f_b) <= s_i + s_b`` and ``mu_i <= mu_b``, ``z_i <= (mu_i - mu_b) / (s_i +
-    s_b)``: the pairs' joint posteriors are computed in the order of that bound, a block at a time,
-    until the bound of the next item is no larger than the ``size``-th largest exact score so far."""
+    s_b)``: the pairs' joint posteriors are computed in the order of that bound, a block at a time
+    (each twice the last, up to ``chunk``), until the bound of the next item is no larger than the
+    ``size``-th largest exact score so far."""
     T, N, _ = X.shape
     tiny = torch.finfo(mean.dtype).tiny
     ar = torch.arange(T)
@@ -115,8 +116,8 @@ def _beat_order(
     bound = (mean - mean[ar, best, None]) / (std + std[ar, best, None]).clamp_min(tiny)
     order = bound.argsort(-1, descending=True)  # T x N
     z = torch.full_like(mean, -torch.inf)
-    block = min(N, max(4 * size, 1024))
-    for start in range(0, N, block):
+    start, block = 0, max(4 * size, 1024)
+    while start < N:  # blocks doubling up to a chunk: few calls where the bound prunes little (high d)
         rows = order[:, start : start + block]  # T x B
         for s in range(0, rows.shape[1], chunk):
             r = rows[:, s : s + chunk]
@@ -124,12 +125,13 @@ def _beat_order(
             dm, dv = _pairs(model, Xr, xb)
             z.scatter_(1, r, dm / dv.clamp_min(tiny).sqrt())
         z[ar, best] = torch.inf
-        done = start + block
+        done = start + rows.shape[1]
         if done >= N:
             break
         kth = z.topk(min(size, done), dim=-1).values[:, -1]  # T
         if bool((bound.gather(1, order[:, done : done + 1]).squeeze(-1) <= kth).all()):
             break
+        start, block = done, min(2 * block, max(chunk, block))
     return z
 
 
