@@ -141,9 +141,11 @@ def _pool(folder: StudyFolder, spec: dict) -> torch.Tensor:
     items, checked against the recorded digest."""
     if "items" in spec:
         return torch.tensor(spec["items"], dtype=torch.float64)
-    from torchpref.study.server import study_items as serve_items
+    from torchpref.frontends.serve.items import items_from_csv
 
-    X = serve_items(folder).X
+    settings = folder.settings()  # a pool by reference is large: a features CSV's, never the lake's
+    csv_path = folder.path / "items.csv"
+    X = items_from_csv(csv_path, settings.get("id_column"), settings.get("image_column"), settings.get("image_dir")).X
     if X.shape[0] != spec.get("num_items") or pool_digest(X) != spec.get("sha256"):
         raise ValueError(f"the study {folder.path}'s items are not the pool its session files record (digest differs).")
     return X
