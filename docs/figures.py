@@ -785,6 +785,12 @@ for _name, _where in (
     FIGURES[f"large_pool_{_name}_cpu"] = Figure(_LP_COST, f"cpu_s@{_where}", "{:.2f} s")
     FIGURES[f"large_pool_{_name}_mem"] = Figure(_LP_COST, f"peak_rss_mb@{_where}", "{:,.0f} MB")
 
+_LP_SERVE = "large_pools/serve.csv"
+for _col in ("read_csv_s", "new_participant_s", "answer_median_s", "summary_s", "utility_png_s"):
+    FIGURES[f"large_pool_serve_{_col.removesuffix('_s')}"] = Figure(_LP_SERVE, f"{_col}@N=100000", "{:.2f} s")
+FIGURES["large_pool_serve_file_kb"] = Figure(_LP_SERVE, "session_file_kb@N=100000", "{:.0f} kB")
+FIGURES["large_pool_serve_load"] = Figure("large_pools/serve.json", "load_at_start.0", "{:.1f}")
+
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 
