@@ -134,7 +134,7 @@ def test_sessions_shortlist_large_pools_of_selectors_that_are_not_linear():
     big = SHORTLIST_ABOVE + 1
     assert isinstance(for_pool(default_selector(big), big), Shortlisted)
     assert not isinstance(for_pool(default_selector(SHORTLIST_ABOVE), SHORTLIST_ABOVE), Shortlisted)
-    assert not isinstance(for_pool(default_selector(None), None), Shortlisted)  # a box
+    assert not isinstance(for_pool(default_selector(None), None), Shortlisted)  # not known
     for linear in (UCBC(), RandomMixed()):
         assert for_pool(linear, 10**6) is linear
     wrapped = for_pool(default_selector(big), big)

@@ -282,10 +282,10 @@ def _without_rows(q: Query) -> Query:
 
 
 def for_pool(selector: Selector, num_items: int | None, above: int = SHORTLIST_ABOVE) -> Selector:
-    """``selector``, wrapped in :class:`Shortlisted` where the pool has more than ``above``
-    distinct items and its cost is not already linear in the pool (random selectors, UCB ratings,
-    :class:`~torchpref.UCBC`, or one with ``linear_in_pool = True``); a box (``None``) or a
-    selector already shortlisted is left as it is."""
+    """``selector``, wrapped in :class:`Shortlisted` where there are more than ``above``
+    candidates (a pool's distinct items, or a box's points per question) and its cost is not
+    already linear in them (random selectors, UCB ratings, :class:`~torchpref.UCBC`, or one with
+    ``linear_in_pool = True``); ``None`` (not known) or a selector already shortlisted is left as it is."""
     if num_items is None or num_items <= above or isinstance(selector, Shortlisted):
         return selector
     if isinstance(selector, _LINEAR) or getattr(selector, "linear_in_pool", False):

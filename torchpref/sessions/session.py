@@ -507,7 +507,7 @@ class PreferenceSession:
             return self._choose_from_list(self._queries, step, gen)
         X, idx = self._candidates.draw(gen)
         rows = torch.arange(X.shape[0])  # a pool draws each distinct item once (FinitePool)
-        selector = for_pool(self.selector, self._n_pool)  # a large pool: its shortlist (docs/selection.md)
+        selector = for_pool(self.selector, X.shape[0])  # many candidates: a shortlist (docs/selection.md)
         q = selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)
         if isinstance(q, RatingQuery) and idx is not None:  # never a second rating while unrated items are left
             keep = unrated_rows(idx, self._journal.in_force.values(), _row(q), getattr(self.selector, "m", 2))
