@@ -234,28 +234,10 @@ class Candidates:
 def first_unique_rows(X: Tensor) -> Tensor:
     """Indices of the first occurrence of each distinct row of ``X`` (``N x d``), in order:
     planners can return the same path twice, and a query must not show an item twice."""
-    group = _row_groups(X)
+    _, group = torch.unique(X, dim=0, return_inverse=True)
     rows = torch.arange(X.shape[0], device=X.device)
     first = torch.full((int(group.max()) + 1,), X.shape[0], device=X.device)
     return first.scatter_reduce(0, group, rows, reduce="amin").sort().values
-
-
-def _row_groups(X: Tensor) -> Tensor:
-    """A group number per row of ``X``, equal for equal rows: by a 64-bit hash of each row's bits
-    (one 1-D sort, not a sort of whole rows: 1,000,000 rows in a fraction of a second), checked
-    row by row against its group's first row; ``torch.unique(dim=0)`` where the hash collides."""
-    if X.dtype != torch.float64 or X.shape[0] < 2 or X.shape[-1] < 1:
-        return torch.unique(X, dim=0, return_inverse=True)[1]
-    bits = (X + 0.0).contiguous().view(torch.int64)  # + 0.0: -0.0 and 0.0 are one value
-    h = bits[:, 0].clone()
-    for j in range(1, bits.shape[1]):
-        h = (h * 1_000_003) ^ bits[:, j]  # wraps around: a hash, checked below
-    _, group = torch.unique(h, return_inverse=True)
-    rows = torch.arange(X.shape[0], device=X.device)
-    first = torch.full((int(group.max()) + 1,), X.shape[0], device=X.device).scatter_reduce(0, group, rows, "amin")
-    if bool((X[first[group]] == X).all()):
-        return group
-    return torch.unique(X, dim=0, return_inverse=True)[1]
 
 
 class FinitePool(Candidates):
@@ -270,11 +252,6 @@ class FinitePool(Candidates):
             raise ValueError(f"a pool must be N x d with N >= 1, got shape {tuple(X.shape)}.")
         self.X = X
         self._rows = first_unique_rows(X)
-
-    @property
-    def distinct_rows(self) -> Tensor:
-        """The first row of each distinct item, in order."""
-        return self._rows
 
     def draw(self, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         return self.X[self._rows], self._rows

@@ -209,7 +209,7 @@ class PreferenceSession:
         self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
         self.num_queries, self.num_levels, self.names = settings.num_queries, settings.num_levels, settings.names
         pool = self._candidates
-        self._n_pool = pool.distinct_rows.numel() if isinstance(pool, FinitePool) else None
+        self._n_pool = pool.draw(torch.Generator())[1].numel() if isinstance(pool, FinitePool) else None  # found once
         model_factory = population_factory(population, model_factory, settings.dim, settings.names)
         check_callables(selector, model_factory)
         self._lock, self._pid = threading.RLock(), os.getpid()
