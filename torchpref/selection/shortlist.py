@@ -24,11 +24,11 @@ instead of the pool, chosen in passes over the pool in chunks of ``chunk`` rows 
    pool's), then the next likeliest to beat the incumbent until ``size`` are kept.
 
 The wrapped selector then chooses among the shortlist exactly as it would among a pool of those
-items. What it can miss: a question worth most for an item outside all four rankings (an item
-neither likely to be best, nor plausibly good, nor among the most uncertain, e.g. a mediocre item
-whose rating would calibrate the middle of the scale); and a target defined relative to the pool
-(a top *share* of the candidates, as the clipped profile's) is computed on the shortlist, of
-which the share is a different set. docs/selection.md measures what the shortlist gives up
+items. What it can miss: a question worth most about an item in none of these rankings (a
+mid-ranked item away from the top share's edge whose answer would inform many others); and a
+target defined relative to the candidates (a top *share*, as the clipped profile's; the best
+rating's value that ``decide="sum"`` divides by) is computed on the shortlist, which the evenly
+spaced ranks keep close to the pool's but not equal. docs/selection.md measures what the shortlist gives up
 against the exact choice where that fits (``benchmarks/speed/large_pools.py``).
 
 Sessions apply it themselves where the pool has more than :data:`SHORTLIST_ABOVE` distinct items
