@@ -818,6 +818,31 @@ for _i, _n in enumerate((20, 50, 100, 200)):
             FIGURES[f"fast_person_{_task}_{_n}_{_side}"] = Figure(_FAST, f"person.{2 * _i + _j}.{_side}_cpu_s", "ms")
 FIGURES["fast_load_start"] = Figure(_FAST, "meta.load_average_at_start.0", "{:.1f}")
 
+# large pools: the shortlist's accuracy and the cost of a question (benchmarks/speed/large_pools.py)
+_LP_ACC, _LP_COST = "large_pools/accuracy.json", "large_pools/cost.csv"
+FIGURES["large_pool_acc_runs"] = Figure(_LP_ACC, "by_N.2000.runs")
+for _n in (500, 1000, 2000):
+    FIGURES[f"large_pool_acc_{_n}"] = Figure(_LP_ACC, f"by_N.{_n}.mean_given_up", "{:+.1%}")
+    FIGURES[f"large_pool_acc_{_n}_noise"] = Figure(_LP_ACC, f"by_N.{_n}.mean_other_seed_given_up", "{:+.1%}")
+    FIGURES[f"large_pool_acc_{_n}_same"] = Figure(_LP_ACC, f"by_N.{_n}.same_share", "{:.0%}")
+FIGURES["large_pool_load"] = Figure("large_pools/cost.json", "load_at_start.0", "{:.1f}")
+for _name, _where in (
+    ("100k", "N=100000,d=4,method=session"),
+    ("100k_d16", "N=100000,d=16,method=session"),
+    ("1m", "N=1000000,d=4,method=session"),
+    ("1m_d16", "N=1000000,d=16,method=session"),
+    ("exact_3000", "N=3000,d=4,method=exact"),
+    ("qeubo_100k", "N=100000,d=4,method=botorch_qeubo"),
+):
+    FIGURES[f"large_pool_{_name}_cpu"] = Figure(_LP_COST, f"cpu_s@{_where}", "{:.2f} s")
+    FIGURES[f"large_pool_{_name}_mem"] = Figure(_LP_COST, f"peak_rss_mb@{_where}", "{:,.0f} MB")
+
+_LP_SERVE = "large_pools/serve.csv"
+for _col in ("read_csv_s", "new_participant_s", "answer_median_s", "summary_s", "utility_png_s"):
+    FIGURES[f"large_pool_serve_{_col.removesuffix('_s')}"] = Figure(_LP_SERVE, f"{_col}@N=100000", "{:.2f} s")
+FIGURES["large_pool_serve_file_kb"] = Figure(_LP_SERVE, "session_file_kb@N=100000", "{:.0f} kB")
+FIGURES["large_pool_serve_load"] = Figure("large_pools/serve.json", "load_at_start.0", "{:.1f}")
+
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 

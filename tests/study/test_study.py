@@ -209,3 +209,28 @@ def test_cli_exports_and_reports_a_study(tmp_path, capsys):
     assert main(["study", "report", str(folder.path), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert "answers.csv" in out and (tmp_path / "out" / "report.html").is_file()
+
+
+def test_a_study_whose_session_files_record_the_pool_by_reference(tmp_path, monkeypatch):
+    """A large pool's headers hold its digest, not its items (here from 9 items on): the refit's data
+    are still the session model's, and the exports read the pool from the study's items.csv."""
+    from torchpref.sessions import settings
+    from torchpref.study.export import study_items as export_items
+    from torchpref.study.refit import person_data
+
+    monkeypatch.setattr(settings, "POOL_INLINE_MAX", 8)
+    folder, store, refits, key, client = _study(tmp_path)
+    c = client()
+    sid = _participant(c)
+    header, _, _ = read_session_file(store.path(sid))
+    assert "items" not in header["candidates"] and header["candidates"]["num_items"] == 16
+    data, _, n = person_data(store.path(sid))
+    model_data = store.entry(sid).session.model.data
+    assert n == KEY_Q
+    torch.testing.assert_close(data.train_X, model_data.train_X)
+    X, names = export_items(folder)
+    torch.testing.assert_close(X, store.entry(sid).session.transform(store.items.X))
+    assert len(answer_rows(folder)) == KEY_Q
+    _wait(refits)
+    refits.close()
+    store.close()

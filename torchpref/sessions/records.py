@@ -38,6 +38,7 @@ __all__ = [
     "parse_record",
     "check_new_record",
     "dumps_settings",
+    "pool_size",
     "records_in_force",
     "validate_header",
     "validate_records",
@@ -252,24 +253,32 @@ def validate_header(path: object, h: dict) -> None:
     spec = c.get("candidates")
     if not isinstance(spec, dict) or spec.get("kind") not in ("pool", "box"):
         c.fail(f"candidates must be {{'kind': 'pool' or 'box', ...}}, got {spec!r:.120}")
-    if spec["kind"] == "pool":
+    if spec["kind"] == "pool" and "items" not in spec:  # a large pool, by reference (its digest)
+        ref = _Line(c.where, spec)
+        ref.integer("num_items", lo=1)
+        c.matrix([spec.get("first_item")], "candidates' first_item", dim, 1, 1)
+        if not (isinstance(spec.get("sha256"), str) and len(spec["sha256"]) == 64):
+            c.fail(f"candidates' sha256 must be 64 hexadecimal digits, got {spec.get('sha256')!r:.80}")
+        pool = None
+    elif spec["kind"] == "pool":
         pool = c.matrix(spec.get("items"), "candidates' items", dim)
     else:
         c.bounds(spec.get("bounds"), "candidates' bounds", dim)
         _Line(c.where, spec).integer("num", lo=1)
         pool = None
     if h.get("queries") is not None:
-        _check_question_list(c, h["queries"], pool)
+        _check_question_list(c, h["queries"], pool if pool is not None or spec["kind"] != "pool" else spec["num_items"])
 
 
-def _check_question_list(c: _Line, queries: object, pool: list | None) -> None:
+def _check_question_list(c: _Line, queries: object, pool: list | int | None) -> None:
     """A header's ``"queries"``: a non-empty list of ``["rating", row]`` or ``["ranking", row,
-    row, ...]``, rows of the pool, distinct items within a question."""
+    row, ...]``, rows of the pool, distinct items within a question (a pool by reference, its
+    size: rows only; the session checks the items against its pool)."""
     if pool is None:
         c.fail("a question list ('queries') needs a pool of candidates, not a box")
     if not isinstance(queries, list) or not queries:
         c.fail(f"'queries' must be a non-empty list of questions, got {queries!r:.80}")
-    n = len(pool)
+    n = pool if isinstance(pool, int) else len(pool)
     for i, q in enumerate(queries):
         rows = q[1:] if isinstance(q, list) else []
         ok = (
@@ -277,7 +286,7 @@ def _check_question_list(c: _Line, queries: object, pool: list | None) -> None:
             and q[:1] in (["rating"], ["ranking"])
             and all(isinstance(r, int) and not isinstance(r, bool) and 0 <= r < n for r in rows)
             and (len(rows) == 1 if q[0] == "rating" else len(rows) >= 2)
-            and len({tuple(pool[r]) for r in rows}) == len(rows)
+            and (isinstance(pool, int) or len({tuple(pool[r]) for r in rows}) == len(rows))
         )
         if not ok:
             c.fail(
@@ -337,15 +346,22 @@ def _check_query(c: _Line, q, kind: str, m: int, header: dict) -> None:
     if idx is None:
         return
     spec = header["candidates"]
-    n = len(spec["items"]) if spec["kind"] == "pool" else 0
+    n = pool_size(spec)
     if not (
         isinstance(idx, list)
         and len(idx) == m
         and all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < n for i in idx)
     ):
         c.fail(f"pool_indices must be {m} rows of the pool of {n} items, got {idx!r:.80}")
-    if any(spec["items"][i] != row for i, row in zip(idx, c.rec["items"], strict=True)):
+    if "items" in spec and any(spec["items"][i] != row for i, row in zip(idx, c.rec["items"], strict=True)):
         c.fail(f"the items are not the pool's rows {idx}")
+
+
+def pool_size(spec: dict) -> int:
+    """The number of items of a header's candidates: a pool's (written out or by reference), 0 for a box."""
+    if spec.get("kind") != "pool":
+        return 0
+    return len(spec["items"]) if "items" in spec else int(spec["num_items"])
 
 
 def validate_records(path: object, header: dict, records: list[dict], first_line: int = 2) -> None:

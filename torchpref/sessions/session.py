@@ -45,13 +45,13 @@ from torchpref.data.queries import (
     Query,
     RankingQuery,
     RatingQuery,
-    first_unique_rows,
     record_answer,
 )
 from torchpref.models.preference_gp import PreferenceGP
 from torchpref.population.model import Population
 from torchpref.selection.choosing import query_items
 from torchpref.selection.defaults import default_selector
+from torchpref.selection.shortlist import for_pool
 from torchpref.selection.strategies import Selector
 from torchpref.sessions.errors import (  # noqa: F401  (the errors stay importable from here, as before)
     SessionFileChanged,
@@ -119,6 +119,10 @@ __all__ = [
     "read_session_file",
     "step_generator",
 ]
+
+
+PREDICT_CHUNK = 65536
+"""Rows per chunk of :meth:`PreferenceSession.predict`."""
 
 
 class ResumeOptions(TypedDict, total=False):
@@ -204,7 +208,8 @@ class PreferenceSession:
         self._settings, self._candidates = settings, settings.candidates
         self.dim, self.bounds, self.seed = settings.dim, settings.bounds, settings.seed
         self.num_queries, self.num_levels, self.names = settings.num_queries, settings.num_levels, settings.names
-        self._n_pool = first_unique_rows(self._pool).numel() if self._pool is not None else None
+        pool = self._candidates
+        self._n_pool = pool.draw(torch.Generator())[1].numel() if isinstance(pool, FinitePool) else None  # found once
         model_factory = population_factory(population, model_factory, settings.dim, settings.names)
         check_callables(selector, model_factory)
         self._lock, self._pid = threading.RLock(), os.getpid()
@@ -250,6 +255,7 @@ class PreferenceSession:
         self._digest = header_digest(file_header)
         if not created:  # resumed: the file's settings must be this session's
             self._settings.check_header(file_header, self.path)
+            self._check_pool_records(file_header)
             self._queries = resumed_queries(file_header, gave_queries, self._queries, self.path)
             self.selector, self.model_factory = resume_settings(
                 file_header,
@@ -261,6 +267,20 @@ class PreferenceSession:
                 new_model=self._new_model,
                 migrate=migrate,
             )
+
+    def _check_pool_records(self, header: dict) -> None:
+        """A file whose header records its pool by reference: each answer's items are its pool rows
+        (what the file's format checks where the header holds the items)."""
+        if "items" in header["candidates"] or self._pool is None:
+            return
+        for rec in self._journal.records:
+            if isinstance(rec, AnswerRecord) and rec.pool_indices:
+                rows = rec.pool_indices
+                items = torch.tensor(rec.items, dtype=torch.float64)
+                if max(rows) >= self._pool.shape[0] or not torch.equal(self._pool[list(rows)], items):
+                    raise SessionFileError(
+                        f"session file {self.path}, answer {rec.seq}: the items are not the pool's rows {list(rows)}."
+                    )
 
     def _new_header(self, metadata: dict | None) -> dict:
         """A new file's header: the settings, and the model and selector the session starts with."""
@@ -397,8 +417,10 @@ class PreferenceSession:
         """Posterior mean and standard deviation of the utility at the rows of ``X`` (``N x d``)."""
         X = as_items(X, self.dim, "X")
         with self._guarded(), torch.no_grad():
-            post = self.model.posterior(self.transform(X).unsqueeze(-2))
-        return post.mean.reshape(-1), post.variance.reshape(-1).clamp_min(0).sqrt()
+            Xt = self.transform(X)  # the marginals, a chunk of rows at a time (a large pool's too)
+            parts = [self.model.marginals(Xt[s : s + PREDICT_CHUNK]) for s in range(0, max(1, len(Xt)), PREDICT_CHUNK)]
+        mean, var = (torch.cat(t) for t in zip(*parts))
+        return mean, var.clamp_min(0).sqrt()
 
     def expected_rating(self, X: Tensor) -> Tensor:
         """Expected rating in ``[0, 1]`` at the rows of ``X`` (``N x d``) (eq. 11)."""
@@ -485,12 +507,13 @@ class PreferenceSession:
             return self._choose_from_list(self._queries, step, gen)
         X, idx = self._candidates.draw(gen)
         rows = torch.arange(X.shape[0])  # a pool draws each distinct item once (FinitePool)
-        q = self.selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)
+        selector = for_pool(self.selector, X.shape[0])  # many candidates: a shortlist (docs/selection.md)
+        q = selector.select(self.model, self.transform(X), rows, step, self.num_queries, gen)
         if isinstance(q, RatingQuery) and idx is not None:  # never a second rating while unrated items are left
             keep = unrated_rows(idx, self._journal.in_force.values(), _row(q), getattr(self.selector, "m", 2))
             if keep is not None:
                 X, idx = X[keep], idx[keep]
-                q = self.selector.select(self.model, self.transform(X), rows[: len(keep)], step, self.num_queries, gen)
+                q = selector.select(self.model, self.transform(X), rows[: len(keep)], step, self.num_queries, gen)
         if isinstance(q, RatingQuery):
             r = _row(q)
             return RatingQuery(X[r], None if idx is None else int(idx[r]))

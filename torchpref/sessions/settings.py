@@ -36,6 +36,7 @@ from torchpref.version import __version__
 
 __all__ = [
     "MAX_REDRAWS",
+    "POOL_INLINE_MAX",
     "SessionAnswer",
     "SessionSettings",
     "as_items",
@@ -43,6 +44,8 @@ __all__ = [
     "as_time",
     "default_ranking_size",
     "default_session_model",
+    "pool_digest",
+    "pool_spec",
     "step_generator",
     "unrated_rows",
 ]
@@ -147,8 +150,11 @@ def as_items(X: object, dim: int, name: str) -> Tensor:
         t = t.unsqueeze(0)
     if t.dim() != 2 or t.shape[-1] != dim:
         raise ValueError(f"{name} must be m x {dim}, got shape {tuple(t.shape)}.")
-    if not torch.isfinite(t).all():
-        raise ValueError(f"{name} must be finite, got {t.tolist()}.")
+    finite = torch.isfinite(t).all(-1)
+    if not finite.all():
+        bad = torch.nonzero(~finite).reshape(-1)
+        more = f" ({bad.numel()} rows are not)" if bad.numel() > 1 else ""
+        raise ValueError(f"{name} must be finite: row {int(bad[0])} is {t[bad[0]].tolist()}{more}.")
     return t
 
 
@@ -167,7 +173,9 @@ def _candidates_spec(candidates) -> tuple[Candidates, dict, Tensor, Tensor]:
         candidates = FinitePool(as_items(candidates, candidates.shape[-1], "candidates"))
     if isinstance(candidates, FinitePool):
         pool = as_items(candidates.X, candidates.X.shape[-1], "the pool's items").to(torch.float64)
-        return FinitePool(pool), {"kind": "pool", "items": pool.tolist()}, pool.min(0).values, pool.max(0).values
+        if pool is not candidates.X:  # not already float64 N x d: a pool of the converted items
+            candidates = FinitePool(pool)
+        return candidates, pool_spec(pool), pool.min(0).values, pool.max(0).values
     if isinstance(candidates, BoxCandidates):
         b = candidates.bounds.to(torch.float64)
         spec = {"kind": "box", "bounds": b.tolist(), "num": candidates.num}
@@ -175,10 +183,34 @@ def _candidates_spec(candidates) -> tuple[Candidates, dict, Tensor, Tensor]:
     raise TypeError(f"candidates must be a tensor, FinitePool or BoxCandidates, got {type(candidates).__name__}.")
 
 
+POOL_INLINE_MAX = 10_000
+"""A session file's header writes out a pool of at most this many items; a larger pool is recorded
+by reference (:func:`pool_spec`): its size, first item and digest."""
+
+
+def pool_digest(pool: Tensor) -> str:
+    """The SHA-256 of a pool's float64 values (row by row, little-endian): what a header records
+    of a pool larger than :data:`POOL_INLINE_MAX`."""
+    data = pool.to(torch.float64).contiguous().numpy()
+    return hashlib.sha256(data.astype("<f8", copy=False).tobytes()).hexdigest()
+
+
+def pool_spec(pool: Tensor) -> dict:
+    """A pool as a header records it: its items, or for more than :data:`POOL_INLINE_MAX` items
+    ``{"kind": "pool", "num_items": N, "first_item": [...], "sha256": ...}`` (a 100,000-item pool
+    written out is 8 MB per session file and as much again in memory per open session; the items
+    are given again when the session is resumed, and checked against the digest)."""
+    if pool.shape[0] <= POOL_INLINE_MAX:
+        return {"kind": "pool", "items": pool.tolist()}
+    return {"kind": "pool", "num_items": pool.shape[0], "first_item": pool[0].tolist(), "sha256": pool_digest(pool)}
+
+
 def _describe(spec) -> str:
     """A header's candidates in a few words (a pool by its size and digest)."""
     if not isinstance(spec, dict):
         return repr(spec)
+    if spec.get("kind") == "pool" and "items" not in spec:
+        return f"(a pool of {spec.get('num_items')} items, digest {str(spec.get('sha256'))[:10]})"
     if spec.get("kind") == "pool":
         items = spec.get("items") or []
         digest = hashlib.sha256(json.dumps(items).encode()).hexdigest()[:10]
@@ -189,6 +221,11 @@ def _describe(spec) -> str:
 def candidates_from_header(header: dict) -> Tensor | BoxCandidates:
     """The candidates a session file's header describes: a pool's items or a box."""
     spec = header["candidates"]
+    if spec["kind"] == "pool" and "items" not in spec:
+        raise ValueError(
+            f"this session file records its pool of {spec['num_items']} items by reference (digest "
+            f"{spec['sha256'][:10]}), not its items: pass them, PreferenceSession.load(path, candidates=X)."
+        )
     if spec["kind"] == "pool":
         return torch.tensor(spec["items"], dtype=torch.float64)
     return BoxCandidates(torch.tensor(spec["bounds"], dtype=torch.float64), spec["num"])
@@ -303,6 +340,8 @@ class SessionSettings:
             ("num_levels", self.num_levels),
         )
         for key, mine in settings:
+            if key == "candidates" and _same_pool(h[key], self):
+                continue
             if dumps_settings(h[key]) != dumps_settings(mine):
                 theirs = h[key]
                 if key == "candidates":
@@ -314,6 +353,21 @@ class SessionSettings:
                     str(theirs),
                     str(mine),
                 )
+
+
+def _same_pool(recorded: object, settings: SessionSettings) -> bool:
+    """Whether a header's pool is this session's when one of the two specs is by reference and
+    the other written out (a large pool's file from before references, or the other way round)."""
+    if not (
+        isinstance(recorded, dict) and recorded.get("kind") == "pool" and isinstance(settings.candidates, FinitePool)
+    ):
+        return False
+    if ("items" in recorded) == ("items" in settings.spec):
+        return False  # the same form: compared as they are
+    pool = settings.candidates.X
+    if "items" in recorded:
+        return dumps_settings(recorded) == dumps_settings({"kind": "pool", "items": pool.tolist()})
+    return recorded.get("sha256") == pool_digest(pool) and recorded.get("num_items") == pool.shape[0]
 
 
 def unrated_rows(pool_rows: Tensor, in_force: Iterable[AnswerRecord], chosen: int, m: int) -> Tensor | None:

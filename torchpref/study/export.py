@@ -23,6 +23,7 @@ import torch
 
 from torchpref.sessions.journal import read_session_file
 from torchpref.sessions.records import AnswerRecord, UndoRecord, parse_record
+from torchpref.sessions.settings import pool_digest
 from torchpref.study.folder import StudyFolder
 
 __all__ = ["ANSWER_COLUMNS", "answer_rows", "export", "participant_rows", "population_rows"]
@@ -135,11 +136,26 @@ def _write(rows: list[dict], path: Path, columns: list[str] | None = None) -> li
     return out + [path.with_suffix(".parquet")]
 
 
+def _pool(folder: StudyFolder, spec: dict) -> torch.Tensor:
+    """A header's pool: its items, or for a pool recorded by reference (a large one) the study's
+    items, checked against the recorded digest."""
+    if "items" in spec:
+        return torch.tensor(spec["items"], dtype=torch.float64)
+    from torchpref.frontends.serve.items import items_from_csv
+
+    settings = folder.settings()  # a pool by reference is large: a features CSV's, never the lake's
+    csv_path = folder.path / "items.csv"
+    X = items_from_csv(csv_path, settings.get("id_column"), settings.get("image_column"), settings.get("image_dir")).X
+    if X.shape[0] != spec.get("num_items") or pool_digest(X) != spec.get("sha256"):
+        raise ValueError(f"the study {folder.path}'s items are not the pool its session files record (digest differs).")
+    return X
+
+
 def study_items(folder: StudyFolder) -> tuple[torch.Tensor, list[str]]:
     """The study's items in the unit cube its models see, and the features' names (from a session
     file's header; the pool's range otherwise)."""
     for _, header, _ in _sessions(folder):
-        pool = torch.tensor(header["candidates"]["items"], dtype=torch.float64)
+        pool = _pool(folder, header["candidates"])
         lo, hi = torch.tensor(header["bounds"], dtype=torch.float64)
         return (pool - lo) / (hi - lo), list(header.get("names") or [f"x{k + 1}" for k in range(pool.shape[1])])
     raise ValueError(f"the study {folder.path} has no participants yet: nothing to export.")

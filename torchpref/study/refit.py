@@ -50,7 +50,8 @@ def person_data(path: Path) -> tuple[PreferenceData, dict, int]:
         raise ValueError(f"session file {path} is empty.")
     in_force = [AnswerRecord.from_json(r) for r in records_in_force(raw)]
     lo, hi = torch.tensor(header["bounds"], dtype=torch.float64)
-    pool = torch.tensor(header["candidates"]["items"], dtype=torch.float64)
+    spec = header["candidates"]  # the first item anchors the model (a large pool's header has it alone)
+    pool = torch.tensor(spec["items"][:1] if "items" in spec else [spec["first_item"]], dtype=torch.float64)
 
     def transform(X: torch.Tensor) -> torch.Tensor:
         return (X - lo) / (hi - lo)

@@ -35,6 +35,8 @@ IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg",
 
 _MAGIC = ((b"\x89PNG\r\n\x1a\n", "image/png"), (b"\xff\xd8\xff", "image/jpeg"), (b"GIF8", "image/gif"))
 CACHE_SIZE = 512
+PROGRESS_ROWS = 20_000
+"""Checking more image files than this shows a progress bar on standard error (about a second)."""
 PLOT_LOCK = threading.RLock()
 """Held while a picture or plot is made: matplotlib's state is shared by the server's threads."""
 
@@ -97,7 +99,7 @@ class ServeItems:
         X = torch.as_tensor(self.X, dtype=torch.float64)
         if X.dim() != 2 or X.shape[0] < 2 or not torch.isfinite(X).all():
             raise ValueError(f"items must be an N x d tensor of finite values with N >= 2, got shape {tuple(X.shape)}.")
-        if torch.unique(X, dim=0).shape[0] < 2:
+        if not bool((X != X[0]).any()):  # every row the first one
             raise ValueError("need at least two distinct items to elicit preferences.")
         self.X = X
         self.names = [printable(n) for n in (self.names or [f"x{k + 1}" for k in range(X.shape[1])])]
@@ -216,7 +218,8 @@ def _image_files(path: Path, header: list[str], rows: list[dict], column: str, i
     if not root.is_dir():
         raise FeaturesError(f"--image-dir {image_dir}: not a folder.")
     files = []
-    for i, row in enumerate(rows, start=2):
+    bar = tqdm(rows, desc="image files", unit="row", file=sys.stderr, disable=len(rows) < PROGRESS_ROWS, leave=False)
+    for i, row in enumerate(bar, start=2):
         name = row[column].strip()
         target = (root / name).resolve()
         where = f"{path}, row {i}, column {printable(column)!r}"

@@ -59,7 +59,9 @@ def draw_utility(data: dict[str, Any]) -> bytes:
             ax.set_ylabel(data["ylabel"])
         ax.set_xlabel(data["xlabel"])
         ax.legend(loc="best", fontsize=8)
-        ax.set_title(f"Learned utility from {data['step']} answers")
+        shown, of = len(data["xs"]), data.get("of", len(data["xs"]))
+        part = f" ({shown:,} of {of:,} items drawn)" if shown < of else ""
+        ax.set_title(f"Learned utility from {data['step']} answers{part}")
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
