@@ -83,7 +83,7 @@ SELECTORS = (
     "clipped profile",
     "combination",
     "combination (profile)",
-    "information + profile",  # the default (torchpref.default_selector)
+    "information + profile",  # issue 41's default (issue 50's: torchpref.default_selector)
     "qEUBO",
 )
 BASELINE = "random mixed"
