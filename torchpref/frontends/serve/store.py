@@ -188,10 +188,20 @@ class SessionStore:
         """The session file of ``sid``."""
         return self.directory / f"{sid}.session.jsonl"
 
-    def create(self) -> str:
-        """A new participant's session (its file written now); returns its id."""
+    def create(self, participant: str | None = None) -> str:
+        """A new participant's session (its file written now); returns its id. ``participant``: the
+        id a recruitment platform gave them (``?participant=`` of their link), recorded in the
+        header's metadata.
+
+        Raises:
+            AnswerRefused: (400) a ``participant`` that is not 1-128 printable characters.
+        """
         if self.fixed:
             raise AnswerRefused("this server serves one session only; no new sessions.", 403)
+        if participant is not None and not (
+            isinstance(participant, str) and 0 < len(participant) <= 128 and participant.isprintable()
+        ):
+            raise AnswerRefused(f"a participant id must be 1-128 printable characters, got {participant!r:.80}.", 400)
         self.pool.check_room()  # 503 before anything is made when descriptors or memory run short
         with self._lock:
             for _ in range(100):
@@ -201,7 +211,7 @@ class SessionStore:
             else:  # pragma: no cover - 2^-96 per try
                 raise RuntimeError("could not draw a new session id")
             try:
-                session = self._open(sid)
+                session = self._open(sid, None if participant is None else {"participant": participant})
             except BaseException as exc:
                 self._discard(sid)  # no empty session file left behind
                 if isinstance(exc, Exception) and _resource_error(exc):
@@ -263,14 +273,21 @@ class SessionStore:
     def on_finished(self, sid: str) -> None:
         """Called when session ``sid``'s last question is answered (a study refits its population)."""
 
+    def completion(self) -> dict | None:
+        """What a participant who has answered every question is shown besides the thanks: a
+        completion ``code`` and an address to go on to (``redirect``); ``None`` here, a study's own."""
+        return None
+
     def session_settings(self, sid: str) -> dict:
         """The settings session ``sid`` is opened (or created) with."""
         return dict(self._kwargs)
 
-    def _open(self, sid: str) -> PreferenceSession:
+    def _open(self, sid: str, metadata: dict | None = None) -> PreferenceSession:
         # the selector: a new session's is the default (torchpref.default_selector), a resumed one's
-        # the one its header records
+        # the one its header records; ``metadata``: more for a new session's header
         kwargs = dict(self.session_settings(sid), session_file=self.path(sid), repair=True)
+        if metadata:
+            kwargs["metadata"] = {**kwargs["metadata"], **metadata}
         with warnings.catch_warnings(record=True) as caught:  # a partial last line: never acknowledged
             warnings.simplefilter("always")
             session = PreferenceSession(self.items.X, **kwargs)
@@ -352,6 +369,8 @@ class SessionStore:
         if s.step > 0:
             i, x = s.best_item()
             out["recommended"] = self._option(i, x)
+        if q is None and self.completion() is not None:
+            out["completion"] = self.completion()
         return out
 
     # ------------------------------------------------------------- answers
