@@ -32,6 +32,7 @@ from torchpref.models.defaults import PreferenceLikelihood, default_covar_module
 from torchpref.population.hosts import host_for, workers_of
 from torchpref.population.inducing import METHODS, choose_items
 from torchpref.population.joint import Gradient, Shards, newton
+from torchpref.population.lbfgs import FitStartError, minimise
 from torchpref.population.memory import ShardSize, check_memory, estimate_peak, gigabytes, shard_transient
 from torchpref.population.model import Population
 from torchpref.population.people import Items, by_rows, check_people, shard_bounds, shard_data, warn_outside_unit_cube
@@ -219,18 +220,22 @@ class Objective:
         return T - T.detach()
 
 
-def _lbfgs(loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, bar: tqdm) -> None:
-    """Minimise ``loss_fn()`` in ``params`` with L-BFGS (strong Wolfe line search)."""
-    opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_change=1e-9)
+def _lbfgs(objective: Objective, params: list[Tensor], max_iter: int, bar: tqdm) -> None:
+    """Minimise the objective with L-BFGS (strong Wolfe line search), a step meeting a non-finite
+    evidence or a matrix that is not positive definite rejected (:func:`~torchpref.population.lbfgs.minimise`)."""
+    minimise(objective, params, max_iter, bar, lambda: _describe_kernels(objective.kernels))
 
-    def closure() -> Tensor:
-        opt.zero_grad()
-        loss = loss_fn()
-        loss.backward()
-        bar.update()
-        return loss
 
-    opt.step(closure)
+def _describe_kernels(k: _Kernels) -> str:
+    """The kernels' lengthscales and outputscales in a few words (for an error)."""
+    out = []
+    for name, kernel in (("k_m", k.k_m), ("k_g", k.k_g)):
+        ls = getattr(getattr(kernel, "base_kernel", kernel), "lengthscale", None)
+        os_ = getattr(kernel, "outputscale", None)
+        parts = [] if ls is None else [f"lengthscale {[float(f'{v:.3g}') for v in ls.detach().flatten().tolist()]}"]
+        parts += [] if os_ is None else [f"outputscale {float(os_.detach()):.3g}"]
+        out.append(f"{name}: {', '.join(parts) or type(kernel).__name__}")
+    return "; ".join(out)
 
 
 def _refuse_fork(executor: object) -> None:
@@ -375,6 +380,11 @@ def fit_population(
     bar.close()
     last = objective.last
     assert last is not None
+    if not math.isfinite(last.evidence):
+        raise FitStartError(
+            f"the population's evidence is not finite ({last.evidence}) at the hyperparameters "
+            f"({_describe_kernels(objective.kernels)}): start from longer lengthscales, or from the default kernels."
+        )
     k = objective.kernels
     return Population.from_mode(
         k.k_m,
