@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import importlib
-import json
 import os
 import signal
 import sys

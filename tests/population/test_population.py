@@ -5,9 +5,9 @@ import torch
 from gpytorch.kernels import AdditiveKernel
 
 import torchpref
-from torchpref.models.recipe import DEFAULT_MODEL
 from torchpref.data.preference_data import PreferenceData
 from torchpref.models.defaults import default_covar_module
+from torchpref.models.recipe import DEFAULT_MODEL
 from torchpref.population.fit import fit_population, population_objective
 from torchpref.population.joint import newton
 from torchpref.population.shards import Basis

@@ -19,12 +19,12 @@ pytest.importorskip("matplotlib")
 from torchpref.frontends.serve.app import NewSessions, PoolLimits, create_app
 from torchpref.population.io import load_population
 from torchpref.sessions.journal import read_session_file
-from torchpref.study.export import answer_rows, export
 from torchpref.study.create import create_study
+from torchpref.study.export import answer_rows, export
+from torchpref.study.items import study_items
 from torchpref.study.page import study_routes
 from torchpref.study.refit import RefitRunner, finished_participants, refit
 from torchpref.study.report import report
-from torchpref.study.items import study_items
 from torchpref.study.store import StudyStore, experimenter_key
 from torchpref.testing.serve import TEST_BASE_URL, choose, write_items
 

@@ -22,7 +22,7 @@ pytest.importorskip("starlette", reason="the serve extra (starlette) is not inst
 pytest.importorskip("httpx", reason="starlette's test client needs httpx")
 pytest.importorskip("matplotlib")
 
-from torchpref.frontends.serve.app import NewSessions, PoolLimits, create_app
+from torchpref.frontends.serve.app import PoolLimits, create_app
 from torchpref.study.create import create_study
 from torchpref.study.export import csv_cell, export, table_bytes
 from torchpref.study.folder import StudyFolder

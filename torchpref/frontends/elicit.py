@@ -32,9 +32,9 @@ from torch import Tensor
 from torchpref.data.features import FeaturesError, printable, read_features_csv
 from torchpref.data.queries import Query, RankingQuery, first_unique_rows
 from torchpref.selection.defaults import named_selector
+from torchpref.sessions.contents import read_session_header
 from torchpref.sessions.errors import SessionFileCorrupt, SessionFileError, SessionMismatchError
 from torchpref.sessions.query_list import read_question_list
-from torchpref.sessions.contents import read_session_header
 from torchpref.sessions.session import PreferenceSession
 
 if TYPE_CHECKING:

@@ -57,9 +57,20 @@ class ModelSettings:
     rating_levels: int | None = None
 
     def __post_init__(self) -> None:
-        for name in ("lengthscale", "outputscale", "comparison_noise", "rating_scale", "rating_precision", "tie_threshold"):
+        for name in (
+            "lengthscale",
+            "outputscale",
+            "comparison_noise",
+            "rating_scale",
+            "rating_precision",
+            "tie_threshold",
+        ):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (math.isfinite(value) and value > 0)
+            ):
                 raise ValueError(f"{name} must be a finite positive number, got {value!r}.")
             object.__setattr__(self, name, float(value))
         eps = self.rating_eps
@@ -127,7 +138,9 @@ class ModelSettings:
         names = {f.name for f in fields(cls)}
         unknown = sorted(set(obj) - names)
         if unknown:
-            raise ValueError(f"unknown model setting(s) {', '.join(unknown)}; the settings are {', '.join(sorted(names))}.")
+            raise ValueError(
+                f"unknown model setting(s) {', '.join(unknown)}; the settings are {', '.join(sorted(names))}."
+            )
         legacy = {"tie_threshold": 0.1, "ties_offered": False, "rating_eps": DEFAULT_RATING_EPS}
         return cls(**{**{k: v for k, v in legacy.items() if k not in obj}, **obj})
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import math
 import numbers
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Any
@@ -227,6 +227,18 @@ def _lbfgs(objective: Objective, params: list[Tensor], max_iter: int, bar: tqdm)
     minimise(objective, params, max_iter, bar, lambda: _describe_kernels(objective.kernels))
 
 
+def _finite_last(objective: Objective) -> Evaluation:
+    """The objective's last evaluation, whose evidence must be finite (else a :class:`FitStartError` naming the kernels)."""
+    last = objective.last
+    assert last is not None
+    if not math.isfinite(last.evidence):
+        raise FitStartError(
+            f"the population's evidence is not finite ({last.evidence}) at the hyperparameters "
+            f"({_describe_kernels(objective.kernels)}): start from longer lengthscales, or from the default kernels."
+        )
+    return last
+
+
 def _describe_kernels(k: _Kernels) -> str:
     """The kernels' lengthscales and outputscales in a few words (for an error)."""
     out = []
@@ -391,13 +403,7 @@ def fit_population(
     with torch.no_grad():
         objective(with_gradient=False)
     bar.close()
-    last = objective.last
-    assert last is not None
-    if not math.isfinite(last.evidence):
-        raise FitStartError(
-            f"the population's evidence is not finite ({last.evidence}) at the hyperparameters "
-            f"({_describe_kernels(objective.kernels)}): start from longer lengthscales, or from the default kernels."
-        )
+    last = _finite_last(objective)
     k = objective.kernels
     return Population.from_mode(
         k.k_m,

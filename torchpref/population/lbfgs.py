@@ -30,7 +30,9 @@ RESTARTS = 3
 """How many times a search whose step was rejected starts again from the best point (each with half the step)."""
 
 
-def minimise(loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, bar, describe: Callable[[], str]) -> int:
+def minimise(
+    loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, bar, describe: Callable[[], str]
+) -> int:
     """Minimise ``loss_fn()`` in ``params`` with L-BFGS; returns the number of steps rejected. After a
     rejected step the search starts again from the best point so far, with half the step length, at
     most :data:`RESTARTS` times (then it stops there).

@@ -149,7 +149,9 @@ class SessionContents:
         else:
             factory = recorded_model_factory(desc, self.header.dim)
             if factory is None:
-                raise settings_error(self.path, "model", desc, {}, "this version cannot build it without its population")
+                raise settings_error(
+                    self.path, "model", desc, {}, "this version cannot build it without its population"
+                )
             model = factory(self.anchor)
         if self.in_force:
             model.replace_data(self.data)

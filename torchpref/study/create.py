@@ -65,8 +65,8 @@ def check_settings(settings: dict[str, object]) -> dict[str, object]:
         raise ValueError(f"completion_code must be 1-64 printable characters, got {code!r:.80}.")
     url = s["redirect_url"]
     if url is not None:
-        parts = urllib.parse.urlsplit(url) if isinstance(url, str) else None
-        if parts is None or parts.scheme not in ("http", "https") or not parts.netloc or not url.isprintable():
+        parts = urllib.parse.urlsplit(url) if isinstance(url, str) and url.isprintable() else None
+        if parts is None or parts.scheme not in ("http", "https") or not parts.netloc:
             raise ValueError(f"redirect_url must be an http:// or https:// address, got {url!r:.120}.")
     return s
 
@@ -123,12 +123,16 @@ def create_study(
         settings = folder.settings()
         theirs = settings.get("world")
         if world is not None and theirs != world:
-            raise ValueError(f"{folder.path} is a study of {theirs or 'a CSV of items'}, not of {world}. {_way_out(folder)}")
+            raise ValueError(
+                f"{folder.path} is a study of {theirs or 'a CSV of items'}, not of {world}. {_way_out(folder)}"
+            )
         if items is not None and theirs is not None:
             raise ValueError(f"{folder.path} is a study of the {theirs}, not of {items}. {_way_out(folder)}")
         if items is not None and Path(items).resolve() != (folder.path / "items.csv").resolve():
             if Path(items).read_bytes() != (folder.path / "items.csv").read_bytes():
-                raise ValueError(f"{folder.path} is a study of other items than {items} (its items.csv differs). {_way_out(folder)}")
+                raise ValueError(
+                    f"{folder.path} is a study of other items than {items} (its items.csv differs). {_way_out(folder)}"
+                )
         _check_same(folder, settings, given, {"id_column": id_column, "image_column": image_column})
         folder.secure()
         return folder
@@ -138,9 +142,7 @@ def create_study(
         left = sorted(p.name for p in folder.path.iterdir() if not _leftover(p))
         if left:
             shown = ", ".join(left[:5]) + (", ..." if len(left) > 5 else "")
-            raise ValueError(
-                f"{folder.path} exists and is not a study (it holds {shown}): give a new or empty folder."
-            )
+            raise ValueError(f"{folder.path} exists and is not a study (it holds {shown}): give a new or empty folder.")
     if items is not None and not Path(items).is_file():
         raise ValueError(f"the items file {items} does not exist (or is not a file): check the --features path.")
     settings_in = check_settings(given)
@@ -148,18 +150,18 @@ def create_study(
         check()  # the items read whole before anything is written
     for d in (folder.path, folder.sessions, folder.populations, folder.exports):
         private_dir(d)
-    settings: dict[str, object] = {"format": FORMAT, "version": VERSION, "created": now(), "world": world}
+    new: dict[str, object] = {"format": FORMAT, "version": VERSION, "created": now(), "world": world}
     if items is not None:
         shutil.copyfile(items, folder.path / "items.csv")
         make_private(folder.path / "items.csv")
         src = Path(items).resolve()
-        settings.update(
+        new.update(
             id_column=id_column,
             image_column=image_column,
             image_dir=str(Path(image_dir).resolve()) if image_dir is not None else str(src.parent),
         )
-    settings.update(settings_in)
-    write_json_atomically(folder.path / "study.json", settings)
+    new.update(settings_in)
+    write_json_atomically(folder.path / "study.json", new)
     folder.log("created", items=str(items) if items is not None else world)
     return folder
 

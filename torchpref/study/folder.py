@@ -268,7 +268,10 @@ class StudyFolder:
         try:
             pop, problem = load_population(f), None
         except (OSError, ValueError) as err:
-            pop, problem = None, f"the population version {version} does not load ({type(err).__name__}: {str(err)[:160]})"
+            pop, problem = (
+                None,
+                f"the population version {version} does not load ({type(err).__name__}: {str(err)[:160]})",
+            )
         self._cache[("sig", version)], self._cache[("problem", version)], self._cache[key] = sig, problem, pop
         return problem
 

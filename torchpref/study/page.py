@@ -144,7 +144,8 @@ def _page(folder: StudyFolder, store: StudyStore) -> str:
     events = [
         e
         for e in folder.events()
-        if e.get("event") in ("refit", "refit failed", "refit stopped", "refit worker lost", "finished", "population pointer")
+        if e.get("event")
+        in ("refit", "refit failed", "refit stopped", "refit worker lost", "finished", "population pointer")
     ]
     rows = "".join(
         f"<tr><td>{esc(str(p['participant']))}</td><td>{esc(str(p['participant_id']))}</td>"

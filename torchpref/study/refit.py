@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import fcntl
+import json
 import os
 import subprocess
 import sys
@@ -98,9 +98,7 @@ def worker_command(folder: StudyFolder) -> tuple[list[str], str]:
     here = {os.path.realpath(os.getcwd()), ""}
     root = str(Path(torchpref.__file__).resolve().parent.parent)
     paths = [root] + [p for p in sys.path if p and os.path.realpath(p) not in here and p != root and os.path.isdir(p)]
-    boot = (
-        f"import sys; sys.path[:0] = {paths!r}; from torchpref.study.refit import main; sys.exit(main(sys.argv[1:]))"
-    )
+    boot = f"import sys; sys.path[:0] = {paths!r}; from torchpref.study.refit import main; sys.exit(main(sys.argv[1:]))"
     return [sys.executable, "-I", "-c", boot, str(folder.path.resolve()), "--serve"], str(folder.populations)
 
 
@@ -212,7 +210,9 @@ class RefitRunner:
                     self._ask()
             words = line.split()
             if line.startswith("done") and len(words) >= 4 and words[1].startswith("v"):
-                self.say(f"torchpref study: population {words[1]} in force: {words[2]} participants, fitted in {words[3]} s")
+                self.say(
+                    f"torchpref study: population {words[1]} in force: {words[2]} participants, fitted in {words[3]} s"
+                )
             elif line.startswith("failed"):
                 self.say(f"torchpref study: a refit failed ({line[7:].strip()}); the previous population stays")
         code = proc.wait()

@@ -73,7 +73,10 @@ def run(args: argparse.Namespace) -> int:
     world = args.world
     given = _given(args)
     if world is not None:
-        print(f"Building the lake scenario (seed {given.get('seed', 0)}; cached after the first time) ...", file=sys.stderr)
+        print(
+            f"Building the lake scenario (seed {given.get('seed', 0)}; cached after the first time) ...",
+            file=sys.stderr,
+        )
 
     def check() -> None:  # the items read whole before a new study's folder is written
         if world is None:
