@@ -21,7 +21,7 @@ from torch import Tensor
 from torchpref.data.preference_data import DEFAULT_RATING_EPS
 from torchpref.models.defaults import LikelihoodSettings, PreferenceLikelihood, default_covar_module
 
-__all__ = ["DEFAULT_MODEL", "ModelSettings"]
+__all__ = ["DEFAULT_MODEL", "NO_TIES_OFFERED", "ModelSettings"]
 
 
 @dataclass(frozen=True)
@@ -151,3 +151,6 @@ class ModelSettings:
 
 DEFAULT_MODEL = ModelSettings()
 """The person model of a session and of a population, unless told otherwise."""
+NO_TIES_OFFERED = DEFAULT_MODEL.with_(ties_offered=False)
+"""The default person model for answers given without a "no preference" option (recorded data
+sets of choices): a strict choice is then the probit comparison, not the tie model's upper category."""
