@@ -293,7 +293,7 @@ def test_a_study_records_and_honours_its_selector(tmp_path):
     c.get(f"/study/?key={key}")
     page = c.get("/study/").text
     assert "<strong>random</strong> selector" in page and "random rating or best-of-m" in page
-    with pytest.raises(ValueError, match="selector='random'.*serve it as it is"):
+    with pytest.raises(ValueError, match="selector='random'.*Serve it as it is"):
         create_study(folder.path, items=folder.path / "items.csv", selector="ucbc")
     refits.close()
     store.close()

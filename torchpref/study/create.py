@@ -73,7 +73,7 @@ def check_settings(settings: dict[str, object]) -> dict[str, object]:
 
 def _way_out(folder: StudyFolder) -> str:
     has_people = folder.sessions.is_dir() and any(folder.sessions.glob("*.session.jsonl"))
-    keep = f"serve it as it is with 'torchpref study serve {folder.path}' (its own items and settings)"
+    keep = f"Serve it as it is with 'torchpref study serve {folder.path}' (its own items and settings)"
     if has_people:
         return f"{keep}, or create a new study in another folder."
     return f"{keep}; it has no participants yet, so you may also delete the folder {folder.path} and create it again."

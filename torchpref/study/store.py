@@ -106,7 +106,15 @@ class StudyStore(SessionStore):
             count = len(self._finished)
         self.folder.log("finished", participant=sid)
         self.refits.request()
-        self.say(f"torchpref study: participant {sid} finished ({count} finished); the population is being refitted")
+        header = read_session_header(self.path(sid))
+        link_id = None if header is None else header.metadata.get("participant")
+        who = sid if not isinstance(link_id, str) else f"{sid} ({link_id!r})"
+        then = (
+            "the population is being refitted"
+            if count >= MIN_PEOPLE
+            else f"a population is fitted once {MIN_PEOPLE} have"
+        )
+        self.say(f"torchpref study: participant {who} finished ({count} finished); {then}")
 
 
 def experimenter_key(folder: StudyFolder) -> str:
