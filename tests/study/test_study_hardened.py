@@ -226,6 +226,19 @@ def test_a_damaged_current_json_falls_back_to_the_newest_loadable_version(fitted
         assert c.get(f"/s/{sid}/state").status_code == 200
         refits.close()
         store.close()
+        # the population a session started from, damaged later: its reopening is a 503 saying so, logged
+        saved = v1.read_bytes()
+        try:
+            v1.write_bytes(saved[:200])
+            store, refits = _store(StudyFolder(folder.path))
+            r = _client(store, experimenter_key(folder)).get(f"/s/{sid}/state")
+            assert r.status_code == 503 and "population v1" in r.json()["error"]
+            assert any(e["event"] == "session population unusable" for e in folder.events())
+            refits.close()
+            store.close()
+        finally:
+            v1.write_bytes(saved)
+        (folder.sessions / f"{sid}.session.jsonl").unlink()
     finally:
         pointer_file.write_text(good)
         (folder.populations / "v0002.pt").unlink(missing_ok=True)

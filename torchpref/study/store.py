@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 from torchpref.frontends.serve.items import ServeItems
 from torchpref.frontends.serve.pool import PoolLimits
-from torchpref.frontends.serve.store import NewSessions, SessionStore
+from torchpref.frontends.serve.store import AnswerRefused, NewSessions, SessionStore
 from torchpref.population.model import Population
 from torchpref.sessions.contents import read_session_header
 from torchpref.study.export import study_sessions
@@ -78,7 +78,16 @@ class StudyStore(SessionStore):
             version = None if pointer is None else pointer.version
         base = super().session_settings(sid)
         metadata = dict(base["metadata"], study_population=version)
-        return dict(base, population=self._population(version), metadata=metadata)
+        try:
+            population = self._population(version)
+        except (OSError, ValueError) as err:  # a session's own population gone or damaged: said, not a 500
+            self.folder.log("session population unusable", participant=sid, version=version, why=str(err)[:300])
+            raise AnswerRefused(
+                f"session {sid} started from population v{version}, which cannot be loaded now ({str(err)[:200]}); "
+                "the experimenter has been told (the study's log).",
+                503,
+            ) from None
+        return dict(base, population=population, metadata=metadata)
 
     def create(self, participant: str | None = None) -> str:
         """A new participant's session (its file mode 0600)."""
