@@ -40,6 +40,7 @@ from torchpref.sessions.records import (
     parse_record,
     records_in_force,
 )
+from torchpref.sessions.settings import to_unit_cube
 
 if TYPE_CHECKING:
     from torchpref.population.model import Population
@@ -94,8 +95,7 @@ class SessionContents:
 
     def transform(self, X: Tensor) -> Tensor:
         """Items (``... x d``) in the unit cube of the header's bounds, as the session's model sees them."""
-        lo, hi = self.header.bounds_tensor
-        return (X.to(torch.float64) - lo) / (hi - lo)
+        return to_unit_cube(X, self.header.bounds_tensor)
 
     @cached_property
     def pool(self) -> Tensor | None:

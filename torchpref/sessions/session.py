@@ -104,6 +104,7 @@ from torchpref.sessions.settings import (
     default_session_model,
     population_factory,
     step_generator,
+    to_unit_cube,
     unrated_rows,
 )
 
@@ -371,8 +372,7 @@ class PreferenceSession:
     # ----------------------------------------------------------------- model
     def transform(self, X: Tensor) -> Tensor:
         """Items (``... x d``) normalised by :attr:`bounds` to the unit cube, as the model sees them."""
-        lo, hi = self.bounds
-        return (X.to(torch.float64) - lo) / (hi - lo)
+        return to_unit_cube(X, self.bounds)
 
     @property
     def model(self) -> PreferenceGP:

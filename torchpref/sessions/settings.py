@@ -126,6 +126,14 @@ def default_session_model(train_X: Tensor) -> PreferenceGP:
     return DEFAULT_MODEL.session_model(train_X)
 
 
+def to_unit_cube(X: Tensor, bounds: Tensor) -> Tensor:
+    """Items (``... x d``) normalised by ``bounds`` (``2 x d``) to the unit cube: what a session's
+    model sees (:meth:`~torchpref.PreferenceSession.transform`,
+    :meth:`~torchpref.sessions.contents.SessionContents.transform`)."""
+    lo, hi = bounds
+    return (X.to(torch.float64) - lo) / (hi - lo)
+
+
 def as_items(X: object, dim: int, name: str) -> Tensor:
     """``X`` as an ``m x dim`` float64 tensor of finite numbers (a ``dim`` vector is one row).
 
@@ -288,6 +296,10 @@ class SessionSettings:
             created=now(),
             torchpref=__version__,
         ).to_json()
+
+    def transform(self, X: Tensor) -> Tensor:
+        """Items in the unit cube of :attr:`bounds` (:func:`to_unit_cube`)."""
+        return to_unit_cube(X, self.bounds)
 
     def check_header(self, h: SessionHeader, path: object) -> None:
         """Raise :class:`~torchpref.sessions.errors.SessionMismatchError` where the header ``h`` of the file

@@ -41,6 +41,8 @@ PRIVATE_FILE = 0o600
 """The mode of every file the study writes: what the experimenter's key guards is nobody else's."""
 PRIVATE_DIR = 0o700
 """The mode of the study's folders."""
+KEEP_LOADED = 3
+"""How many loaded population versions a :class:`StudyFolder` keeps (the newest)."""
 
 
 def write_private(path: Path, data: bytes) -> None:
@@ -240,8 +242,7 @@ class StudyFolder:
         why = problem or "it is missing"
         for v in reversed(versions):
             if self._load_problem(v) is None:
-                pop = self._cache.get(("pop", v))
-                people = _participants_of(pop)
+                people = _participants_of(self._cache.get(("pop", v)) or load_population(self.version_path(v)))
                 self._report(f"population/current.json is not usable ({why}): using v{v:04d}, the newest that loads.")
                 return Pointer(v, people, fallback=why)
         self._report(f"population/current.json is not usable ({why}) and no population version loads: none is used.")
@@ -273,6 +274,9 @@ class StudyFolder:
                 f"the population version {version} does not load ({type(err).__name__}: {str(err)[:160]})",
             )
         self._cache[("sig", version)], self._cache[("problem", version)], self._cache[key] = sig, problem, pop
+        loaded = sorted(k[1] for k, v in self._cache.items() if k[0] == "pop" and v is not None)
+        for old in loaded[:-KEEP_LOADED]:  # a long-lived worker or server keeps a few, not every version
+            self._cache[("pop", old)] = None
         return problem
 
     def versions(self) -> list[int]:

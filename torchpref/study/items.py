@@ -57,8 +57,7 @@ def study_space(folder: StudyFolder, items: ServeItems | None = None) -> StudySp
             break
         except (OSError, ValueError):
             continue
-    if unit is None:
-        lo, hi = SessionSettings.validated(X, None, 0, 1, None, None).bounds
-        unit = (X - lo) / (hi - lo)
+    if unit is None:  # no session yet: the cube a new session of these items gets
+        unit = SessionSettings.validated(X, None, 0, 1, None, None).transform(X)
     labels = list(items.labels) if items.labels is not None else [f"#{i + 1}" for i in range(X.shape[0])]
     return StudySpace(X, unit, labels, list(items.names))
