@@ -13,10 +13,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gpytorch.kernels import ScaleKernel
 from torch import Tensor
+
+if TYPE_CHECKING:
+    from torchpref.models.preference_gp import PreferenceGP
 
 from torchpref.data.preference_data import DEFAULT_RATING_EPS
 from torchpref.models.defaults import LikelihoodSettings, PreferenceLikelihood, default_covar_module
@@ -113,7 +116,7 @@ class ModelSettings:
             rating_levels=self.rating_levels,
         )
 
-    def session_model(self, train_X: Tensor):
+    def session_model(self, train_X: Tensor) -> PreferenceGP:
         """A session's model on ``train_X`` (the anchor item): :class:`~torchpref.PreferenceGP` with
         :meth:`kernel` and these settings, all fixed."""
         from torchpref.models.preference_gp import PreferenceGP

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from typing import Protocol
 
 import torch
 from linear_operator.utils.errors import NotPSDError
@@ -16,6 +17,12 @@ from torch import Tensor
 __all__ = ["FitStartError", "minimise"]
 
 log = logging.getLogger("torchpref.population")
+
+
+class Progress(Protocol):
+    """What counts the evaluations (a tqdm bar): ``update()`` once per evaluation."""
+
+    def update(self) -> object: ...
 
 
 class FitStartError(ValueError):
@@ -77,7 +84,7 @@ def minimise(
                 return rejected
 
 
-def _step(opt, loss_fn, params: list[Tensor], bar, best: list, evaluations: list[int]) -> None:
+def _step(opt, loss_fn, params: list[Tensor], bar: Progress, best: list, evaluations: list[int]) -> None:
     """One L-BFGS run of ``opt``; every finite evaluation better than ``best`` is kept there."""
 
     def closure() -> Tensor:
