@@ -38,7 +38,7 @@ RESTARTS = 3
 
 
 def minimise(
-    loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, bar, describe: Callable[[], str]
+    loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, bar: Progress, describe: Callable[[], str]
 ) -> int:
     """Minimise ``loss_fn()`` in ``params`` with L-BFGS; returns the number of steps rejected. After a
     rejected step the search starts again from the best point so far, with half the step length, at
