@@ -15,7 +15,7 @@ from torchpref.selection.combined import InformationAndProfile
 from torchpref.selection.strategies import UCBC, InformationPerEffort, RandomMixed, Selector
 from torchpref.simulation.raters import EffortModel
 
-__all__ = ["SELECTOR_DESCRIPTIONS", "SELECTOR_NAMES", "default_ranking_size", "default_selector", "named_selector"]
+__all__ = ["SELECTOR_NAMES", "default_ranking_size", "default_selector", "named_selector"]
 
 
 def default_ranking_size(num_items: int | None) -> int:
@@ -45,14 +45,6 @@ _NAMED: dict[str, Callable[[int | None], Selector]] = {
     "random": lambda n: RandomMixed(m=default_ranking_size(n)),
 }
 SELECTOR_NAMES = tuple(_NAMED)
-#: name -> what the selector asks, in a few words (the study's experimenter page shows it)
-SELECTOR_DESCRIPTIONS: dict[str, str] = {
-    "default": "each question (a rating or a best-of-m choice) valued by the expected information about the "
-    "utility and the clipped profile's expected variance reduction, per second of the participant's effort",
-    "ucbc": "the paper's UCBC: best-of-m rankings early, ratings late",
-    "information": "the question of the most expected information about the utility per second of effort",
-    "random": "a random rating or best-of-m choice, even odds (a baseline)",
-}
 
 
 def named_selector(name: str, num_items: int | None = None) -> Selector:

@@ -12,7 +12,6 @@ import html
 import io
 from typing import TYPE_CHECKING
 
-from torchpref.selection.defaults import SELECTOR_DESCRIPTIONS
 from torchpref.study.export import participant_rows, table_bytes
 from torchpref.study.folder import StudyFolder
 from torchpref.study.items import study_space
@@ -25,6 +24,14 @@ if TYPE_CHECKING:  # starlette is the serve extra: imported where the routes are
 __all__ = ["KEY_COOKIE", "study_routes"]
 
 KEY_COOKIE = "torchpref_study"
+#: the selectors a study may name (``--selector``; torchpref.selection.defaults.named_selector) and what they ask
+SELECTOR_DESCRIPTIONS: dict[str, str] = {
+    "default": "each question (a rating or a best-of-m choice) valued by the expected information about the "
+    "utility and the clipped profile's expected variance reduction, per second of the participant's effort",
+    "ucbc": "the paper's UCBC: best-of-m rankings early, ratings late",
+    "information": "the question of the most expected information about the utility per second of effort",
+    "random": "a random rating or best-of-m choice, even odds (a baseline)",
+}
 DOWNLOADS = {
     "answers.csv": "text/csv",
     "participants.csv": "text/csv",
