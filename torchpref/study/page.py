@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 from torchpref.study.export import participant_rows, table_bytes
 from torchpref.study.folder import StudyFolder
 from torchpref.study.items import study_space
-from torchpref.study.report import report_html
+from torchpref.study.report import plain, report_html
 from torchpref.study.store import StudyStore
 
 if TYPE_CHECKING:  # starlette is the serve extra: imported where the routes are made
@@ -103,7 +103,7 @@ def _population_png(folder: StudyFolder, version: int) -> bytes:
     space = study_space(folder)
     pop = folder.population(version, names=space.names)
     assert pop is not None
-    X, names = space.unit, space.names
+    X, names = space.unit, [plain(n) for n in space.names]
     with torch.no_grad():
         post = pop.person_model(X).posterior(X.unsqueeze(-2))
     mean, sd = post.mean.reshape(-1), post.variance.reshape(-1).clamp_min(0).sqrt()

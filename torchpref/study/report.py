@@ -43,6 +43,12 @@ def participant_utilities(folder: StudyFolder, space: StudySpace | None = None) 
     return out
 
 
+def plain(text: str) -> str:
+    """``text`` as matplotlib draws it literally: a ``$`` (which would start mathematics, and a
+    malformed formula in an item's name or a participant's id would fail the figure) escaped."""
+    return text.replace("$", r"\$")
+
+
 def _mean(model: PreferenceGP, X: torch.Tensor) -> torch.Tensor:
     with torch.no_grad():
         return model.posterior(X.unsqueeze(-2)).mean.reshape(-1)
@@ -65,7 +71,7 @@ def _figures(folder: StudyFolder, space: StudySpace, answers, people, utilities,
     Figure = require("matplotlib.figure", "the study report", "plot").Figure  # no pyplot: safe in a server's thread
     figs: list[tuple[str, str]] = []
     pointer = folder.current()
-    X, raw, names = space.unit, space.X, space.names
+    X, raw, names = space.unit, space.X, [plain(n) for n in space.names]
     if pointer is not None and X.shape[1] >= 2:
         pop = folder.population(pointer.version, names=names)
         assert pop is not None
@@ -81,7 +87,7 @@ def _figures(folder: StudyFolder, space: StudySpace, answers, people, utilities,
         figs.append(("The population's utility and its spread over the items", _png(fig)))
     if utilities:
         sids = list(utilities)
-        tick = [who[s] for s in sids]
+        tick = [plain(who[s]) for s in sids]
         U = torch.stack([utilities[s] for s in sids])
         order = U.mean(0).argsort(descending=True)
         fig = Figure(figsize=(10, 0.3 * len(sids) + 1.5))
@@ -91,7 +97,7 @@ def _figures(folder: StudyFolder, space: StudySpace, answers, people, utilities,
         ax.set_yticklabels(tick, fontsize=7)
         if len(order) <= 40:
             ax.set_xticks(range(len(order)))
-            ax.set_xticklabels([space.labels[int(i)] for i in order], rotation=90, fontsize=6)
+            ax.set_xticklabels([plain(space.labels[int(i)]) for i in order], rotation=90, fontsize=6)
         fig.colorbar(im, ax=ax, label="learned utility")
         figs.append(("Each participant's learned utility at every item", _png(fig)))
         if len(sids) >= 2:
@@ -112,7 +118,7 @@ def _figures(folder: StudyFolder, space: StudySpace, answers, people, utilities,
     colours = ["C7" if r["status"] == "abandoned" else "C1" for r in people]
     ax[1].bar(range(len(counts)), counts, color=colours)
     ax[1].set_xticks(range(len(counts)))
-    ax[1].set_xticklabels([who[r["participant"]] for r in people], rotation=90, fontsize=6)
+    ax[1].set_xticklabels([plain(who[r["participant"]]) for r in people], rotation=90, fontsize=6)
     ax[1].set(ylabel="answers in force", title="questions answered per participant (grey: abandoned)")
     figs.append(("Seconds per answer and questions per participant", _png(fig)))
     return figs
