@@ -21,6 +21,8 @@ from torchpref.study.store import StudyStore
 if TYPE_CHECKING:  # starlette is the serve extra: imported where the routes are made
     from starlette.requests import Request
 
+    from torchpref.frontends.serve.items import ServeItems
+
 __all__ = ["KEY_COOKIE", "study_routes"]
 
 KEY_COOKIE = "torchpref_study"
@@ -76,7 +78,7 @@ def study_routes(store: StudyStore, key: str) -> list:
             return PlainTextResponse("no population yet", 404)
         v = pointer.version
         if v not in pngs:
-            pngs[v] = _population_png(folder, v)
+            pngs[v] = _population_png(folder, v, store.items)
         return Response(pngs[v], media_type="image/png", headers={"Cache-Control": "no-store"})
 
     def download(request):
@@ -84,7 +86,8 @@ def study_routes(store: StudyStore, key: str) -> list:
         if what not in DOWNLOADS:
             return PlainTextResponse("no such download", 404)
         # built in memory for this request: two downloads at once never share (or empty) a file
-        data = report_html(folder).encode() if what == "report.html" else table_bytes(folder, what)
+        space = study_space(folder, store.items)  # the server's items: not read again
+        data = report_html(folder, space).encode() if what == "report.html" else table_bytes(folder, what, space)
         headers = {"Content-Disposition": f'attachment; filename="{what}"', "Cache-Control": "no-store"}
         return Response(data, media_type=DOWNLOADS[what], headers=headers)
 
@@ -96,11 +99,11 @@ def study_routes(store: StudyStore, key: str) -> list:
     ]
 
 
-def _population_png(folder: StudyFolder, version: int) -> bytes:
+def _population_png(folder: StudyFolder, version: int, items: ServeItems | None = None) -> bytes:
     import torch
     from matplotlib.figure import Figure
 
-    space = study_space(folder)
+    space = study_space(folder, items)
     pop = folder.population(version, names=space.names)
     assert pop is not None
     X, names = space.unit, [plain(n) for n in space.names]

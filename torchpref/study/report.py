@@ -124,10 +124,11 @@ def _figures(folder: StudyFolder, space: StudySpace, answers, people, utilities,
     return figs
 
 
-def report_html(folder: StudyFolder) -> str:
-    """The report's page (module docstring), built in memory."""
+def report_html(folder: StudyFolder, space: StudySpace | None = None) -> str:
+    """The report's page (module docstring), built in memory (``space``: the study's items, read
+    from the folder if not given)."""
     esc = html.escape
-    space = study_space(folder)
+    space = space if space is not None else study_space(folder)
     answers = answer_rows(folder, space)
     utilities = participant_utilities(folder, space)
     parts = participant_rows(folder)
