@@ -17,7 +17,7 @@ from pathlib import Path
 from torchpref.selection.defaults import SELECTOR_NAMES
 from torchpref.study.folder import FORMAT, VERSION, StudyFolder, make_private, now, private_dir, write_json_atomically
 
-__all__ = ["DEFAULTS", "check_settings", "create_study"]
+__all__ = ["DEFAULTS", "check_settings", "create_study", "way_out"]
 
 DEFAULTS: dict[str, object] = {
     "num_queries": 14,
@@ -71,7 +71,9 @@ def check_settings(settings: dict[str, object]) -> dict[str, object]:
     return s
 
 
-def _way_out(folder: StudyFolder) -> str:
+def way_out(folder: StudyFolder) -> str:
+    """What a researcher can do about a study that does not serve as asked: serve it as it is, or
+    (without participants yet) delete it and create it again."""
     has_people = folder.sessions.is_dir() and any(folder.sessions.glob("*.session.jsonl"))
     keep = f"Serve it as it is with 'torchpref study serve {folder.path}' (its own items and settings)"
     if has_people:
@@ -87,7 +89,7 @@ def _check_same(folder: StudyFolder, settings: dict, given: dict[str, object], i
         if value != mine:
             raise ValueError(
                 f"{folder.path} is a study created with {key}={mine!r}, and this serve gives {key}={value!r}: "
-                f"a study's settings do not change once created. {_way_out(folder)}"
+                f"a study's settings do not change once created. {way_out(folder)}"
             )
 
 
@@ -124,14 +126,14 @@ def create_study(
         theirs = settings.get("world")
         if world is not None and theirs != world:
             raise ValueError(
-                f"{folder.path} is a study of {theirs or 'a CSV of items'}, not of {world}. {_way_out(folder)}"
+                f"{folder.path} is a study of {theirs or 'a CSV of items'}, not of {world}. {way_out(folder)}"
             )
         if items is not None and theirs is not None:
-            raise ValueError(f"{folder.path} is a study of the {theirs}, not of {items}. {_way_out(folder)}")
+            raise ValueError(f"{folder.path} is a study of the {theirs}, not of {items}. {way_out(folder)}")
         if items is not None and Path(items).resolve() != (folder.path / "items.csv").resolve():
             if Path(items).read_bytes() != (folder.path / "items.csv").read_bytes():
                 raise ValueError(
-                    f"{folder.path} is a study of other items than {items} (its items.csv differs). {_way_out(folder)}"
+                    f"{folder.path} is a study of other items than {items} (its items.csv differs). {way_out(folder)}"
                 )
         _check_same(folder, settings, given, {"id_column": id_column, "image_column": image_column})
         folder.secure()

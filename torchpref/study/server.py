@@ -101,7 +101,17 @@ def run(args: argparse.Namespace) -> int:
 
 def _serve(args: argparse.Namespace, folder: StudyFolder, lock: ServerLock) -> int:
     settings = folder.settings()
-    items = study_items(folder)
+    try:
+        items = study_items(folder)
+    except (OSError, ValueError) as err:  # its items (or their pictures) no longer read: say how out
+        people = folder.sessions.is_dir() and any(folder.sessions.glob("*.session.jsonl"))
+        fix = (
+            "restore the files they name (the images the study was created with)"
+            if people
+            else f"restore the files they name, or delete the folder {folder.path} (it has no participants yet) "
+            "and create it again"
+        )
+        raise ValueError(f"the study {folder.path}'s items cannot be read ({err}): {fix}.") from None
     new = new_sessions(folder, items)
     limits = PoolLimits(max_open=args.max_open, idle_close=args.idle_close, finished_close=args.finished_close)
     refits = RefitRunner(folder, timeout=args.refit_timeout, say=lambda line: print(line, flush=True))
