@@ -17,6 +17,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
+import torch
 
 pytest.importorskip("starlette", reason="the serve extra (starlette) is not installed")
 pytest.importorskip("httpx", reason="starlette's test client needs httpx")
@@ -285,11 +286,29 @@ def test_everything_the_key_guards_is_private(fitted):
 
 
 def test_the_report_names_participants_and_items(fitted):
-    from torchpref.study.report import report_html
+    from torchpref.study.report import participant_utilities, report_html
 
     folder, sids = fitted
     page = report_html(folder)
     assert "-P1+" in page and "3 finished" in page and page.count("data:image/png;base64,") >= 4
+    # a participant who started from the population: the report rebuilds their session's own model
+    dead = RefitRunner(folder, command=([sys.executable, "-c", "import sys; sys.stdin.read()"], str(folder.path)))
+    store, _ = _store(StudyFolder(folder.path), dead)
+    c = _client(store, experimenter_key(folder))
+    later = _participant(c, answers=2)
+    try:
+        with store.entry(later).lock:
+            session = store.entry(later).session
+            X = session.transform(study_items(folder).X)
+            expected = session.model.posterior(X.unsqueeze(-2)).mean.reshape(-1).detach()
+        assert session.model.mean_module is not None  # the population's person model
+        got = participant_utilities(StudyFolder(folder.path))[later]
+        assert torch.allclose(got, expected, atol=1e-8)
+    finally:
+        dead.close()
+        store.close()
+        for f in folder.sessions.glob(f"{later}.*"):
+            f.unlink()
 
 
 # -------------------------------------------------------------- serve settings
