@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import importlib
-import json
 import os
 import signal
 import sys
@@ -385,11 +384,21 @@ def _study_parser(sub) -> None:
     sv.add_argument("--id", dest="id_column", metavar="COLUMN", help="the CSV column that names the items")
     sv.add_argument("--image-column", metavar="COLUMN", help="the CSV column naming each item's image file")
     sv.add_argument("--image-dir", metavar="DIR", help="the folder of the images (default: the CSV's folder)")
-    sv.add_argument("--queries", type=positive_int, default=14, help="questions per participant (default 14)")
+    sv.add_argument("--queries", type=positive_int, default=None, help="questions per participant (default 14)")
     _selector_arg(sv)
-    sv.add_argument("--levels", type=positive_int, default=5, help="rating levels 1..K (default 5)")
+    sv.add_argument("--levels", type=positive_int, default=None, help="rating levels 1..K (default 5)")
     sv.add_argument("--no-ties", action="store_true", help="no 'no preference' button")
-    sv.add_argument("--seed", type=int, default=0, help="seed of the sessions (and of the lake; default 0)")
+    sv.add_argument("--seed", type=int, default=None, help="seed of the sessions (and of the lake; default 0)")
+    sv.add_argument(
+        "--completion-code",
+        metavar="CODE",
+        help="shown to each participant once they have answered every question (a recruitment platform's code)",
+    )
+    sv.add_argument(
+        "--redirect-url",
+        metavar="URL",
+        help="where a participant who has answered every question is sent on (a recruitment platform's address)",
+    )
     sv.add_argument(
         "--refit-timeout",
         type=seconds,
@@ -567,9 +576,11 @@ def _study(args) -> int:
         if args.world is None and args.features is None and not study_json.is_file():
             raise UsageError("a new study needs its items: a world (lake) or --features FILE")
         if args.world is None and args.features is None:  # an existing study: its own items
-            args.world = json.loads(study_json.read_text()).get("world")
+            from torchpref.study.folder import StudyFolder
+
+            args.world = StudyFolder(Path(args.folder)).settings().get("world")
             args.features = None if args.world is not None else str(Path(args.folder) / "items.csv")
-        if args.levels < 2:
+        if args.levels is not None and args.levels < 2:
             raise UsageError(f"--levels must be at least 2, got {args.levels}")
         return int(_import("torchpref.study.server").run(args) or 0)
     from torchpref.study.folder import StudyFolder

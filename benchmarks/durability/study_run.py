@@ -155,7 +155,7 @@ def main() -> int:
     folder = StudyFolder(study)
     rows = answer_rows(folder)
     events = folder.events()
-    finished = sum(int(r["finished"]) for r in participant_rows(folder))
+    finished = sum(r["status"] == "finished" for r in participant_rows(folder))
     refits = sum(e["event"] == "refit" for e in events)
     page = report(folder)
     figures = _report_figures(page)
@@ -218,16 +218,16 @@ def _current_loads(study: Path) -> bool | str | None:
 
 def _all_fitted(study: Path) -> bool:
     """Whether the current population was fitted on every finished participant (and no refit runs)."""
-    import json
 
     from torchpref.study.export import participant_rows
     from torchpref.study.folder import StudyFolder
 
-    finished = {r["participant"] for r in participant_rows(StudyFolder(study)) if r["finished"]}
-    try:
-        fitted = set(json.loads((study / "population" / "current.json").read_text())["participants"])
-    except (OSError, ValueError, KeyError):
+    folder = StudyFolder(study)
+    finished = {r["participant"] for r in participant_rows(folder) if r["status"] == "finished"}
+    pointer = folder.current()
+    if pointer is None:
         return False
+    fitted = set(pointer.participants)
     return finished <= fitted and not _refitting(study)
 
 

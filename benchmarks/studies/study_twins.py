@@ -36,6 +36,7 @@ from tqdm.auto import tqdm
 import torchpref
 from torchpref.experiments.replay import load
 from torchpref.experiments.results import write_json
+from torchpref.models.recipe import NO_TIES_OFFERED
 
 DATA = Path(__file__).resolve().parent / "data"
 OUT = Path(__file__).resolve().parents[1] / "results" / "study"
@@ -106,7 +107,7 @@ def run(ds, seed, args, bar):
     real = [people[i] for i in torch.randperm(len(people), generator=g)[: args.real].tolist()]
     from benchmarks_population import person_data
 
-    base = torchpref.fit_population([person_data(p, p.choices) for p in real], max_iter=40)
+    base = torchpref.fit_population([person_data(p, p.choices) for p in real], max_iter=40, model=NO_TIES_OFFERED)
     pool = study_pool(people, args.items, g)
     twins = draw_twins(base, pool, args.twins, g)
     rows, finished, online, refit_s = [], [], None, []
@@ -132,7 +133,9 @@ def refit_cost(ds, sizes, args):
     g = torch.Generator().manual_seed(99)
     from benchmarks_population import person_data
 
-    base = torchpref.fit_population([person_data(p, p.choices) for p in people[: args.real]], max_iter=40)
+    base = torchpref.fit_population(
+        [person_data(p, p.choices) for p in people[: args.real]], max_iter=40, model=NO_TIES_OFFERED
+    )
     pool = study_pool(people, args.items, g)
     twins = draw_twins(base, pool, max(sizes) + 1, g)
     datas = [run_twin(pool, twins[t], None, 5000 + t, args.answers)[1] for t in range(max(sizes) + 1)]

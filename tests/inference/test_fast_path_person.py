@@ -13,6 +13,7 @@ from torchpref import PreferenceGP
 from torchpref.data.preference_data import PreferenceData
 from torchpref.inference import fast_path
 from torchpref.models.defaults import default_covar_module
+from torchpref.models.recipe import NO_TIES_OFFERED
 from torchpref.population.fit import fit_population
 
 D = torch.float64
@@ -46,7 +47,9 @@ def population():
     k_m.base_kernel.lengthscale, k_m.outputscale = 0.4, 1.3
     k_g.base_kernel.lengthscale, k_g.outputscale = 0.6, 0.5
     people = [_person(s, 8, 3) for s in range(6)]
-    return fit_population(people, k_m=k_m, k_g=k_g, fit=False)
+    # choices without a "no preference" option: plain probit comparisons, which the compiled path
+    # computes (a strict choice where ties are offered is the tie model's category: the torch solver's)
+    return fit_population(people, k_m=k_m, k_g=k_g, fit=False, model=NO_TIES_OFFERED)
 
 
 def _solve(model_of, mode: str):

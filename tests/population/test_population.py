@@ -7,6 +7,7 @@ from gpytorch.kernels import AdditiveKernel
 import torchpref
 from torchpref.data.preference_data import PreferenceData
 from torchpref.models.defaults import default_covar_module
+from torchpref.models.recipe import DEFAULT_MODEL
 from torchpref.population.fit import fit_population, population_objective
 from torchpref.population.joint import newton
 from torchpref.population.shards import Basis
@@ -41,6 +42,7 @@ def _reference(person, k_m, k_g):
         person.ratings,
         person.rating_index,
         covar_module=AdditiveKernel(k_m, k_g),
+        ties_offered=DEFAULT_MODEL.ties_offered,  # a population's person model is a session's (ModelSettings)
     )
     return model
 
@@ -51,7 +53,8 @@ def _polished_mode(ref, person, K):
     from torchpref.inference.padding import PaddedData
 
     lik = ref.likelihood
-    obs = PaddedData.single(person).observations(lik.comparison, lik.rating, lik.tie)
+    comparison = lik.strict if ref.ties_offered else lik.comparison
+    obs = PaddedData.single(person).observations(comparison, lik.rating, lik.tie)
     f = ref.mode.f.reshape(1, -1)
     for _ in range(2):
         _, r, weights = obs.evaluate(f)

@@ -19,12 +19,12 @@ pytest.importorskip("matplotlib")
 from torchpref.frontends.serve.app import NewSessions, PoolLimits, create_app
 from torchpref.population.io import load_population
 from torchpref.sessions.journal import read_session_file
+from torchpref.study.create import create_study
 from torchpref.study.export import answer_rows, export
-from torchpref.study.folder import create_study
+from torchpref.study.items import study_items
 from torchpref.study.page import study_routes
 from torchpref.study.refit import RefitRunner, finished_participants, refit
 from torchpref.study.report import report
-from torchpref.study.server import study_items
 from torchpref.study.store import StudyStore, experimenter_key
 from torchpref.testing.serve import TEST_BASE_URL, choose, write_items
 
@@ -67,12 +67,12 @@ def test_a_study_refits_its_population_as_participants_finish(tmp_path):
     first = [_participant(c, k0=i) for i in range(3)]
     _wait(refits)
     pointer = folder.current()
-    assert pointer is not None and set(pointer["participants"]) == set(first)
-    pop = load_population(folder.version_path(pointer["version"]))  # a loadable file
+    assert pointer is not None and set(pointer.participants) == set(first)
+    pop = load_population(folder.version_path(pointer.version))  # a loadable file
     assert pop is not None
     later = _participant(c, answers=1)  # starts from the current population: its header says which
     header, _, _ = read_session_file(store.path(later))
-    assert header["metadata"]["study_population"] == pointer["version"]
+    assert header["metadata"]["study_population"] == pointer.version
     assert header["model"]["mean"] is not None  # a prior mean: the population's
     early, _, _ = read_session_file(store.path(first[0]))
     assert early["metadata"]["study_population"] is None  # started before any population
@@ -131,7 +131,7 @@ def test_export_rows_are_the_session_files_answers_and_the_report_has_its_figure
     assert sorted(got) == sorted(expected)
     assert len(answer_rows(folder)) == len(expected)
     people = list(csv.DictReader(open(folder.exports / "participants.csv")))
-    assert {p["participant"]: int(p["finished"]) for p in people} == {**{s: 1 for s in sids}, undo_sid: 0}
+    assert {p["participant"]: p["status"] for p in people} == {**{s: "finished" for s in sids}, undo_sid: "in progress"}
     utility = list(csv.DictReader(open(folder.exports / "population_utility.csv")))
     assert len(utility) == 16 and all(float(u["sd"]) > 0 for u in utility)
     page = report(folder).read_text()
@@ -156,25 +156,32 @@ def test_refit_keeps_the_previous_population_when_a_refit_fails(tmp_path):
     path.write_text(path.read_text()[:-20])
     assert sid not in [s for s, _, _ in finished_participants(folder)]
     v = refit(folder)
-    assert v is not None and folder.current()["version"] == v
+    assert v is not None and folder.current().version == v
     assert json.loads((folder.populations / "current.json").read_text())["file"] == f"v{v:04d}.pt"
     refits.close()
     store.close()
 
 
-def test_person_data_matches_the_session_model(tmp_path):
-    """The refit's data of a participant are their session model's data (same items, answers)."""
-    from torchpref.study.refit import person_data
+def test_refit_data_are_the_session_models_data(tmp_path):
+    """The refit's data of a participant are their session model's data (same items, answers), and
+    read_session's model of the file is the session's model (the same posterior)."""
+    from torchpref.sessions.contents import read_session
 
     folder, store, refits, key, client = _study(tmp_path)
     c = client()
     sid = _participant(c)
     entry = store.entry(sid)
     model_data = entry.session.model.data
-    data, _, n = person_data(store.path(sid))
-    assert n == KEY_Q
+    contents = read_session(store.path(sid))
+    data = contents.data
+    assert len(contents.in_force) == KEY_Q and contents.finished
     torch.testing.assert_close(data.train_X, model_data.train_X)
     assert torch.equal(data.comparisons, model_data.comparisons) and torch.equal(data.ratings, model_data.ratings)
+    X = entry.session.transform(study_items(folder).X)
+    with torch.no_grad():
+        mine = contents.model().posterior(X.unsqueeze(-2)).mean
+        theirs = entry.session.model.posterior(X.unsqueeze(-2)).mean
+    torch.testing.assert_close(mine, theirs)
     _wait(refits)
     refits.close()
     store.close()
@@ -189,8 +196,6 @@ def test_cli_refuses_a_folder_that_is_not_a_study(tmp_path, capsys):
     assert "needs its items" in capsys.readouterr().err
     (tmp_path / "busy").mkdir()
     (tmp_path / "busy" / "other.txt").write_text("x")
-    from torchpref.study.folder import create_study
-
     with pytest.raises(ValueError, match="not a study"):
         create_study(tmp_path / "busy", items=write_items(tmp_path / "src", n=5, d=2, pictures=False))
 

@@ -24,6 +24,7 @@ from torch import Tensor
 from torchpref.data.preference_data import PreferenceData
 from torchpref.experiments.replay import Person, load, replay_person
 from torchpref.models.preference_gp import PreferenceGP
+from torchpref.models.recipe import NO_TIES_OFFERED
 from torchpref.population.fit import fit_population
 from torchpref.population.io import load_population, save_population
 from torchpref.population.model import Population
@@ -55,7 +56,8 @@ def fold_population(
     path = None if cache is None else Path(cache) / f"{name}_fold{fold}of{folds}_seed{seed}_iter{max_iter}.pt"
     if path is not None and path.is_file():
         return load_population(path), held
-    pop = fit_population([person_data(p) for p in train], max_iter=max_iter)
+    # the data sets' people chose without a "no preference" option: strict choices are the probit's
+    pop = fit_population([person_data(p) for p in train], max_iter=max_iter, model=NO_TIES_OFFERED)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         save_population(pop, path)

@@ -13,7 +13,7 @@ plain stimuli): scores are compared at equal answers and at equal seconds (the s
 answer within each budget). A rating of an item already rated is not asked: as a
 :class:`~torchpref.PreferenceSession` does, the policy then chooses among the unrated items.
 
-Two conditions: ``"none"`` (a session's default model, :func:`~torchpref.sessions.settings.default_session_model`)
+Two conditions: ``"none"`` (a session's default model, :data:`~torchpref.models.recipe.DEFAULT_MODEL`)
 and ``"population"`` (the population fitted on other people's ratings and rankings, leave-people-out:
 the held-out people are never in it; its prior at the 100 items computed once). Two references use
 *all* the askable answers at once: the 6 ratings, the ranking of the 6 (its 15 comparisons, as a
@@ -36,12 +36,12 @@ from torchpref.experiments.sushi_data import LEVELS, SushiData, SushiPerson
 from torchpref.experiments.twins import PriorAtItems, _LookupKernel, _LookupMean
 from torchpref.models.batch import BatchedPreferenceGP
 from torchpref.models.preference_gp import PreferenceGP
+from torchpref.models.recipe import DEFAULT_MODEL, ModelSettings
 from torchpref.population.model import Population
 from torchpref.selection.active import _Trial
 from torchpref.selection.defaults import named_selector
 from torchpref.selection.one_kind import OneKind
 from torchpref.selection.strategies import PerEffortSelector, RandomRankings, RandomRatings, Selector
-from torchpref.sessions.settings import default_session_model
 
 __all__ = [
     "ASKABLE",
@@ -182,18 +182,15 @@ def _metrics(splits: Sequence[Split]) -> Callable[[Tensor], dict[str, Tensor]]:
     return metrics
 
 
-def _start(splits: Sequence[Split], prior: PriorAtItems | None) -> list[PreferenceGP]:
-    """The starting models, no answers: a session's default model, or the population's prior."""
+def _start(
+    splits: Sequence[Split], prior: PriorAtItems | None, settings: ModelSettings = DEFAULT_MODEL
+) -> list[PreferenceGP]:
+    """The starting models, no answers: a session's model of ``settings`` (default a session's
+    default, :data:`~torchpref.models.recipe.DEFAULT_MODEL`), or with the population's prior."""
     if prior is None:
-        return [default_session_model(s.X) for s in splits]
-    base = default_session_model(splits[0].X)
-    lik = dict(
-        comparison_noise=float(base.likelihood.comparison.comparison_noise),
-        rating_scale=float(base.likelihood.rating.rating_scale),
-        rating_precision=float(base.likelihood.rating.rating_precision),
-    )
+        return [settings.session_model(s.X) for s in splits]
     return [
-        PreferenceGP(s.X, covar_module=_LookupKernel(prior), mean_module=_LookupMean(prior), ties_offered=True, **lik)
+        PreferenceGP(s.X, covar_module=_LookupKernel(prior), mean_module=_LookupMean(prior), **settings.model_kwargs())
         for s in splits
     ]
 
@@ -209,12 +206,13 @@ def replay(
     prior: PriorAtItems | None,
     num_queries: int,
     seed: int,
+    settings: ModelSettings = DEFAULT_MODEL,
 ) -> list[dict]:
     """One policy over a batch of people (``splits``): per person the scores after ``0..Q`` answers
     (``"ranking"``, ``"ratings"``), the kinds asked, each answer's seconds and the re-asked ratings avoided."""
     T = len(splits)
     selector = POLICIES[policy](ASKABLE)
-    models = BatchedPreferenceGP.from_models(_start(splits, prior))
+    models = BatchedPreferenceGP.from_models(_start(splits, prior, settings))
     gens = [torch.Generator().manual_seed(_seed("sushi-policy", policy, seed, b)) for b in range(T)]
     pools = [s.X[s.askable] for s in splits]
     users = [_Recorded(s) for s in splits]
@@ -285,12 +283,14 @@ def at_budgets(curve: Sequence[float], seconds: Sequence[float], budgets: Sequen
     return out
 
 
-def references(splits: Sequence[Split], prior: PriorAtItems | None) -> dict[str, list[dict[str, float]]]:
+def references(
+    splits: Sequence[Split], prior: PriorAtItems | None, settings: ModelSettings = DEFAULT_MODEL
+) -> dict[str, list[dict[str, float]]]:
     """The three "all answers" references per person: all 6 ratings, the ranking of the 6, both."""
     metrics = _metrics(splits)
     out: dict[str, list[dict[str, float]]] = {}
     for name, ratings, ranking in (("all ratings", True, False), ("the ranking", False, True), ("both", True, True)):
-        models = _start(splits, prior)
+        models = _start(splits, prior, settings)
         for m, s in zip(models, splits):
             d = person_data(s, s.askable, ratings=ratings, ranking=ranking)
             r = d.ratings if m.rating_levels is None else unit_to_likert(d.ratings, m.rating_levels)

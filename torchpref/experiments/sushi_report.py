@@ -75,31 +75,30 @@ def _people(data: SushiData, args: argparse.Namespace) -> tuple[list[int], list[
 
 def rating_model_table(data: SushiData, who: list[int], progress) -> list[dict]:
     """Per precision: the summed evidence (ratings + ranking of all 10 items; ratings alone) and the
-    held-out concordances of the three references (no population)."""
-    import torchpref.sessions.settings as session_settings
+    held-out concordances of the three references (no population), under a session's model of that
+    precision (:data:`~torchpref.models.recipe.DEFAULT_MODEL` otherwise)."""
+    from dataclasses import replace
 
-    saved = session_settings.RATING_PRECISION
+    from torchpref.models.recipe import DEFAULT_MODEL
+
     rows = []
-    try:
-        for nu in progress(PRECISIONS, desc="rating model"):
-            session_settings.RATING_PRECISION = nu
-            splits = [sushi.split(data, data.people[k], k, 0) for k in who]
-            evidence = {"both": 0.0, "ratings": 0.0}
-            for s in splits:
-                for name, ranking in (("both", True), ("ratings", False)):
-                    d = sushi.person_data(s, ranking=ranking)
-                    m = session_settings.default_session_model(s.X)
-                    m.add_observations(comparisons=d.comparisons, ratings=d.ratings, rating_index=d.rating_index)
-                    with torch.no_grad():
-                        evidence[name] += float(m.log_marginal_likelihood())
-            refs = sushi.references(splits, None)
-            row = {"precision": nu, "evidence_both": evidence["both"], "evidence_ratings": evidence["ratings"]}
-            for ref, per in refs.items():
-                for t in TARGETS:
-                    row[f"{ref}:{t}"] = sum(p[t] for p in per) / len(per)
-            rows.append(row)
-    finally:
-        session_settings.RATING_PRECISION = saved
+    for nu in progress(PRECISIONS, desc="rating model"):
+        settings = replace(DEFAULT_MODEL, rating_precision=nu)
+        splits = [sushi.split(data, data.people[k], k, 0) for k in who]
+        evidence = {"both": 0.0, "ratings": 0.0}
+        for s in splits:
+            for name, ranking in (("both", True), ("ratings", False)):
+                d = sushi.person_data(s, ranking=ranking)
+                m = settings.session_model(s.X)
+                m.add_observations(comparisons=d.comparisons, ratings=d.ratings, rating_index=d.rating_index)
+                with torch.no_grad():
+                    evidence[name] += float(m.log_marginal_likelihood())
+        refs = sushi.references(splits, None, settings)
+        row = {"precision": nu, "evidence_both": evidence["both"], "evidence_ratings": evidence["ratings"]}
+        for ref, per in refs.items():
+            for t in TARGETS:
+                row[f"{ref}:{t}"] = sum(p[t] for p in per) / len(per)
+        rows.append(row)
     return rows
 
 

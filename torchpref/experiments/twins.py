@@ -218,9 +218,11 @@ def learner(pop: Population, twins: Sequence[Twin], condition: str, scale: float
 
 
 def _likelihoods(pop: Population) -> dict:
-    """The population's likelihood settings but the ratings' (the learner's nominal person's)."""
+    """The population's person-model settings but the ratings' (the learner's nominal person's):
+    its comparison noise, rating levels and whether ties are offered (:attr:`Population.model_settings`)."""
+    recipe = pop.model_settings
     return dict(
-        comparison_noise=float(pop.settings["comparison_noise"]), rating_levels=pop.settings.get("rating_levels")
+        comparison_noise=recipe.comparison_noise, rating_levels=recipe.rating_levels, ties_offered=recipe.ties_offered
     )
 
 

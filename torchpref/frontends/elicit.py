@@ -32,9 +32,10 @@ from torch import Tensor
 from torchpref.data.features import FeaturesError, printable, read_features_csv
 from torchpref.data.queries import Query, RankingQuery, first_unique_rows
 from torchpref.selection.defaults import named_selector
+from torchpref.sessions.contents import read_session_header
 from torchpref.sessions.errors import SessionFileCorrupt, SessionFileError, SessionMismatchError
 from torchpref.sessions.query_list import read_question_list
-from torchpref.sessions.session import PreferenceSession, read_session_file
+from torchpref.sessions.session import PreferenceSession
 
 if TYPE_CHECKING:
     from torchpref.lake.scenario import LakeScenario
@@ -342,10 +343,10 @@ def _file_seed(path: Path | None) -> int | None:
     if path is None or not path.is_file():
         return None
     try:
-        header = read_session_file(path)[0]
+        header = read_session_header(path)
     except SessionFileError:
         return None  # reported when the session is opened
-    return None if header is None else header["seed"]
+    return None if header is None else header.seed
 
 
 def run(args: argparse.Namespace, stdin: TextIO | None = None, stdout: TextIO | None = None) -> int:

@@ -42,6 +42,14 @@ SETTINGS: dict[str, type | tuple[type, ...]] = {
     "rating_precision": float,
     "rating_levels": (int, type(None)),
 }
+MORE_SETTINGS: dict[str, type | tuple[type, ...]] = {
+    "lengthscale": float,
+    "outputscale": float,
+    "rating_eps": float,
+    "tie_threshold": float,
+    "ties_offered": bool,
+}
+"""Settings a population file records since the person model's recipe (absent from older files)."""
 
 
 def open_regular(path: str | os.PathLike) -> tuple[IO[bytes], int]:
@@ -121,18 +129,27 @@ def check_tensor_values(t: dict[str, torch.Tensor], where: str) -> None:
 
 
 def check_settings(settings: object, where: str) -> None:
-    """The likelihoods' settings: the known keys, finite positive numbers, levels ``None`` or ``>= 2``."""
-    if not isinstance(settings, dict) or set(settings) != set(SETTINGS):
-        raise CheckpointError(f"{where}: settings must be {sorted(SETTINGS)}.")
-    for name, kind in SETTINGS.items():
-        value = settings[name]
-        ok = not isinstance(value, bool) and isinstance(value, kind)
+    """The person model's settings: the known keys (those of :data:`SETTINGS`, and any of
+    :data:`MORE_SETTINGS`), finite positive numbers, levels ``None`` or ``>= 2``, a boolean
+    ``ties_offered``; then :class:`~torchpref.models.recipe.ModelSettings` must take them."""
+    from torchpref.models.recipe import ModelSettings
+
+    known = {**SETTINGS, **MORE_SETTINGS}
+    if not isinstance(settings, dict) or not set(SETTINGS) <= set(settings) <= set(known):
+        raise CheckpointError(f"{where}: settings must be {sorted(SETTINGS)} and any of {sorted(MORE_SETTINGS)}.")
+    for name, value in settings.items():
+        kind = known[name]
+        ok = isinstance(value, bool) if kind is bool else not isinstance(value, bool) and isinstance(value, kind)
         if ok and isinstance(value, float):
             ok = math.isfinite(value) and value > 0
         if ok and name == "rating_levels" and value is not None:
             ok = value >= 2
         if not ok:
             raise CheckpointError(f"{where}: setting {name!r} is {value!r}, not a finite positive value of its kind.")
+    try:
+        ModelSettings.from_json(settings)
+    except ValueError as err:
+        raise CheckpointError(f"{where}: {err}") from None
 
 
 def check_space_and_stats(ck: dict[str, Any], d: int, where: str) -> None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import math
 import numbers
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Any
@@ -28,10 +28,12 @@ from tqdm.auto import tqdm
 
 from torchpref.data.preference_data import PreferenceData
 from torchpref.inference.numerics import cholesky_jittered
-from torchpref.models.defaults import PERSON_RATING_PRECISION, PreferenceLikelihood, default_covar_module
+from torchpref.models.defaults import default_covar_module
+from torchpref.models.recipe import DEFAULT_MODEL, ModelSettings
 from torchpref.population.hosts import host_for, workers_of
 from torchpref.population.inducing import METHODS, choose_items
 from torchpref.population.joint import Gradient, Shards, newton
+from torchpref.population.lbfgs import FitStartError, minimise
 from torchpref.population.memory import ShardSize, check_memory, estimate_peak, gigabytes, shard_transient
 from torchpref.population.model import Population
 from torchpref.population.people import Items, by_rows, check_people, shard_bounds, shard_data, warn_outside_unit_cube
@@ -219,18 +221,34 @@ class Objective:
         return T - T.detach()
 
 
-def _lbfgs(loss_fn: Callable[[], Tensor], params: list[Tensor], max_iter: int, bar: tqdm) -> None:
-    """Minimise ``loss_fn()`` in ``params`` with L-BFGS (strong Wolfe line search)."""
-    opt = torch.optim.LBFGS(params, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_change=1e-9)
+def _lbfgs(objective: Objective, params: list[Tensor], max_iter: int, bar: tqdm) -> None:
+    """Minimise the objective with L-BFGS (strong Wolfe line search), a step meeting a non-finite
+    evidence or a matrix that is not positive definite rejected (:func:`~torchpref.population.lbfgs.minimise`)."""
+    minimise(objective, params, max_iter, bar, lambda: _describe_kernels(objective.kernels))
 
-    def closure() -> Tensor:
-        opt.zero_grad()
-        loss = loss_fn()
-        loss.backward()
-        bar.update()
-        return loss
 
-    opt.step(closure)
+def _finite_last(objective: Objective) -> Evaluation:
+    """The objective's last evaluation, whose evidence must be finite (else a :class:`FitStartError` naming the kernels)."""
+    last = objective.last
+    assert last is not None
+    if not math.isfinite(last.evidence):
+        raise FitStartError(
+            f"the population's evidence is not finite ({last.evidence}) at the hyperparameters "
+            f"({_describe_kernels(objective.kernels)}): start from longer lengthscales, or from the default kernels."
+        )
+    return last
+
+
+def _describe_kernels(k: _Kernels) -> str:
+    """The kernels' lengthscales and outputscales in a few words (for an error)."""
+    out = []
+    for name, kernel in (("k_m", k.k_m), ("k_g", k.k_g)):
+        ls = getattr(getattr(kernel, "base_kernel", kernel), "lengthscale", None)
+        os_ = getattr(kernel, "outputscale", None)
+        parts = [] if ls is None else [f"lengthscale {[float(f'{v:.3g}') for v in ls.detach().flatten().tolist()]}"]
+        parts += [] if os_ is None else [f"outputscale {float(os_.detach()):.3g}"]
+        out.append(f"{name}: {', '.join(parts) or type(kernel).__name__}")
+    return "; ".join(out)
 
 
 def _refuse_fork(executor: object) -> None:
@@ -259,16 +277,24 @@ def _check_settings(
         raise ValueError(f"inducing_method must be one of {list(METHODS)}, got {method!r}.")
 
 
-def _likelihood(
-    people: Sequence[PreferenceData], noise: float, scale: float, precision: float
-) -> tuple[PreferenceLikelihood, dict[str, Any]]:
-    values = {"comparison_noise": float(noise), "rating_scale": float(scale), "rating_precision": float(precision)}
-    for key, value in values.items():
-        if not (math.isfinite(value) and value > 0):
+def _model_settings(
+    people: Sequence[PreferenceData],
+    model: ModelSettings | None,
+    noise: float | None,
+    scale: float | None,
+    precision: float | None,
+) -> ModelSettings:
+    """The person model's settings of a fit: ``model`` (default :data:`~torchpref.models.recipe.DEFAULT_MODEL`)
+    with the likelihood settings given and the people's rating levels."""
+    base = model if model is not None else DEFAULT_MODEL
+    if not isinstance(base, ModelSettings):
+        raise ValueError(f"model must be a torchpref ModelSettings, got {type(base).__name__}.")
+    given = {"comparison_noise": noise, "rating_scale": scale, "rating_precision": precision}
+    for key, value in given.items():
+        if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise ValueError(f"{key} must be a finite positive number, got {value!r}.")
-    levels = people[0].rating_levels
-    lik = PreferenceLikelihood.create(float(noise), float(scale), float(precision), False, 0.1, levels)
-    return lik.double(), {**values, "rating_levels": levels}
+    changes = {k: float(v) for k, v in given.items() if v is not None}
+    return base.with_(**changes, rating_levels=people[0].rating_levels)
 
 
 def _stats(people: list[PreferenceData], plan: Plan, objective: Objective) -> dict[str, Any]:
@@ -296,9 +322,10 @@ def fit_population(
     *,
     k_m: Kernel | None = None,
     k_g: Kernel | None = None,
-    comparison_noise: float = 1.0,
-    rating_scale: float = 1.0,
-    rating_precision: float = PERSON_RATING_PRECISION,
+    model: ModelSettings | None = None,
+    comparison_noise: float | None = None,
+    rating_scale: float | None = None,
+    rating_precision: float | None = None,
     fit: bool = True,
     max_iter: int = 100,
     feature_names: Sequence[str] | None = None,
@@ -317,10 +344,11 @@ def fit_population(
     Args:
         k_m, k_g: the kernels of the mean and of a person's deviation (default
             :func:`~torchpref.models.defaults.default_covar_module` each, with its priors).
-        comparison_noise, rating_scale, rating_precision: the likelihoods' settings, fixed, as
-            :class:`~torchpref.PreferenceGP`'s (ordinal people: ``rating_levels`` from the data);
-            the precision a person's (:data:`~torchpref.models.defaults.PERSON_RATING_PRECISION`), as a
-            session's.
+        model: the person model's settings (:class:`~torchpref.models.recipe.ModelSettings`; default
+            :data:`~torchpref.models.recipe.DEFAULT_MODEL`, a session's): the likelihoods, fixed, and
+            whether ties are offered; ordinal people's ``rating_levels`` from the data. A person model
+            of the population has the same (:meth:`~torchpref.Population.person_model`).
+        comparison_noise, rating_scale, rating_precision: override ``model``'s.
         fit: optimise the kernels' hyperparameters (L-BFGS on the evidence); ``False`` keeps them.
         max_iter: L-BFGS iterations.
         feature_names: the features' names (the objective space), kept with the population (and
@@ -361,7 +389,7 @@ def fit_population(
         people,
         k_m,
         k_g,
-        likelihood=(comparison_noise, rating_scale, rating_precision),
+        model=_model_settings(people, model, comparison_noise, rating_scale, rating_precision),
         inducing=inducing,
         inducing_method=inducing_method,
         executor=executor,
@@ -375,8 +403,7 @@ def fit_population(
     with torch.no_grad():
         objective(with_gradient=False)
     bar.close()
-    last = objective.last
-    assert last is not None
+    last = _finite_last(objective)
     k = objective.kernels
     return Population.from_mode(
         k.k_m,
@@ -396,7 +423,7 @@ def population_objective(
     k_m: Kernel | None = None,
     k_g: Kernel | None = None,
     *,
-    likelihood: tuple[float, float, float] = (1.0, 1.0, PERSON_RATING_PRECISION),
+    model: ModelSettings | None = None,
     inducing: int | str | None = "auto",
     inducing_method: str = "kmeans",
     executor: object = None,
@@ -404,9 +431,10 @@ def population_objective(
     memory_limit: int | None = None,
 ) -> tuple[Objective, Plan]:
     """The evidence of checked ``people`` as an :class:`Objective` of the kernels' hyperparameters,
-    and the :class:`Plan` it runs (``likelihood``: comparison noise, rating scale and precision;
-    the other settings as :func:`fit_population`'s)."""
-    lik, settings = _likelihood(people, *likelihood)
+    and the :class:`Plan` it runs (``model``: the person model's settings, default a session's,
+    with the people's rating levels; the other settings as :func:`fit_population`'s)."""
+    settings = _model_settings(people, model, None, None, None)
+    lik = settings.likelihood()
     d = people[0].train_X.shape[-1]
     kernels = _Kernels(
         k_m if k_m is not None else default_covar_module(d), k_g if k_g is not None else default_covar_module(d)
@@ -417,5 +445,5 @@ def population_objective(
     log.info("fit_population: %s", plan.describe())
     z_pos = torch.full((plan.items.U.shape[0],), -1, dtype=torch.long)
     z_pos[plan.z_rows] = torch.arange(plan.M)
-    data = [shard_data(people, plan.items, b, lik, z_pos) for b in plan.bounds]
-    return Objective(kernels, plan.items.U[plan.z_rows], Shards(host_for(executor), data), settings), plan
+    data = [shard_data(people, plan.items, b, lik, z_pos, settings.ties_offered) for b in plan.bounds]
+    return Objective(kernels, plan.items.U[plan.z_rows], Shards(host_for(executor), data), settings.to_json()), plan

@@ -11,6 +11,7 @@ from torch import Tensor
 
 from torchpref.data.preference_data import PreferenceData
 from torchpref.models.preference_gp import PreferenceGP
+from torchpref.models.recipe import ModelSettings
 from torchpref.population.prior import PopulationCovariance, PopulationMean
 
 
@@ -30,7 +31,8 @@ class Population:
         S_chol: ``M x M``, Cholesky factor of the Schur complement: ``Cov[a | D] = S^{-1}``.
         A: ``M x M``, ``I - S^{-1}``: what a new person's prior covariance needs of the
             population, computed once (and saved) so that a person model costs ``O(M^2)`` per item.
-        settings: the likelihoods' settings a person model is built with.
+        settings: the person model's settings (:class:`~torchpref.models.recipe.ModelSettings`'
+            JSON; :attr:`model_settings`) its fit used and a person model is built with.
         stats: people, distinct items, answers, evidence, which mean (``"exact"`` or
             ``"inducing"``) and how many items it is represented at, and the fit's costs.
         names: the features' names (the objective space), if given to the fit.
@@ -76,6 +78,11 @@ class Population:
         with torch.no_grad():
             alpha = torch.linalg.solve_triangular(L_U.mT, a.detach().unsqueeze(-1), upper=True).squeeze(-1)
         return cls(k_m, k_g, U, alpha, L_U.detach(), S_chol.detach(), settings, stats, names)
+
+    @property
+    def model_settings(self) -> ModelSettings:
+        """The person model's settings the population was fitted with (and its person models get)."""
+        return ModelSettings.from_json(self.settings)
 
     @property
     def dim(self) -> int:
@@ -138,18 +145,11 @@ class Population:
                 f"the person's items have {data.train_X.shape[-1]} features; this population's objective "
                 f"space has d = {self.dim}."
             )
-        s = self.settings
-        levels = s.get("rating_levels")
+        recipe = self.model_settings
+        levels = recipe.rating_levels
         if data is not None and data.num_observations and data.ratings.numel() and data.rating_levels != levels:
             raise ValueError(f"the person's rating_levels={data.rating_levels}; the population's is {levels}.")
-        common = dict(
-            covar_module=self.covariance(),
-            mean_module=self.mean(),
-            comparison_noise=s["comparison_noise"],
-            rating_scale=s["rating_scale"],
-            rating_precision=s["rating_precision"],
-            rating_levels=levels,
-        )
+        common = dict(covar_module=self.covariance(), mean_module=self.mean(), **recipe.model_kwargs())
         common.update(kwargs)
         if data is None:
             model = PreferenceGP(None, None, **common)

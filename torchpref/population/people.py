@@ -117,9 +117,11 @@ def shard_data(
     bounds: tuple[int, int],
     likelihood: PreferenceLikelihood,
     z_pos: Tensor,
+    ties_offered: bool = False,
 ) -> ShardData:
     """The shard of ``people[start:stop]``: its distinct items, each one's column among the
-    mean's items (``z_pos``: ``N``, ``-1`` for none) and its people's padded data."""
+    mean's items (``z_pos``: ``N``, ``-1`` for none) and its people's padded data (strict choices
+    as the tie likelihood's upper category where ``ties_offered``, as a person's model has them)."""
     start, stop = bounds
     part = people[start:stop]
     ids = items.ids[int(items.offsets[start]) : int(items.offsets[stop])]
@@ -132,7 +134,8 @@ def shard_data(
     index = torch.zeros(P, n, dtype=torch.long)
     index[person, position] = local
     mask = padded.item_mask if padded.item_mask is not None else torch.ones(P, n, dtype=torch.bool)
-    obs = padded.observations(likelihood.comparison, likelihood.rating, likelihood.tie)
+    comparison = likelihood.strict if ties_offered else likelihood.comparison
+    obs = padded.observations(comparison, likelihood.rating, likelihood.tie)
     layout = Layout(items.U[own], padded.X, index, mask, obs)
     M = int((z_pos >= 0).sum())
     return ShardData(layout, z_pos[own], by_rows(P, n, len(own), M))

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+from torchpref.sessions.contents import (
+    SessionContents,
+    read_session,
+    read_session_header,
+)
 from torchpref.sessions.errors import (
     SessionFileChanged,
     SessionFileCorrupt,
@@ -28,6 +33,7 @@ from torchpref.sessions.recorded import (
 from torchpref.sessions.records import (
     ANSWER_KINDS,
     FORMAT_VERSION,
+    SessionHeader,
     check_new_record,
     dumps_settings,
     records_in_force,
@@ -56,11 +62,13 @@ __all__ = [
     'MemoryJournal',
     'PreferenceSession',
     'SessionAnswer',
+    'SessionContents',
     'SessionFileCorrupt',
     'SessionFileError',
     'SessionFileChanged',
     'SessionFileGone',
     'SessionForkError',
+    'SessionHeader',
     'SessionMismatchError',
     'SessionReadOnlyError',
     'SessionRepairWarning',
@@ -75,7 +83,9 @@ __all__ = [
     'describe_selector',
     'dumps_settings',
     'read_header',
+    'read_session',
     'read_session_file',
+    'read_session_header',
     'records_in_force',
     'step_generator',
     'validate_header',

@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import stat
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -193,12 +194,16 @@ def header_digest(header: dict) -> str:
 def write_snapshot(path: Path, meta: dict, f: Tensor) -> None:
     """Write the model's mode after the record ``meta["seq"]`` beside the session file: a JSON line
     and the mode's float64 bytes, replaced atomically, not fsynced (it only speeds up a resume;
-    a missing, stale or damaged snapshot is ignored). Errors are ignored for the same reason."""
+    a missing, stale or damaged snapshot is ignored), with the session file's permissions. Errors
+    are ignored for the same reason."""
     target = snapshot_path(path)
     tmp = target.with_name(target.name + ".tmp")
     meta = dict(meta, format=SNAPSHOT_FORMAT, version=1, n=int(f.numel()))
     try:
-        with open(tmp, "wb") as fh:
+        mode = stat.S_IMODE(os.stat(path).st_mode) & 0o666  # no more readable than the session file
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+        with os.fdopen(fd, "wb") as fh:
+            os.fchmod(fh.fileno(), mode)
             fh.write(json.dumps(meta).encode() + b"\n")
             fh.write(f.detach().to(torch.float64).contiguous().numpy().astype("<f8").tobytes())
         os.replace(tmp, target)

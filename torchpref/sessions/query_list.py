@@ -18,6 +18,7 @@ from torch import Tensor
 from torchpref.data.files import read_regular_text
 from torchpref.data.queries import Query, RankingQuery, RatingQuery
 from torchpref.sessions.errors import SessionFileError, SessionMismatchError
+from torchpref.sessions.records import SessionHeader
 
 __all__ = [
     "read_question_list",
@@ -73,13 +74,13 @@ def queries_of_spec(spec: QuerySpec, pool: Tensor) -> list[Query]:
     return out
 
 
-def resumed_queries(header: dict, given: bool, mine: QuerySpec | None, path: object) -> QuerySpec | None:
+def resumed_queries(header: SessionHeader, given: bool, mine: QuerySpec | None, path: object) -> QuerySpec | None:
     """A resumed file's query list: the header's; queries given (``mine``) must be the same.
 
     Raises:
         SessionMismatchError: queries given that are not the file's.
     """
-    theirs = header.get("queries")
+    theirs = header.queries
     if given and theirs != mine:
         raise SessionMismatchError(
             f"session file {path} was written with {'other' if theirs else 'no'} candidate queries; "

@@ -32,6 +32,7 @@ from torchpref.selection.strategies import Selector
 from torchpref.sessions.errors import (
     SessionSettingsError,
 )
+from torchpref.sessions.records import SessionHeader
 
 __all__ = [
     "describe_model",
@@ -255,7 +256,7 @@ _LEGACY_LIKELIHOOD = (
 
 def legacy_model_description(dim: int) -> dict[str, Any]:
     """torchpref 0.1.0's default session model for ``dim``-dimensional items (RBF lengthscale 0.2,
-    outputscale 1, sigma_R = 0.1, sigma_B = 1, nu = 80, tau = 0.1, ties offered), described."""
+    outputscale 1, sigma_R = 1, sigma_B = 1, nu = 80, tau = 0.1, ties offered), described."""
     state = {}
     for key, value in _LEGACY_STATE.items():
         shape = [1, dim] if key.endswith("raw_lengthscale") else []
@@ -287,7 +288,7 @@ def legacy_selector_description(num_pool_items: int | None) -> dict[str, Any]:
 
 
 def resume_settings(
-    header: dict,
+    header: SessionHeader,
     *,
     path: Path | None,
     dim: int,
@@ -307,8 +308,8 @@ def resume_settings(
             (unless ``migrate``: then the given ones, or this version's defaults).
     """
     (chosen_selector, factory), (selector, model_factory) = current, given
-    rec_sel = header.get("selector") or legacy_selector_description(num_pool_items)
-    rec_model = header.get("model") or legacy_model_description(dim)
+    rec_sel = header.selector or legacy_selector_description(num_pool_items)
+    rec_model = header.model or legacy_model_description(dim)
     if selector is None:
         rebuilt = recorded_selector(rec_sel)
         if rebuilt is not None:

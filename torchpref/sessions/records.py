@@ -34,6 +34,7 @@ __all__ = [
     "FORMAT_VERSION",
     "AnswerRecord",
     "Record",
+    "SessionHeader",
     "UndoRecord",
     "parse_record",
     "check_new_record",
@@ -160,6 +161,108 @@ class UndoRecord:
             c.fail(f"'time' must be a string, got {rec.get('time')!r:.80}")
         assert seq is not None and undoes is not None  # required fields: c.integer raised otherwise
         return cls(seq=seq, time=rec["time"], undoes=undoes, v=rec.get("v", 1))
+
+
+@dataclass(frozen=True)
+class SessionHeader:
+    """A session file's header (its first line), typed: the only reader of the header's keys
+    (:meth:`from_json`, after :func:`validate_header`); ``to_json`` gives the line's object.
+
+    Attributes:
+        version: the file's format version.
+        dim: the items' dimension ``d``.
+        seed, num_queries: the session's seed and planned number of questions.
+        num_levels: ratings on ``1..K`` (``None``: in ``[0, 1]``).
+        bounds: ``2 x d``, the lower and upper bounds of the model's unit cube.
+        names: the features' names, or ``None``.
+        candidates: the candidates as recorded (``{"kind": "pool", "items"}`` or ``{"kind": "box", ...}``).
+        metadata: the extra settings the session was created with (a JSON object).
+        model: the recorded model's description (``None`` in files of torchpref 0.1.0).
+        selector: the recorded selector's description (``None`` likewise).
+        queries: the fixed question list (``[kind, pool rows...]``), or ``None``.
+        created: when the file was created (ISO 8601); ``torchpref``: the version that created it.
+    """
+
+    version: int
+    dim: int
+    seed: int
+    num_queries: int
+    num_levels: int | None
+    bounds: tuple[tuple[float, ...], tuple[float, ...]]
+    names: tuple[str, ...] | None
+    candidates: dict[str, Any]
+    metadata: dict[str, Any]
+    model: dict[str, Any] | None = None
+    selector: dict[str, Any] | None = None
+    queries: list | None = None
+    created: str = ""
+    torchpref: str = ""
+
+    @classmethod
+    def from_json(cls, h: dict[str, Any], path: object = "session file") -> SessionHeader:
+        """The typed header of the header object ``h`` of the file ``path`` (validated first).
+
+        Raises:
+            SessionFileError: ``h`` is not a valid header (:func:`validate_header`).
+        """
+        validate_header(path, h)
+        lo, hi = h["bounds"]
+        return cls(
+            version=h["version"],
+            dim=h["dim"],
+            seed=h["seed"],
+            num_queries=h["num_queries"],
+            num_levels=h["num_levels"],
+            bounds=(tuple(float(x) for x in lo), tuple(float(x) for x in hi)),
+            names=None if h.get("names") is None else tuple(h["names"]),
+            candidates=h["candidates"],
+            metadata=dict(h.get("metadata") or {}),
+            model=h.get("model"),
+            selector=h.get("selector"),
+            queries=h.get("queries"),
+            created=str(h.get("created", "")),
+            torchpref=str(h.get("torchpref", "")),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        """The header's object as written to the file (the keys and their order of format version 1)."""
+        out: dict[str, Any] = {
+            "type": "header",
+            "version": self.version,
+            "dim": self.dim,
+            "created": self.created,
+            "torchpref": self.torchpref,
+            "seed": self.seed,
+            "num_queries": self.num_queries,
+            "num_levels": self.num_levels,
+            "bounds": [list(self.bounds[0]), list(self.bounds[1])],
+            "names": None if self.names is None else list(self.names),
+            "candidates": self.candidates,
+            "metadata": self.metadata,
+        }
+        for key in ("model", "selector", "queries"):
+            if getattr(self, key) is not None:
+                out[key] = getattr(self, key)
+        return out
+
+    @property
+    def pool(self) -> list[list[float]] | None:
+        """The pool's items (rows), or ``None`` for a box of candidates or a pool recorded by
+        reference (a large one: :attr:`first_item` and the digest only)."""
+        return self.candidates.get("items") if self.candidates["kind"] == "pool" else None
+
+    @property
+    def first_item(self) -> list[float] | None:
+        """The pool's first item (the one a session's model is built on), written out or by reference."""
+        if self.candidates["kind"] != "pool":
+            return None
+        items = self.candidates.get("items")
+        return items[0] if items else self.candidates.get("first_item")
+
+    @property
+    def bounds_tensor(self) -> torch.Tensor:
+        """``bounds`` as a ``2 x d`` float64 tensor."""
+        return torch.tensor(self.bounds, dtype=torch.float64)
 
 
 Record = AnswerRecord | UndoRecord

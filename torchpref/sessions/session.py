@@ -90,7 +90,7 @@ from torchpref.sessions.recorded import (
     describe_selector,
     resume_settings,
 )
-from torchpref.sessions.records import FORMAT_VERSION, AnswerRecord, Record, UndoRecord
+from torchpref.sessions.records import FORMAT_VERSION, AnswerRecord, Record, SessionHeader, UndoRecord
 from torchpref.sessions.settings import (
     MAX_REDRAWS,
     SessionAnswer,
@@ -104,6 +104,7 @@ from torchpref.sessions.settings import (
     default_session_model,
     population_factory,
     step_generator,
+    to_unit_cube,
     unrated_rows,
 )
 
@@ -254,11 +255,12 @@ class PreferenceSession:
             raise SessionFileError(f"session file {self.path} has no header.")
         self._digest = header_digest(file_header)
         if not created:  # resumed: the file's settings must be this session's
-            self._settings.check_header(file_header, self.path)
-            self._check_pool_records(file_header)
-            self._queries = resumed_queries(file_header, gave_queries, self._queries, self.path)
+            typed = SessionHeader.from_json(file_header, self.path)
+            self._settings.check_header(typed, self.path)
+            self._check_pool_records(typed)
+            self._queries = resumed_queries(typed, gave_queries, self._queries, self.path)
             self.selector, self.model_factory = resume_settings(
-                file_header,
+                typed,
                 path=self.path,
                 dim=self.dim,
                 num_pool_items=self._n_pool,
@@ -268,10 +270,10 @@ class PreferenceSession:
                 migrate=migrate,
             )
 
-    def _check_pool_records(self, header: dict) -> None:
+    def _check_pool_records(self, header: SessionHeader) -> None:
         """A file whose header records its pool by reference: each answer's items are its pool rows
         (what the file's format checks where the header holds the items)."""
-        if "items" in header["candidates"] or self._pool is None:
+        if "items" in header.candidates or self._pool is None:
             return
         for rec in self._journal.records:
             if isinstance(rec, AnswerRecord) and rec.pool_indices:
@@ -284,12 +286,9 @@ class PreferenceSession:
 
     def _new_header(self, metadata: dict | None) -> dict:
         """A new file's header: the settings, and the model and selector the session starts with."""
-        header = self._settings.header(metadata)
-        header["model"] = describe_model(self._new_model())
-        header["selector"] = describe_selector(self.selector)
-        if self._queries is not None:
-            header["queries"] = self._queries
-        return header
+        return self._settings.header(
+            metadata, describe_model(self._new_model()), describe_selector(self.selector), self._queries
+        )
 
     def _query_list(self, queries: Sequence[Query] | None, selector: Selector | None) -> QuerySpec | None:
         """The queries as ``[kind, pool rows...]`` (:mod:`torchpref.sessions.query_list`), checked."""
@@ -333,19 +332,13 @@ class PreferenceSession:
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"no session file {path}")
-        header = existing_header(path, repair=bool(kwargs.get("repair")))
+        header = SessionHeader.from_json(existing_header(path, repair=bool(kwargs.get("repair"))), path)
         if candidates is None:
             candidates = candidates_from_header(header)
-        kwargs.setdefault("num_queries", header["num_queries"])
-        kwargs.setdefault("num_levels", header["num_levels"])
-        kwargs.setdefault("names", header.get("names"))
-        return cls(
-            candidates,
-            session_file=path,
-            seed=header["seed"],
-            bounds=torch.tensor(header["bounds"], dtype=torch.float64),
-            **kwargs,
-        )
+        kwargs.setdefault("num_queries", header.num_queries)
+        kwargs.setdefault("num_levels", header.num_levels)
+        kwargs.setdefault("names", None if header.names is None else list(header.names))
+        return cls(candidates, session_file=path, seed=header.seed, bounds=header.bounds_tensor, **kwargs)
 
     def close(self) -> None:
         """Release the file (every answer is already on disk); waits for a call in another thread."""
@@ -399,8 +392,7 @@ class PreferenceSession:
     # ----------------------------------------------------------------- model
     def transform(self, X: Tensor) -> Tensor:
         """Items (``... x d``) normalised by :attr:`bounds` to the unit cube, as the model sees them."""
-        lo, hi = self.bounds
-        return (X.to(torch.float64) - lo) / (hi - lo)
+        return to_unit_cube(X, self.bounds)
 
     @property
     def model(self) -> PreferenceGP:

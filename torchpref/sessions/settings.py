@@ -21,8 +21,8 @@ import torch
 from torch import Tensor
 
 from torchpref.data.queries import BoxCandidates, Candidates, FinitePool, as_integer
-from torchpref.models.defaults import PERSON_RATING_PRECISION
-from torchpref.models.preference_gp import PreferenceGP, default_covar_module
+from torchpref.models.preference_gp import PreferenceGP
+from torchpref.models.recipe import DEFAULT_MODEL
 from torchpref.population.model import Population
 from torchpref.selection import defaults as selection_defaults
 from torchpref.sessions.errors import (
@@ -31,7 +31,7 @@ from torchpref.sessions.errors import (
 from torchpref.sessions.journal import (
     now,
 )
-from torchpref.sessions.records import FORMAT_VERSION, AnswerRecord, dumps_settings
+from torchpref.sessions.records import FORMAT_VERSION, AnswerRecord, SessionHeader, dumps_settings
 from torchpref.version import __version__
 
 __all__ = [
@@ -118,22 +118,24 @@ def default_ranking_size(num_items: int) -> int:
     return selection_defaults.default_ranking_size(num_items)
 
 
-#: ``nu`` of a session's Beta rating likelihood (eqs. 5-6): a person's
-#: (:data:`~torchpref.models.defaults.PERSON_RATING_PRECISION`)
-RATING_PRECISION = PERSON_RATING_PRECISION
-
-
 def default_session_model(train_X: Tensor) -> PreferenceGP:
-    r"""The default model of a session: :class:`~torchpref.PreferenceGP` on inputs normalised to the
-    unit cube, an RBF kernel with lengthscale 0.2 and outputscale ``sigma_f^2 = 1`` (eq. 1), the
-    model's default comparison and tie settings (``sigma_R = 1``, ``sigma_B = 1``, tie threshold
-    ``tau = 0.1``) and a person's rating precision ``nu = 3``
-    (:data:`~torchpref.models.defaults.PERSON_RATING_PRECISION`, calibrated on real raters), all fixed. A person can answer "no preference", so strict choices are
-    the tie likelihood's upper category (``ties_offered=True``, docs/likelihoods.md)."""
-    kernel = default_covar_module(train_X.shape[-1]).to(train_X)
-    kernel.base_kernel.lengthscale = 0.2
-    kernel.outputscale = 1.0
-    return PreferenceGP(train_X, covar_module=kernel, ties_offered=True, rating_precision=RATING_PRECISION)
+    r"""The default model of a session: :data:`~torchpref.models.recipe.DEFAULT_MODEL`'s
+    (:meth:`~torchpref.models.recipe.ModelSettings.session_model`): :class:`~torchpref.PreferenceGP`
+    on inputs normalised to the unit cube, an RBF kernel with lengthscale 0.2 and outputscale
+    ``sigma_f^2 = 1`` (eq. 1), comparison noise ``sigma_R = 1``, the Beta rating likelihood's
+    ``sigma_B = 1`` and a person's ``nu = 3`` (:data:`~torchpref.models.defaults.PERSON_RATING_PRECISION`,
+    calibrated on real raters: docs/real_raters.md), tie threshold ``tau = 0.1``, all fixed. A person
+    can answer "no preference", so strict choices are the tie likelihood's upper category
+    (``ties_offered=True``, docs/likelihoods.md); a population's person model has the same settings."""
+    return DEFAULT_MODEL.session_model(train_X)
+
+
+def to_unit_cube(X: Tensor, bounds: Tensor) -> Tensor:
+    """Items (``... x d``) normalised by ``bounds`` (``2 x d``) to the unit cube: what a session's
+    model sees (:meth:`~torchpref.PreferenceSession.transform`,
+    :meth:`~torchpref.sessions.contents.SessionContents.transform`)."""
+    lo, hi = bounds
+    return (X.to(torch.float64) - lo) / (hi - lo)
 
 
 def as_items(X: object, dim: int, name: str) -> Tensor:
@@ -218,16 +220,16 @@ def _describe(spec) -> str:
     return f"(a box {spec.get('bounds')} x {spec.get('num')})"
 
 
-def candidates_from_header(header: dict) -> Tensor | BoxCandidates:
+def candidates_from_header(header: SessionHeader) -> Tensor | BoxCandidates:
     """The candidates a session file's header describes: a pool's items or a box."""
-    spec = header["candidates"]
+    spec = header.candidates
     if spec["kind"] == "pool" and "items" not in spec:
         raise ValueError(
             f"this session file records its pool of {spec['num_items']} items by reference (digest "
             f"{spec['sha256'][:10]}), not its items: pass them, PreferenceSession.load(path, candidates=X)."
         )
-    if spec["kind"] == "pool":
-        return torch.tensor(spec["items"], dtype=torch.float64)
+    if header.pool is not None:
+        return torch.tensor(header.pool, dtype=torch.float64)
     return BoxCandidates(torch.tensor(spec["bounds"], dtype=torch.float64), spec["num"])
 
 
@@ -291,8 +293,16 @@ class SessionSettings:
             None if names is None else [str(n) for n in names],
         )
 
-    def header(self, metadata: dict | None) -> dict:
-        """A new session file's header record.
+    def header(
+        self,
+        metadata: dict | None,
+        model: dict | None = None,
+        selector: dict | None = None,
+        queries: list | None = None,
+    ) -> dict:
+        """A new session file's header record (:class:`~torchpref.sessions.records.SessionHeader`'s
+        object), with the descriptions of the ``model`` and ``selector`` it starts with and its
+        fixed question list (``queries``), where given.
 
         Raises:
             ValueError: ``metadata`` is not a dictionary that JSON writes and reads back
@@ -307,43 +317,49 @@ class SessionSettings:
                 f"metadata must hold only JSON values (strings, finite numbers, booleans, None, "
                 f"lists, dictionaries): {err}"
             ) from None
-        return {
-            "type": "header",
-            "version": FORMAT_VERSION,
-            "dim": self.dim,
-            "created": now(),
-            "torchpref": __version__,
-            "seed": self.seed,
-            "num_queries": self.num_queries,
-            "num_levels": self.num_levels,
-            "bounds": self.bounds.tolist(),
-            "names": self.names,
-            "candidates": self.spec,
-            "metadata": metadata or {},
-        }
+        lo, hi = self.bounds.tolist()
+        return SessionHeader(
+            version=FORMAT_VERSION,
+            dim=self.dim,
+            seed=self.seed,
+            num_queries=self.num_queries,
+            num_levels=self.num_levels,
+            bounds=(tuple(lo), tuple(hi)),
+            names=None if self.names is None else tuple(self.names),
+            candidates=self.spec,
+            metadata=metadata or {},
+            model=model,
+            selector=selector,
+            queries=queries,
+            created=now(),
+            torchpref=__version__,
+        ).to_json()
 
-    def check_header(self, h: dict, path: object) -> None:
+    def transform(self, X: Tensor) -> Tensor:
+        """Items in the unit cube of :attr:`bounds` (:func:`to_unit_cube`)."""
+        return to_unit_cube(X, self.bounds)
+
+    def check_header(self, h: SessionHeader, path: object) -> None:
         """Raise :class:`~torchpref.sessions.errors.SessionMismatchError` where the header ``h`` of the file
         ``path`` was written with other items, candidates, bounds, seed or levels."""
-        if h["dim"] != self.dim:
+        if h.dim != self.dim:
             raise SessionMismatchError(
-                f"session file {path} was written for {h['dim']}-dimensional items, but these items have "
+                f"session file {path} was written for {h.dim}-dimensional items, but these items have "
                 f"{self.dim} dimensions.",
                 "dim",
-                str(h["dim"]),
+                str(h.dim),
                 str(self.dim),
             )
-        settings: tuple[tuple[str, Any], ...] = (
-            ("candidates", self.spec),
-            ("bounds", self.bounds.tolist()),
-            ("seed", self.seed),
-            ("num_levels", self.num_levels),
+        settings: tuple[tuple[str, Any, Any], ...] = (
+            ("candidates", h.candidates, self.spec),
+            ("bounds", [list(h.bounds[0]), list(h.bounds[1])], self.bounds.tolist()),
+            ("seed", h.seed, self.seed),
+            ("num_levels", h.num_levels, self.num_levels),
         )
-        for key, mine in settings:
-            if key == "candidates" and _same_pool(h[key], self):
+        for key, theirs, mine in settings:
+            if key == "candidates" and _same_pool(theirs, self):
                 continue
-            if dumps_settings(h[key]) != dumps_settings(mine):
-                theirs = h[key]
+            if dumps_settings(theirs) != dumps_settings(mine):
                 if key == "candidates":
                     theirs, mine = _describe(theirs), _describe(mine)
                 raise SessionMismatchError(

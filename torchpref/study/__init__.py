@@ -10,6 +10,7 @@ the next participant starts from it; the experimenter has a page of their own
 
 from __future__ import annotations
 
-from torchpref.study.folder import StudyFolder, create_study
+from torchpref.study.create import create_study
+from torchpref.study.folder import StudyFolder
 
 __all__ = ["StudyFolder", "create_study"]

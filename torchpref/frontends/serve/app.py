@@ -218,8 +218,11 @@ class _Handlers:
         from starlette.concurrency import run_in_threadpool
         from starlette.responses import JSONResponse
 
-        await self.json_body(request)
-        sid = await run_in_threadpool(self.store.create)
+        body = await self.json_body(request)
+        participant = body.get("participant") if isinstance(body, dict) else None
+        if participant is not None and not isinstance(participant, str):
+            raise AnswerRefused(f"a participant id must be text, got {participant!r:.80}.", 400)
+        sid = await run_in_threadpool(self.store.create, participant or None)
         return JSONResponse({"sid": sid, "url": f"s/{sid}/"})
 
     def question_page(self, request):

@@ -155,7 +155,7 @@ class SessionStore:
         self.items, self.ties, self.new = items, bool(new.ties), new
         self.pool = SessionPool(self._open_checked, limits)
         self.plots = Plots(items)
-        self._lock = threading.Lock()
+        self._lock, self._new_metadata = threading.Lock(), dict[str, dict]()  # metadata: for _open's new file
         self.fixed = session is not None
         if session is not None:
             if sid is None:
@@ -188,10 +188,14 @@ class SessionStore:
         """The session file of ``sid``."""
         return self.directory / f"{sid}.session.jsonl"
 
-    def create(self) -> str:
-        """A new participant's session (its file written now); returns its id."""
+    def create(self, participant: str | None = None) -> str:
+        """A new participant's session (its file written now); returns its id. ``participant``: their
+        id from a recruitment platform (``?participant=`` of their link, 1-128 printable characters,
+        else a 400), recorded in the header's metadata."""
         if self.fixed:
             raise AnswerRefused("this server serves one session only; no new sessions.", 403)
+        if participant is not None and not (isinstance(participant, str) and 0 < len(participant) <= 128 and participant.isprintable()):  # fmt: skip
+            raise AnswerRefused(f"a participant id must be 1-128 printable characters, got {participant!r:.80}.", 400)
         self.pool.check_room()  # 503 before anything is made when descriptors or memory run short
         with self._lock:
             for _ in range(100):
@@ -201,8 +205,10 @@ class SessionStore:
             else:  # pragma: no cover - 2^-96 per try
                 raise RuntimeError("could not draw a new session id")
             try:
+                self._new_metadata[sid] = {} if participant is None else {"participant": participant}
                 session = self._open(sid)
             except BaseException as exc:
+                self._new_metadata.pop(sid, None)
                 self._discard(sid)  # no empty session file left behind
                 if isinstance(exc, Exception) and _resource_error(exc):
                     self.pool.refuse("file descriptors or memory")
@@ -263,14 +269,19 @@ class SessionStore:
     def on_finished(self, sid: str) -> None:
         """Called when session ``sid``'s last question is answered (a study refits its population)."""
 
+    def completion(self) -> dict | None:
+        """A finished participant's completion ``code`` and ``redirect`` address (``None`` here; a study's own)."""
+        return None
+
     def session_settings(self, sid: str) -> dict:
         """The settings session ``sid`` is opened (or created) with."""
         return dict(self._kwargs)
 
     def _open(self, sid: str) -> PreferenceSession:
         # the selector: a new session's is the default (torchpref.default_selector), a resumed one's
-        # the one its header records
+        # the one its header records; a new session's header gets the metadata create() left
         kwargs = dict(self.session_settings(sid), session_file=self.path(sid), repair=True)
+        kwargs["metadata"] = {**kwargs["metadata"], **self._new_metadata.pop(sid, {})}
         with warnings.catch_warnings(record=True) as caught:  # a partial last line: never acknowledged
             warnings.simplefilter("always")
             session = PreferenceSession(self.items.X, **kwargs)
@@ -352,6 +363,8 @@ class SessionStore:
         if s.step > 0:
             i, x = s.best_item()
             out["recommended"] = self._option(i, x)
+        if q is None and self.completion() is not None:
+            out["completion"] = self.completion()
         return out
 
     # ------------------------------------------------------------- answers

@@ -129,8 +129,17 @@
     if (s.done) {
       $("progress-text").textContent = `All ${s.total} questions answered.`;
       const link = el("a", { href: "summary", id: "to-summary" }, "See what was learned (Enter)");
-      box.append(el("h1", {}, "Thank you!"), el("p", {}, link));
-      link.focus();
+      box.append(el("h1", {}, "Thank you!"));
+      const done = s.completion || {};
+      if (done.code) box.append(el("p", { id: "completion-code" }, `Your completion code: ${done.code}`));
+      if (done.redirect) {
+        const go = el("a", { href: done.redirect, id: "completion-redirect", rel: "noreferrer" }, "Continue (Enter)");
+        box.append(el("p", {}, go));
+        go.focus();
+      } else {
+        box.append(el("p", {}, link));
+        link.focus();
+      }
     } else {
       $("progress-text").textContent = `Question ${s.answered + 1} of ${s.total}`;
       if (s.question.kind === "rating") renderRating(s.question, s, box);
