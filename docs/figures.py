@@ -717,6 +717,8 @@ _SUSHI, _RATING_MODEL = "sushi/sushi.json", "sushi/rating_model.json"
 FIGURES["sushi_seconds"] = Figure(_SUSHI, "meta.seconds", "{:,.0f}")
 FIGURES["sushi_load"] = Figure(_SUSHI, "meta.load_average_start_end.0", "{:.1f}")
 FIGURES["sushi_people"] = Figure(_SUSHI, "meta.people")
+FIGURES["sushi_seeds"] = Figure(_SUSHI, "meta.seeds")
+FIGURES["sushi_train"] = Figure(_SUSHI, "meta.population_people")
 FIGURES["sushi_calib_people"] = Figure(_RATING_MODEL, "people")
 _REFS = (("r", "all ratings"), ("k", "the ranking"), ("b", "both"))
 _TGT = (("rank", "ranking"), ("rate", "ratings"))
@@ -744,6 +746,11 @@ for _c in ("none", "population"):
         FIGURES[f"sushi_{_c}_best_{_k}"] = Figure(_SUSHI, f"{_T}.best_single_kind")
         FIGURES[f"sushi_{_c}_diff_{_k}"] = Figure(_SUSHI, f"{_T}.mean_diff", "{:+.3f}")
         FIGURES[f"sushi_{_c}_pd_{_k}"] = Figure(_SUSHI, f"{_T}.p_wilcoxon", "{:.2g}")
+    for _k in range(5):
+        _T = f"{_C}.tests.default_vs_best_single_kind.ratings.{_k}"
+        FIGURES[f"sushi_{_c}_rbest_{_k}"] = Figure(_SUSHI, f"{_T}.best_single_kind")
+        FIGURES[f"sushi_{_c}_rdiff_{_k}"] = Figure(_SUSHI, f"{_T}.mean_diff", "{:+.3f}")
+        FIGURES[f"sushi_{_c}_rpd_{_k}"] = Figure(_SUSHI, f"{_T}.p_wilcoxon", "{:.2g}")
     for _k, _b in enumerate(("6.8", "27.2")):
         FIGURES[f"sushi_{_c}_default_at_{_k}"] = Figure(
             _SUSHI, f"{_C}.policies.default.ranking.by_seconds.{4 * _k}", "{:.3f}"

@@ -58,7 +58,8 @@ def test_loader_refuses_a_damaged_file(tmp_path):
 def test_split_and_person_data(data):
     s = sushi.split(data, data.people[1], 1, 0)
     assert sorted(s.askable.tolist() + s.held.tolist()) == list(range(10)) and len(s.askable) == sushi.ASKABLE
-    assert s == sushi.split(data, data.people[1], 1, 0)  # seeded
+    again = sushi.split(data, data.people[1], 1, 0)  # seeded
+    assert all(torch.equal(getattr(s, f), getattr(again, f)) for f in ("X", "position", "levels", "askable", "held"))
     d = sushi.person_data(s, s.askable)
     # the ranking of the 6 as successive best-of-m: every pair, the better ranked first
     assert d.comparisons.shape == (15, 2)
@@ -135,10 +136,13 @@ def test_reproduce_sushi_without_data_says_where_to_get_it(tmp_path, monkeypatch
     from torchpref.cli import main
 
     monkeypatch.delenv("TORCHPREF_SUSHI_DATA", raising=False)
-    with pytest.raises((FileNotFoundError, SystemExit)) as err:
-        main(["reproduce", "sushi", "--out", str(tmp_path / "o")])
-    text = str(err.value) + capsys.readouterr().err
-    assert "kamishima" in text
+    try:
+        code = main(["reproduce", "sushi", "--out", str(tmp_path / "o")])
+        text = ""
+    except (FileNotFoundError, SystemExit) as err:
+        code, text = 1, str(err)
+    out = capsys.readouterr()
+    assert code != 0 and "kamishima" in text + out.out + out.err
 
 
 def test_learned_rating_precision_stays_finite():
@@ -160,14 +164,23 @@ def test_learned_rating_precision_stays_finite():
 
 
 def test_person_models_share_the_calibrated_precision():
+    """A session's model, a population's people and the PreferenceGP default (the paper's 80)."""
+    import torchpref
+    from torchpref.data.preference_data import PreferenceData
     from torchpref.models.defaults import PERSON_RATING_PRECISION
+    from torchpref.models.recipe import DEFAULT_MODEL
+    from torchpref.population.fit import fit_population
     from torchpref.sessions.settings import default_session_model
 
-    X = torch.rand(5, 2, dtype=torch.float64)
+    X = torch.rand(5, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    assert DEFAULT_MODEL.rating_precision == PERSON_RATING_PRECISION
     m = default_session_model(X)
     assert float(m.likelihood.rating.rating_precision) == pytest.approx(PERSON_RATING_PRECISION)
-    import inspect
-
-    from torchpref.population.fit import fit_population
-
-    assert inspect.signature(fit_population).parameters["rating_precision"].default == PERSON_RATING_PRECISION
+    people = [
+        PreferenceData.create(X, torch.tensor([[0, 1]]), ratings=torch.tensor([0.7]), rating_index=torch.tensor([2]))
+        for _ in range(2)
+    ]
+    pop = fit_population(people, fit=False)
+    person = pop.person_model(X)
+    assert float(person.likelihood.rating.rating_precision) == pytest.approx(PERSON_RATING_PRECISION)
+    assert float(torchpref.PreferenceGP(X).likelihood.rating.rating_precision) == pytest.approx(80.0)

@@ -53,7 +53,7 @@ def test_elicit_records_the_named_selector_and_a_resume_keeps_it(tmp_path):
     resumed.close()
     (tmp_path / "s.jsonl").unlink()
     fresh = _elicit_session(tmp_path, None)  # no --selector, no file: the default
-    assert isinstance(fresh.selector, InformationAndProfile) and fresh.selector.decide == "sum"
+    assert isinstance(fresh.selector, InformationAndProfile) and fresh.selector.decide == "order"
     fresh.close()
 
 

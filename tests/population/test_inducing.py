@@ -86,7 +86,7 @@ def test_one_person_at_inducing_items_is_todays_model_with_that_kernel(ratings):
     assert pop.mean_kind == "inducing" and pop.U.shape == (4, 2)
     ref = torchpref.PreferenceGP(
         person.train_X, person.comparisons, person.ratings, person.rating_index,
-        covar_module=_GivenInducing(k_m, k_g, pop.U), ties_offered=pop.model_settings.ties_offered,
+        covar_module=_GivenInducing(k_m, k_g, pop.U), **pop.model_settings.model_kwargs(),
     )  # fmt: skip
     assert pop.stats["evidence"] == pytest.approx(float(ref.log_marginal_likelihood().detach()), abs=1e-7)
 

@@ -62,4 +62,8 @@ def test_an_older_population_file_is_read_with_what_it_was_fitted_with():
     old = {"comparison_noise": 1.0, "rating_scale": 1.0, "rating_precision": 80.0, "rating_levels": None}
     settings = ModelSettings.from_json(old)
     assert settings.ties_offered is False and settings.tie_threshold == 0.1
-    assert dataclasses.replace(settings, ties_offered=True) == DEFAULT_MODEL
+    assert settings.rating_precision == 80.0  # what it was fitted with, not today's person's
+    assert (
+        dataclasses.replace(settings, ties_offered=True, rating_precision=DEFAULT_MODEL.rating_precision)
+        == DEFAULT_MODEL
+    )

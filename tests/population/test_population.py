@@ -42,7 +42,7 @@ def _reference(person, k_m, k_g):
         person.ratings,
         person.rating_index,
         covar_module=AdditiveKernel(k_m, k_g),
-        ties_offered=DEFAULT_MODEL.ties_offered,  # a population's person model is a session's (ModelSettings)
+        **DEFAULT_MODEL.model_kwargs(),  # a population's person model is a session's (ModelSettings)
     )
     return model
 

@@ -164,7 +164,7 @@ def test_a_session_of_the_previous_release_resumes_with_the_same_posterior(tmp_p
         return PreferenceGP(train_X, covar_module=kernel)
 
     monkeypatch.setattr(session_mod, "default_session_model", new_default)
-    monkeypatch.setattr(session_mod, "default_selector", lambda n: RandomRankings(m=2))
+    monkeypatch.setattr(session_mod, "default_selector", lambda n, num_levels=None: RandomRankings(m=2))
     with PreferenceSession.load(path) as s:
         _check_fixture(s, expected)
     with pytest.raises(SessionSettingsError, match="records a model") as err:

@@ -220,8 +220,8 @@ def test_a_study_whose_session_files_record_the_pool_by_reference(tmp_path, monk
     """A large pool's headers hold its digest, not its items (here from 9 items on): the refit's data
     are still the session model's, and the exports read the pool from the study's items.csv."""
     from torchpref.sessions import settings
-    from torchpref.study.export import study_items as export_items
-    from torchpref.study.refit import person_data
+    from torchpref.sessions.contents import read_session
+    from torchpref.study.items import study_space
 
     monkeypatch.setattr(settings, "POOL_INLINE_MAX", 8)
     folder, store, refits, key, client = _study(tmp_path)
@@ -229,12 +229,12 @@ def test_a_study_whose_session_files_record_the_pool_by_reference(tmp_path, monk
     sid = _participant(c)
     header, _, _ = read_session_file(store.path(sid))
     assert "items" not in header["candidates"] and header["candidates"]["num_items"] == 16
-    data, _, n = person_data(store.path(sid))
+    contents = read_session(store.path(sid))
     model_data = store.entry(sid).session.model.data
-    assert n == KEY_Q
-    torch.testing.assert_close(data.train_X, model_data.train_X)
-    X, names = export_items(folder)
-    torch.testing.assert_close(X, store.entry(sid).session.transform(store.items.X))
+    assert len(contents.in_force) == KEY_Q
+    torch.testing.assert_close(contents.data.train_X, model_data.train_X)
+    space = study_space(folder)
+    torch.testing.assert_close(space.unit, store.entry(sid).session.transform(store.items.X))
     assert len(answer_rows(folder)) == KEY_Q
     _wait(refits)
     refits.close()

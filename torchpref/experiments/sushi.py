@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -219,7 +220,9 @@ def replay(
     metrics = _metrics(splits)
     Xall = torch.stack([s.X for s in splits])
     rated: list[set[int]] = [set() for _ in range(T)]
-    out = [{"ranking": [], "ratings": [], "kinds": [], "seconds": [], "redirected": 0} for _ in range(T)]
+    out: list[dict[str, Any]] = [
+        {"ranking": [], "ratings": [], "kinds": [], "seconds": [], "redirected": 0} for _ in range(T)
+    ]
 
     def measure() -> None:
         mean, _ = models.joint(Xall)

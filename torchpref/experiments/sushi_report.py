@@ -24,6 +24,7 @@ import argparse
 import csv
 import os
 import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import torch
@@ -73,7 +74,7 @@ def _people(data: SushiData, args: argparse.Namespace) -> tuple[list[int], list[
     return perm[:a], perm[a:b], perm[b:need]
 
 
-def rating_model_table(data: SushiData, who: list[int], progress) -> list[dict]:
+def rating_model_table(data: SushiData, who: list[int], progress: Callable[..., Iterable[float]]) -> list[dict]:
     """Per precision: the summed evidence (ratings + ranking of all 10 items; ratings alone) and the
     held-out concordances of the three references (no population), under a session's model of that
     precision (:data:`~torchpref.models.recipe.DEFAULT_MODEL` otherwise)."""
@@ -223,6 +224,7 @@ def write_curves(summary: dict, path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """``torchpref reproduce sushi``: the steps of the module notes, files under ``args.out``."""
     from tqdm.auto import tqdm
 
     from torchpref.experiments.results import write_json

@@ -62,7 +62,7 @@ class ProfilePerSecond(ProfileVariancePerEffort):
     def __init__(
         self,
         m: int = 5,
-        effort: EffortModel | None = None,
+        effort: EffortModel | dict[str, float] | None = None,
         target: str = "both",
         min_answers: int = 3,
         num_samples: int = 256,
@@ -73,9 +73,7 @@ class ProfilePerSecond(ProfileVariancePerEffort):
         rating_seconds: float | None = None,
         ranking_seconds: float | None = None,
     ):
-        effort = EffortModel.plain() if effort is None else effort
-        if not isinstance(effort, EffortModel):
-            raise ValueError(f"effort must be an EffortModel, got {effort!r}.")
+        effort = EffortModel.plain() if effort is None else EffortModel.of(effort)
         if rating_seconds is not None or ranking_seconds is not None:  # explicit seconds of this m
             rating = effort.rating() if rating_seconds is None else float(rating_seconds)
             ranking = effort.ranking(m) if ranking_seconds is None else float(ranking_seconds)
@@ -97,7 +95,8 @@ class ProfilePerSecond(ProfileVariancePerEffort):
             num_bins=num_bins,
             clipped=target == "clipped",
         )
-        self.effort, self.target, self.min_answers = effort, target, int(min_answers)
+        self._effort = effort
+        self.effort, self.target, self.min_answers = effort.as_dict(), target, int(min_answers)
         self._measured: dict[str, list[float]] = {"rating": [], "ranking": []}
 
     # -------------------------------------------------------------- seconds
@@ -111,13 +110,13 @@ class ProfilePerSecond(ProfileVariancePerEffort):
         if not (s > 0 and s < float("inf")):
             raise ValueError(f"seconds must be positive and finite, got {seconds!r}.")
         if kind == "ranking" and m is not None and m != self.m:
-            s *= self.effort.ranking(self.m) / self.effort.ranking(m)
+            s *= self._effort.ranking(self.m) / self._effort.ranking(m)
         self._measured[kind].append(s)
 
     def seconds(self) -> dict[str, float]:
         """The seconds a rating and a ranking are valued at now: measured means where there are
         ``min_answers`` of a kind, else the effort model's."""
-        model = {"rating": self.effort.rating(), "ranking": self.effort.ranking(self.m)}
+        model = {"rating": self._effort.rating(), "ranking": self._effort.ranking(self.m)}
         return {k: (sum(v) / len(v) if len(v) >= self.min_answers else model[k]) for k, v in self._measured.items()}
 
     # -------------------------------------------------------------- values
@@ -136,7 +135,7 @@ class ProfilePerSecond(ProfileVariancePerEffort):
         sec = self.seconds()
         if q == 1:
             return sec["rating"]
-        return sec["ranking"] * (1.0 if q == self.m else self.effort.ranking(q) / self.effort.ranking(self.m))
+        return sec["ranking"] * (1.0 if q == self.m else self._effort.ranking(q) / self._effort.ranking(self.m))
 
     def _prepare(
         self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]
