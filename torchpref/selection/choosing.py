@@ -25,6 +25,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from torchpref.data.effort import EffortModel
 from torchpref.data.queries import Query, RankingQuery, RatingQuery, first_unique_rows
 
 __all__ = ["QueryRows", "choose_by_scores", "query_items", "ranking_cost"]
@@ -123,3 +124,33 @@ def uniform_among(qr: QueryRows, kind: str | None, generator: torch.Generator) -
     pool = qr.of_kind(kind) if kind is not None else []
     pool = pool or list(range(len(qr.rows)))
     return pool[int(torch.randint(len(pool), (1,), generator=generator))]
+
+
+def _ranking_size(m: int) -> int:
+    """``m`` checked at construction: a whole number of items per ranking, at least 2."""
+    if isinstance(m, bool) or int(m) != m or m < 2:
+        raise ValueError(f"a ranking query needs m >= 2 items (a whole number), got m={m!r}.")
+    return int(m)
+
+
+def effort_model(
+    m: int, rating_cost: float, ranking_cost: float | None, effort: EffortModel | dict[str, float] | None = None
+) -> tuple[int, float, float]:
+    """``m`` checked, and the efforts of a rating and a best-of-``m`` ranking: ``effort``'s seconds
+    where an :class:`~torchpref.data.effort.EffortModel` is given, else ``rating_cost`` and
+    ``ranking_cost`` (default ``1 + (m - 1) / 4``: one judgement and reading ``m - 1`` more items at
+    a quarter each)."""
+    m = _ranking_size(m)
+    if effort is not None:
+        effort = EffortModel.of(effort)
+        return m, effort.rating(), effort.ranking(m)
+    ranking_cost = 1.0 + (m - 1) / 4 if ranking_cost is None else ranking_cost
+    if not (rating_cost > 0 and ranking_cost > 0):
+        raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
+    return m, float(rating_cost), float(ranking_cost)
+
+
+def shown(rows: Tensor) -> Tensor:
+    """A ranking's rows as :meth:`PerEffortSelector.values` gives them, without the ``-1`` that pad
+    a smaller set than ``m``."""
+    return rows[rows >= 0]

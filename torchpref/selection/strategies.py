@@ -27,37 +27,22 @@ from torchpref.acquisition.functions import (
 from torchpref.data.effort import EffortModel
 from torchpref.data.queries import Query, ranking_query, rating_query
 from torchpref.models.defaults import preference_likelihood
-from torchpref.selection.choosing import QueryRows, choose_by_scores, query_items, ranking_cost, uniform_among
+from torchpref.selection.choosing import (  # importable from here too
+    QueryRows,
+    _ranking_size,
+    choose_by_scores,
+    effort_model,
+    query_items,
+    ranking_cost,
+    shown,
+    uniform_among,
+)
 from torchpref.selection.samples import (  # importable from here too
     SelectorModel,
     joint_posterior,
     joint_samples,
     sample_scorers,
 )
-
-
-def _ranking_size(m: int) -> int:
-    """``m`` checked at construction: a whole number of items per ranking, at least 2."""
-    if isinstance(m, bool) or int(m) != m or m < 2:
-        raise ValueError(f"a ranking query needs m >= 2 items (a whole number), got m={m!r}.")
-    return int(m)
-
-
-def effort_model(
-    m: int, rating_cost: float, ranking_cost: float | None, effort: EffortModel | dict[str, float] | None = None
-) -> tuple[int, float, float]:
-    """``m`` checked, and the efforts of a rating and a best-of-``m`` ranking: ``effort``'s seconds
-    where an :class:`~torchpref.data.effort.EffortModel` is given, else ``rating_cost`` and
-    ``ranking_cost`` (default ``1 + (m - 1) / 4``: one judgement and reading ``m - 1`` more items at
-    a quarter each)."""
-    m = _ranking_size(m)
-    if effort is not None:
-        effort = EffortModel.of(effort)
-        return m, effort.rating(), effort.ranking(m)
-    ranking_cost = 1.0 + (m - 1) / 4 if ranking_cost is None else ranking_cost
-    if not (rating_cost > 0 and ranking_cost > 0):
-        raise ValueError(f"costs must be positive, got rating_cost={rating_cost}, ranking_cost={ranking_cost}.")
-    return m, float(rating_cost), float(ranking_cost)
 
 
 def _check_m(m: int, X: Tensor) -> None:
@@ -185,12 +170,6 @@ class PerEffortSelector(Selector):
             else rating_query(X[b], indices[b], int(rating_row[b]))
             for b in range(X.shape[0])
         ]
-
-
-def shown(rows: Tensor) -> Tensor:
-    """A ranking's rows as :meth:`PerEffortSelector.values` gives them, without the ``-1`` that pad
-    a smaller set than ``m``."""
-    return rows[rows >= 0]
 
 
 class RandomRatings(Selector):
