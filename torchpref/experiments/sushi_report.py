@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from torchpref.experiments import sushi
-from torchpref.experiments.sushi_data import SOURCE, SushiData, load_sushi
+from torchpref.experiments.sushi_data import FEATURES, SOURCE, SushiData, load_sushi
 
 __all__ = ["DATA_ENV", "PRECISIONS", "run"]
 
@@ -107,13 +107,7 @@ def _fit_population(data: SushiData, who: list[int], seed: int):
     from torchpref.population.fit import fit_population
 
     splits = [sushi.split(data, data.people[k], k, seed) for k in who]
-    return fit_population([sushi.person_data(s) for s in splits], max_iter=40, feature_names=list(sushi_features()))
-
-
-def sushi_features() -> tuple[str, ...]:
-    from torchpref.experiments.sushi_data import FEATURES
-
-    return FEATURES
+    return fit_population([sushi.person_data(s) for s in splits], max_iter=40, feature_names=list(FEATURES))
 
 
 def _mean(xs) -> float:
@@ -267,7 +261,7 @@ def run(args: argparse.Namespace) -> int:
         "population_people": len(train),
         "calibration_people": len(calibration),
         "queries": args.queries,
-        "features": list(sushi_features()),
+        "features": list(FEATURES),
         "seconds": round(time.time() - start, 1),
         "load_average_start_end": [round(load0, 2), round(os.getloadavg()[0], 2)],
         "cpu_count": os.cpu_count(),

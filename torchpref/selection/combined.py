@@ -125,20 +125,23 @@ class InformationAndProfile(PerEffortSelector):
         F, std = joint_samples(mean, cov, generators, self.num_samples)
         T, S, N = F.shape
         lik = preference_likelihood(model)
-        V = top_profile(F, max(1, min(N, round(self.top_fraction * N))), lik.rating, True)
-        var = V.var(-2)
-        by_profile = var.argsort(-1, descending=True)
-        n = max(1, int((var > 0).sum(-1).max()))
-        mom = _Moments.of(V.gather(2, by_profile[:, :n].unsqueeze(1).expand(T, S, n)))
         p_max = torch.zeros_like(mean).scatter_add_(1, F.argmax(-1), torch.ones_like(F[..., 0])) / S
         ucb = mean + self.gamma * std
         tie = 1e-9 * torch.sigmoid(ucb - ucb.max(-1, keepdim=True).values)
 
-        def profile(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
-            return _reduction(P, mom, True)
-
         by_max = torch.argsort(p_max + tie, dim=-1, descending=True)
-        prep = dict(F=F, lik=lik, profile=profile, by_profile=by_profile, by_max=by_max)
+        prep = dict(F=F, lik=lik, by_max=by_max)
+        if self.decide != "order":  # the clipped profile (decide="order" values by the order alone)
+            V = top_profile(F, max(1, min(N, round(self.top_fraction * N))), lik.rating, True)
+            var = V.var(-2)
+            by_profile = var.argsort(-1, descending=True)
+            n = max(1, int((var > 0).sum(-1).max()))
+            mom = _Moments.of(V.gather(2, by_profile[:, :n].unsqueeze(1).expand(T, S, n)))
+
+            def profile(P: Tensor) -> Tensor:  # T x R x S x Y -> T x R
+                return _reduction(P, mom, True)
+
+            prep.update(profile=profile, by_profile=by_profile)
         if self.decide == "sum":
             self._scaled_sum(prep)
         if self.decide == "order":
@@ -171,7 +174,7 @@ class InformationAndProfile(PerEffortSelector):
         prep.update(sum=total, rating_cand=cand, rating_sum=info / s_info + prof / s_prof)
 
     def _judge(self, prep: dict[str, Any]) -> Value:
-        return {"information": sample_information, "profile": prep["profile"]}.get(self.decide) or prep[self.decide]
+        return sample_information if self.decide == "information" else prep[self.decide]
 
     def scorers(self, model: SelectorModel, X: Tensor, generators: Sequence[torch.Generator]) -> tuple[Value, Value]:
         """The ``decide`` value (not per second) of a rating of rows ``T x R`` and of a ranking of

@@ -18,31 +18,19 @@ import os
 import sys
 
 from torchpref.frontends.serve.app import Listen, NewSessions, serve_store
-from torchpref.frontends.serve.items import ServeItems, items_from_csv, lake_items
+from torchpref.frontends.serve.items import ServeItems, items_from_csv
 from torchpref.frontends.serve.pool import PoolLimits
 from torchpref.frontends.serve.store import SessionStore
 from torchpref.selection.defaults import named_selector
 from torchpref.study.create import create_study
 from torchpref.study.folder import StudyFolder
+from torchpref.study.items import study_items  # importable from here too
 from torchpref.study.lock import ServerLock
 from torchpref.study.page import study_routes
 from torchpref.study.refit import RefitRunner
 from torchpref.study.store import StudyStore, experimenter_key
 
 __all__ = ["new_sessions", "run", "study_items"]
-
-
-def study_items(folder: StudyFolder) -> ServeItems:
-    """The study's items, from its settings: its copy of the features CSV, or the lake."""
-    settings = folder.settings()
-    if settings.get("world") == "lake":
-        return lake_items(int(settings.get("seed", 0)))
-    return items_from_csv(
-        str(folder.path / "items.csv"),
-        settings.get("id_column"),
-        settings.get("image_column"),
-        settings.get("image_dir"),
-    )
 
 
 def new_sessions(folder: StudyFolder, items: ServeItems) -> NewSessions:
