@@ -11,6 +11,9 @@ paths (``final.UCBC.wrms.0``: dictionary keys and list indices); CSV keys are
   ``<!-- fig:NAME -->0.0496<!-- /fig -->``; ``tests/test_figures.py`` fails when the text between
   them differs from the file, when a page names a figure that is not here, or when a figure's key
   is not in its file.
+* A whole table is a :class:`Table` (a file, its columns, which rows), written between a
+  ``<!-- table:NAME -->`` line and a ``<!-- /table -->`` line; the same test holds it to its file.
+* ``tests/test_prose_figures.py`` fails on a measured figure typed into a page outside a marker.
 """
 
 from __future__ import annotations
@@ -47,21 +50,74 @@ class Figure:
         return value
 
     def text(self) -> str:
-        value = self.raw()
-        if value is None:  # a measurement that found no such value (e.g. a size at which shards never pay)
-            return "never"
-        if self.fmt == "percent":
-            return f"{100 * float(value):g} %"
-        if self.fmt == "kb_mb":  # kilobytes shown in megabytes
-            return f"{float(value) / 1000:.0f}"
-        if self.fmt == "percent2":  # a share, to a tenth of a percent
-            return f"{round(100 * float(value), 1):g} %"
-        if self.fmt == "ms":  # seconds shown in milliseconds
-            return f"{1000 * float(value):.1f} ms"
-        if self.fmt == "sci":  # 4e-8 style, one significant digit
-            mantissa, exponent = f"{float(value):.0e}".split("e")
-            return f"{mantissa}e{int(exponent)}"
-        return self.fmt.format(value)
+        return formatted(self.raw(), self.fmt)
+
+
+def formatted(value: object, fmt: str = "{}") -> str:
+    """``value`` as a page shows it: ``fmt`` is a str.format pattern or one of the named formats."""
+    if value is None:  # a measurement that found no such value (e.g. a size at which shards never pay)
+        return "never"
+    if fmt == "percent":
+        return f"{100 * float(value):g} %"
+    if fmt == "kb_mb":  # kilobytes shown in megabytes
+        return f"{float(value) / 1000:.0f}"
+    if fmt == "percent2":  # a share, to a tenth of a percent
+        return f"{round(100 * float(value), 1):g} %"
+    if fmt == "ms":  # seconds shown in milliseconds
+        return f"{1000 * float(value):.1f} ms"
+    if fmt == "sci":  # 4e-8 style, one significant digit
+        mantissa, exponent = f"{float(value):.0e}".split("e")
+        return f"{mantissa}e{int(exponent)}"
+    return fmt.format(value)
+
+
+def _rows(file: str, rows: str = "") -> list[dict]:
+    """The rows of a table's file: every row of a CSV, or the list (or ``{label: row}`` mapping, the label
+    as ``__key__``) at the dotted path ``rows`` of a JSON file."""
+    path = ROOT / "benchmarks" / "results" / file
+    if path.suffix == ".csv":
+        with path.open(newline="") as fh:
+            return list(csv.DictReader(fh))
+    value = json.loads(path.read_text())
+    for part in filter(None, rows.split(".")):
+        value = value[int(part)] if isinstance(value, list) else value[part]
+    if isinstance(value, dict):
+        return [{"__key__": k, **v} for k, v in value.items()]
+    return list(value)
+
+
+@dataclass(frozen=True)
+class Table:
+    """A whole markdown table read from one results file: ``columns`` are ``(header, key, fmt)``, a key
+    a column of the CSV (or a dotted path inside each JSON row); ``where`` keeps the rows whose columns
+    equal its values (as text), in the file's order. A page writes it between
+    ``<!-- table:NAME -->`` and ``<!-- /table -->`` lines (``make pages`` fills it in)."""
+
+    file: str
+    columns: tuple[tuple[str, str, str], ...]
+    where: tuple[tuple[str, str], ...] = ()
+    rows: str = ""  # JSON: the dotted path to the rows
+
+    def raw_rows(self) -> list[dict]:
+        found = [r for r in _rows(self.file, self.rows) if all(str(r.get(k)) == v for k, v in self.where)]
+        if not found:
+            raise KeyError(f"{self.file}: no rows match {dict(self.where)!r}")
+        return found
+
+    def text(self) -> str:
+        def cell(row: dict, key: str, fmt: str) -> str:
+            value: object = row
+            for part in key.split("."):
+                value = value[int(part)] if isinstance(value, list) else value[part]  # type: ignore[index]
+            if isinstance(value, str) and fmt != "{}":
+                value = float(value)
+            return formatted(value, fmt)
+
+        lines = ["| " + " | ".join(h for h, _, _ in self.columns) + " |"]
+        lines.append("|" + "|".join("---" for _ in self.columns) + "|")
+        for row in self.raw_rows():
+            lines.append("| " + " | ".join(cell(row, k, f) for _, k, f in self.columns) + " |")
+        return "\n".join(lines)
 
 
 _WAVE = "wave_summary.json"
@@ -851,15 +907,22 @@ FIGURES["large_pool_serve_file_kb"] = Figure(_LP_SERVE, "session_file_kb@N=10000
 FIGURES["large_pool_serve_load"] = Figure("large_pools/serve.json", "load_at_start.0", "{:.1f}")
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
+TABLES: dict[str, Table] = {}
+TABLE_MARKER = re.compile(r"<!-- table:(?P<name>\w+) -->\n(?P<text>.*?)\n<!-- /table -->", re.S)
+TABLE_STALE_NOTE = "*(measured on an older version)*"
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 
 
 def is_stale(name: str) -> bool:
-    """Whether the figure's results file is stale (its measured code changed since its stamp);
-    an unstamped file counts as not stale here: ``make results-status`` lists those."""
+    """Whether the figure's (or table's) results file is stale (its measured code changed since its
+    stamp); an unstamped file counts as not stale here: ``make results-status`` lists those."""
+    return file_is_stale((FIGURES.get(name) or TABLES[name]).file)
+
+
+def file_is_stale(file: str) -> bool:
     from torchpref.experiments.stamp import status
 
-    path = ROOT / "benchmarks" / "results" / FIGURES[name].file
+    path = ROOT / "benchmarks" / "results" / file
     if path.suffix != ".json":  # a CSV is judged by the JSON of the same name beside it
         path = path.with_suffix(".json")
     return path.is_file() and status(path, ROOT)[0] == "stale"
@@ -878,10 +941,16 @@ def page_text(name: str) -> str:
     return FIGURES[name].text() + (STALE_NOTE if is_stale(name) else "")
 
 
+def table_text(name: str) -> str:
+    """What a page shows for table ``name``: the table, then :data:`TABLE_STALE_NOTE` when its file is stale."""
+    return TABLES[name].text() + ("\n\n" + TABLE_STALE_NOTE if is_stale(name) else "")
+
+
 def write_pages(pages: list[Path] | None = None) -> dict[str, int]:
-    """Write every figure into the pages (``make pages``): each ``{{ name }}`` becomes
-    ``<!-- fig:name -->value<!-- /fig -->`` and every marker's text is set to :func:`page_text`, so a
-    page read as a file (on GitHub, in an editor) shows the numbers. Returns ``{page: figures}``."""
+    """Write every figure and table into the pages (``make pages``): each ``{{ name }}`` becomes
+    ``<!-- fig:name -->value<!-- /fig -->``, every marker's text is set to :func:`page_text` and
+    every table's to :func:`table_text`, so a page read as a file (on GitHub, in an editor) shows the
+    numbers. Returns ``{page: figures and tables}``."""
     out = {}
     texts: dict[str, str] = {}
 
@@ -894,9 +963,10 @@ def write_pages(pages: list[Path] | None = None) -> dict[str, int]:
         old = page.read_text()
         new = SUBSTITUTION.sub(lambda m: f"<!-- fig:{m['name']} -->{text(m['name'])}<!-- /fig -->", old)
         new = MARKER.sub(lambda m: f"<!-- fig:{m['name']} -->{text(m['name'])}<!-- /fig -->", new)
+        new = TABLE_MARKER.sub(lambda m: f"<!-- table:{m['name']} -->\n{table_text(m['name'])}\n<!-- /table -->", new)
         if new != old:
             page.write_text(new)
-        out[page.relative_to(ROOT).as_posix()] = len(MARKER.findall(new))
+        out[page.relative_to(ROOT).as_posix()] = len(MARKER.findall(new)) + len(TABLE_MARKER.findall(new))
     return out
 
 

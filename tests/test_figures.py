@@ -43,6 +43,43 @@ def test_the_figures_a_page_quotes_equal_their_files(page):
     assert not wrong and not unknown, "\n".join(wrong + [f"no such figure: {n}" for n in unknown])
 
 
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_the_tables_a_page_quotes_equal_their_files(page):
+    found = list(figures.TABLE_MARKER.finditer(page.read_text()))
+    unknown = [m["name"] for m in found if m["name"] not in figures.TABLES]
+    strict = os.environ.get("CI") == "true"  # under CI the stale notes must be on the page too
+    wrong = [
+        f"table {m['name']} differs from its file {figures.TABLES[m['name']].file} (make pages)"
+        for m in found
+        if m["name"] in figures.TABLES
+        and (
+            m["text"] != figures.table_text(m["name"])
+            if strict
+            else m["text"].removesuffix("\n\n" + figures.TABLE_STALE_NOTE) != figures.TABLES[m["name"]].text()
+        )
+    ]
+    assert not wrong and not unknown, "\n".join(wrong + [f"no such table: {n}" for n in unknown])
+
+
+def test_a_table_is_written_from_its_file(tmp_path, monkeypatch):
+    results = tmp_path / "benchmarks" / "results"
+    results.mkdir(parents=True)
+    (results / "t.csv").write_text("n,task,ratio\n20,fit,1.234\n50,fit,2.5\n20,mode,9\n")
+    monkeypatch.setattr(figures, "ROOT", tmp_path)
+    monkeypatch.setitem(
+        figures.TABLES,
+        "t_fit",
+        figures.Table("t.csv", (("n", "n", "{}"), ("ratio", "ratio", "{:.1f}×")), (("task", "fit"),)),
+    )
+    page = tmp_path / "p.md"
+    page.write_text("before\n<!-- table:t_fit -->\nold\n<!-- /table -->\nafter\n")
+    figures.write_pages([page])
+    assert (
+        page.read_text()
+        == "before\n<!-- table:t_fit -->\n| n | ratio |\n|---|---|\n| 20 | 1.2× |\n| 50 | 2.5× |\n<!-- /table -->\nafter\n"
+    )
+
+
 def test_a_figure_that_disagrees_with_its_file_is_caught(tmp_path):
     name = "wave_wrms_info"
     page = f"WRMS <!-- fig:{name} -->0.9999<!-- /fig -->"
