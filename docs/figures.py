@@ -120,6 +120,8 @@ class Table:
         return "\n".join(lines)
 
 
+TABLES: dict[str, Table] = {}
+
 _WAVE = "wave_summary.json"
 _SPEED = "speed_quiet/speed_pairwise.csv"  # the quiet run of this round (stamped JSON beside it)
 _PAIR = "paired_tests.queries.info per effort vs UCBC"
@@ -906,10 +908,20 @@ for _col in ("read_csv_s", "new_participant_s", "answer_median_s", "summary_s", 
 FIGURES["large_pool_serve_file_kb"] = Figure(_LP_SERVE, "session_file_kb@N=100000", "{:.0f} kB")
 FIGURES["large_pool_serve_load"] = Figure("large_pools/serve.json", "load_at_start.0", "{:.1f}")
 
+# --- issue 53, section A: README, install, speed, botorch, serve, sessions, study, robustness,
+# decisions, acquisition (figures and tables taken off hand-typed prose)
+
+# --- end of section A
+
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
-TABLES: dict[str, Table] = {}
 TABLE_MARKER = re.compile(r"<!-- table:(?P<name>\w+) -->\n(?P<text>.*?)\n<!-- /table -->", re.S)
 TABLE_STALE_NOTE = "*(measured on an older version)*"
+
+# --- issue 53, section B: suite, results, laplace, lake, wave, likelihoods, population,
+# real_raters, selection, ax (figures and tables taken off hand-typed prose)
+
+# --- end of section B
+
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 
 
