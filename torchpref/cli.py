@@ -666,7 +666,12 @@ def _main(argv: list[str] | None) -> int:
             return _serve(args)
         if args.command == "study":
             return _study(args)
-        return _reproduce(args) if args.command == "reproduce" else _elicit(args)
+        if args.command == "reproduce":
+            from torchpref.experiments.stamp import recording_subprocesses
+
+            with recording_subprocesses():  # its stamps hash the code its worker processes ran too
+                return _reproduce(args)
+        return _elicit(args)
     except KeyboardInterrupt:
         print(f"\n{command}: interrupted", file=sys.stderr)
         return 130

@@ -249,4 +249,7 @@ def _report_figures(page: Path) -> int | None:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from torchpref.experiments.stamp import recording_subprocesses
+
+    with recording_subprocesses():  # the stamp hashes the code of every process it starts too
+        raise SystemExit(main())

@@ -344,4 +344,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from torchpref.experiments.stamp import recording_subprocesses
+
+    with recording_subprocesses():  # the stamp hashes the code of every process it starts too
+        raise SystemExit(main())

@@ -156,4 +156,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from torchpref.experiments.stamp import recording_subprocesses
+
+    with recording_subprocesses():  # the stamp hashes the code of every process it starts too
+        sys.exit(main())

@@ -197,4 +197,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from torchpref.experiments.stamp import recording_subprocesses
+
+    with recording_subprocesses():  # the stamp hashes the code of every process it starts too
+        raise SystemExit(main())

@@ -1,6 +1,7 @@
 """Stamped results (issue 36): a stamp names its sources by hash, and a result goes stale when one changes."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -94,3 +95,20 @@ def test_a_stamp_hashes_what_its_subprocesses_ran(tmp_path):
         stamp = make_stamp()
     assert "torchpref/study/folder.py" in stamp["sources"] and "torchpref/study/folder.py" in stamp["code"]
     assert "torchpref/study/folder.py" not in make_stamp()["sources"] or "torchpref.study.folder" in sys.modules
+
+
+def test_every_benchmark_that_starts_processes_stamps_their_code():
+    """A measurement that starts processes (a server, workers, a pytest run) hashes what they ran:
+    its script runs under recording_subprocesses() (issue 53)."""
+    import re
+
+    root = Path(__file__).resolve().parents[2]
+    starts = re.compile(r"subprocess\.(run|Popen)|ProcessPoolExecutor|multiprocessing")
+    missing = [
+        p.relative_to(root).as_posix()
+        for p in sorted((root / "benchmarks").rglob("*.py"))
+        if starts.search(p.read_text())
+        and "recording_subprocesses" not in p.read_text()
+        and "__main__" in p.read_text()
+    ]
+    assert not missing, f"start processes without recording_subprocesses(): {missing}"

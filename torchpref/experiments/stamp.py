@@ -118,10 +118,13 @@ class recording_subprocesses:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        import shutil
+
         if self._before is None:
             os.environ.pop(SUBPROCESS_VAR, None)
         else:
             os.environ[SUBPROCESS_VAR] = self._before
+        shutil.rmtree(self.folder, ignore_errors=True)  # read by the stamps written inside; not after
 
 
 def _subprocess_files() -> set[Path]:
