@@ -3,8 +3,8 @@
 A file is *fresh* when every source file its stamp hashed (the script that wrote it and the
 ``torchpref`` modules it ran) is unchanged, *stale* when one changed or is gone (the reason names
 them), *unstamped* when it has no stamp (written before stamps, or not JSON: CSV and PNG files
-are judged by the JSON beside them). ``--fail-on-stale`` exits 1 when a file is stale and not
-listed in ``benchmarks/results/KEPT_STALE.txt`` (one ``path: reason`` a line).
+are judged by the JSON beside them). ``--fail-on-stale`` exits 1 when a file is stale or unstamped
+and not listed in ``benchmarks/results/KEPT_STALE.txt`` (one ``path: reason`` a line).
 """
 
 from __future__ import annotations
@@ -52,7 +52,11 @@ def main(argv: list[str] | None = None) -> int:
         if state != "fresh" and rel not in kept:
             unexplained.append(rel)
         print(f"{state:9s} {rel}: {reason}{note}")
+    total = sum(counts.values())
+    stamped = counts["fresh"] + counts["stale"]
     print(f"{counts['fresh']} fresh, {counts['stale']} stale, {counts['unstamped']} unstamped")
+    if total:
+        print(f"{stamped} of {total} stamped ({100 * stamped / total:.0f} %); {len(unexplained)} not fresh without a reason")
     return 1 if args.fail_on_stale and unexplained else 0
 
 

@@ -166,6 +166,9 @@ def task_fns(task: str, lib: str, X, C, fitted=None):
         return (lambda: BUILD[lib](X, C)), None
     if task == "fit":
         return FIT[lib], (lambda: BUILD[lib](X, C))
+    if task == "kernel":  # the GPyTorch kernel alone (its modules and priors), which "mode" builds first
+        make = bc.make_kernel_rs if lib == "botorch_rust" else bc.make_kernel
+        return (lambda: make(X.shape[-1])), None
     wrap = _torch_path if lib == "torchpref_torch" else (lambda fn: fn)
     if task == "posterior":
         Xq = bc.query_points()
@@ -403,6 +406,8 @@ def main() -> None:
         p = 2 * n
         slow = n >= args.slow_n
         reps = 1 if slow else args.repeats
+        if n == args.sizes[0] and "mode" in args.tasks:  # what building the kernel costs, of "mode"'s time
+            rows.append({"task": "kernel", "n": n, "p": p, **_cells(measure("kernel", n, p, libs, max(reps, 5)))})
         for task in ("mode", "fit"):
             if task in args.tasks:
                 med = measure(
