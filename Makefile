@@ -73,6 +73,11 @@ results: $(STAMP) fast-path
 	OMP_NUM_THREADS=1 $(BIN)/python benchmarks/studies/twins.py --fresh --cache .cache/twins
 	$(BIN)/torchpref reproduce replay --out $(RESULTS)/replay
 	$(BIN)/python benchmarks/robustness/fuzz.py
+	$(BIN)/python benchmarks/speed/speed_line_search.py
+	@if [ -n "$$TORCHPREF_SUSHI_DATA" ]; then \
+	  $(BIN)/torchpref reproduce sushi --calibration 0 --out $(RESULTS)/sushi && \
+	  $(BIN)/torchpref reproduce sushi --rating-model-only --calibration 200 --out $(RESULTS)/sushi; \
+	else echo "results: the SUSHI replay left out (set TORCHPREF_SUSHI_DATA to your download; docs/real_raters.md)"; fi
 	$(BIN)/python benchmarks/results_status.py
 	$(MAKE) pages
 
