@@ -17,7 +17,7 @@ from torch import Tensor
 
 from torchpref.inference.numerics import gauss_hermite
 
-__all__ = ["greedy_choice_set", "greedy_choice_sets"]
+__all__ = ["greedy_choice_set", "greedy_choice_sets", "greedy_choice_steps"]
 
 # On a CPU, trials are processed in chunks whose temporaries stay in a core's cache (about this
 # many float64 elements each): one T = 100 batch is slower than 100 single calls otherwise.
@@ -87,6 +87,22 @@ def greedy_choice_sets(
 ) -> tuple[Tensor, Tensor]:
     r""":func:`greedy_choice_set` for ``T`` trials at once (``F``: ``T x S x K``): a ``T x m`` long
     tensor of the chosen columns and the ``T`` values of the final sets."""
+    chosen, steps = greedy_choice_steps(F, comparison_noise, m, value, start, num_quadrature)
+    return chosen, steps[:, -1]
+
+
+def greedy_choice_steps(
+    F: Tensor,
+    comparison_noise: float | Tensor | Any,
+    m: int,
+    value: Callable[[Tensor], Tensor],
+    start: int | Tensor | None = None,
+    num_quadrature: int = 6,
+) -> tuple[Tensor, Tensor]:
+    r""":func:`greedy_choice_sets` with the value of every prefix of each set: a ``T x m`` long
+    tensor of the chosen columns and ``T x (m - 1)`` values, column ``q - 2`` the value of the
+    first ``q`` items (the set the greedy search held once it had ``q``). The values are the
+    search's own: Gauss-Hermite choice probabilities for every ``q``, the pair's included."""
     if F.dim() != 3:
         raise ValueError(f"F must be S x K or T x S x K, got shape {tuple(F.shape)}.")
     if not isinstance(comparison_noise, (float, int, Tensor)):  # a comparison likelihood: its own probabilities
@@ -135,6 +151,15 @@ class _ChoiceTerms:
         z = (diff / s).unsqueeze(-1) + math.sqrt(2) * self.x
         return z.mul_(-1 / math.sqrt(2)).erfc_().mul_(0.5)
 
+    def pair(self, Ft: Tensor, j: Tensor, c: Tensor, sl: slice) -> Tensor:
+        """``t x R x S x 2``: the choice probabilities of the pairs ``(j, c)`` in closed form,
+        ``Phi((f_j - f_c) / (sqrt 2 s))`` and its complement (the Gauss-Hermite rule's limit; as
+        :func:`~torchpref.likelihoods.pairwise_beta.thurstone_choice_probabilities` gives a pair)."""
+        noise = self.noise
+        s = noise[sl].reshape(-1, 1, 1) if isinstance(noise, Tensor) and self.per_trial else noise
+        p = torch.special.ndtr((Ft[:, j] - Ft[:, c]) / (math.sqrt(2) * s))  # t x R x S
+        return torch.stack([p, 1 - p], -1)
+
     def column(self, Ft: Tensor, k: Tensor, sl: slice) -> Tensor:
         """``t x K x S x H``: ``Phi`` of ``(j, k_t)`` for every ``j``; 1 at ``j = k_t``."""
         t = torch.arange(Ft.shape[0], device=Ft.device)
@@ -158,14 +183,10 @@ def _values(value: Callable[[Tensor], Tensor], Ps: list[Tensor], T: int, R: int)
 
 
 def _best_pair(terms: _ChoiceTerms, value: Callable[[Tensor], Tensor], T: int, K: int) -> tuple[Tensor, Tensor]:
-    """The best pair ``(j, c)``, ``j < c``, of each trial, from all the ``Phi`` terms of a chunk at
-    a time: ``T x 2`` items, ``T`` values."""
+    """The best pair ``(j, c)``, ``j < c``, of each trial, every pair's choice in closed form, a
+    chunk at a time: ``T x 2`` items, ``T`` values."""
     j, c = torch.triu_indices(K, K, 1, device=terms.device)
-    Ps = []
-    for Ft, sl in terms.chunks:
-        ph = terms.phi(Ft.unsqueeze(2) - Ft.unsqueeze(1), sl)  # t x j x k x S x H (j != k only)
-        Ps.append(terms.probs(ph[:, j, c].unsqueeze(2), ph[:, c, j].unsqueeze(2)))
-        del ph
+    Ps = [terms.pair(Ft, j, c, sl) for Ft, sl in terms.chunks]
     vals = _values(value, Ps, T, j.numel())
     b = vals.argmax(-1)
     return torch.stack([j[b], c[b]], -1), vals[torch.arange(T, device=terms.device), b]
@@ -213,7 +234,8 @@ def _greedy_choice_set(
     start: int | Tensor | None,
     num_quadrature: int,
 ) -> tuple[Tensor, Tensor]:
-    """:func:`greedy_choice_set` for ``T x S x K`` ``F``: ``T x m`` chosen columns, ``T`` values."""
+    """:func:`greedy_choice_set` for ``T x S x K`` ``F``: ``T x m`` chosen columns, ``T x (m - 1)``
+    values of the prefixes of 2..m items."""
     T, S, K = F.shape
     if not 2 <= m <= K:
         raise ValueError(f"need 2 <= m <= {K} items, got m={m}.")
@@ -229,9 +251,11 @@ def _greedy_choice_set(
         for i in range(1, chosen.shape[1]):
             A.mul_(terms.column(Ft, chosen[sl, i], sl))
         As.append(A)
+    steps = [best] if chosen.shape[1] == 2 else []  # from one item the first step values a pair
     while chosen.shape[1] < m:
         chosen, best, new = _add_best_item(terms, As, chosen, value)
+        steps.append(best)
         if chosen.shape[1] < m:
             for (Ft, sl), A in zip(terms.chunks, As):
                 A.mul_(terms.column(Ft, new[sl], sl))
-    return chosen, best
+    return chosen, torch.stack(steps, -1)
