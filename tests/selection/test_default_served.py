@@ -12,7 +12,6 @@ import torch
 import torchpref
 from torchpref.acquisition import choice_sets
 from torchpref.selection.choosing import shown
-from torchpref.selection.defaults import default_selector
 
 
 def _quadrature_pair(self, Ft, j, c, sl):
