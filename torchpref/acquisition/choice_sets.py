@@ -129,6 +129,9 @@ class _ChoiceTerms:
     def __init__(self, F: Tensor, comparison_noise: float | Tensor, num_quadrature: int):
         T, S, K = F.shape
         self.x, self.w = gauss_hermite(num_quadrature, F)
+        # the nodes are symmetric (x_{H-1-h} = -x_h): Phi(k, j) at node h is 1 - Phi(j, k) at
+        # node H-1-h, read from k's column instead of evaluated again
+        self.symmetric = bool(torch.allclose(self.x, -self.x.flip(0), rtol=0.0, atol=1e-12))
         noise = comparison_noise
         self.per_trial = isinstance(noise, Tensor) and noise.dim() > 0
         if isinstance(noise, Tensor) and noise.dim() > 0:
@@ -204,21 +207,32 @@ def _first_items(start: int | Tensor, T: int, K: int, device: torch.device) -> T
 
 
 def _add_best_item(
-    terms: _ChoiceTerms, As: list[Tensor], chosen: Tensor, value: Callable[[Tensor], Tensor]
+    terms: _ChoiceTerms,
+    As: list[Tensor],
+    chosen: Tensor,
+    value: Callable[[Tensor], Tensor],
+    columns: list[list[Tensor]] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Each trial's ``chosen`` (``T x c``) items with the one of the rest that maximises ``value``
     added: ``T x (c + 1)`` items, ``T`` values and the ``T`` items added. ``As``: per chunk, the
-    product over the chosen items ``k`` of ``Phi(j, k)`` for each item ``j``, ``t x K x S x H``."""
+    product over the chosen items ``k`` of ``Phi(j, k)`` for each item ``j``, ``t x K x S x H``;
+    ``columns``: per chunk, each chosen item's ``Phi(j, k)`` (where the nodes are symmetric: a
+    chosen item's terms against the rest are then read from them, not evaluated)."""
     (T, c), K = chosen.shape, As[0].shape[1]
     tt = torch.arange(T, device=chosen.device)
     mask = torch.ones(T, K, dtype=torch.bool, device=chosen.device)
     mask[tt.unsqueeze(-1), chosen] = False
     rest = mask.nonzero()[:, 1].reshape(T, K - c)  # ascending, per trial
     Ps = []
-    for (Ft, sl), A in zip(terms.chunks, As):
+    for i, ((Ft, sl), A) in enumerate(zip(terms.chunks, As)):
         ch, re = chosen[sl].unsqueeze(1), rest[sl].unsqueeze(-1)  # t x 1 x c, t x r x 1
         ti = torch.arange(Ft.shape[0], device=Ft.device).reshape(-1, 1, 1)
-        old = A[ti, ch] * terms.phi(Ft[ti, ch] - Ft[ti, re], sl)  # t x r x c x S x H: the chosen items
+        if columns is not None:  # Phi(k, j) = 1 - Phi(j, k) at the mirrored node
+            cols = torch.stack(columns[i], dim=2)  # t x K x c x S x H
+            phi = (1 - cols[ti[..., 0], re[..., 0]].flip(-1)).clamp_min_(0)  # t x r x c x S x H
+        else:
+            phi = terms.phi(Ft[ti, ch] - Ft[ti, re], sl)
+        old = A[ti, ch] * phi  # t x r x c x S x H: the chosen items
         Ps.append(terms.probs(old, A[ti, re]))  # and the added one: sets t x r x (c + 1) x S x H
     vals = _values(value, Ps, T, K - c)
     b = vals.argmax(-1)
@@ -245,17 +259,23 @@ def _greedy_choice_set(
     else:
         chosen, best = _first_items(start, T, K, F.device), F.new_full((T,), math.nan)
     # A[t, j] = prod over chosen k of Phi(j, k): t x K x S x H per chunk
-    As = []
+    # and each chosen item's column Phi(j, k), kept where the nodes are symmetric
+    As, columns = [], []
     for Ft, sl in terms.chunks:
-        A = terms.column(Ft, chosen[sl, 0], sl)
-        for i in range(1, chosen.shape[1]):
-            A.mul_(terms.column(Ft, chosen[sl, i], sl))
+        cols = [terms.column(Ft, chosen[sl, i], sl) for i in range(chosen.shape[1])]
+        A = cols[0].clone()
+        for col in cols[1:]:
+            A.mul_(col)
         As.append(A)
+        columns.append(cols)
+    kept = columns if terms.symmetric else None
     steps = [best] if chosen.shape[1] == 2 else []  # from one item the first step values a pair
     while chosen.shape[1] < m:
-        chosen, best, new = _add_best_item(terms, As, chosen, value)
+        chosen, best, new = _add_best_item(terms, As, chosen, value, kept)
         steps.append(best)
         if chosen.shape[1] < m:
-            for (Ft, sl), A in zip(terms.chunks, As):
-                A.mul_(terms.column(Ft, new[sl], sl))
+            for (Ft, sl), A, cols in zip(terms.chunks, As, columns):
+                col = terms.column(Ft, new[sl], sl)
+                A.mul_(col)
+                cols.append(col)
     return chosen, torch.stack(steps, -1)
