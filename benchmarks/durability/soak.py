@@ -15,6 +15,12 @@ next question) is kept, and the server is killed (SIGKILL) and restarted with se
 open session; every session must come back with the same answers and next question, and every
 acknowledged answer must be in its file (0 lost).
 
+Each answer's server time and the CPU the server's thread spent on it (the answer and the next
+question: the ``Server-Timing`` header's ``answer`` and ``cpu``) are kept, with their p50 / p95 /
+p99. The run is inside :func:`~torchpref.experiments.stamp.recording_subprocesses`: the server
+processes record the torchpref modules they ran, so the stamp of ``soak.json`` hashes the server's
+code, not only this script's.
+
 Writes ``results/serve/soak.json`` (settings, load average, CPU count, the summary), ``soak_answers.csv``
 (one row per answer), ``soak_samples.csv`` (the time series) and ``soak.png``.
 
@@ -33,6 +39,7 @@ import queue
 import random
 import signal
 import statistics
+import subprocess
 import tempfile
 import threading
 import time
@@ -41,6 +48,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 from torchpref.experiments.results import write_json  # noqa: E402
+from torchpref.experiments.stamp import recording_subprocesses  # noqa: E402
 from torchpref.testing.serve import Server, acknowledged_in_file, choose, get_json, post, records, write_items  # noqa: E402
 
 
@@ -115,9 +123,16 @@ class Sampler(threading.Thread):
 
 
 # ------------------------------------------------------------------------- participants
-def server_ms(headers: dict) -> float | None:
+def server_timing(headers: dict) -> dict[str, float]:
+    """The ``Server-Timing`` header's metrics in ms: ``answer`` (the answer's wall time in the
+    server) and ``cpu`` (the CPU its thread spent on the answer and the next question)."""
     timing = {k.lower(): v for k, v in headers.items()}.get("server-timing", "")
-    return float(timing.split("dur=")[1]) if "dur=" in timing else None
+    out = {}
+    for part in timing.split(","):
+        name, _, dur = part.strip().partition(";dur=")
+        if dur:
+            out[name] = float(dur)
+    return out
 
 
 def fetch(url: str) -> bytes:
@@ -150,7 +165,8 @@ def participant(srv: Server, job: dict, rng: random.Random, think: float, ctx: d
                 "answer": k,
                 "start_s": round(t - ctx["t0"], 4),
                 "end_s": round(t1 - ctx["t0"], 4),
-                "server_ms": server_ms(headers),
+                "server_ms": server_timing(headers).get("answer"),
+                "cpu_ms": server_timing(headers).get("cpu"),
                 "client_ms": round(1000 * (t1 - t), 2),
                 "load1": os.getloadavg()[0],
             }
@@ -194,6 +210,18 @@ def run_wave(srv: Server, jobs: list[dict], active: int, think: float, seed: int
         t.join()
     if errors:
         raise errors[0]
+
+
+def interrupt(srv: Server, wait: float = 60.0) -> None:
+    """Stop the server as Ctrl-C does (SIGINT), so that it exits through Python's ``atexit``: it
+    then records the modules it ran (:func:`recording_subprocesses`; a SIGTERM or SIGKILL would
+    not). One that lingers is left to ``srv.stop()``."""
+    if srv.proc is not None and srv.proc.poll() is None:
+        srv.proc.send_signal(signal.SIGINT)
+        try:
+            srv.proc.wait(timeout=wait)
+        except subprocess.TimeoutExpired:
+            pass
 
 
 # ------------------------------------------------------------------------------ the run
@@ -255,6 +283,7 @@ def summarise(args, answers: list[dict], samples: list[dict], jobs: list[dict], 
     pts = [(s["finished"], s["rss_kb"]) for s in run_rows if s["finished"] >= min(10, len(full) // 2)]
     late = [p for p in pts if p[0] >= len(full) // 2]
     ms = [a["server_ms"] for a in answers if a["server_ms"] is not None]
+    cpu_ms = [a["cpu_ms"] for a in answers if a["cpu_ms"] is not None]
     during = [a["server_ms"] for a in answers if a["during_plot"]]
     other = [a["server_ms"] for a in answers if not a["during_plot"]]
     return {
@@ -264,6 +293,9 @@ def summarise(args, answers: list[dict], samples: list[dict], jobs: list[dict], 
         "server_cpu_s_per_answer": round(cpu / max(1, len(ms)), 4),
         "participants_per_hour_cpu_bound": round(3600 / (args.answers * cpu / max(1, len(ms))), 0),
         "answer_ms_p50_p95_p99": [pct(ms, 0.5), pct(ms, 0.95), pct(ms, 0.99)],
+        "answer_cpu_ms_p50_p95_p99_max": [pct(cpu_ms, 0.5), pct(cpu_ms, 0.95), pct(cpu_ms, 0.99), max(cpu_ms)]
+        if cpu_ms
+        else None,
         "answer_ms_during_plots_p50_p95_p99_n": [pct(during, 0.5), pct(during, 0.95), pct(during, 0.99), len(during)]
         if during
         else None,
@@ -356,9 +388,17 @@ def parse_args() -> argparse.Namespace:
 
 
 def main() -> None:
+    args = parse_args()
+    # the server processes record the torchpref modules they ran (when they exit), and the stamp
+    # written inside hashes them: the result names the server code it measured
+    with recording_subprocesses():
+        soak(args)
+
+
+def soak(args: argparse.Namespace) -> None:
+    """The run, its results written (inside :func:`recording_subprocesses`, by :func:`main`)."""
     from tqdm import tqdm
 
-    args = parse_args()
     load0 = os.getloadavg()
     rng = random.Random(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
@@ -390,6 +430,7 @@ def main() -> None:
             restart = restart_check(srv, jobs + partial, sampler, progress, folder)
         finally:
             sampler.stop.set()
+            interrupt(srv)
             srv.stop()
             if srv.proc is not None and srv.proc.poll() is None:
                 os.kill(srv.proc.pid, signal.SIGKILL)

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from torchpref.inference.numerics import gauss_hermite
 
-__all__ = ["greedy_choice_set", "greedy_choice_sets"]
+__all__ = ["greedy_choice_set", "greedy_choice_sets", "greedy_choice_steps"]
 
 # On a CPU, trials are processed in chunks whose temporaries stay in a core's cache (about this
 # many float64 elements each): one T = 100 batch is slower than 100 single calls otherwise.
@@ -87,6 +87,22 @@ def greedy_choice_sets(
 ) -> tuple[Tensor, Tensor]:
     r""":func:`greedy_choice_set` for ``T`` trials at once (``F``: ``T x S x K``): a ``T x m`` long
     tensor of the chosen columns and the ``T`` values of the final sets."""
+    chosen, steps = greedy_choice_steps(F, comparison_noise, m, value, start, num_quadrature)
+    return chosen, steps[:, -1]
+
+
+def greedy_choice_steps(
+    F: Tensor,
+    comparison_noise: float | Tensor | Any,
+    m: int,
+    value: Callable[[Tensor], Tensor],
+    start: int | Tensor | None = None,
+    num_quadrature: int = 6,
+) -> tuple[Tensor, Tensor]:
+    r""":func:`greedy_choice_sets` with the value of every prefix of each set: a ``T x m`` long
+    tensor of the chosen columns and ``T x (m - 1)`` values, column ``q - 2`` the value of the
+    first ``q`` items (the set the greedy search held once it had ``q``). The values are the
+    search's own: Gauss-Hermite choice probabilities for every ``q``, the pair's included."""
     if F.dim() != 3:
         raise ValueError(f"F must be S x K or T x S x K, got shape {tuple(F.shape)}.")
     if not isinstance(comparison_noise, (float, int, Tensor)):  # a comparison likelihood: its own probabilities
@@ -113,6 +129,9 @@ class _ChoiceTerms:
     def __init__(self, F: Tensor, comparison_noise: float | Tensor, num_quadrature: int):
         T, S, K = F.shape
         self.x, self.w = gauss_hermite(num_quadrature, F)
+        # the nodes are symmetric (x_{H-1-h} = -x_h): Phi(k, j) at node h is 1 - Phi(j, k) at
+        # node H-1-h, read from k's column instead of evaluated again
+        self.symmetric = bool(torch.allclose(self.x, -self.x.flip(0), rtol=0.0, atol=1e-12))
         noise = comparison_noise
         self.per_trial = isinstance(noise, Tensor) and noise.dim() > 0
         if isinstance(noise, Tensor) and noise.dim() > 0:
@@ -134,6 +153,15 @@ class _ChoiceTerms:
         s = noise[sl].reshape(-1, *(1,) * (diff.dim() - 1)) if isinstance(noise, Tensor) and self.per_trial else noise
         z = (diff / s).unsqueeze(-1) + math.sqrt(2) * self.x
         return z.mul_(-1 / math.sqrt(2)).erfc_().mul_(0.5)
+
+    def pair(self, Ft: Tensor, j: Tensor, c: Tensor, sl: slice) -> Tensor:
+        """``t x R x S x 2``: the choice probabilities of the pairs ``(j, c)`` in closed form,
+        ``Phi((f_j - f_c) / (sqrt 2 s))`` and its complement (the Gauss-Hermite rule's limit; as
+        :func:`~torchpref.likelihoods.pairwise_beta.thurstone_choice_probabilities` gives a pair)."""
+        noise = self.noise
+        s = noise[sl].reshape(-1, 1, 1) if isinstance(noise, Tensor) and self.per_trial else noise
+        p = torch.special.ndtr((Ft[:, j] - Ft[:, c]) / (math.sqrt(2) * s))  # t x R x S
+        return torch.stack([p, 1 - p], -1)
 
     def column(self, Ft: Tensor, k: Tensor, sl: slice) -> Tensor:
         """``t x K x S x H``: ``Phi`` of ``(j, k_t)`` for every ``j``; 1 at ``j = k_t``."""
@@ -158,14 +186,10 @@ def _values(value: Callable[[Tensor], Tensor], Ps: list[Tensor], T: int, R: int)
 
 
 def _best_pair(terms: _ChoiceTerms, value: Callable[[Tensor], Tensor], T: int, K: int) -> tuple[Tensor, Tensor]:
-    """The best pair ``(j, c)``, ``j < c``, of each trial, from all the ``Phi`` terms of a chunk at
-    a time: ``T x 2`` items, ``T`` values."""
+    """The best pair ``(j, c)``, ``j < c``, of each trial, every pair's choice in closed form, a
+    chunk at a time: ``T x 2`` items, ``T`` values."""
     j, c = torch.triu_indices(K, K, 1, device=terms.device)
-    Ps = []
-    for Ft, sl in terms.chunks:
-        ph = terms.phi(Ft.unsqueeze(2) - Ft.unsqueeze(1), sl)  # t x j x k x S x H (j != k only)
-        Ps.append(terms.probs(ph[:, j, c].unsqueeze(2), ph[:, c, j].unsqueeze(2)))
-        del ph
+    Ps = [terms.pair(Ft, j, c, sl) for Ft, sl in terms.chunks]
     vals = _values(value, Ps, T, j.numel())
     b = vals.argmax(-1)
     return torch.stack([j[b], c[b]], -1), vals[torch.arange(T, device=terms.device), b]
@@ -183,21 +207,32 @@ def _first_items(start: int | Tensor, T: int, K: int, device: torch.device) -> T
 
 
 def _add_best_item(
-    terms: _ChoiceTerms, As: list[Tensor], chosen: Tensor, value: Callable[[Tensor], Tensor]
+    terms: _ChoiceTerms,
+    As: list[Tensor],
+    chosen: Tensor,
+    value: Callable[[Tensor], Tensor],
+    columns: list[list[Tensor]] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Each trial's ``chosen`` (``T x c``) items with the one of the rest that maximises ``value``
     added: ``T x (c + 1)`` items, ``T`` values and the ``T`` items added. ``As``: per chunk, the
-    product over the chosen items ``k`` of ``Phi(j, k)`` for each item ``j``, ``t x K x S x H``."""
+    product over the chosen items ``k`` of ``Phi(j, k)`` for each item ``j``, ``t x K x S x H``;
+    ``columns``: per chunk, each chosen item's ``Phi(j, k)`` (where the nodes are symmetric: a
+    chosen item's terms against the rest are then read from them, not evaluated)."""
     (T, c), K = chosen.shape, As[0].shape[1]
     tt = torch.arange(T, device=chosen.device)
     mask = torch.ones(T, K, dtype=torch.bool, device=chosen.device)
     mask[tt.unsqueeze(-1), chosen] = False
     rest = mask.nonzero()[:, 1].reshape(T, K - c)  # ascending, per trial
     Ps = []
-    for (Ft, sl), A in zip(terms.chunks, As):
+    for i, ((Ft, sl), A) in enumerate(zip(terms.chunks, As)):
         ch, re = chosen[sl].unsqueeze(1), rest[sl].unsqueeze(-1)  # t x 1 x c, t x r x 1
         ti = torch.arange(Ft.shape[0], device=Ft.device).reshape(-1, 1, 1)
-        old = A[ti, ch] * terms.phi(Ft[ti, ch] - Ft[ti, re], sl)  # t x r x c x S x H: the chosen items
+        if columns is not None:  # Phi(k, j) = 1 - Phi(j, k) at the mirrored node
+            cols = torch.stack(columns[i], dim=2)  # t x K x c x S x H
+            phi = (1 - cols[ti[..., 0], re[..., 0]].flip(-1)).clamp_min_(0)  # t x r x c x S x H
+        else:
+            phi = terms.phi(Ft[ti, ch] - Ft[ti, re], sl)
+        old = A[ti, ch] * phi  # t x r x c x S x H: the chosen items
         Ps.append(terms.probs(old, A[ti, re]))  # and the added one: sets t x r x (c + 1) x S x H
     vals = _values(value, Ps, T, K - c)
     b = vals.argmax(-1)
@@ -213,7 +248,8 @@ def _greedy_choice_set(
     start: int | Tensor | None,
     num_quadrature: int,
 ) -> tuple[Tensor, Tensor]:
-    """:func:`greedy_choice_set` for ``T x S x K`` ``F``: ``T x m`` chosen columns, ``T`` values."""
+    """:func:`greedy_choice_set` for ``T x S x K`` ``F``: ``T x m`` chosen columns, ``T x (m - 1)``
+    values of the prefixes of 2..m items."""
     T, S, K = F.shape
     if not 2 <= m <= K:
         raise ValueError(f"need 2 <= m <= {K} items, got m={m}.")
@@ -223,15 +259,23 @@ def _greedy_choice_set(
     else:
         chosen, best = _first_items(start, T, K, F.device), F.new_full((T,), math.nan)
     # A[t, j] = prod over chosen k of Phi(j, k): t x K x S x H per chunk
-    As = []
+    # and each chosen item's column Phi(j, k), kept where the nodes are symmetric
+    As, columns = [], []
     for Ft, sl in terms.chunks:
-        A = terms.column(Ft, chosen[sl, 0], sl)
-        for i in range(1, chosen.shape[1]):
-            A.mul_(terms.column(Ft, chosen[sl, i], sl))
+        cols = [terms.column(Ft, chosen[sl, i], sl) for i in range(chosen.shape[1])]
+        A = cols[0].clone()
+        for col in cols[1:]:
+            A.mul_(col)
         As.append(A)
+        columns.append(cols)
+    kept = columns if terms.symmetric else None
+    steps = [best] if chosen.shape[1] == 2 else []  # from one item the first step values a pair
     while chosen.shape[1] < m:
-        chosen, best, new = _add_best_item(terms, As, chosen, value)
+        chosen, best, new = _add_best_item(terms, As, chosen, value, kept)
+        steps.append(best)
         if chosen.shape[1] < m:
-            for (Ft, sl), A in zip(terms.chunks, As):
-                A.mul_(terms.column(Ft, new[sl], sl))
-    return chosen, best
+            for (Ft, sl), A, cols in zip(terms.chunks, As, columns):
+                col = terms.column(Ft, new[sl], sl)
+                A.mul_(col)
+                cols.append(col)
+    return chosen, torch.stack(steps, -1)

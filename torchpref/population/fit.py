@@ -51,6 +51,12 @@ DEFAULT_INDUCING = 256
 SHARD_BYTES = 2**29
 
 log = logging.getLogger("torchpref.population")
+#: what solves the population's joint mode (``stats["solver"]``): the torch Newton loop of
+#: :mod:`torchpref.population.joint`, whatever the compiled path's setting. The compiled path
+#: (:mod:`torchpref.inference.fast_path`) solves one person's problem; the population's is many
+#: people's deviations and the shared mean at once, through a Schur complement over shards, which
+#: it has no compiled form of. A person model built from the population is solved compiled.
+SOLVER = "torch"
 
 
 class _Kernels(Module):
@@ -314,6 +320,7 @@ def _stats(people: list[PreferenceData], plan: Plan, objective: Objective) -> di
         newton_steps=c.newton_steps,
         bytes_per_newton_step=round(c.newton_bytes / max(c.newton_steps, 1)),
         bytes_per_evaluation_besides=round(c.other_bytes / max(c.evaluations, 1)),
+        solver=SOLVER,
     )
 
 

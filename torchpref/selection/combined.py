@@ -35,7 +35,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchpref.acquisition.choice_sets import greedy_choice_sets
+from torchpref.acquisition.choice_sets import greedy_choice_steps
 from torchpref.acquisition.functions import rating_bin_probabilities
 from torchpref.acquisition.information import membership_information, sample_information
 from torchpref.data.effort import EffortModel
@@ -219,7 +219,10 @@ class InformationAndProfile(PerEffortSelector):
             by_value = prep["profile"](rating_bin_probabilities(Fc.mT, lik.rating, self.num_bins))  # T x K
         rating_row = cand.gather(1, by_value.argmax(-1, keepdim=True))  # T x 1
         rate, rank = self._scorers(prep, self._judge(prep), self._judge(prep))
-        rating_value = rate(rating_row).squeeze(-1) / self.query_cost(1)
+        if self.decide in ("sum", "order"):  # the rating was picked by the judge's own value
+            rating_value = by_value.amax(-1) / self.query_cost(1)
+        else:
+            rating_value = rate(rating_row).squeeze(-1) / self.query_cost(1)
         if K < max(self.m, 2):
             return rating_row.squeeze(-1), rating_value, None, torch.full_like(rating_value, -torch.inf)
         cand = prep["by_max"][:, :K]
@@ -227,17 +230,25 @@ class InformationAndProfile(PerEffortSelector):
         builder = prep[self.decide] if self.decide in ("sum", "order") else sample_information
         # from the likeliest maximiser, or with choose_size from the most valuable pair (a small
         # pool's top, once known, would otherwise be in every set, and its answer foretold)
-        chosen, _ = greedy_choice_sets(Fc, lik.comparison, self.m, builder, start=None if self.choose_size else 0)
+        chosen, steps = greedy_choice_steps(Fc, lik.comparison, self.m, builder, start=None if self.choose_size else 0)
         rows = cand.gather(1, chosen)  # T x m
-        ranking_value = rank(rows.unsqueeze(1)).squeeze(-1) / self.query_cost(self.m)
+        ranking_value = self._prefix_value(rank, rows, steps, self.m)
         if self.choose_size:  # the greedy set's prefix of largest value per second; the rest -1
             size = torch.full_like(ranking_value, self.m, dtype=torch.long)
             for q in range(2, self.m):
-                v = rank(rows[:, :q].unsqueeze(1)).squeeze(-1) / self.query_cost(q)
+                v = self._prefix_value(rank, rows, steps, q)
                 better = v > ranking_value
                 ranking_value, size = torch.where(better, v, ranking_value), torch.where(better, q, size)
             rows = torch.where(torch.arange(self.m, device=rows.device) < size.unsqueeze(-1), rows, -1)
         return rating_row.squeeze(-1), rating_value, rows, ranking_value
+
+    def _prefix_value(self, rank: Value, rows: Tensor, steps: Tensor, q: int) -> Tensor:
+        """The judge's value per second of the first ``q`` of the greedy sets ``rows`` (``T x m``):
+        the search's own value where the search valued the sets by the judge (every ``decide`` but
+        ``"profile"``; a pair's where it searched pairs, in closed form), else valued anew."""
+        if self.decide != "profile" and (q >= 3 or self.choose_size):
+            return steps[:, q - 2] / self.query_cost(q)
+        return rank(rows[:, :q].unsqueeze(1)).squeeze(-1) / self.query_cost(q)
 
     def choose(
         self,

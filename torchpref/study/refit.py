@@ -83,7 +83,14 @@ def refit(folder: StudyFolder, max_iter: int | None = None) -> int | None:
         make_private(folder.version_path(version))
         seconds = time.perf_counter() - t0
         folder.set_current(version, sids, seconds)
-        folder.log("refit", version=version, participants=len(sids), seconds=round(seconds, 3), warm=bool(kernels))
+        folder.log(
+            "refit",
+            version=version,
+            participants=len(sids),
+            seconds=round(seconds, 3),
+            warm=bool(kernels),
+            solver=pop.stats.get("solver"),
+        )
         return version
 
 

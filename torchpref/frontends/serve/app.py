@@ -48,6 +48,7 @@ from torchpref.frontends.serve.net import (  # noqa: F401  (HEADER_TIMEOUT_S, MA
     ServeError,
     _run_uvicorn,
     _shown_host,
+    _with_cpu,
     listening_socket,
     uvicorn_server,
 )
@@ -245,13 +246,14 @@ class _Handlers:
 
         body = await self.json_body(request)
         start = time.perf_counter()
-        result = await run_in_threadpool(self.store.answer, request.path_params["sid"], body)
+        result, cpu_s = await run_in_threadpool(_with_cpu, self.store.answer, request.path_params["sid"], body)
         ms = 1000 * (time.perf_counter() - start)
         self.store.plots.prefetch_state(result)  # queued only: no picture or plot delays this reply
         if result["done"]:
             self.store.plots.prerender(self.store, result["sid"])
             self.store.on_finished(result["sid"])
-        return JSONResponse(result, headers={"Server-Timing": f"answer;dur={ms:.2f}"})
+        # the answer's wall time, then the CPU its thread spent on it (the answer and the next question)
+        return JSONResponse(result, headers={"Server-Timing": f"answer;dur={ms:.2f}, cpu;dur={1000 * cpu_s:.2f}"})
 
     async def undo(self, request):
         from starlette.concurrency import run_in_threadpool

@@ -8,8 +8,9 @@ import asyncio
 import errno
 import socket
 import threading
+import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 if TYPE_CHECKING:  # starlette and uvicorn are the serve extra: imported where used
     import uvicorn
@@ -23,6 +24,16 @@ MAX_CONNECTIONS = 200
 
 class ServeError(ValueError):
     """Settings ``serve`` cannot run with (another interface without a token, a bad port)."""
+
+
+T = TypeVar("T")
+
+
+def _with_cpu(fn: Callable[..., T], *args: object) -> tuple[T, float]:
+    """``fn(*args)`` and the CPU seconds this thread spent in it (a request's own work, whatever
+    the other threads do meanwhile)."""
+    start = time.thread_time()
+    return fn(*args), time.thread_time() - start
 
 
 def _shown_host(host: str) -> str:
