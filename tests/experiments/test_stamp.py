@@ -103,7 +103,7 @@ def test_every_benchmark_that_starts_processes_stamps_their_code():
     import re
 
     root = Path(__file__).resolve().parents[2]
-    starts = re.compile(r"subprocess\.(run|Popen)|ProcessPoolExecutor|multiprocessing")
+    starts = re.compile(r"subprocess\.(run|Popen)|ProcessPoolExecutor|multiprocessing|testing\.serve import")
     missing = [
         p.relative_to(root).as_posix()
         for p in sorted((root / "benchmarks").rglob("*.py"))
