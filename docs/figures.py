@@ -26,6 +26,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 STALE_NOTE = " (measured on an older version)"
+UNSTAMPED_NOTE = " (an older run, unstamped)"  # a file written before stamps: what code it ran is unknown
 
 
 @dataclass(frozen=True)
@@ -916,6 +917,7 @@ FIGURES["large_pool_serve_load"] = Figure("large_pools/serve.json", "load_at_sta
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
 TABLE_MARKER = re.compile(r"<!-- table:(?P<name>\w+) -->\n(?P<text>.*?)\n<!-- /table -->", re.S)
 TABLE_STALE_NOTE = "*(measured on an older version)*"
+TABLE_UNSTAMPED_NOTE = "*(an older run, unstamped)*"
 
 # --- issue 53, section B: suite, results, laplace, lake, wave, likelihoods, population,
 # real_raters, selection, ax (figures and tables taken off hand-typed prose)
@@ -926,36 +928,52 @@ SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 
 
 def is_stale(name: str) -> bool:
-    """Whether the figure's (or table's) results file is stale (its measured code changed since its
-    stamp); an unstamped file counts as not stale here: ``make results-status`` lists those."""
-    return file_is_stale((FIGURES.get(name) or TABLES[name]).file)
+    """Whether the figure's (or table's) results file is stale (its measured code changed since its stamp)."""
+    return file_state((FIGURES.get(name) or TABLES[name]).file) == "stale"
 
 
-def file_is_stale(file: str) -> bool:
+def file_state(file: str) -> str:
+    """``"fresh"``, ``"stale"`` or ``"unstamped"`` (``make results-status``); a CSV is judged by the
+    JSON of the same name beside it, and is ``"unstamped"`` without one."""
     from torchpref.experiments.stamp import status
 
     path = ROOT / "benchmarks" / "results" / file
-    if path.suffix != ".json":  # a CSV is judged by the JSON of the same name beside it
+    if path.suffix != ".json":
         path = path.with_suffix(".json")
-    return path.is_file() and status(path, ROOT)[0] == "stale"
+    return status(path, ROOT)[0] if path.is_file() else "unstamped"
+
+
+def note(name: str, table: bool = False) -> str:
+    """The visible note a figure (or table) carries: stale, unstamped, or none when its file is fresh."""
+    state = file_state((TABLES[name] if table else FIGURES[name]).file)
+    if table:
+        return {"stale": "\n\n" + TABLE_STALE_NOTE, "unstamped": "\n\n" + TABLE_UNSTAMPED_NOTE}.get(state, "")
+    return {"stale": STALE_NOTE, "unstamped": UNSTAMPED_NOTE}.get(state, "")
+
+
+def without_note(text: str) -> str:
+    """A page's text of a figure or table with its note taken off."""
+    for suffix in (STALE_NOTE, UNSTAMPED_NOTE, "\n\n" + TABLE_STALE_NOTE, "\n\n" + TABLE_UNSTAMPED_NOTE):
+        text = text.removesuffix(suffix)
+    return text
 
 
 def substitutions() -> dict[str, str]:
-    """``{name: text}`` for MyST, a stale figure with :data:`STALE_NOTE`."""
-    return {name: fig.text() + (STALE_NOTE if is_stale(name) else "") for name, fig in FIGURES.items()}
+    """``{name: text}`` for MyST, with each figure's :func:`note`."""
+    return {name: page_text(name) for name in FIGURES}
 
 
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 
 def page_text(name: str) -> str:
-    """What a page shows for figure ``name``: its value, with :data:`STALE_NOTE` when its file is stale."""
-    return FIGURES[name].text() + (STALE_NOTE if is_stale(name) else "")
+    """What a page shows for figure ``name``: its value and its :func:`note` (stale, unstamped)."""
+    return FIGURES[name].text() + note(name)
 
 
 def table_text(name: str) -> str:
-    """What a page shows for table ``name``: the table, then :data:`TABLE_STALE_NOTE` when its file is stale."""
-    return TABLES[name].text() + ("\n\n" + TABLE_STALE_NOTE if is_stale(name) else "")
+    """What a page shows for table ``name``: the table, then its :func:`note` (stale, unstamped)."""
+    return TABLES[name].text() + note(name, table=True)
 
 
 def write_pages(pages: list[Path] | None = None) -> dict[str, int]:

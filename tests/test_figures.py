@@ -29,8 +29,7 @@ def test_the_figures_a_page_quotes_equal_their_files(page):
     wrong = [
         f"{m['name']}: the page says {m['text']!r}, the file {figures.FIGURES[m['name']].text()!r} (make pages)"
         for m in figures.MARKER.finditer(text)
-        if m["name"] in figures.FIGURES
-        and m["text"].removesuffix(figures.STALE_NOTE) != figures.FIGURES[m["name"]].text()
+        if m["name"] in figures.FIGURES and figures.without_note(m["text"]) != figures.FIGURES[m["name"]].text()
     ]
     if os.environ.get("CI") == "true":  # under CI the stale notes must be on the page too
         wrong += [
@@ -55,7 +54,7 @@ def test_the_tables_a_page_quotes_equal_their_files(page):
         and (
             m["text"] != figures.table_text(m["name"])
             if strict
-            else m["text"].removesuffix("\n\n" + figures.TABLE_STALE_NOTE) != figures.TABLES[m["name"]].text()
+            else figures.without_note(m["text"]) != figures.TABLES[m["name"]].text()
         )
     ]
     assert not wrong and not unknown, "\n".join(wrong + [f"no such table: {n}" for n in unknown])
@@ -76,7 +75,9 @@ def test_a_table_is_written_from_its_file(tmp_path, monkeypatch):
     figures.write_pages([page])
     assert (
         page.read_text()
-        == "before\n<!-- table:t_fit -->\n| n | ratio |\n|---|---|\n| 20 | 1.2× |\n| 50 | 2.5× |\n<!-- /table -->\nafter\n"
+        == "before\n<!-- table:t_fit -->\n| n | ratio |\n|---|---|\n| 20 | 1.2× |\n| 50 | 2.5× |\n\n"
+        + figures.TABLE_UNSTAMPED_NOTE  # no stamped JSON beside the CSV
+        + "\n<!-- /table -->\nafter\n"
     )
 
 
@@ -92,13 +93,15 @@ def test_the_readme_quotes_its_headline_figures_from_files():
     assert len(names) >= 15, sorted(names)
 
 
-def test_a_stale_file_marks_its_figures(monkeypatch):
-    monkeypatch.setattr(figures, "is_stale", lambda name: name == "fuzz_problems")
+def test_a_stale_or_unstamped_file_marks_its_figures(monkeypatch):
+    stale, unstamped = figures.FIGURES["fuzz_problems"].file, figures.FIGURES["wave_wrms_info"].file
+    states = {stale: "stale", unstamped: "unstamped"}
+    monkeypatch.setattr(figures, "file_state", lambda file: states.get(file, "fresh"))
     subs = figures.substitutions()
-    assert subs["fuzz_problems"].endswith(figures.STALE_NOTE) and not subs["wave_wrms_info"].endswith(
-        figures.STALE_NOTE
-    )
-    assert re.fullmatch(r"[\d,]+", subs["fuzz_problems"].removesuffix(figures.STALE_NOTE))
+    assert subs["fuzz_problems"].endswith(figures.STALE_NOTE)
+    assert subs["wave_wrms_info"].endswith(figures.UNSTAMPED_NOTE)
+    assert not any(subs["api_checks_passed"].endswith(n) for n in (figures.STALE_NOTE, figures.UNSTAMPED_NOTE))
+    assert re.fullmatch(r"[\d,]+", figures.without_note(subs["fuzz_problems"]))
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
