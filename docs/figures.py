@@ -911,6 +911,12 @@ FIGURES["large_pool_serve_load"] = Figure("large_pools/serve.json", "load_at_sta
 # --- issue 53, section A: README, install, speed, botorch, serve, sessions, study, robustness,
 # decisions, acquisition (figures and tables taken off hand-typed prose)
 
+# README.md
+FIGURES["readme_replay_people"] = Figure("replay/replay.json", "meta.people")
+FIGURES["readme_calib_trials"] = Figure("person_calibration.json", "settings.trials")
+FIGURES["readme_calib_wrms_calibrated"] = Figure("person_calibration.json", "recovery.paired.wrms.calibrated", "{:.3f}")
+FIGURES["readme_calib_wrms_plain"] = Figure("person_calibration.json", "recovery.paired.wrms.plain", "{:.3f}")
+
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
