@@ -917,6 +917,11 @@ FIGURES["readme_calib_trials"] = Figure("person_calibration.json", "settings.tri
 FIGURES["readme_calib_wrms_calibrated"] = Figure("person_calibration.json", "recovery.paired.wrms.calibrated", "{:.3f}")
 FIGURES["readme_calib_wrms_plain"] = Figure("person_calibration.json", "recovery.paired.wrms.plain", "{:.3f}")
 
+# docs/install.md
+FIGURES["install_fast_path_build"] = Figure(
+    "fast_path/first_call.json", "rows.compile (warm_up, empty cache).compile_wall_s", "{:.0f} s"
+)
+
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")

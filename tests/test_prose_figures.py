@@ -33,7 +33,6 @@ PENDING: set[str] = {
     "docs/ax.md",
     "docs/botorch.md",
     "docs/decisions.md",
-    "docs/install.md",
     "docs/lake.md",
     "docs/laplace.md",
     "docs/likelihoods.md",
