@@ -922,6 +922,17 @@ FIGURES["install_fast_path_build"] = Figure(
     "fast_path/first_call.json", "rows.compile (warm_up, empty cache).compile_wall_s", "{:.0f} s"
 )
 
+# docs/serve.md
+FIGURES["serve_open_session_kb"] = Figure("serve/soak.json", "restart.open_session_kb_slope", "{:.0f} kB")
+FIGURES["serve_rss_last_mb"] = Figure("serve/soak.json", "summary.rss_kb_first_last_max.1", "kb_mb")
+FIGURES["serve_rss_max_mb"] = Figure("serve/soak.json", "summary.rss_kb_first_last_max.2", "kb_mb")
+FIGURES["serve_rss_restart_mb"] = Figure("serve/soak.json", "restart.rss_kb_after_restart", "kb_mb")
+FIGURES["serve_kill_wall"] = Figure("serve/kill.json", "wall_s", "{:.0f} s")
+FIGURES["serve_timing_median"] = Figure("serve/timing.json", "summary.median_server_ms", "{:.0f} ms")
+FIGURES["serve_timing_p90"] = Figure("serve/timing.json", "summary.p90_server_ms", "{:.0f} ms")
+FIGURES["serve_timing_last50"] = Figure("serve/timing.json", "summary.median_server_ms_last_50", "{:.0f} ms")
+FIGURES["serve_timing_round_trip"] = Figure("serve/timing.json", "summary.median_round_trip_ms", "{:.0f} ms")
+
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
