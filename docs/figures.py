@@ -933,6 +933,18 @@ FIGURES["serve_timing_p90"] = Figure("serve/timing.json", "summary.p90_server_ms
 FIGURES["serve_timing_last50"] = Figure("serve/timing.json", "summary.median_server_ms_last_50", "{:.0f} ms")
 FIGURES["serve_timing_round_trip"] = Figure("serve/timing.json", "summary.median_round_trip_ms", "{:.0f} ms")
 
+# docs/sessions.md
+_SCALE = "sessions/session_scale.csv"
+for _op in ("answer", "undo", "resume"):
+    FIGURES[f"sessions_more_{_op}"] = Figure(
+        "sessions/session_scale.json", f"ms_more_at_1000_than_at_10.{_op}", "{:.1f} ms"
+    )
+    FIGURES[f"sessions_prev_{_op}_1000"] = Figure(
+        _SCALE, f"seconds@answers=1000,code=previous (replay),operation={_op}", "{:.1f} s"
+    )
+FIGURES["sessions_resume_5000"] = Figure(_SCALE, "seconds@answers=5000,code=this,operation=resume", "ms")
+FIGURES["sessions_answer_5000"] = Figure(_SCALE, "seconds@answers=5000,code=this,operation=answer", "ms")
+
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")

@@ -41,9 +41,7 @@ PENDING: set[str] = {
     "docs/results.md",
     "docs/robustness.md",
     "docs/selection.md",
-    "docs/sessions.md",
     "docs/speed.md",
-    "docs/study.md",
     "docs/suite.md",
     "docs/wave.md",
 }
