@@ -945,6 +945,47 @@ for _op in ("answer", "undo", "resume"):
 FIGURES["sessions_resume_5000"] = Figure(_SCALE, "seconds@answers=5000,code=this,operation=resume", "ms")
 FIGURES["sessions_answer_5000"] = Figure(_SCALE, "seconds@answers=5000,code=this,operation=answer", "ms")
 
+# docs/botorch.md
+FIGURES["botorch_own_pref"] = Figure("botorch_own_tests.json", "summary.PreferenceGP")
+FIGURES["botorch_own_pair"] = Figure("botorch_own_tests.json", "summary.PairwiseGP")
+FIGURES["botorch_own_total"] = Figure("botorch_own_tests.json", "total")
+_BT_PBO, _BT_BOPE, _BT_SHARE = (
+    "botorch_tutorials_preference_bo.json",
+    "botorch_tutorials_bope.json",
+    "botorch_tutorials_bope_share.json",
+)
+for _tag, _file, _phases in (
+    ("pbo", _BT_PBO, ("preference_fit", "eubo_optimize")),
+    ("bope", _BT_BOPE, ("preference_fit", "eubo_optimize", "learned_objective_acqf", "outcome_fit")),
+):
+    for _m, _short in (("PairwiseGP", "pair"), ("PreferenceGP", "pref")):
+        FIGURES[f"botorch_{_tag}_cpu_{_short}"] = Figure(_file, f"phases.{_m}.cpu_s", "{:.1f} s")
+        for _ph in _phases:
+            _key = {"preference_fit": "fit", "eubo_optimize": "eubo"}.get(_ph, _ph) if _tag == "pbo" else _ph
+            FIGURES[f"botorch_{_tag}_{_key}_{_short}"] = Figure(_file, f"phases.{_m}.phase_cpu_s.{_ph}", "{:.1f} s")
+            FIGURES[f"botorch_{_tag}_{_key}_share_{_short}"] = Figure(_file, f"phases.{_m}.share.{_ph}", "{:.0%}")
+_BT_FIRST = {"pbo": (_BT_PBO, "regret"), "bope": (_BT_BOPE, "EUBO-zeta_util")}
+for _tag, (_file, _metric) in _BT_FIRST.items():
+    FIGURES[f"botorch_{_tag}_cpu_ratio"] = Figure(_file, f"{_metric}.cpu_time_ratio", "{:.2f}×")
+    FIGURES[f"botorch_{_tag}_wall_ratio"] = Figure(_file, f"{_metric}.wall_time_ratio", "{:.2f}×")
+    FIGURES[f"botorch_{_tag}_wall_pair"] = Figure(_file, f"{_metric}.wall_s_PairwiseGP", "{:.0f} s")
+    FIGURES[f"botorch_{_tag}_wall_pref"] = Figure(_file, f"{_metric}.wall_s_PreferenceGP", "{:.0f} s")
+FIGURES["botorch_pbo_auc_p_worse"] = Figure(_BT_PBO, "auc_regret.p_worse", "{:.2f}")
+FIGURES["botorch_pbo_auc_p_wilcoxon"] = Figure(_BT_PBO, "auc_regret.p_wilcoxon", "{:.2f}")
+for _name, _metric in (
+    ("eubo_util", "EUBO-zeta_util"),
+    ("random_util", "Random-f_util"),
+    ("eubo_last", "EUBO-zeta_last_check"),
+    ("random_last", "Random-f_last_check"),
+):
+    FIGURES[f"botorch_bope_p_{_name}"] = Figure(_BT_BOPE, f"{_metric}.p_worse", "{:.2f}")
+for _m, _short in (("PairwiseGP", "pair"), ("PreferenceGP", "pref")):
+    for _ph, _p in (("eubo_zeta", "eubo"), ("learned_objective", "lo")):
+        FIGURES[f"botorch_share_{_p}_{_short}"] = Figure(_BT_SHARE, f"{_m}.{_ph}.preference_share", "{:.0%}")
+        FIGURES[f"botorch_share_{_p}_post_{_short}"] = Figure(_BT_SHARE, f"{_m}.{_ph}.preference_posterior", "ms")
+        FIGURES[f"botorch_share_{_p}_cpu_{_short}"] = Figure(_BT_SHARE, f"{_m}.{_ph}.cpu_s", "ms")
+    FIGURES[f"botorch_share_eubo_outcome_{_short}"] = Figure(_BT_SHARE, f"{_m}.eubo_zeta.outcome_sample", "ms")
+
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
