@@ -986,6 +986,9 @@ for _m, _short in (("PairwiseGP", "pair"), ("PreferenceGP", "pref")):
         FIGURES[f"botorch_share_{_p}_cpu_{_short}"] = Figure(_BT_SHARE, f"{_m}.{_ph}.cpu_s", "ms")
     FIGURES[f"botorch_share_eubo_outcome_{_short}"] = Figure(_BT_SHARE, f"{_m}.eubo_zeta.outcome_sample", "ms")
 
+# docs/robustness.md
+FIGURES["robustness_slowest_fit"] = Figure("hostile_fits.json", "rows.79.seconds", "{:.0f} s")
+
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
