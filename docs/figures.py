@@ -989,6 +989,38 @@ for _m, _short in (("PairwiseGP", "pair"), ("PreferenceGP", "pref")):
 # docs/robustness.md
 FIGURES["robustness_slowest_fit"] = Figure("hostile_fits.json", "rows.79.seconds", "{:.0f} s")
 
+# docs/speed.md: the two comparison tables, one table per task
+_S = "{:.3g} s"
+for _task in ("mode", "fit", "posterior", "eubo"):
+    TABLES[f"speed_run_{_task}"] = Table(
+        "speed_pairwise.csv",
+        (
+            ("n (p = 2n)", "n", "{}"),
+            ("torchpref", "torchpref_s", _S),
+            ("PairwiseGP", "pairwisegp_s", _S),
+            ("botorch-rust", "botorch_rust_s", _S),
+            ("vs PairwiseGP", "ratio_pairwisegp", "{:.2f}×"),
+            ("vs botorch-rust", "ratio_botorch_rust", "{:.2f}×"),
+            ("target", "target", "{}"),
+            ("met", "met", "{}"),
+        ),
+        where=(("task", _task),),
+    )
+for _task in ("mode", "fit", "eubo"):
+    TABLES[f"speed_quick_{_task}"] = Table(
+        "fast_path/speed_pairwise_quick_loaded.csv",
+        (
+            ("n (p = 2n)", "n", "{}"),
+            ("torchpref (`auto`)", "torchpref_s", _S),
+            ("torch solver (`off`)", "torchpref_torch_s", _S),
+            ("PairwiseGP", "pairwisegp_s", _S),
+            ("botorch-rust", "botorch_rust_s", _S),
+            ("vs PairwiseGP", "ratio_pairwisegp", "{:.3g}×"),
+            ("vs botorch-rust", "ratio_botorch_rust", "{:.3g}×"),
+        ),
+        where=(("task", _task),),
+    )
+
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
