@@ -1021,6 +1021,31 @@ for _task in ("mode", "fit", "eubo"):
         where=(("task", _task),),
     )
 
+# docs/speed.md: the run under load, in prose
+for _task, _n in (
+    ("fit", 500),
+    ("posterior", 20),
+    ("posterior", 500),
+    ("mode", 20),
+    ("mode", 500),
+    ("mode", 200),
+    ("fit", 50),
+    ("fit", 200),
+    ("fit", 20),
+    ("fit", 100),
+    ("eubo", 20),
+    ("eubo", 50),
+):
+    for _peer, _col in (("pgp", "ratio_pairwisegp"), ("rust", "ratio_botorch_rust")):
+        FIGURES[f"speed_run_{_task}_{_n}_{_peer}"] = Figure(
+            "speed_pairwise.csv", f"{_col}@task={_task},n={_n}", "{:,.2f}×" if _task != "posterior" else "{:,.0f}×"
+        )
+FIGURES["speed_run_posterior_20_pgp"] = Figure("speed_pairwise.csv", "ratio_pairwisegp@task=posterior,n=20", "{:.1f}×")
+FIGURES["speed_run_posterior_20_rust"] = Figure(
+    "speed_pairwise.csv", "ratio_botorch_rust@task=posterior,n=20", "{:.1f}×"
+)
+FIGURES["speed_run_fit_20_rust_s"] = Figure("speed_pairwise.csv", "botorch_rust_s@task=fit,n=20", "ms")
+
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
