@@ -912,6 +912,151 @@ FIGURES["large_pool_serve_load"] = Figure("large_pools/serve.json", "load_at_sta
 # --- issue 53, section A: README, install, speed, botorch, serve, sessions, study, robustness,
 # decisions, acquisition (figures and tables taken off hand-typed prose)
 
+# README.md
+FIGURES["readme_replay_people"] = Figure("replay/replay.json", "meta.people")
+FIGURES["readme_calib_trials"] = Figure("person_calibration.json", "settings.trials")
+FIGURES["readme_calib_wrms_calibrated"] = Figure("person_calibration.json", "recovery.paired.wrms.calibrated", "{:.3f}")
+FIGURES["readme_calib_wrms_plain"] = Figure("person_calibration.json", "recovery.paired.wrms.plain", "{:.3f}")
+
+# docs/install.md
+FIGURES["install_fast_path_build"] = Figure(
+    "fast_path/first_call.json", "rows.compile (warm_up, empty cache).compile_wall_s", "{:.0f} s"
+)
+
+# docs/serve.md
+FIGURES["serve_open_session_kb"] = Figure("serve/soak.json", "restart.open_session_kb_slope", "{:.0f} kB")
+FIGURES["serve_rss_last_mb"] = Figure("serve/soak.json", "summary.rss_kb_first_last_max.1", "kb_mb")
+FIGURES["serve_rss_max_mb"] = Figure("serve/soak.json", "summary.rss_kb_first_last_max.2", "kb_mb")
+FIGURES["serve_rss_restart_mb"] = Figure("serve/soak.json", "restart.rss_kb_after_restart", "kb_mb")
+FIGURES["serve_kill_wall"] = Figure("serve/kill.json", "wall_s", "{:.0f} s")
+FIGURES["serve_timing_median"] = Figure("serve/timing.json", "summary.median_server_ms", "{:.0f} ms")
+FIGURES["serve_timing_p90"] = Figure("serve/timing.json", "summary.p90_server_ms", "{:.0f} ms")
+FIGURES["serve_timing_last50"] = Figure("serve/timing.json", "summary.median_server_ms_last_50", "{:.0f} ms")
+FIGURES["serve_timing_round_trip"] = Figure("serve/timing.json", "summary.median_round_trip_ms", "{:.0f} ms")
+
+# docs/sessions.md
+_SCALE = "sessions/session_scale.csv"
+for _op in ("answer", "undo", "resume"):
+    FIGURES[f"sessions_more_{_op}"] = Figure(
+        "sessions/session_scale.json", f"ms_more_at_1000_than_at_10.{_op}", "{:.1f} ms"
+    )
+    FIGURES[f"sessions_prev_{_op}_1000"] = Figure(
+        _SCALE, f"seconds@answers=1000,code=previous (replay),operation={_op}", "{:.1f} s"
+    )
+FIGURES["sessions_resume_5000"] = Figure(_SCALE, "seconds@answers=5000,code=this,operation=resume", "ms")
+FIGURES["sessions_answer_5000"] = Figure(_SCALE, "seconds@answers=5000,code=this,operation=answer", "ms")
+
+# docs/botorch.md
+FIGURES["botorch_own_pref"] = Figure("botorch_own_tests.json", "summary.PreferenceGP")
+FIGURES["botorch_own_pair"] = Figure("botorch_own_tests.json", "summary.PairwiseGP")
+FIGURES["botorch_own_total"] = Figure("botorch_own_tests.json", "total")
+_BT_PBO, _BT_BOPE, _BT_SHARE = (
+    "botorch_tutorials_preference_bo.json",
+    "botorch_tutorials_bope.json",
+    "botorch_tutorials_bope_share.json",
+)
+for _tag, _file, _phases in (
+    ("pbo", _BT_PBO, ("preference_fit", "eubo_optimize")),
+    ("bope", _BT_BOPE, ("preference_fit", "eubo_optimize", "learned_objective_acqf", "outcome_fit")),
+):
+    for _m, _short in (("PairwiseGP", "pair"), ("PreferenceGP", "pref")):
+        FIGURES[f"botorch_{_tag}_cpu_{_short}"] = Figure(_file, f"phases.{_m}.cpu_s", "{:.1f} s")
+        for _ph in _phases:
+            _key = {"preference_fit": "fit", "eubo_optimize": "eubo"}.get(_ph, _ph) if _tag == "pbo" else _ph
+            FIGURES[f"botorch_{_tag}_{_key}_{_short}"] = Figure(_file, f"phases.{_m}.phase_cpu_s.{_ph}", "{:.1f} s")
+            FIGURES[f"botorch_{_tag}_{_key}_share_{_short}"] = Figure(_file, f"phases.{_m}.share.{_ph}", "{:.0%}")
+_BT_FIRST = {"pbo": (_BT_PBO, "regret"), "bope": (_BT_BOPE, "EUBO-zeta_util")}
+for _tag, (_file, _metric) in _BT_FIRST.items():
+    FIGURES[f"botorch_{_tag}_cpu_ratio"] = Figure(_file, f"{_metric}.cpu_time_ratio", "{:.2f}×")
+    FIGURES[f"botorch_{_tag}_wall_ratio"] = Figure(_file, f"{_metric}.wall_time_ratio", "{:.2f}×")
+    FIGURES[f"botorch_{_tag}_wall_pair"] = Figure(_file, f"{_metric}.wall_s_PairwiseGP", "{:.0f} s")
+    FIGURES[f"botorch_{_tag}_wall_pref"] = Figure(_file, f"{_metric}.wall_s_PreferenceGP", "{:.0f} s")
+FIGURES["botorch_pbo_auc_p_worse"] = Figure(_BT_PBO, "auc_regret.p_worse", "{:.2f}")
+FIGURES["botorch_pbo_auc_p_wilcoxon"] = Figure(_BT_PBO, "auc_regret.p_wilcoxon", "{:.2f}")
+for _name, _metric in (
+    ("eubo_util", "EUBO-zeta_util"),
+    ("random_util", "Random-f_util"),
+    ("eubo_last", "EUBO-zeta_last_check"),
+    ("random_last", "Random-f_last_check"),
+):
+    FIGURES[f"botorch_bope_p_{_name}"] = Figure(_BT_BOPE, f"{_metric}.p_worse", "{:.2f}")
+for _m, _short in (("PairwiseGP", "pair"), ("PreferenceGP", "pref")):
+    for _ph, _p in (("eubo_zeta", "eubo"), ("learned_objective", "lo")):
+        FIGURES[f"botorch_share_{_p}_{_short}"] = Figure(_BT_SHARE, f"{_m}.{_ph}.preference_share", "{:.0%}")
+        FIGURES[f"botorch_share_{_p}_post_{_short}"] = Figure(_BT_SHARE, f"{_m}.{_ph}.preference_posterior", "ms")
+        FIGURES[f"botorch_share_{_p}_cpu_{_short}"] = Figure(_BT_SHARE, f"{_m}.{_ph}.cpu_s", "ms")
+    FIGURES[f"botorch_share_eubo_outcome_{_short}"] = Figure(_BT_SHARE, f"{_m}.eubo_zeta.outcome_sample", "ms")
+
+# docs/robustness.md
+FIGURES["robustness_slowest_fit"] = Figure("hostile_fits.json", "rows.79.seconds", "{:.0f} s")
+
+# docs/speed.md: the two comparison tables, one table per task
+_S = "{:.3g} s"
+for _task in ("mode", "fit", "posterior", "eubo"):
+    TABLES[f"speed_run_{_task}"] = Table(
+        "speed_pairwise.csv",
+        (
+            ("n (p = 2n)", "n", "{}"),
+            ("torchpref", "torchpref_s", _S),
+            ("PairwiseGP", "pairwisegp_s", _S),
+            ("botorch-rust", "botorch_rust_s", _S),
+            ("vs PairwiseGP", "ratio_pairwisegp", "{:.2f}×"),
+            ("vs botorch-rust", "ratio_botorch_rust", "{:.2f}×"),
+            ("target", "target", "{}"),
+            ("met", "met", "{}"),
+        ),
+        where=(("task", _task),),
+    )
+for _task in ("mode", "fit", "eubo"):
+    TABLES[f"speed_quick_{_task}"] = Table(
+        "fast_path/speed_pairwise_quick_loaded.csv",
+        (
+            ("n (p = 2n)", "n", "{}"),
+            ("torchpref (`auto`)", "torchpref_s", _S),
+            ("torch solver (`off`)", "torchpref_torch_s", _S),
+            ("PairwiseGP", "pairwisegp_s", _S),
+            ("botorch-rust", "botorch_rust_s", _S),
+            ("vs PairwiseGP", "ratio_pairwisegp", "{:.3g}×"),
+            ("vs botorch-rust", "ratio_botorch_rust", "{:.3g}×"),
+        ),
+        where=(("task", _task),),
+    )
+
+# docs/speed.md: the run under load, in prose
+for _task, _n in (
+    ("fit", 500),
+    ("posterior", 20),
+    ("posterior", 500),
+    ("mode", 20),
+    ("mode", 500),
+    ("mode", 200),
+    ("fit", 50),
+    ("fit", 200),
+    ("fit", 20),
+    ("fit", 100),
+    ("eubo", 20),
+    ("eubo", 50),
+):
+    for _peer, _col in (("pgp", "ratio_pairwisegp"), ("rust", "ratio_botorch_rust")):
+        FIGURES[f"speed_run_{_task}_{_n}_{_peer}"] = Figure(
+            "speed_pairwise.csv", f"{_col}@task={_task},n={_n}", "{:,.2f}×" if _task != "posterior" else "{:,.0f}×"
+        )
+FIGURES["speed_run_posterior_20_pgp"] = Figure("speed_pairwise.csv", "ratio_pairwisegp@task=posterior,n=20", "{:.1f}×")
+FIGURES["speed_run_posterior_20_rust"] = Figure(
+    "speed_pairwise.csv", "ratio_botorch_rust@task=posterior,n=20", "{:.1f}×"
+)
+FIGURES["speed_run_fit_20_rust_s"] = Figure("speed_pairwise.csv", "botorch_rust_s@task=fit,n=20", "ms")
+
+# docs/install.md: the recorded test runs (tests/conftest.py, TORCHPREF_RECORD_TESTS);
+# enabled once test_runs/*.json exist
+# for _run in ("default", "slow"):
+#     _file = f"test_runs/{_run}.json"
+#     FIGURES[f"install_tests_{_run}_wall"] = Figure(_file, "wall_s", "{:.0f} s")
+#     FIGURES[f"install_tests_{_run}_load"] = Figure(_file, "stamp.load_avg.0", "{:.1f}")
+#     FIGURES[f"install_tests_{_run}_commit"] = Figure(_file, "stamp.commit", "{:.7}")
+#     for _k in ("passed", "failed", "skipped", "xfailed", "errors"):
+#         FIGURES[f"install_tests_{_run}_{_k}"] = Figure(_file, f"counts.{_k}", "{:,}")
+
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")

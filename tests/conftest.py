@@ -55,3 +55,44 @@ def deflated_copy():
         return dst
 
     return copy
+
+
+# --- a recorded test run (issue 53): the counts and the wall time of the run that docs/install.md quotes
+#: where a run writes its record: ``TORCHPREF_RECORD_TESTS=benchmarks/results/test_runs/default.json make test``
+RECORD_ENV = "TORCHPREF_RECORD_TESTS"
+_OUTCOMES = ("passed", "failed", "skipped", "xfailed", "xpassed", "error")
+
+
+def pytest_sessionstart(session):
+    import time
+
+    session.config._torchpref_record_start = time.perf_counter()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """With ``TORCHPREF_RECORD_TESTS`` naming a path, write the run's counts, wall time and pytest
+    arguments there as a stamped JSON (``torchpref.experiments.results.write_json``, path ``"user"``)."""
+    import os
+    import time
+
+    path = os.environ.get(RECORD_ENV)
+    if not path:
+        return
+    start = getattr(session.config, "_torchpref_record_start", None)
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    stats = reporter.stats if reporter is not None else {}
+    counts = {k: len(stats.get(k, [])) for k in _OUTCOMES}  # as pytest's summary line counts them
+    from torchpref.experiments.results import write_json
+
+    write_json(
+        path,
+        {
+            "counts": {**{k: v for k, v in counts.items() if k != "error"}, "errors": counts["error"]},
+            "wall_s": round(time.perf_counter() - start, 1) if start is not None else None,
+            "exit_status": int(exitstatus),
+            "args": list(session.config.invocation_params.args),
+            "markexpr": session.config.getoption("markexpr") or "",
+            "cpu_count": os.cpu_count(),
+        },
+        measured="user",
+    )
