@@ -1057,6 +1057,15 @@ FIGURES["speed_run_fit_20_rust_s"] = Figure("speed_pairwise.csv", "botorch_rust_
 #     for _k in ("passed", "failed", "skipped", "xfailed", "errors"):
 #         FIGURES[f"install_tests_{_run}_{_k}"] = Figure(_file, f"counts.{_k}", "{:,}")
 
+FIGURES["speed_kernel_20"] = Figure(_SPEED, "torchpref_s@task=kernel,n=20", "ms")
+FIGURES["speed_mode_20_rust_s"] = Figure(_SPEED, "botorch_rust_s@task=mode,n=20", "ms")
+_SERVED = "served_answer/served_answer.json"  # benchmarks/speed/served_answer.py (issue 52)
+FIGURES["served_default_p50"] = Figure(_SERVED, "summary.default.served_ms_p50", "{:.1f} ms")
+FIGURES["served_default_p99"] = Figure(_SERVED, "summary.default.served_ms_p99", "{:.1f} ms")
+FIGURES["served_ucbc_p50"] = Figure(_SERVED, "summary.ucbc.served_ms_p50", "{:.1f} ms")
+FIGURES["served_ucbc_p99"] = Figure(_SERVED, "summary.ucbc.served_ms_p99", "{:.1f} ms")
+FIGURES["served_ratio"] = Figure(_SERVED, "default_over_ucbc_p50", "{:.1f}×")
+FIGURES["served_load"] = Figure(_SERVED, "load_average.0", "{:.1f}")
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")

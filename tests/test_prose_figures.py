@@ -37,7 +37,6 @@ PENDING: set[str] = {
     "docs/real_raters.md",
     "docs/results.md",
     "docs/selection.md",
-    "docs/speed.md",
     "docs/suite.md",
     "docs/wave.md",
 }
