@@ -1,6 +1,6 @@
 """Count BoTorch's API checks passed by PreferenceGP and by PairwiseGP (docs/botorch.md).
 
-Runs ``tests/test_botorch_port_*.py`` (BoTorch's own checks of ``PairwiseGP`` and of its
+Runs ``tests/parity/test_botorch_port_*.py`` (BoTorch's own checks of ``PairwiseGP`` and of its
 preference acquisitions, objectives and input constructors, rewritten to run on either model)
 and tallies, per model, the checks that passed and those that failed (marked ``xfail`` in
 ``tests/parity/botorch_port.py``'s ``GAPS``; an ``xfail`` that passes counts as passed).
@@ -28,7 +28,9 @@ def run_checks() -> list[tuple[str, str]]:
     """``(check id, outcome)`` for every check, outcome one of passed / failed."""
     with tempfile.TemporaryDirectory() as tmp:
         xml = Path(tmp) / "report.xml"
-        files = sorted(str(p) for p in (ROOT / "tests").glob("test_botorch_port_*.py"))
+        files = sorted(str(p) for p in (ROOT / "tests" / "parity").glob("test_botorch_port_*.py"))
+        if not files:  # never the whole suite: pytest given no files collects every test
+            raise FileNotFoundError("no tests/parity/test_botorch_port_*.py")
         subprocess.run(
             [
                 sys.executable,
