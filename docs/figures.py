@@ -919,6 +919,69 @@ TABLE_STALE_NOTE = "*(measured on an older version)*"
 
 # --- issue 53, section B: suite, results, laplace, lake, wave, likelihoods, population,
 # real_raters, selection, ax (figures and tables taken off hand-typed prose)
+# docs/results.md
+_Q = "paired_tests.queries"
+_E = "paired_tests.effort"
+_WSEL = "wave_selector/wave_summary.json"
+_ORD = "ordinal.json"
+_ORDT = "summary.ties"
+_ORDL = "summary.likert"
+FIGURES.update(
+    {
+        "results_wave_p_ucbc_ucb_wrms": Figure(_WAVE, f"{_Q}.UCBC vs UCB ratings.wrms.p_wilcoxon", "{:.3f}"),
+        "results_wave_p_ucbc_rankings_tp": Figure(_WAVE, f"{_Q}.UCBC vs random rankings.tp.p_wilcoxon", "{:.1f}"),
+        "results_wave_p_info_rankings_tp": Figure(_WAVE, f"{_Q}.info per effort vs random rankings.tp.p_wilcoxon", "sci"),
+        "results_wave_p_info_ucbc_wrms_effort": Figure(_WAVE, f"{_E}.info per effort vs UCBC.wrms.p_wilcoxon", "sci"),
+        "results_wave_p_info_ucbc_tp_effort": Figure(_WAVE, f"{_E}.info per effort vs UCBC.tp.p_wilcoxon", "{:.3f}"),
+        "results_wave_p_info_profile_wrms": Figure(
+            _WSEL, f"{_Q}.info per effort vs profile per effort.wrms.p_wilcoxon", "{:.3f}"
+        ),
+        "results_speed_wave_ours": Figure("speed_wave.json", "median.torchpref.compute_s", "{:.1f} s"),
+        "results_speed_wave_authors": Figure("speed_wave.json", "median.authors.compute_s", "{:.1f} s"),
+        "results_speed_wave_ratio": Figure("speed_wave.json", "speedup.compute_s", "{:.1f}×"),
+        "results_speed_wave_ours_cmd": Figure("speed_wave.json", "median.torchpref.command_s", "{:.1f} s"),
+        "results_speed_wave_authors_cmd": Figure("speed_wave.json", "median.authors.command_s", "{:.1f} s"),
+        "results_speed_wave_ratio_cmd": Figure("speed_wave.json", "speedup.command_s", "{:.1f}×"),
+        "results_lake_wall": Figure("lake_summary.json", "wall_time_s", "{:.1f} s"),
+        "results_lake1_ucb": Figure("lake_summary.json", "share_rated_5.UCB ratings", "percent"),
+        "results_lake1_info": Figure("lake_summary.json", "share_rated_5.info per effort", "percent"),
+        "results_lake1_ucbc": Figure("lake_summary.json", "share_rated_5.UCBC", "percent"),
+        "results_lake1_random": Figure("lake_summary.json", "share_rated_5.random ratings", "percent"),
+        "results_lake1_p_error5": Figure("lake_summary.json", "paired_tests.UCBC vs UCB ratings.error5.p_wilcoxon", "{:.3f}"),
+        "results_lakes10_variance": Figure(
+            "lakes10_selector/lake_summary.json", "share_rated_5.variance per effort", "percent"
+        ),
+        "results_lakes10_ucb": Figure("lakes10_selector/lake_summary.json", "share_rated_5.UCB ratings", "percent"),
+        "results_lakes10_profile": Figure(
+            "lakes10_selector/lake_summary.json", "share_rated_5.profile per effort", "percent"
+        ),
+        "results_lakes10_info": Figure("lakes10_selector/lake_summary.json", "share_rated_5.info per effort", "percent"),
+        "results_lakes10_plan_ok": Figure(
+            "lakes10_selector/lake_summary.json", "planning.UCBC.at_least_as_good", "percent2"
+        ),
+        "results_lakes10_plan_better": Figure(
+            "lakes10_selector/lake_summary.json", "planning.UCBC.strictly_better", "percent2"
+        ),
+        "results_lakes20_wall": Figure("lakes20/lake_summary.json", "wall_time_s", "{:.1f} s"),
+        "results_lakes20_plan_ok": Figure("lakes20/lake_summary.json", "planning.UCBC.at_least_as_good", "percent"),
+        "results_lakes20_plan_better": Figure("lakes20/lake_summary.json", "planning.UCBC.strictly_better", "percent2"),
+        "results_suite_default_trials_s": Figure("suite50_default/suite_summary.json", "wall_time_s", "{:.0f} s"),
+        "results_suite_default_cpu_s": Figure("suite50_default/suite_summary.json", "cpu_time_s", "{:,.0f} s"),
+        "results_ordinal_wall": Figure(_ORD, "meta.wall_time_s", "{:.0f} s"),
+        "results_ordinal_ties_p_wrms": Figure(_ORD, f"{_ORDT}.bump 10%.used - ignored/wrms.p_ttest", "sci"),
+        "results_ordinal_ties_p_tp": Figure(_ORD, f"{_ORDT}.bump 10%.used - ignored/tp.p_ttest", "sci"),
+        "results_ordinal_ties_p_bump25_regret": Figure(_ORD, f"{_ORDT}.bump 25%.used - ignored/regret.p_ttest", "sci"),
+        "results_ordinal_ties_p_default": Figure(_ORD, f"{_ORDT}.bump 10%.default - ignored/regret.p_ttest", "{:.2f}"),
+        "results_ordinal_p_wave": Figure(_ORD, f"{_ORDL}.wave.ordinal - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_partial": Figure(_ORD, f"{_ORDL}.partial.ordinal - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_bump": Figure(_ORD, f"{_ORDL}.bump.ordinal - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_lake": Figure(_ORD, f"{_ORDL}.lake.ordinal - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_lake_tp": Figure(_ORD, f"{_ORDL}.lake.ordinal - beta/tp.p_ttest", "sci"),
+        "results_ordinal_p_learned_partial": Figure(_ORD, f"{_ORDL}.partial.ordinal-learned - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_learned_bump": Figure(_ORD, f"{_ORDL}.bump.ordinal-learned - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_learned_lake_tp": Figure(_ORD, f"{_ORDL}.lake.ordinal-learned - beta/tp.p_ttest", "sci"),
+    }
+)
 
 # --- end of section B
 

@@ -40,7 +40,6 @@ PENDING: set[str] = {
     "docs/likelihoods.md",
     "docs/population.md",
     "docs/real_raters.md",
-    "docs/results.md",
     "docs/robustness.md",
     "docs/selection.md",
     "docs/serve.md",
