@@ -41,7 +41,6 @@ PENDING: set[str] = {
     "docs/population.md",
     "docs/real_raters.md",
     "docs/robustness.md",
-    "docs/selection.md",
     "docs/serve.md",
     "docs/sessions.md",
     "docs/speed.md",
