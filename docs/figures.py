@@ -983,6 +983,9 @@ FIGURES.update(
     }
 )
 
+# docs/real_raters.md: the SUSHI replay's budgets in seconds (inputs, written from the file they were run with)
+for _i in range(5):
+    FIGURES[f"real_raters_budget_{_i}"] = Figure("sushi/sushi.json", f"summary.budgets.{_i}", "{} s")
 # --- end of section B
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")

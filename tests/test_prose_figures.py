@@ -39,7 +39,6 @@ PENDING: set[str] = {
     "docs/laplace.md",
     "docs/likelihoods.md",
     "docs/population.md",
-    "docs/real_raters.md",
     "docs/robustness.md",
     "docs/serve.md",
     "docs/sessions.md",
