@@ -986,6 +986,11 @@ FIGURES.update(
 # docs/real_raters.md: the SUSHI replay's budgets in seconds (inputs, written from the file they were run with)
 for _i in range(5):
     FIGURES[f"real_raters_budget_{_i}"] = Figure("sushi/sushi.json", f"summary.budgets.{_i}", "{} s")
+# docs/population.md: the memory of the 1,000-people fit over 300 shared items (population_scale.py)
+_PSCALE = "population/population_scale.json"
+FIGURES["population_scale_peak_gb"] = Figure(_PSCALE, "peak_memory_gb.master", "{:.2f} GB")
+FIGURES["population_scale_before_gb"] = Figure(_PSCALE, "peak_memory_before_fit_gb", "{:.2f} GB")
+FIGURES["population_scale_estimate_gb"] = Figure(_PSCALE, "memory_estimate_gb", "{:.2f} GB")
 # --- end of section B
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")

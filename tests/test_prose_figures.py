@@ -38,7 +38,6 @@ PENDING: set[str] = {
     "docs/lake.md",
     "docs/laplace.md",
     "docs/likelihoods.md",
-    "docs/population.md",
     "docs/robustness.md",
     "docs/serve.md",
     "docs/sessions.md",
