@@ -991,6 +991,12 @@ _PSCALE = "population/population_scale.json"
 FIGURES["population_scale_peak_gb"] = Figure(_PSCALE, "peak_memory_gb.master", "{:.2f} GB")
 FIGURES["population_scale_before_gb"] = Figure(_PSCALE, "peak_memory_before_fit_gb", "{:.2f} GB")
 FIGURES["population_scale_estimate_gb"] = Figure(_PSCALE, "memory_estimate_gb", "{:.2f} GB")
+# docs/likelihoods.md: the person calibration (benchmarks/studies/person_calibration.py)
+_PCAL = "person_calibration.json"
+FIGURES["likelihoods_pcal_wall"] = Figure(_PCAL, "wall_s", "{:.0f} s")
+for _m in ("wrms", "tp", "regret"):
+    FIGURES[f"likelihoods_pcal_p_{_m}"] = Figure(_PCAL, f"recovery.paired.{_m}.wilcoxon_p", "{:.2g}")
+    FIGURES[f"likelihoods_pcal_ideal_p_{_m}"] = Figure(_PCAL, f"ideal.{_m}.wilcoxon_p", "{:.2g}")
 # --- end of section B
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")

@@ -37,7 +37,6 @@ PENDING: set[str] = {
     "docs/install.md",
     "docs/lake.md",
     "docs/laplace.md",
-    "docs/likelihoods.md",
     "docs/robustness.md",
     "docs/serve.md",
     "docs/sessions.md",
