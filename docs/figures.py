@@ -997,6 +997,33 @@ FIGURES["likelihoods_pcal_wall"] = Figure(_PCAL, "wall_s", "{:.0f} s")
 for _m in ("wrms", "tp", "regret"):
     FIGURES[f"likelihoods_pcal_p_{_m}"] = Figure(_PCAL, f"recovery.paired.{_m}.wilcoxon_p", "{:.2g}")
     FIGURES[f"likelihoods_pcal_ideal_p_{_m}"] = Figure(_PCAL, f"ideal.{_m}.wilcoxon_p", "{:.2g}")
+# docs/wave.md: the table at 20 queries, the ratings asked, the paired tests at equal effort, the
+# one-process run (benchmarks/speed/speed_wave.py --workers 1, speed_wave_processes/)
+TABLES["wave_final"] = Table(
+    _WAVE,
+    (
+        ("strategy", "__key__", "{}"),
+        ("WRMS", "wrms.0", "{:.4f}"),
+        ("± s.e.", "wrms.1", "{:.4f}"),
+        ("true positives", "tp.0", "{:.2f}"),
+        ("± s.e.", "tp.1", "{:.2f}"),
+    ),
+    rows="final",
+)
+for _s, _n in (("UCBC", "ucbc"), ("info per effort", "info")):
+    FIGURES[f"wave_ratings_{_n}"] = Figure(_WAVE, f"fraction_ratings.{_s}", "percent2")
+for _pair, _m, _n in (
+    ("info per effort vs random rankings", "tp", "info_rankings_tp"),
+    ("info per effort vs UCB ratings", "wrms", "info_ucb_wrms"),
+    ("info per effort vs UCB ratings", "tp", "info_ucb_tp"),
+    ("UCBC vs UCB ratings", "wrms", "ucbc_ucb_wrms"),
+):
+    FIGURES[f"wave_effort_p_{_n}"] = Figure(_WAVE, f"{_E}.{_pair}.{_m}.p_wilcoxon", "{:.2g}")
+_WPROC = "speed_wave_processes/speed_wave.json"
+FIGURES["wave_proc_cpu_2"] = Figure(_WPROC, "median.torchpref.cpu_s", "{:.1f} s")
+FIGURES["wave_proc_cpu_1"] = Figure(_WPROC, "median.torchpref_1_process.cpu_s", "{:.1f} s")
+FIGURES["wave_proc_wall_2"] = Figure(_WPROC, "median.torchpref.compute_s", "{:.0f} s")
+FIGURES["wave_proc_wall_1"] = Figure(_WPROC, "median.torchpref_1_process.compute_s", "{:.0f} s")
 # --- end of section B
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")

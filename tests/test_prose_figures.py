@@ -43,7 +43,6 @@ PENDING: set[str] = {
     "docs/speed.md",
     "docs/study.md",
     "docs/suite.md",
-    "docs/wave.md",
 }
 
 
