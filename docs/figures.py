@@ -1024,6 +1024,31 @@ FIGURES["wave_proc_cpu_2"] = Figure(_WPROC, "median.torchpref.cpu_s", "{:.1f} s"
 FIGURES["wave_proc_cpu_1"] = Figure(_WPROC, "median.torchpref_1_process.cpu_s", "{:.1f} s")
 FIGURES["wave_proc_wall_2"] = Figure(_WPROC, "median.torchpref.compute_s", "{:.0f} s")
 FIGURES["wave_proc_wall_1"] = Figure(_WPROC, "median.torchpref_1_process.compute_s", "{:.0f} s")
+# docs/lake.md: the one-lake run's paired tests and plans, the 10-lake planning run (benchmarks/results/lakes/)
+_L1, _L10, _L20 = "lake_summary.json", "lakes/lake_summary.json", "lakes20/lake_summary.json"
+for _pair, _n in (("UCBC vs random ratings", "random"), ("UCBC vs UCB ratings", "ucb"), ("UCBC vs info per effort", "info")):
+    for _m in ("error5", "wrms"):
+        FIGURES[f"lake_p_{_n}_{_m}"] = Figure(_L1, f"paired_tests.{_pair}.{_m}.p_wilcoxon", "{:.2g}")
+FIGURES["lake_one_plan_ok"] = Figure(_L1, "planning.UCBC.at_least_as_good", "percent")
+FIGURES["lake_one_plan_better"] = Figure(_L1, "planning.UCBC.strictly_better", "percent")
+FIGURES["lake_many_wall"] = Figure(_L10, "wall_time_s", "{:.0f} s")
+FIGURES["lake_many_scenarios"] = Figure(_L10, "scenario_time_s", "{:.1f} s")
+FIGURES["lake_many_plan_ok"] = Figure(_L10, "planning.UCBC.at_least_as_good", "percent2")
+FIGURES["lake_many_plan_better"] = Figure(_L10, "planning.UCBC.strictly_better", "percent2")
+FIGURES["lake_many_p_levels"] = Figure(_L10, "planning.UCBC.paired.p_wilcoxon", "{:.2f}")
+FIGURES["lake_20_scenarios"] = Figure(_L20, "scenario_time_s", "{:.0f} s")
+TABLES["lake_plan_per_lake"] = Table(
+    _L10,
+    (
+        ("lake", "__key__", "{}"),
+        ("planned ≥ pick", "planning.UCBC.at_least_as_good", "percent"),
+        ("strictly better", "planning.UCBC.strictly_better", "percent"),
+        ("optimised path kept (of 20)", "planning.UCBC.sources.planned", "{}"),
+        ("planned level", "planning.UCBC.planned_level_mean", "{:.2f}"),
+        ("pick level", "planning.UCBC.pick_level_mean", "{:.2f}"),
+    ),
+    rows="per_lake",
+)
 # --- end of section B
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")

@@ -35,7 +35,6 @@ PENDING: set[str] = {
     "docs/botorch.md",
     "docs/decisions.md",
     "docs/install.md",
-    "docs/lake.md",
     "docs/laplace.md",
     "docs/robustness.md",
     "docs/serve.md",
