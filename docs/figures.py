@@ -1049,6 +1049,8 @@ TABLES["lake_plan_per_lake"] = Table(
     ),
     rows="per_lake",
 )
+# docs/ax.md: Ax's own tests of its preference path (benchmarks/parity/ax_upstream_tests.py)
+FIGURES["ax_upstream_ran"] = Figure("ax/upstream_tests.json", "modes.documented.counts.ran", "{} tests")
 # --- end of section B
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")

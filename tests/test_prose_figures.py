@@ -31,7 +31,6 @@ FIGURE = re.compile("|".join(rf"(?P<{k.replace('-', '_')}>(?<![\w.]){v})" for k,
 PENDING: set[str] = {
     "README.md",
     "docs/acquisition.md",
-    "docs/ax.md",
     "docs/botorch.md",
     "docs/decisions.md",
     "docs/install.md",
