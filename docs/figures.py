@@ -1051,6 +1051,28 @@ TABLES["lake_plan_per_lake"] = Table(
 )
 # docs/ax.md: Ax's own tests of its preference path (benchmarks/parity/ax_upstream_tests.py)
 FIGURES["ax_upstream_ran"] = Figure("ax/upstream_tests.json", "modes.documented.counts.ran", "{} tests")
+# docs/laplace.md: our mode and fit against their floors (benchmarks/speed/speed_floor.py)
+TABLES["laplace_floor"] = Table(
+    "speed_floor.csv",
+    (
+        ("n", "n", "{}"),
+        ("mode factorisations", "mode_factorisations", "{}"),
+        ("mode evaluations", "mode_evaluations", "{}"),
+        ("our construction + mode (s)", "ours_mode_s", "{:.3g}"),
+        ("solve (s)", "ours_solve_s", "{:.3g}"),
+        ("its floor, torch (s)", "floor_torch_mode_s", "{:.3g}"),
+        ("LAPACK (s)", "floor_lapack_mode_s", "{:.3g}"),
+        ("ratio, torch", "mode_over_torch_floor", "{:.1f}×"),
+        ("LAPACK", "mode_over_lapack_floor", "{:.1f}×"),
+        ("fit L-BFGS evaluations", "fit_lbfgs_evaluations", "{}"),
+        ("fit factorisations", "fit_factorisations", "{}"),
+        ("our fit (s)", "ours_fit_s", "{:.3g}"),
+        ("its floor, torch (s)", "floor_torch_fit_s", "{:.3g}"),
+        ("LAPACK (s)", "floor_lapack_fit_s", "{:.3g}"),
+        ("ratio, torch", "fit_over_torch_floor", "{:.0f}×"),
+        ("LAPACK", "fit_over_lapack_floor", "{:.0f}×"),
+    ),
+)
 # --- end of section B
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
