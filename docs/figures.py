@@ -1073,6 +1073,8 @@ TABLES["laplace_floor"] = Table(
         ("LAPACK", "fit_over_lapack_floor", "{:.0f}×"),
     ),
 )
+for _c, _fmt in (("mode_over_torch_floor", "{:.1f}×"), ("mode_over_lapack_floor", "{:.1f}×"), ("solve_over_torch_floor", "{:.1f}×")):
+    FIGURES[f"laplace_floor_{_c}_100"] = Figure("speed_floor.csv", f"{_c}@n=100", _fmt)
 # --- end of section B
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
