@@ -1075,7 +1075,162 @@ TABLE_UNSTAMPED_NOTE = "*(an older run, unstamped)*"
 
 # --- issue 53, section B: suite, results, laplace, lake, wave, likelihoods, population,
 # real_raters, selection, ax (figures and tables taken off hand-typed prose)
+# docs/results.md
+_Q = "paired_tests.queries"
+_E = "paired_tests.effort"
+_WSEL = "wave_selector/wave_summary.json"
+_ORD = "ordinal.json"
+_ORDT = "summary.ties"
+_ORDL = "summary.likert"
+FIGURES.update(
+    {
+        "results_wave_p_ucbc_ucb_wrms": Figure(_WAVE, f"{_Q}.UCBC vs UCB ratings.wrms.p_wilcoxon", "{:.3f}"),
+        "results_wave_p_ucbc_rankings_tp": Figure(_WAVE, f"{_Q}.UCBC vs random rankings.tp.p_wilcoxon", "{:.1f}"),
+        "results_wave_p_info_rankings_tp": Figure(_WAVE, f"{_Q}.info per effort vs random rankings.tp.p_wilcoxon", "sci"),
+        "results_wave_p_info_ucbc_wrms_effort": Figure(_WAVE, f"{_E}.info per effort vs UCBC.wrms.p_wilcoxon", "sci"),
+        "results_wave_p_info_ucbc_tp_effort": Figure(_WAVE, f"{_E}.info per effort vs UCBC.tp.p_wilcoxon", "{:.3f}"),
+        "results_wave_p_info_profile_wrms": Figure(
+            _WSEL, f"{_Q}.info per effort vs profile per effort.wrms.p_wilcoxon", "{:.3f}"
+        ),
+        "results_speed_wave_ours": Figure("speed_wave.json", "median.torchpref.compute_s", "{:.1f} s"),
+        "results_speed_wave_authors": Figure("speed_wave.json", "median.authors.compute_s", "{:.1f} s"),
+        "results_speed_wave_ratio": Figure("speed_wave.json", "speedup.compute_s", "{:.1f}×"),
+        "results_speed_wave_ours_cmd": Figure("speed_wave.json", "median.torchpref.command_s", "{:.1f} s"),
+        "results_speed_wave_authors_cmd": Figure("speed_wave.json", "median.authors.command_s", "{:.1f} s"),
+        "results_speed_wave_ratio_cmd": Figure("speed_wave.json", "speedup.command_s", "{:.1f}×"),
+        "results_lake_wall": Figure("lake_summary.json", "wall_time_s", "{:.1f} s"),
+        "results_lake1_ucb": Figure("lake_summary.json", "share_rated_5.UCB ratings", "percent"),
+        "results_lake1_info": Figure("lake_summary.json", "share_rated_5.info per effort", "percent"),
+        "results_lake1_ucbc": Figure("lake_summary.json", "share_rated_5.UCBC", "percent"),
+        "results_lake1_random": Figure("lake_summary.json", "share_rated_5.random ratings", "percent"),
+        "results_lake1_p_error5": Figure("lake_summary.json", "paired_tests.UCBC vs UCB ratings.error5.p_wilcoxon", "{:.3f}"),
+        "results_lakes10_variance": Figure(
+            "lakes10_selector/lake_summary.json", "share_rated_5.variance per effort", "percent"
+        ),
+        "results_lakes10_ucb": Figure("lakes10_selector/lake_summary.json", "share_rated_5.UCB ratings", "percent"),
+        "results_lakes10_profile": Figure(
+            "lakes10_selector/lake_summary.json", "share_rated_5.profile per effort", "percent"
+        ),
+        "results_lakes10_info": Figure("lakes10_selector/lake_summary.json", "share_rated_5.info per effort", "percent"),
+        "results_lakes10_plan_ok": Figure(
+            "lakes10_selector/lake_summary.json", "planning.UCBC.at_least_as_good", "percent2"
+        ),
+        "results_lakes10_plan_better": Figure(
+            "lakes10_selector/lake_summary.json", "planning.UCBC.strictly_better", "percent2"
+        ),
+        "results_lakes20_wall": Figure("lakes20/lake_summary.json", "wall_time_s", "{:.1f} s"),
+        "results_lakes20_plan_ok": Figure("lakes20/lake_summary.json", "planning.UCBC.at_least_as_good", "percent"),
+        "results_lakes20_plan_better": Figure("lakes20/lake_summary.json", "planning.UCBC.strictly_better", "percent2"),
+        "results_suite_default_trials_s": Figure("suite50_default/suite_summary.json", "wall_time_s", "{:.0f} s"),
+        "results_suite_default_cpu_s": Figure("suite50_default/suite_summary.json", "cpu_time_s", "{:,.0f} s"),
+        "results_ordinal_wall": Figure(_ORD, "meta.wall_time_s", "{:.0f} s"),
+        "results_ordinal_ties_p_wrms": Figure(_ORD, f"{_ORDT}.bump 10%.used - ignored/wrms.p_ttest", "sci"),
+        "results_ordinal_ties_p_tp": Figure(_ORD, f"{_ORDT}.bump 10%.used - ignored/tp.p_ttest", "sci"),
+        "results_ordinal_ties_p_bump25_regret": Figure(_ORD, f"{_ORDT}.bump 25%.used - ignored/regret.p_ttest", "sci"),
+        "results_ordinal_ties_p_default": Figure(_ORD, f"{_ORDT}.bump 10%.default - ignored/regret.p_ttest", "{:.2f}"),
+        "results_ordinal_p_wave": Figure(_ORD, f"{_ORDL}.wave.ordinal - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_partial": Figure(_ORD, f"{_ORDL}.partial.ordinal - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_bump": Figure(_ORD, f"{_ORDL}.bump.ordinal - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_lake": Figure(_ORD, f"{_ORDL}.lake.ordinal - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_lake_tp": Figure(_ORD, f"{_ORDL}.lake.ordinal - beta/tp.p_ttest", "sci"),
+        "results_ordinal_p_learned_partial": Figure(_ORD, f"{_ORDL}.partial.ordinal-learned - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_learned_bump": Figure(_ORD, f"{_ORDL}.bump.ordinal-learned - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_learned_lake_tp": Figure(_ORD, f"{_ORDL}.lake.ordinal-learned - beta/tp.p_ttest", "sci"),
+    }
+)
 
+# docs/real_raters.md: the SUSHI replay's budgets in seconds (inputs, written from the file they were run with)
+for _i in range(5):
+    FIGURES[f"real_raters_budget_{_i}"] = Figure("sushi/sushi.json", f"summary.budgets.{_i}", "{} s")
+# docs/population.md: the memory of the 1,000-people fit over 300 shared items (population_scale.py)
+_PSCALE = "population/population_scale.json"
+FIGURES["population_scale_peak_gb"] = Figure(_PSCALE, "peak_memory_gb.master", "{:.2f} GB")
+FIGURES["population_scale_before_gb"] = Figure(_PSCALE, "peak_memory_before_fit_gb", "{:.2f} GB")
+FIGURES["population_scale_estimate_gb"] = Figure(_PSCALE, "memory_estimate_gb", "{:.2f} GB")
+# docs/likelihoods.md: the person calibration (benchmarks/studies/person_calibration.py)
+_PCAL = "person_calibration.json"
+FIGURES["likelihoods_pcal_wall"] = Figure(_PCAL, "wall_s", "{:.0f} s")
+for _m in ("wrms", "tp", "regret"):
+    FIGURES[f"likelihoods_pcal_p_{_m}"] = Figure(_PCAL, f"recovery.paired.{_m}.wilcoxon_p", "{:.2g}")
+    FIGURES[f"likelihoods_pcal_ideal_p_{_m}"] = Figure(_PCAL, f"ideal.{_m}.wilcoxon_p", "{:.2g}")
+# docs/wave.md: the table at 20 queries, the ratings asked, the paired tests at equal effort, the
+# one-process run (benchmarks/speed/speed_wave.py --workers 1, speed_wave_processes/)
+TABLES["wave_final"] = Table(
+    _WAVE,
+    (
+        ("strategy", "__key__", "{}"),
+        ("WRMS", "wrms.0", "{:.4f}"),
+        ("± s.e.", "wrms.1", "{:.4f}"),
+        ("true positives", "tp.0", "{:.2f}"),
+        ("± s.e.", "tp.1", "{:.2f}"),
+    ),
+    rows="final",
+)
+for _s, _n in (("UCBC", "ucbc"), ("info per effort", "info")):
+    FIGURES[f"wave_ratings_{_n}"] = Figure(_WAVE, f"fraction_ratings.{_s}", "percent2")
+for _pair, _m, _n in (
+    ("info per effort vs random rankings", "tp", "info_rankings_tp"),
+    ("info per effort vs UCB ratings", "wrms", "info_ucb_wrms"),
+    ("info per effort vs UCB ratings", "tp", "info_ucb_tp"),
+    ("UCBC vs UCB ratings", "wrms", "ucbc_ucb_wrms"),
+):
+    FIGURES[f"wave_effort_p_{_n}"] = Figure(_WAVE, f"{_E}.{_pair}.{_m}.p_wilcoxon", "{:.2g}")
+_WPROC = "speed_wave_processes/speed_wave.json"
+FIGURES["wave_proc_cpu_2"] = Figure(_WPROC, "median.torchpref.cpu_s", "{:.1f} s")
+FIGURES["wave_proc_cpu_1"] = Figure(_WPROC, "median.torchpref_1_process.cpu_s", "{:.1f} s")
+FIGURES["wave_proc_wall_2"] = Figure(_WPROC, "median.torchpref.compute_s", "{:.0f} s")
+FIGURES["wave_proc_wall_1"] = Figure(_WPROC, "median.torchpref_1_process.compute_s", "{:.0f} s")
+# docs/lake.md: the one-lake run's paired tests and plans, the 10-lake planning run (benchmarks/results/lakes/)
+_L1, _L10, _L20 = "lake_summary.json", "lakes/lake_summary.json", "lakes20/lake_summary.json"
+for _pair, _n in (("UCBC vs random ratings", "random"), ("UCBC vs UCB ratings", "ucb"), ("UCBC vs info per effort", "info")):
+    for _m in ("error5", "wrms"):
+        FIGURES[f"lake_p_{_n}_{_m}"] = Figure(_L1, f"paired_tests.{_pair}.{_m}.p_wilcoxon", "{:.2g}")
+FIGURES["lake_one_plan_ok"] = Figure(_L1, "planning.UCBC.at_least_as_good", "percent")
+FIGURES["lake_one_plan_better"] = Figure(_L1, "planning.UCBC.strictly_better", "percent")
+FIGURES["lake_many_wall"] = Figure(_L10, "wall_time_s", "{:.0f} s")
+FIGURES["lake_many_scenarios"] = Figure(_L10, "scenario_time_s", "{:.1f} s")
+FIGURES["lake_many_plan_ok"] = Figure(_L10, "planning.UCBC.at_least_as_good", "percent2")
+FIGURES["lake_many_plan_better"] = Figure(_L10, "planning.UCBC.strictly_better", "percent2")
+FIGURES["lake_many_p_levels"] = Figure(_L10, "planning.UCBC.paired.p_wilcoxon", "{:.2f}")
+FIGURES["lake_20_scenarios"] = Figure(_L20, "scenario_time_s", "{:.0f} s")
+TABLES["lake_plan_per_lake"] = Table(
+    _L10,
+    (
+        ("lake", "__key__", "{}"),
+        ("planned ≥ pick", "planning.UCBC.at_least_as_good", "percent"),
+        ("strictly better", "planning.UCBC.strictly_better", "percent"),
+        ("optimised path kept (of 20)", "planning.UCBC.sources.planned", "{}"),
+        ("planned level", "planning.UCBC.planned_level_mean", "{:.2f}"),
+        ("pick level", "planning.UCBC.pick_level_mean", "{:.2f}"),
+    ),
+    rows="per_lake",
+)
+# docs/ax.md: Ax's own tests of its preference path (benchmarks/parity/ax_upstream_tests.py)
+FIGURES["ax_upstream_ran"] = Figure("ax/upstream_tests.json", "modes.documented.counts.ran", "{} tests")
+# docs/laplace.md: our mode and fit against their floors (benchmarks/speed/speed_floor.py)
+TABLES["laplace_floor"] = Table(
+    "speed_floor.csv",
+    (
+        ("n", "n", "{}"),
+        ("mode factorisations", "mode_factorisations", "{}"),
+        ("mode evaluations", "mode_evaluations", "{}"),
+        ("our construction + mode (s)", "ours_mode_s", "{:.3g}"),
+        ("solve (s)", "ours_solve_s", "{:.3g}"),
+        ("its floor, torch (s)", "floor_torch_mode_s", "{:.3g}"),
+        ("LAPACK (s)", "floor_lapack_mode_s", "{:.3g}"),
+        ("ratio, torch", "mode_over_torch_floor", "{:.1f}×"),
+        ("LAPACK", "mode_over_lapack_floor", "{:.1f}×"),
+        ("fit L-BFGS evaluations", "fit_lbfgs_evaluations", "{}"),
+        ("fit factorisations", "fit_factorisations", "{}"),
+        ("our fit (s)", "ours_fit_s", "{:.3g}"),
+        ("its floor, torch (s)", "floor_torch_fit_s", "{:.3g}"),
+        ("LAPACK (s)", "floor_lapack_fit_s", "{:.3g}"),
+        ("ratio, torch", "fit_over_torch_floor", "{:.0f}×"),
+        ("LAPACK", "fit_over_lapack_floor", "{:.0f}×"),
+    ),
+)
+for _c, _fmt in (("mode_over_torch_floor", "{:.1f}×"), ("mode_over_lapack_floor", "{:.1f}×"), ("solve_over_torch_floor", "{:.1f}×")):
+    FIGURES[f"laplace_floor_{_c}_100"] = Figure("speed_floor.csv", f"{_c}@n=100", _fmt)
 # --- end of section B
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")

@@ -29,16 +29,8 @@ FIGURE = re.compile("|".join(rf"(?P<{k.replace('-', '_')}>(?<![\w.]){v})" for k,
 # Pages whose hand-typed figures are not all markers yet (issue 53 is open while this is not empty):
 # each fails the test below as an expected failure, and a page taken off is held to the rule.
 PENDING: set[str] = {
-    "docs/ax.md",
-    "docs/lake.md",
     "docs/laplace.md",
-    "docs/likelihoods.md",
-    "docs/population.md",
-    "docs/real_raters.md",
-    "docs/results.md",
-    "docs/selection.md",
     "docs/suite.md",
-    "docs/wave.md",
 }
 
 
