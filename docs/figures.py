@@ -1066,6 +1066,13 @@ FIGURES["served_ucbc_p50"] = Figure(_SERVED, "summary.ucbc.served_ms_p50", "{:.1
 FIGURES["served_ucbc_p99"] = Figure(_SERVED, "summary.ucbc.served_ms_p99", "{:.1f} ms")
 FIGURES["served_ratio"] = Figure(_SERVED, "default_over_ucbc_p50", "{:.1f}×")
 FIGURES["served_load"] = Figure(_SERVED, "load_average.0", "{:.1f}")
+_SOAK_BEFORE = "serve/soak_before.json"  # the soak before issue 52 (docs/serve.md)
+FIGURES["soak_before_load"] = Figure(_SOAK_BEFORE, "load_average.0", "{:.1f}")
+FIGURES["soak_before_ms_p50"] = Figure(_SOAK_BEFORE, "summary.answer_ms_p50_p95_p99.0", "{:.0f}")
+FIGURES["soak_before_ms_p99"] = Figure(_SOAK_BEFORE, "summary.answer_ms_p50_p95_p99.2", "{:.0f}")
+FIGURES["soak_before_cpu_ms"] = Figure(_SOAK_BEFORE, "summary.server_cpu_s_per_answer", "ms")
+FIGURES["soak_cpu_p50"] = Figure("serve/soak.json", "summary.answer_cpu_ms_p50_p95_p99_max.0", "{:.1f}")
+FIGURES["soak_cpu_p99"] = Figure("serve/soak.json", "summary.answer_cpu_ms_p50_p95_p99_max.2", "{:.1f}")
 # --- end of section A
 
 MARKER = re.compile(r"<!-- fig:(?P<name>[\w]+) -->(?P<text>.*?)<!-- /fig -->")
@@ -1231,6 +1238,23 @@ TABLES["laplace_floor"] = Table(
 )
 for _c, _fmt in (("mode_over_torch_floor", "{:.1f}×"), ("mode_over_lapack_floor", "{:.1f}×"), ("solve_over_torch_floor", "{:.1f}×")):
     FIGURES[f"laplace_floor_{_c}_100"] = Figure("speed_floor.csv", f"{_c}@n=100", _fmt)
+TABLES["laplace_mixed_fits"] = Table(
+    "mixed_lengthscale.json",
+    (
+        ("model", "__key__", "{}"),
+        ("lengthscales", "lengthscale.0", "{:.3f}"),
+        ("", "lengthscale.1", "{:.3f}"),
+        ("outputscale", "outputscale", "{:.3g}"),
+        ("evidence + priors", "evidence_with_priors", "{:.1f}"),
+        ("L-BFGS evaluations", "lbfgs_evaluations", "{}"),
+        ("fit CPU", "fit_cpu_s", "{:.1f} s"),
+    ),
+    rows="arms",
+)
+_LARGE = "speed_large_fit.json"
+FIGURES["laplace_large_eval"] = Figure(_LARGE, "evaluation_cpu_s", "{:.2f} s")
+for _part in ("resolve", "evidence", "kernel", "backward"):
+    FIGURES[f"laplace_large_{_part}"] = Figure(_LARGE, f"evaluation_parts_cpu_s.{_part}", "{:.2f} s")
 # --- end of section B
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
