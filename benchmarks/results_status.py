@@ -56,7 +56,9 @@ def main(argv: list[str] | None = None) -> int:
     stamped = counts["fresh"] + counts["stale"]
     print(f"{counts['fresh']} fresh, {counts['stale']} stale, {counts['unstamped']} unstamped")
     if total:
-        print(f"{stamped} of {total} stamped ({100 * stamped / total:.0f} %); {len(unexplained)} not fresh without a reason")
+        print(
+            f"{stamped} of {total} stamped ({100 * stamped / total:.0f} %); {len(unexplained)} not fresh without a reason"
+        )
     return 1 if args.fail_on_stale and unexplained else 0
 
 
