@@ -19,6 +19,7 @@ paths (``final.UCBC.wrms.0``: dictionary keys and list indices); CSV keys are
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import re
 from dataclasses import dataclass
@@ -1093,7 +1094,9 @@ FIGURES.update(
     {
         "results_wave_p_ucbc_ucb_wrms": Figure(_WAVE, f"{_Q}.UCBC vs UCB ratings.wrms.p_wilcoxon", "{:.3f}"),
         "results_wave_p_ucbc_rankings_tp": Figure(_WAVE, f"{_Q}.UCBC vs random rankings.tp.p_wilcoxon", "{:.1f}"),
-        "results_wave_p_info_rankings_tp": Figure(_WAVE, f"{_Q}.info per effort vs random rankings.tp.p_wilcoxon", "sci"),
+        "results_wave_p_info_rankings_tp": Figure(
+            _WAVE, f"{_Q}.info per effort vs random rankings.tp.p_wilcoxon", "sci"
+        ),
         "results_wave_p_info_ucbc_wrms_effort": Figure(_WAVE, f"{_E}.info per effort vs UCBC.wrms.p_wilcoxon", "sci"),
         "results_wave_p_info_ucbc_tp_effort": Figure(_WAVE, f"{_E}.info per effort vs UCBC.tp.p_wilcoxon", "{:.3f}"),
         "results_wave_p_info_profile_wrms": Figure(
@@ -1110,7 +1113,9 @@ FIGURES.update(
         "results_lake1_info": Figure("lake_summary.json", "share_rated_5.info per effort", "percent"),
         "results_lake1_ucbc": Figure("lake_summary.json", "share_rated_5.UCBC", "percent"),
         "results_lake1_random": Figure("lake_summary.json", "share_rated_5.random ratings", "percent"),
-        "results_lake1_p_error5": Figure("lake_summary.json", "paired_tests.UCBC vs UCB ratings.error5.p_wilcoxon", "{:.3f}"),
+        "results_lake1_p_error5": Figure(
+            "lake_summary.json", "paired_tests.UCBC vs UCB ratings.error5.p_wilcoxon", "{:.3f}"
+        ),
         "results_lakes10_variance": Figure(
             "lakes10_selector/lake_summary.json", "share_rated_5.variance per effort", "percent"
         ),
@@ -1118,7 +1123,9 @@ FIGURES.update(
         "results_lakes10_profile": Figure(
             "lakes10_selector/lake_summary.json", "share_rated_5.profile per effort", "percent"
         ),
-        "results_lakes10_info": Figure("lakes10_selector/lake_summary.json", "share_rated_5.info per effort", "percent"),
+        "results_lakes10_info": Figure(
+            "lakes10_selector/lake_summary.json", "share_rated_5.info per effort", "percent"
+        ),
         "results_lakes10_plan_ok": Figure(
             "lakes10_selector/lake_summary.json", "planning.UCBC.at_least_as_good", "percent2"
         ),
@@ -1140,7 +1147,9 @@ FIGURES.update(
         "results_ordinal_p_bump": Figure(_ORD, f"{_ORDL}.bump.ordinal - beta/wrms.p_ttest", "sci"),
         "results_ordinal_p_lake": Figure(_ORD, f"{_ORDL}.lake.ordinal - beta/wrms.p_ttest", "sci"),
         "results_ordinal_p_lake_tp": Figure(_ORD, f"{_ORDL}.lake.ordinal - beta/tp.p_ttest", "sci"),
-        "results_ordinal_p_learned_partial": Figure(_ORD, f"{_ORDL}.partial.ordinal-learned - beta/wrms.p_ttest", "sci"),
+        "results_ordinal_p_learned_partial": Figure(
+            _ORD, f"{_ORDL}.partial.ordinal-learned - beta/wrms.p_ttest", "sci"
+        ),
         "results_ordinal_p_learned_bump": Figure(_ORD, f"{_ORDL}.bump.ordinal-learned - beta/wrms.p_ttest", "sci"),
         "results_ordinal_p_learned_lake_tp": Figure(_ORD, f"{_ORDL}.lake.ordinal-learned - beta/tp.p_ttest", "sci"),
     }
@@ -1189,7 +1198,11 @@ FIGURES["wave_proc_wall_2"] = Figure(_WPROC, "median.torchpref.compute_s", "{:.0
 FIGURES["wave_proc_wall_1"] = Figure(_WPROC, "median.torchpref_1_process.compute_s", "{:.0f} s")
 # docs/lake.md: the one-lake run's paired tests and plans, the 10-lake planning run (benchmarks/results/lakes/)
 _L1, _L10, _L20 = "lake_summary.json", "lakes/lake_summary.json", "lakes20/lake_summary.json"
-for _pair, _n in (("UCBC vs random ratings", "random"), ("UCBC vs UCB ratings", "ucb"), ("UCBC vs info per effort", "info")):
+for _pair, _n in (
+    ("UCBC vs random ratings", "random"),
+    ("UCBC vs UCB ratings", "ucb"),
+    ("UCBC vs info per effort", "info"),
+):
     for _m in ("error5", "wrms"):
         FIGURES[f"lake_p_{_n}_{_m}"] = Figure(_L1, f"paired_tests.{_pair}.{_m}.p_wilcoxon", "{:.2g}")
 FIGURES["lake_one_plan_ok"] = Figure(_L1, "planning.UCBC.at_least_as_good", "percent")
@@ -1236,7 +1249,11 @@ TABLES["laplace_floor"] = Table(
         ("LAPACK", "fit_over_lapack_floor", "{:.0f}×"),
     ),
 )
-for _c, _fmt in (("mode_over_torch_floor", "{:.1f}×"), ("mode_over_lapack_floor", "{:.1f}×"), ("solve_over_torch_floor", "{:.1f}×")):
+for _c, _fmt in (
+    ("mode_over_torch_floor", "{:.1f}×"),
+    ("mode_over_lapack_floor", "{:.1f}×"),
+    ("solve_over_torch_floor", "{:.1f}×"),
+):
     FIGURES[f"laplace_floor_{_c}_100"] = Figure("speed_floor.csv", f"{_c}@n=100", _fmt)
 TABLES["laplace_mixed_fits"] = Table(
     "mixed_lengthscale.json",
@@ -1268,12 +1285,19 @@ def is_stale(name: str) -> bool:
 def file_state(file: str) -> str:
     """``"fresh"``, ``"stale"`` or ``"unstamped"`` (``make results-status``); a CSV is judged by the
     JSON of the same name beside it, and is ``"unstamped"`` without one."""
-    from torchpref.experiments.stamp import status
-
     path = ROOT / "benchmarks" / "results" / file
     if path.suffix != ".json":
         path = path.with_suffix(".json")
-    return status(path, ROOT)[0] if path.is_file() else "unstamped"
+    return _state(path, ROOT) if path.is_file() else "unstamped"
+
+
+@functools.cache
+def _state(path: Path, root: Path) -> str:
+    """A results file's state, judged once per process: many figures share a file, and judging it
+    hashes every source its stamp lists (a page write or a test run changes no source)."""
+    from torchpref.experiments.stamp import status
+
+    return status(path, root)[0]
 
 
 def note(name: str, table: bool = False) -> str:
