@@ -5,17 +5,81 @@ A file is *fresh* when every source file its stamp hashed (the script that wrote
 them), *unstamped* when it has no stamp (written before stamps, or not JSON: CSV and PNG files
 are judged by the JSON beside them). ``--fail-on-stale`` exits 1 when a file is stale or unstamped
 and not listed in ``benchmarks/results/KEPT_STALE.txt`` (one ``path: reason`` a line).
+
+A *companion* is a file its writer leaves unstamped on purpose because the stamped summary beside it
+covers the run (the suite's ``suite_trials.json``, every trial's record, and ``suite.json``, the
+curves: ``torchpref.experiments.suite``). It takes its summary's state only when the summary is
+shown to come from it: the summary's verdicts, best-or-tied counts and shares of ratings, and
+``suite.json``'s curves, are recomputed from ``suite_trials.json`` (``suite_report.summarise``) and
+must be equal. Otherwise it stays unstamped.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
+import json
+import math
 import sys
 from pathlib import Path
 
 from torchpref.experiments.stamp import ROOT, status
 
 RESULTS = Path(__file__).resolve().parent / "results"
+
+
+#: files written unstamped beside the stamped summary that covers them (file name: summary name)
+COMPANIONS = {"suite.json": "suite_summary.json", "suite_trials.json": "suite_summary.json"}
+
+
+def _equal(a: object, b: object, tol: float = 1e-9) -> bool:
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(_equal(a[k], b[k]) for k in a)
+    if isinstance(a, list):
+        return isinstance(b, list) and len(a) == len(b) and all(_equal(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) and isinstance(b, (int, float)):
+        return math.isclose(a, b, rel_tol=tol, abs_tol=tol) or (math.isnan(a) and math.isnan(float(b)))
+    return a == b
+
+
+@functools.cache
+def suite_companions_disagree(folder: Path) -> str:
+    """Why ``folder``'s ``suite_summary.json`` (and ``suite.json``) are not what ``suite_trials.json``
+    recomputes to, or ``""`` when they are."""
+    from torchpref.experiments.suite import CHECKPOINTS, METRICS, effort_budgets
+    from torchpref.experiments.suite_report import summarise
+
+    try:
+        by_cell = json.loads((folder / "suite_trials.json").read_text())
+        summary = json.loads((folder / "suite_summary.json").read_text())
+        trials = {tuple(cell.split("/", 1)): records for cell, records in by_cell.items()}
+        strategies = list(next(iter(trials.values()))[0])
+        queries = int(summary["queries"])
+        checkpoints = sorted({q for q in CHECKPOINTS if q <= queries} | {queries})
+        budgets = effort_budgets(summary["settings"].get("effort", "units"))
+        again = json.loads(json.dumps(summarise(trials, strategies, METRICS, budgets, checkpoints)))
+    except (OSError, ValueError, KeyError, IndexError, StopIteration, TypeError) as err:
+        return f"cannot recompute the summary from suite_trials.json ({type(err).__name__}: {err})"
+    wrong = [k for k in ("verdicts", "best_or_tied", "fraction_ratings") if not _equal(again[k], summary.get(k))]
+    curves = folder / "suite.json"
+    if curves.is_file() and not _equal(again["curves"], json.loads(curves.read_text())):
+        wrong.append("suite.json's curves")
+    return "" if not wrong else "recomputed from suite_trials.json, these differ: " + ", ".join(wrong)
+
+
+def file_status(f: Path) -> tuple[str, str]:
+    """``status`` of a results file, a companion (:data:`COMPANIONS`) taking its summary's."""
+    state, reason = status(f, ROOT)
+    summary = f.parent / COMPANIONS.get(f.name, "")
+    if state != "unstamped" or f.name not in COMPANIONS or not summary.is_file():
+        return state, reason
+    summary_state, summary_reason = status(summary, ROOT)
+    if summary_state == "unstamped":
+        return state, reason
+    disagree = suite_companions_disagree(f.parent)
+    if disagree:
+        return state, f"no stamp; a companion of {summary.name}, but {disagree}"
+    return summary_state, f"a companion of {summary.name} (which recomputes from it): {summary_reason}"
 
 
 def kept_stale(folder: Path, complain=print) -> dict[str, str]:
@@ -45,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     counts = {"fresh": 0, "stale": 0, "unstamped": 0}
     unexplained = []
     for f in sorted(args.folder.rglob("*.json")):
-        state, reason = status(f, ROOT)
+        state, reason = file_status(f)
         rel = f.relative_to(args.folder).as_posix()
         counts[state] += 1
         note = f"  [kept: {kept[rel]}]" if rel in kept else ""
