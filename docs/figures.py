@@ -987,6 +987,19 @@ for _m, _short in (("PairwiseGP", "pair"), ("PreferenceGP", "pref")):
         FIGURES[f"botorch_share_{_p}_post_{_short}"] = Figure(_BT_SHARE, f"{_m}.{_ph}.preference_posterior", "ms")
         FIGURES[f"botorch_share_{_p}_cpu_{_short}"] = Figure(_BT_SHARE, f"{_m}.{_ph}.cpu_s", "ms")
     FIGURES[f"botorch_share_eubo_outcome_{_short}"] = Figure(_BT_SHARE, f"{_m}.eubo_zeta.outcome_sample", "ms")
+# the tutorials' outcomes (mean and s.e. over seeds), and the repeated pairs (issue 53)
+for _m, _short in (("PairwiseGP", "pair"), ("PreferenceGP", "pref")):
+    for _tag, _file, _name, _metric in (
+        ("pbo", _BT_PBO, "regret", "regret"),
+        ("pbo", _BT_PBO, "auc", "auc_regret"),
+        ("bope", _BT_BOPE, "eubo_util", "EUBO-zeta_util"),
+        ("bope", _BT_BOPE, "random_util", "Random-f_util"),
+        ("bope", _BT_BOPE, "eubo_last", "EUBO-zeta_last_check"),
+    ):
+        FIGURES[f"botorch_{_tag}_{_name}_{_short}"] = Figure(_file, f"{_metric}.{_m}_mean", "{:.3f}")
+        FIGURES[f"botorch_{_tag}_{_name}_sem_{_short}"] = Figure(_file, f"{_metric}.{_m}_sem", "{:.3f}")
+    FIGURES[f"botorch_pbo_repeats_{_short}"] = Figure(_BT_PBO, f"repeats.{_m}")
+    FIGURES[f"botorch_pbo_proposals_{_short}"] = Figure(_BT_PBO, f"proposals.{_m}")
 
 # docs/robustness.md
 FIGURES["robustness_slowest_fit"] = Figure("hostile_fits.json", "rows.79.seconds", "{:.0f} s")
