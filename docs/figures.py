@@ -22,8 +22,10 @@ import csv
 import functools
 import json
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 STALE_NOTE = " (measured on an older version)"
@@ -73,14 +75,18 @@ def formatted(value: object, fmt: str = "{}") -> str:
     return fmt.format(value)
 
 
-def _rows(file: str, rows: str = "") -> list[dict]:
+def _rows(file: str, rows: str | Callable[[Any], list[dict]] = "") -> list[dict]:
     """The rows of a table's file: every row of a CSV, or the list (or ``{label: row}`` mapping, the label
-    as ``__key__``) at the dotted path ``rows`` of a JSON file."""
+    as ``__key__``) at the dotted path ``rows`` of a JSON file, or, where ``rows`` is a function, what it
+    returns given the whole loaded JSON (rows the file holds only in a nested or per-cell form, such as
+    counts of verdicts)."""
     path = ROOT / "benchmarks" / "results" / file
     if path.suffix == ".csv":
         with path.open(newline="") as fh:
             return list(csv.DictReader(fh))
     value = json.loads(path.read_text())
+    if callable(rows):
+        return list(rows(value))
     for part in filter(None, rows.split(".")):
         value = value[int(part)] if isinstance(value, list) else value[part]
     if isinstance(value, dict):
@@ -93,12 +99,17 @@ class Table:
     """A whole markdown table read from one results file: ``columns`` are ``(header, key, fmt)``, a key
     a column of the CSV (or a dotted path inside each JSON row); ``where`` keeps the rows whose columns
     equal its values (as text), in the file's order. A page writes it between
-    ``<!-- table:NAME -->`` and ``<!-- /table -->`` lines (``make pages`` fills it in)."""
+    ``<!-- table:NAME -->`` and ``<!-- /table -->`` lines (``make pages`` fills it in).
+
+    ``rows`` (JSON only) is the dotted path to the rows, or a function of the loaded JSON that returns
+    them (a list of dictionaries, their values already what a cell shows or read by ``columns``):
+    the way to a table the file holds in another shape, e.g. best-or-tied counts from a suite's
+    per-cell verdicts (:func:`suite_counts`)."""
 
     file: str
     columns: tuple[tuple[str, str, str], ...]
     where: tuple[tuple[str, str], ...] = ()
-    rows: str = ""  # JSON: the dotted path to the rows
+    rows: str | Callable[[Any], list[dict]] = ""  # JSON: the dotted path to the rows, or a function of the file
 
     def raw_rows(self) -> list[dict]:
         found = [r for r in _rows(self.file, self.rows) if all(str(r.get(k)) == v for k, v in self.where)]
@@ -1286,6 +1297,364 @@ FIGURES["laplace_large_eval"] = Figure(_LARGE, "evaluation_cpu_s", "{:.2f} s")
 for _part in ("resolve", "evidence", "kernel", "backward"):
     FIGURES[f"laplace_large_{_part}"] = Figure(_LARGE, f"evaluation_parts_cpu_s.{_part}", "{:.2f} s")
 # --- end of section B
+
+# --- issue 53, section C: docs/suite.md (the suite, issue 30's replay and candidates, the realistic raters,
+# the lake operators, the selectors on the lakes and the wave): tables computed from the files' nested results
+ABBREVIATIONS = {
+    "UCB ratings": "UCBr", "random rankings": "RRk", "random ratings": "RRt", "info per effort": "IPE",
+    "top & level info": "TLI", "variance per effort": "VPE", "profile per effort": "PPE", "clipped profile": "CPE",
+}  # fmt: skip
+"""The short names a verdict grid (:func:`verdict_grid`) gives the strategy that beat the row's."""
+_METRICS = ("wrms", "tp", "regret")
+
+
+def replay_rows(data: dict) -> list[dict]:
+    """A replay's rows (``torchpref reproduce replay``): per data set and selector, each metric's area
+    (``accuracy``, ``log_loss``, ``top1``) and, for a selector other than the random baseline, the
+    mean paired difference from random, the (person, split) pairs where it is higher / lower
+    (accuracy and top-1) and the two-sided Wilcoxon p, as one cell's text."""
+    rows = []
+    for data_set, selectors in data["summary"].items():
+        for selector, result in selectors.items():
+            row: dict[str, object] = {"data set": data_set, "selector": selector}
+            for metric in ("accuracy", "log_loss", "top1"):
+                r = result[metric]
+                text = f"{r['area']:.3f}"
+                if "p" in r:
+                    pairs = f", {r['wins']} / {r['losses']}" if metric != "log_loss" else ""
+                    text += f" ({r['diff']:+.3f}{pairs}, p = {r['p']:.2g})"
+                row[metric] = text
+            rows.append(row)
+    return rows
+
+
+def _cells(data: dict) -> list[tuple[str, int, str, str, str]]:
+    """A suite summary's verdict cells: ``(family/condition, checkpoint's position, checkpoint, metric,
+    strategy)`` for every strategy best or tied in the cell."""
+    out = []
+    for fc, checkpoints in data["verdicts"].items():
+        for i, (checkpoint, metrics) in enumerate(checkpoints.items()):
+            for metric, verdict in metrics.items():
+                out += [(fc, i, checkpoint, metric, s) for s, st in verdict["status"].items() if st in ("best", "tied")]
+    return out
+
+
+def suite_counts(data: dict) -> list[dict]:
+    """Per strategy of a suite summary (``suite_summary.json``): how many (family, condition,
+    checkpoint, metric) cells of its ``verdicts`` it is best or tied in (two-sided Wilcoxon on the
+    paired trials, p > 0.05): per checkpoint (``c0`` … ``c3``, the file's order: 10 and 20 queries,
+    then the two effort budgets), in all (``total``; equal to the file's ``best_or_tied``), after
+    queries (``queries``), at equal effort (``effort``), at equal effort per metric (``effort wrms`` …)
+    and per condition (``effort fixed``, ``effort learned``), and per metric over every checkpoint
+    (``wrms`` …); ``ratings``: its mean share of ratings over the family-conditions."""
+    cells = _cells(data)
+    rows = []
+    for strategy in data["best_or_tied"]:
+        mine = [c for c in cells if c[4] == strategy]
+        shares = [f[strategy] for f in data["fraction_ratings"].values()]
+        row: dict[str, object] = {"strategy": strategy, "ratings": sum(shares) / len(shares), "total": len(mine)}
+        for i in range(4):
+            row[f"c{i}"] = sum(c[1] == i for c in mine)
+        row["queries"] = sum(c[2].startswith("queries") for c in mine)
+        row["effort"] = sum(c[2].startswith("effort") for c in mine)
+        for metric in _METRICS:
+            row[metric] = sum(c[3] == metric for c in mine)
+            row[f"effort {metric}"] = sum(c[3] == metric and c[2].startswith("effort") for c in mine)
+        for condition in ("fixed", "learned"):
+            row[f"effort {condition}"] = sum(c[0].endswith("/" + condition) and c[2].startswith("effort") for c in mine)
+        rows.append(row)
+    return rows
+
+
+def verdict_grid(strategy: str) -> Callable[[dict], list[dict]]:
+    """The rows of a suite summary's verdicts for ``strategy``: per family-condition (``case``), its
+    share of ratings and, per checkpoint and metric (``c0 wrms`` …, :func:`suite_counts`'s order),
+    **best**, tied, or the short name (:data:`ABBREVIATIONS`) of the best strategy where it is worse."""
+
+    def rows(data: dict) -> list[dict]:
+        out = []
+        for fc, checkpoints in data["verdicts"].items():
+            row: dict[str, object] = {"case": fc, "ratings": data["fraction_ratings"][fc][strategy]}
+            for i, metrics in enumerate(checkpoints.values()):
+                for metric, verdict in metrics.items():
+                    status, best = verdict["status"][strategy], verdict["best"]
+                    text = {"best": "**best**", "tied": "tied"}.get(status, ABBREVIATIONS.get(best, best))
+                    row[f"c{i} {metric}"] = text
+            out.append(row)
+        return out
+
+    return rows
+
+
+def lake_rows(data: dict) -> list[dict]:
+    """Per strategy of a lake summary (``lake_summary.json``): its share of ratings, the final error
+    on the paths rated 5 and WRMS (``mean ± s.e.`` text), the share of trials whose chosen path is
+    rated 5, and ``seconds``: what its queries cost per trial under the trajectories effort model
+    (``EffortModel.trajectories()``: each query a rating or a best-of-``m`` at the strategy's mean
+    share of ratings)."""
+    from torchpref.data.effort import EffortModel
+
+    effort, m, queries = EffortModel.trajectories(), data["settings"]["m"], data["queries"]
+    rows = []
+    for strategy, final in data["final"].items():
+        r = data["fraction_ratings"][strategy]
+        rows.append(
+            {
+                "strategy": strategy,
+                "ratings": r,
+                "error5": "{:.3f} ± {:.3f}".format(*final["error5"]),
+                "wrms": "{:.3f} ± {:.3f}".format(*final["wrms"]),
+                "rated5": data["share_rated_5"][strategy],
+                "seconds": queries * (r * effort.rating() + (1 - r) * effort.ranking(m)),
+            }
+        )
+    return rows
+
+
+def per_lake_rows(data: dict) -> list[dict]:
+    """Per lake of a many-lakes summary: each strategy's share of trials whose chosen path is rated 5
+    (the strategy's name the key)."""
+    return [{"lake": lake, **result["share_rated_5"]} for lake, result in data["per_lake"].items()]
+
+
+def paired_rows(at: str = "", names: tuple[str, ...] = ()) -> Callable[[dict], list[dict]]:
+    """The paired tests at the dotted path ``at`` (``{"A vs B": {metric: test}}``) as rows: ``pair``
+    and, per metric, ``<metric> diff`` (the mean paired difference, A − B) and ``<metric> p`` (the
+    two-sided Wilcoxon p); only the pairs naming one of ``names``, when given."""
+
+    def rows(data: dict) -> list[dict]:
+        value: Any = data
+        for part in filter(None, at.split(".")):
+            value = value[part]
+        out = []
+        for pair, tests in value.items():
+            if names and not any(n in pair.split(" vs ") for n in names):
+                continue
+            row: dict[str, object] = {"pair": pair}
+            for metric, test in tests.items():
+                row[f"{metric} diff"], row[f"{metric} p"] = test["mean_diff"], test["p_wilcoxon"]
+            out.append(row)
+        return out
+
+    return rows
+
+
+def final_rows(data: dict) -> list[dict]:
+    """Per strategy of a wave summary: its final WRMS and true positives (``mean ± s.e.`` text) and its
+    share of ratings."""
+    return [
+        {
+            "strategy": s,
+            "wrms": "{:.4f} ± {:.4f}".format(*final["wrms"]),
+            "tp": "{:.2f} ± {:.2f}".format(*final["tp"]),
+            "ratings": data["fraction_ratings"][s],
+        }
+        for s, final in data["final"].items()
+    ]
+
+
+def mc_noise_rows(data: dict) -> list[dict]:
+    """Per selector and sample count of ``profile_mc_noise.json``: the share of the best pick's value its
+    picks keep (the mean over model states, and the states' least and largest means) and how often a
+    state's most frequent kind of query is picked (mean over states)."""
+    groups: dict[tuple[bool, int], list[dict]] = {}
+    for state in data["states"]:
+        groups.setdefault((state["clipped"], state["samples"]), []).append(state)
+    rows = []
+    for (clipped, samples), states in groups.items():
+        ratios = [s["mean_ratio"] for s in states]
+        rows.append(
+            {
+                "selector": "clipped profile" if clipped else "profile per effort",
+                "samples": samples,
+                "mean": sum(ratios) / len(ratios),
+                "min": min(ratios),
+                "max": max(ratios),
+                "same kind": sum(s["share_same_kind"] for s in states) / len(states),
+                "states": len(states),
+            }
+        )
+    return rows
+
+
+_SEL_COUNTS = (
+    ("strategy", "strategy", "{}"),
+    ("ratings (mean)", "ratings", "{:.0%}"),
+    ("per query (of 60)", "queries", "{}"),
+    ("**equal seconds** (of 60)", "effort", "{}"),
+    ("equal seconds: WRMS", "effort wrms", "{}"),
+    ("TP", "effort tp", "{}"),
+    ("regret (of 20 each)", "effort regret", "{}"),
+    ("equal seconds: fixed", "effort fixed", "{}"),
+    ("learned (of 30 each)", "effort learned", "{}"),
+)
+for _e in ("plain", "trajectories"):
+    TABLES[f"suite_select30_{_e}"] = Table(f"suite_select30_{_e}/suite_summary.json", _SEL_COUNTS, rows=suite_counts)
+    FIGURES[f"suite_select30_{_e}_wall"] = Figure(f"suite_select30_{_e}/suite_summary.json", "wall_time_s", "{:,.0f} s")
+    FIGURES[f"suite_select30_{_e}_cpu"] = Figure(f"suite_select30_{_e}/suite_summary.json", "cpu_time_s", "{:,.0f} s")
+    _b = (34, 68) if _e == "plain" else (134, 268)
+    TABLES[f"suite_realistic_{_e}"] = Table(
+        f"suite_realistic_{_e}/suite_summary.json",
+        (
+            ("strategy", "strategy", "{}"),
+            ("ratings (mean)", "ratings", "{:.0%}"),
+            ("q10", "c0", "{}"),
+            ("q20", "c1", "{}"),
+            (f"{_b[0]} s", "c2", "{}"),
+            (f"{_b[1]} s (of 21 each)", "c3", "{}"),
+            ("total (of 84)", "total", "{}"),
+            ("equal seconds: WRMS", "effort wrms", "{}"),
+            ("TP", "effort tp", "{}"),
+            ("regret (of 14 each)", "effort regret", "{}"),
+        ),
+        rows=suite_counts,
+    )
+    FIGURES[f"suite_realistic_{_e}_wall"] = Figure(
+        f"suite_realistic_{_e}/suite_summary.json", "wall_time_s", "{:,.0f} s"
+    )
+    FIGURES[f"suite_realistic_{_e}_cpu"] = Figure(f"suite_realistic_{_e}/suite_summary.json", "cpu_time_s", "{:,.0f} s")
+for _name, _file in (("suite_replay", "replay/replay.json"), ("suite_replay_clipped", "replay_clipped/replay.json")):
+    TABLES[_name] = Table(
+        _file,
+        (
+            ("data set", "data set", "{}"),
+            ("selector", "selector", "{}"),
+            ("area, held-out accuracy (± vs random, higher / lower, p)", "accuracy", "{}"),
+            ("log loss (lower is better; ± vs random, p)", "log_loss", "{}"),
+            ("area, held-out top-1 (± vs random, higher / lower, p)", "top1", "{}"),
+        ),
+        rows=replay_rows,
+    )
+FIGURES["suite_replay_people"] = Figure("replay/replay.json", "meta.people")
+FIGURES["suite_replay_pairs"] = Figure("replay/replay.json", "summary.electricity.random.pairs")
+FIGURES["suite_replay_clipped_seconds"] = Figure("replay_clipped/replay.json", "meta.seconds", "{:.0f} s")
+FIGURES["suite_replay_clipped_load_lo"] = Figure(
+    "replay_clipped/replay.json", "meta.load_average_start_end.0", "{:.1f}"
+)
+FIGURES["suite_replay_clipped_load_hi"] = Figure(
+    "replay_clipped/replay.json", "meta.load_average_start_end.1", "{:.1f}"
+)
+_LAKE_COLUMNS = (
+    ("strategy", "strategy", "{}"),
+    ("ratings", "ratings", "{:.0%}"),
+    ("error on the paths rated 5", "error5", "{}"),
+    ("WRMS", "wrms", "{}"),
+    ("chosen path rated 5", "rated5", "{:.1%}"),
+)
+for _op in ("paper", "realistic"):
+    _f = f"lake_operator_{_op}/lake_summary.json"
+    TABLES[f"suite_lake_operator_{_op}"] = Table(
+        _f, (*_LAKE_COLUMNS, ("seconds per trial (trajectories model)", "seconds", "{:.0f}")), rows=lake_rows
+    )
+    TABLES[f"suite_lake_operator_{_op}_tests"] = Table(
+        _f,
+        (
+            ("pair (A vs B)", "pair", "{}"),
+            ("error-5: A − B", "error5 diff", "{:+.3f}"),
+            ("p", "error5 p", "{:.2g}"),
+            ("WRMS: A − B", "wrms diff", "{:+.3f}"),
+            ("p", "wrms p", "{:.2g}"),
+            ("chosen rating: A − B", "chosen_rating diff", "{:+.2f}"),
+            ("p", "chosen_rating p", "{:.2g}"),
+        ),
+        rows=paired_rows("paired_tests"),
+    )
+    FIGURES[f"suite_lake_operator_{_op}_wall"] = Figure(_f, "wall_time_s", "{:,.0f} s")
+_LK, _LKC = "lakes10_selector/lake_summary.json", "lakes10_selector_clipped/lake_summary.json"
+TABLES["suite_lakes10"] = Table(_LK, _LAKE_COLUMNS, rows=lake_rows)
+TABLES["suite_lakes10_clipped"] = Table(_LKC, _LAKE_COLUMNS, rows=lake_rows)
+TABLES["suite_lakes10_per_lake"] = Table(
+    _LK,
+    (
+        ("lake", "lake", "{}"),
+        *((s, s, "{:.0%}") for s in ("UCBC", "random ratings", "UCB ratings", "info per effort")),
+        *((s, s, "{:.0%}") for s in ("variance per effort", "profile per effort")),
+    ),
+    rows=per_lake_rows,
+)
+TABLES["suite_lakes10_clipped_per_lake"] = Table(
+    _LKC, (("lake", "lake", "{}"), ("clipped profile", "clipped profile", "{:.0%}")), rows=per_lake_rows
+)
+FIGURES["suite_lakes10_wall"] = Figure(_LK, "wall_time_s", "{:,.0f} s")
+FIGURES["suite_lakes10_clipped_wall"] = Figure(_LKC, "wall_time_s", "{:,.0f} s")
+TABLES["suite_wave_selector"] = Table(
+    _WSEL,
+    (
+        ("strategy", "strategy", "{}"),
+        ("ratings", "ratings", "{:.0%}"),
+        ("WRMS after 20 queries", "wrms", "{}"),
+        ("true positives", "tp", "{}"),
+    ),
+    rows=final_rows,
+)
+for _at in ("queries", "effort"):
+    TABLES[f"suite_wave_selector_{_at}"] = Table(
+        _WSEL,
+        (
+            ("pair (A vs B)", "pair", "{}"),
+            ("WRMS: A − B", "wrms diff", "{:+.4f}"),
+            ("p", "wrms p", "{:.2g}"),
+            ("TP: A − B", "tp diff", "{:+.2f}"),
+            ("p", "tp p", "{:.2g}"),
+        ),
+        rows=paired_rows(f"paired_tests.{_at}", ("profile per effort", "clipped profile")),
+    )
+FIGURES["suite_wave_selector_wall"] = Figure(_WSEL, "wall_time_s", "{:.0f} s")
+_S50 = "suite50/suite_summary.json"
+TABLES["suite50_counts"] = Table(
+    _S50,
+    (
+        ("strategy", "strategy", "{}"),
+        ("queries 10", "c0", "{}"),
+        ("queries 20", "c1", "{}"),
+        ("effort 10", "c2", "{}"),
+        ("effort 20 (of 54 each)", "c3", "{}"),
+        ("total (of 216)", "total", "{}"),
+        ("WRMS", "wrms", "{}"),
+        ("TP", "tp", "{}"),
+        ("regret (of 72 each)", "regret", "{}"),
+    ),
+    rows=suite_counts,
+)
+for _s, _n in (("profile per effort", "profile"), ("clipped profile", "clipped")):
+    TABLES[f"suite50_grid_{_n}"] = Table(
+        _S50,
+        (
+            ("family / condition", "case", "{}"),
+            ("ratings", "ratings", "{:.0%}"),
+            *(
+                (f"{c}: {m}", f"c{i} {k}", "{}")
+                for i, c in enumerate(("q10", "q20", "e10", "e20"))
+                for k, m in zip(_METRICS, ("WRMS", "TP", "regret"), strict=True)
+            ),
+        ),
+        rows=verdict_grid(_s),
+    )
+FIGURES["suite50_wall"] = Figure(_S50, "wall_time_s", "{:,.0f} s")
+FIGURES["suite50_cpu"] = Figure(_S50, "cpu_time_s", "{:,.0f} s")
+for _fc, _cp, _m, _s, _n in (
+    ("plateau/fixed", "queries 20", "wrms", "profile per effort", "plateau_wrms_profile"),
+    ("plateau/fixed", "queries 20", "wrms", "UCB ratings", "plateau_wrms_ucbr"),
+    ("hartmann3/learned", "queries 20", "tp", "clipped profile", "hartmann3_tp_clipped"),
+    ("hartmann3/learned", "queries 20", "tp", "profile per effort", "hartmann3_tp_profile"),
+):
+    FIGURES[f"suite50_{_n}"] = Figure(_S50, f"verdicts.{_fc}.{_cp}.{_m}.mean.{_s}", "{:.3g}")
+_MC = "profile_mc_noise.json"
+TABLES["suite_mc_noise"] = Table(
+    _MC,
+    (
+        ("selector", "selector", "{}"),
+        ("samples", "samples", "{:,}"),
+        ("share of the best pick's value kept (mean)", "mean", "{:.2f}"),
+        ("least state", "min", "{:.2f}"),
+        ("largest state", "max", "{:.2f}"),
+        ("a state's most frequent kind picked", "same kind", "{:.0%}"),
+    ),
+    rows=mc_noise_rows,
+)
+FIGURES["suite_mc_noise_seeds"] = Figure(_MC, "seeds")
+FIGURES["suite_mc_noise_reference"] = Figure(_MC, "reference_samples", "{:,}")
+# --- end of section C
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 

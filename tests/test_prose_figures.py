@@ -28,9 +28,7 @@ FIGURE = re.compile("|".join(rf"(?P<{k.replace('-', '_')}>(?<![\w.]){v})" for k,
 
 # Pages whose hand-typed figures are not all markers yet (issue 53 is open while this is not empty):
 # each fails the test below as an expected failure, and a page taken off is held to the rule.
-PENDING: set[str] = {
-    "docs/suite.md",
-}
+PENDING: set[str] = set()
 
 
 def _prose(text: str) -> list[str]:
