@@ -1015,23 +1015,8 @@ for _m, _short in (("PairwiseGP", "pair"), ("PreferenceGP", "pref")):
 # docs/robustness.md
 FIGURES["robustness_slowest_fit"] = Figure("hostile_fits.json", "rows.79.seconds", "{:.0f} s")
 
-# docs/speed.md: the two comparison tables, one table per task
+# docs/speed.md: the compiled path's loaded run, one table per task
 _S = "{:.3g} s"
-for _task in ("mode", "fit", "posterior", "eubo"):
-    TABLES[f"speed_run_{_task}"] = Table(
-        "speed_pairwise.csv",
-        (
-            ("n (p = 2n)", "n", "{}"),
-            ("torchpref", "torchpref_s", _S),
-            ("PairwiseGP", "pairwisegp_s", _S),
-            ("botorch-rust", "botorch_rust_s", _S),
-            ("vs PairwiseGP", "ratio_pairwisegp", "{:.2f}×"),
-            ("vs botorch-rust", "ratio_botorch_rust", "{:.2f}×"),
-            ("target", "target", "{}"),
-            ("met", "met", "{}"),
-        ),
-        where=(("task", _task),),
-    )
 for _task in ("mode", "fit", "eubo"):
     TABLES[f"speed_quick_{_task}"] = Table(
         "fast_path/speed_pairwise_quick_loaded.csv",
@@ -1046,31 +1031,6 @@ for _task in ("mode", "fit", "eubo"):
         ),
         where=(("task", _task),),
     )
-
-# docs/speed.md: the run under load, in prose
-for _task, _n in (
-    ("fit", 500),
-    ("posterior", 20),
-    ("posterior", 500),
-    ("mode", 20),
-    ("mode", 500),
-    ("mode", 200),
-    ("fit", 50),
-    ("fit", 200),
-    ("fit", 20),
-    ("fit", 100),
-    ("eubo", 20),
-    ("eubo", 50),
-):
-    for _peer, _col in (("pgp", "ratio_pairwisegp"), ("rust", "ratio_botorch_rust")):
-        FIGURES[f"speed_run_{_task}_{_n}_{_peer}"] = Figure(
-            "speed_pairwise.csv", f"{_col}@task={_task},n={_n}", "{:,.2f}×" if _task != "posterior" else "{:,.0f}×"
-        )
-FIGURES["speed_run_posterior_20_pgp"] = Figure("speed_pairwise.csv", "ratio_pairwisegp@task=posterior,n=20", "{:.1f}×")
-FIGURES["speed_run_posterior_20_rust"] = Figure(
-    "speed_pairwise.csv", "ratio_botorch_rust@task=posterior,n=20", "{:.1f}×"
-)
-FIGURES["speed_run_fit_20_rust_s"] = Figure("speed_pairwise.csv", "botorch_rust_s@task=fit,n=20", "ms")
 
 # docs/install.md: the recorded test runs (tests/conftest.py, TORCHPREF_RECORD_TESTS);
 # the recorded test runs (TORCHPREF_RECORD_TESTS, tests/conftest.py); "slow" once a make test-slow is recorded
@@ -1655,6 +1615,145 @@ TABLES["suite_mc_noise"] = Table(
 FIGURES["suite_mc_noise_seeds"] = Figure(_MC, "seeds")
 FIGURES["suite_mc_noise_reference"] = Figure(_MC, "reference_samples", "{:,}")
 # --- end of section C
+# speed, laplace, serve, sessions, study (issue 53)
+# docs/speed.md: the quiet run's commit and loads, and how the libraries agree (speed_quiet/, fit_quality)
+_SQ = "speed_quiet/speed_pairwise.json"
+FIGURES["speedq_commit"] = Figure(_SQ, "stamp.commit", "{:.7}")
+FIGURES["speedq_load_start"] = Figure(_SQ, "meta.load_average_at_start.0", "{:.1f}")
+FIGURES["speedq_load_end"] = Figure(_SQ, "meta.load_average_at_end.0", "{:.1f}")
+FIGURES["speedq_repeats"] = Figure(_SQ, "meta.repeats")
+TABLES["speedq_agreement"] = Table(
+    _SQ,
+    (
+        ("n", "n", "{}"),
+        ("evidence: torchpref", "torchpref.evidence", "{:.5f}"),
+        ("PairwiseGP", "pairwisegp.evidence", "{:.5f}"),
+        ("botorch-rust", "botorch_rust.evidence", "{:.5f}"),
+        ("outputscale: torchpref", "torchpref.outputscale", "{}"),
+        ("PairwiseGP", "pairwisegp.outputscale", "{}"),
+        ("botorch-rust", "botorch_rust.outputscale", "{}"),
+        ("initial mode, from ours: PairwiseGP", "pairwisegp.max_abs_initial_mode_difference", "sci"),
+        ("botorch-rust", "botorch_rust.max_abs_initial_mode_difference", "sci"),
+        ("torch solver", "torchpref_torch.max_abs_initial_mode_difference", "sci"),
+        ("fitted mode, from ours: PairwiseGP", "pairwisegp.max_abs_fitted_mode_difference", "sci"),
+        ("botorch-rust", "botorch_rust.max_abs_fitted_mode_difference", "sci"),
+    ),
+    rows="fit_quality",
+)
+# docs/speed.md: the loaded quick run's loads, the first call, the compiled path against the floor
+_QL = "fast_path/speed_pairwise_quick_loaded.json"
+FIGURES["speed_quick_load_start"] = Figure(_QL, "meta.load_average_at_start.0", "{:.1f}")
+FIGURES["speed_quick_load_end"] = Figure(_QL, "meta.load_average_at_end.0", "{:.1f}")
+_FC = "fast_path/first_call.json"
+FIGURES["speed_first_call_auto_second_cpu"] = Figure(_FC, "rows.auto, cache on disk.second_fit_cpu_s", "{:.2f} s")
+FIGURES["speed_first_call_off_second_cpu"] = Figure(_FC, "rows.off.second_fit_cpu_s", "{:.2f} s")
+_FF = "fast_path/speed_floor.json"
+for _c in (
+    "solve_over_torch_floor",
+    "fit_over_torch_floor",
+    "mode_over_torch_floor",
+    "mode_torch_path_over_torch_floor",
+    "fit_torch_path_over_torch_floor",
+):
+    FIGURES[f"speed_fastfloor_{_c}"] = Figure(_FF, f"rows.0.{_c}", "{:.2f}×")
+FIGURES["speed_fastfloor_load"] = Figure(_FF, "meta.load_average_at_start.0", "{:.1f}")
+# docs/laplace.md: the floor's load, torch.compile's step, the mixed fits and the large fit in prose
+FIGURES["laplace_floor_load"] = Figure("speed_floor.json", "meta.load_average_at_start.0", "{:.1f}")
+FIGURES["laplace_floor_load_end"] = Figure("speed_floor.json", "meta.load_average_at_end.0", "{:.1f}")
+FIGURES["laplace_floor_mode_factorisations_100"] = Figure("speed_floor.csv", "mode_factorisations@n=100", "{:.0f}")
+TABLES["laplace_compile"] = Table(
+    "speed_compile.json",
+    (
+        ("n", "n", "{}"),
+        ("eager step (s)", "eager_s", "{:.3g}"),
+        ("compiled step (s)", "compiled_s", "{:.3g}"),
+        ("eager / compiled", "speedup", "{:.2f}×"),
+        ("compiled's first call at this size (s)", "first_call_at_size_s", "{:.3g}"),
+        ("largest difference", "max_abs_difference", "sci"),
+    ),
+    rows="rows",
+)
+FIGURES["laplace_compile_cpu"] = Figure("speed_compile.json", "compilation.cpu_s", "{:.1f} s")
+FIGURES["laplace_compile_compiler_cpu"] = Figure(
+    "speed_compile.json", "compilation.compiler_processes_cpu_s", "{:.1f} s"
+)
+FIGURES["laplace_compile_wall"] = Figure("speed_compile.json", "compilation.wall_s", "{:.0f} s")
+FIGURES["laplace_compile_load"] = Figure("speed_compile.json", "meta.load_average_at_start.0", "{:.1f}")
+FIGURES["laplace_compile_load_end"] = Figure("speed_compile.json", "meta.load_average_at_end.0", "{:.1f}")
+_MIX = "mixed_lengthscale.json"
+# (a dotted key cannot name the sigma_R = 0.1 arms: the page reads them from the table)
+for _arm, _a in (("mixed, sigma_R = 1", "mixed1"), ("ratings only", "ratings")):
+    for _i in (0, 1):
+        FIGURES[f"laplace_mix_{_a}_ls{_i}"] = Figure(_MIX, f"arms.{_arm}.lengthscale.{_i}", "{:.3f}")
+_M1 = "arms.mixed, sigma_R = 1"
+FIGURES["laplace_mix_mixed1_ev"] = Figure(_MIX, f"{_M1}.evidence_with_priors", "{:.1f}")
+FIGURES["laplace_mix_mixed1_evals"] = Figure(_MIX, f"{_M1}.lbfgs_evaluations")
+FIGURES["laplace_mix_mixed1_cpu"] = Figure(_MIX, f"{_M1}.fit_cpu_s", "{:.1f} s")
+FIGURES["laplace_large_f32"] = Figure(_LARGE, "resolve_factorisations.factorise_float32")
+FIGURES["laplace_large_f64"] = Figure(_LARGE, "resolve_factorisations.factorise")
+FIGURES["laplace_large_load"] = Figure(_LARGE, "load_average_at_start.0", "{:.1f}")
+FIGURES["laplace_large_extrapolated"] = Figure(_LARGE, "extrapolated_evaluation_cpu_s", "{:.0f} s")
+# docs/serve.md: the soak's remaining figures, the kills and the timing run
+_SOAK = "serve/soak.json"
+FIGURES["serve_soak_fds_after"] = Figure(_SOAK, "after_run.fds")
+FIGURES["serve_soak_files_after"] = Figure(_SOAK, "after_run.session_files")
+FIGURES["serve_soak_answers"] = Figure(_SOAK, "summary.answers_acknowledged_in_run", "{:,}")
+FIGURES["serve_soak_other_p50"] = Figure(_SOAK, "summary.answer_ms_other_p50_p95_p99.0", "{:.0f}")
+FIGURES["serve_soak_other_p99"] = Figure(_SOAK, "summary.answer_ms_other_p50_p95_p99.2", "{:.0f}")
+FIGURES["serve_soak_plots_n"] = Figure(_SOAK, "summary.answer_ms_during_plots_p50_p95_p99_n.3")
+_KILL = "serve/kill.json"
+for _key in ("kills", "acknowledged", "answers_in_file", "lost_count", "server_starts"):
+    FIGURES[f"serve_kill_{_key}"] = Figure(_KILL, _key)
+for _key, _k in (
+    ("acknowledged before the kill", "before"),
+    ("recorded on retry", "retry"),
+    ("already recorded on retry", "duplicate"),
+):
+    FIGURES[f"serve_kill_{_k}"] = Figure(_KILL, f"outcomes.{_key}")
+FIGURES["serve_kill_partial"] = Figure(_KILL, "partial_lines_repaired")
+FIGURES["serve_kill_load_before"] = Figure(_KILL, "load_average_before.0", "{:.1f}")
+FIGURES["serve_kill_load_after"] = Figure(_KILL, "load_average_after.0", "{:.1f}")
+_TIMING = "serve/timing.json"
+FIGURES["serve_timing_records"] = Figure(_TIMING, "summary.records_with_response_time")
+FIGURES["serve_timing_answers"] = Figure(_TIMING, "summary.answers")
+FIGURES["serve_timing_target"] = Figure(_TIMING, "summary.target_median_server_ms", "{:.0f} ms")
+FIGURES["serve_timing_met"] = Figure(_TIMING, "summary.target_met")
+FIGURES["serve_timing_load_before"] = Figure(_TIMING, "summary.load_average_before.0", "{:.1f}")
+FIGURES["serve_timing_load_after"] = Figure(_TIMING, "summary.load_average_after.0", "{:.1f}")
+# docs/sessions.md: the scale table (one figure a cell), its loads and target, and the kills
+_SCALE_JSON = "sessions/session_scale.json"
+for _a in (10, 100, 1000, 5000):
+    for _op in ("answer", "undo", "resume", "resume_cold", "ask"):
+        FIGURES[f"sessions_this_{_op}_{_a}"] = Figure(_SCALE, f"seconds@answers={_a},code=this,operation={_op}", "ms")
+    if _a <= 1000:
+        FIGURES[f"sessions_previous_answer_{_a}"] = Figure(
+            _SCALE, f"seconds@answers={_a},code=previous (replay),operation=answer", "ms"
+        )
+        for _op in ("undo", "resume"):
+            FIGURES[f"sessions_previous_{_op}_{_a}"] = Figure(
+                _SCALE, f"seconds@answers={_a},code=previous (replay),operation={_op}", "{:.2f} s"
+            )
+FIGURES["sessions_scale_load_before"] = Figure(_SCALE_JSON, "load_average_before.0", "{:.1f}")
+FIGURES["sessions_scale_load_after"] = Figure(_SCALE_JSON, "load_average_after.0", "{:.1f}")
+FIGURES["sessions_scale_target_met"] = Figure(_SCALE_JSON, "target_under_50_ms")
+_SKILLS = "sessions/session_kills.json"
+for _key in (
+    "files_checked",
+    "acknowledged_answers",
+    "acknowledged_undos",
+    "lost",
+    "doubled",
+    "undos_lost",
+    "all_sequences_ok",
+    "open_failures",
+):
+    FIGURES[f"sessions_kills_{_key}"] = Figure(_SKILLS, _key)
+FIGURES["sessions_kills_posterior"] = Figure(_SKILLS, "max_posterior_vs_replay", "sci")
+# docs/study.md: the runs' loads, the runs without and with kills side by side
+FIGURES["study_run_lost"] = Figure("study/study_run.json", "lost", "{}")
+FIGURES["study_run_load_start"] = Figure("study/study_run.json", "load_average_start_end.0", "{:.1f}")
+FIGURES["study_kill_load_start"] = Figure("study/study_run_kills.json", "load_average_start_end.0", "{:.1f}")
+FIGURES["study_kill_per5"] = Figure("study/study_run_kills.json", "refits_per_5_finished", "{:.2f}")
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 
