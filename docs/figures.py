@@ -1119,13 +1119,8 @@ FIGURES.update(
         "results_lakes20_wall": Figure("lakes20/lake_summary.json", "wall_time_s", "{:.1f} s"),
         "results_lakes20_plan_ok": Figure("lakes20/lake_summary.json", "planning.UCBC.at_least_as_good", "percent"),
         "results_lakes20_plan_better": Figure("lakes20/lake_summary.json", "planning.UCBC.strictly_better", "percent2"),
-        "results_suite_default_trials_s": Figure("suite50_default/suite_summary.json", "wall_time_s", "{:.0f} s"),
-        "results_suite_default_cpu_s": Figure("suite50_default/suite_summary.json", "cpu_time_s", "{:,.0f} s"),
         "results_ordinal_wall": Figure(_ORD, "meta.wall_time_s", "{:.0f} s"),
-        "results_ordinal_ties_p_wrms": Figure(_ORD, f"{_ORDT}.bump 10%.used - ignored/wrms.p_ttest", "sci"),
-        "results_ordinal_ties_p_tp": Figure(_ORD, f"{_ORDT}.bump 10%.used - ignored/tp.p_ttest", "sci"),
         "results_ordinal_ties_p_bump25_regret": Figure(_ORD, f"{_ORDT}.bump 25%.used - ignored/regret.p_ttest", "sci"),
-        "results_ordinal_ties_p_default": Figure(_ORD, f"{_ORDT}.bump 10%.default - ignored/regret.p_ttest", "{:.2f}"),
         "results_ordinal_p_wave": Figure(_ORD, f"{_ORDL}.wave.ordinal - beta/wrms.p_ttest", "sci"),
         "results_ordinal_p_partial": Figure(_ORD, f"{_ORDL}.partial.ordinal - beta/wrms.p_ttest", "sci"),
         "results_ordinal_p_bump": Figure(_ORD, f"{_ORDL}.bump.ordinal - beta/wrms.p_ttest", "sci"),
@@ -1754,6 +1749,211 @@ FIGURES["study_run_lost"] = Figure("study/study_run.json", "lost", "{}")
 FIGURES["study_run_load_start"] = Figure("study/study_run.json", "load_average_start_end.0", "{:.1f}")
 FIGURES["study_kill_load_start"] = Figure("study/study_run_kills.json", "load_average_start_end.0", "{:.1f}")
 FIGURES["study_kill_per5"] = Figure("study/study_run_kills.json", "refits_per_5_finished", "{:.2f}")
+# --- results.md, lake.md, README (issue 53): the bare numbers of these pages (means ± s.e., verdict
+# cell counts, paired differences, largest p of a family) taken off hand-typed prose
+
+
+@dataclass(frozen=True)
+class Extreme(Figure):
+    """The largest (``pick="max"``) or smallest of several keys of one file, ``key`` being the dotted
+    keys joined by ``|``: a page writes "largest p ..." over a family of tests without naming the
+    test that is largest in this run."""
+
+    pick: str = "max"
+
+    def raw(self) -> float | int | str:
+        values = [Figure(self.file, k).raw() for k in self.key.split("|")]
+        return max(values) if self.pick == "max" else min(values)
+
+
+@dataclass(frozen=True)
+class Cells(Figure):
+    """How many of a suite summary's verdict cells (family/condition, checkpoint, metric) a strategy is
+    best or tied in: ``key`` is ``strategy|checkpoint kind|metric`` ("queries" or "effort"; an empty
+    part matches every one), strategy ``*`` counts the cells themselves."""
+
+    def raw(self) -> int:
+        strategy, kind, metric = self.key.split("|")
+        verdicts = json.loads((ROOT / "benchmarks" / "results" / self.file).read_text())["verdicts"]
+        return sum(
+            strategy == "*" or cell["status"][strategy] in ("best", "tied")
+            for checkpoints in verdicts.values()
+            for checkpoint, metrics in checkpoints.items()
+            if kind in ("", checkpoint.split()[0])
+            for name, cell in metrics.items()
+            if metric in ("", name)
+        )
+
+
+_RL1, _RL10, _RL20 = "lake_summary.json", "lakes/lake_summary.json", "lakes20/lake_summary.json"
+_RSEL, _RCLIP = "lakes10_selector/lake_summary.json", "lakes10_selector_clipped/lake_summary.json"
+_RSUITE = "suite50/suite_summary.json"
+_RORD = "ordinal.json"
+_SUITE_STRATEGIES = (
+    ("UCBC", "ucbc"),
+    ("random ratings", "random"),
+    ("random rankings", "rankings"),
+    ("UCB ratings", "ucb"),
+    ("info per effort", "info"),
+    ("top & level info", "toplevel"),
+    ("variance per effort", "variance"),
+    ("profile per effort", "profile"),
+    ("clipped profile", "clipped"),
+)
+# docs/results.md: the wave's table at 20 queries in words (wave_summary.json) and profile per effort on
+# the same trials (wave_selector/)
+for _s, _n in (
+    ("UCBC", "ucbc"),
+    ("random rankings", "rankings"),
+    ("UCB ratings", "ucb"),
+    ("random ratings", "random"),
+    ("info per effort", "info"),
+):
+    if _n not in ("ucbc", "info"):  # their means: wave_wrms_ucbc, wave_tp_info, ...
+        FIGURES[f"results_wave_wrms_{_n}"] = Figure(_WAVE, f"final.{_s}.wrms.0", "{:.4f}")
+        FIGURES[f"results_wave_tp_{_n}"] = Figure(_WAVE, f"final.{_s}.tp.0", "{:.2f}")
+    FIGURES[f"results_wave_wrms_se_{_n}"] = Figure(_WAVE, f"final.{_s}.wrms.1", "{:.4f}")
+    FIGURES[f"results_wave_tp_se_{_n}"] = Figure(_WAVE, f"final.{_s}.tp.1", "{:.2f}")
+for _s, _n in (("profile per effort", "profile"), ("info per effort", "info")):
+    FIGURES[f"results_wsel_wrms_{_n}"] = Figure(_WSEL, f"final.{_s}.wrms.0", "{:.4f}")
+    FIGURES[f"results_wsel_wrms_se_{_n}"] = Figure(_WSEL, f"final.{_s}.wrms.1", "{:.4f}")
+    FIGURES[f"results_wsel_tp_{_n}"] = Figure(_WSEL, f"final.{_s}.tp.0", "{:.2f}")
+    FIGURES[f"results_wsel_tp_se_{_n}"] = Figure(_WSEL, f"final.{_s}.tp.1", "{:.2f}")
+FIGURES["results_wsel_p_info_profile_tp"] = Figure(
+    _WSEL, f"{_Q}.info per effort vs profile per effort.tp.p_wilcoxon", "{:.2f}"
+)
+# docs/results.md: the one lake's final errors, the 10-lake shares and planning, the 20-lake planning
+for _s, _n in (("UCBC", "ucbc"), ("UCB ratings", "ucb")):
+    FIGURES[f"results_lake1_error5_{_n}"] = Figure(_RL1, f"final.{_s}.error5.0", "{:.3f}")
+    FIGURES[f"results_lake1_wrms_{_n}"] = Figure(_RL1, f"final.{_s}.wrms.0", "{:.3f}")
+FIGURES["results_lakes10_random"] = Figure(_RSEL, "share_rated_5.random ratings", "percent")
+FIGURES["results_lakes10_plan_worse"] = Figure(_RSEL, "planning.UCBC.worse")
+FIGURES["results_lakes20_plan_worse"] = Figure(_RL20, "planning.UCBC.worse")
+FIGURES["results_lakes20_scenarios"] = Figure(_RL20, "scenario_time_s", "{:.0f} s")
+# docs/results.md: the 9-strategy suite (suite50/): its time summed over its runs, its verdict cells
+FIGURES["results_suite50_wall"] = Figure(_RSUITE, "wall_time_s", "{:,.0f} s")
+FIGURES["results_suite50_cpu"] = Figure(_RSUITE, "cpu_time_s", "{:,.0f} s")
+FIGURES["results_suite50_cells"] = Cells(_RSUITE, "*||")
+for _kind in ("queries", "effort"):
+    FIGURES[f"results_suite50_cells_{_kind}"] = Cells(_RSUITE, f"*|{_kind}|")
+FIGURES["results_suite50_cells_metric"] = Cells(_RSUITE, "*||wrms")
+for _s, _n in _SUITE_STRATEGIES:
+    FIGURES[f"results_suite50_best_{_n}"] = Figure(_RSUITE, f"best_or_tied.{_s}.0")
+for _s, _n, _part in (
+    ("profile per effort", "profile", "queries|"),
+    ("profile per effort", "profile", "|tp"),
+    ("profile per effort", "profile", "|regret"),
+    ("profile per effort", "profile", "|wrms"),
+    ("clipped profile", "clipped", "effort|"),
+    ("clipped profile", "clipped", "|wrms"),
+):
+    FIGURES[f"results_suite50_best_{_n}_{_part.strip('|')}"] = Cells(_RSUITE, f"{_s}|{_part}")
+for _s, _n in (("profile per effort", "profile"), ("UCB ratings", "ucb")):
+    FIGURES[f"results_suite50_plateau_wrms_{_n}"] = Figure(
+        _RSUITE, f"verdicts.plateau/fixed.queries 20.wrms.mean.{_s}", "{:.3f}"
+    )
+# README: the most cells any one strategy of the suite is best or tied in
+FIGURES["readme_suite50_most_cells"] = Extreme(
+    _RSUITE, "|".join(f"best_or_tied.{_s}.0" for _s, _ in _SUITE_STRATEGIES), "{}"
+)
+# docs/results.md: the person calibration (person_calibration.json) and the realistic suite at equal
+# seconds (suite_realistic_plain/, suite_realistic_trajectories/)
+for _m in ("rmse", "prior_rmse"):
+    FIGURES[f"results_pcal_offset_{_m}"] = Figure(_PCAL, f"recovery.rating_offset.{_m}", "{:.2f}")
+FIGURES["results_realistic_cells"] = Cells("suite_realistic_plain/suite_summary.json", "*|effort|")
+for _effort in ("plain", "trajectories"):
+    _file = f"suite_realistic_{_effort}/suite_summary.json"
+    for _s, _n in (
+        ("UCBC", "ucbc"),
+        ("clipped profile", "clipped"),
+        ("profile per second", "second"),
+        ("UCB ratings", "ucb"),
+    ):
+        FIGURES[f"results_realistic_{_effort}_{_n}"] = Cells(_file, f"{_s}|effort|")
+# docs/results.md: ties and Likert levels (ordinal.json)
+_RT = "summary.ties"
+_RL = "summary.likert"
+_TIE_SETTINGS = (("wave 10%", "w10"), ("wave 25%", "w25"), ("bump 10%", "b10"), ("bump 25%", "b25"))
+for _setting, _n in _TIE_SETTINGS[:2]:
+    for _arm in ("ignored", "used"):
+        FIGURES[f"results_ties_{_n}_{_arm}_wrms"] = Figure(_RORD, f"{_RT}.{_setting}.{_arm}/wrms.0", "{:.4f}")
+    FIGURES[f"results_ties_{_n}_tau_learned"] = Figure(_RORD, f"{_RT}.{_setting}.tau_learned_mean", "{:.2f}")
+    FIGURES[f"results_ties_{_n}_margin"] = Figure(_RORD, f"{_RT}.{_setting}.margin_mean", "{:.2f}")
+for _arm, _metrics in (
+    ("used", (("tp", "{:+.2f}"), ("regret", "{:+.3f}"))),
+    ("default", (("wrms", "{:+.4f}"), ("tp", "{:+.2f}"), ("regret", "{:+.3f}"))),
+    ("learned", (("wrms", "{:+.4f}"), ("tp", "{:+.2f}"))),
+):
+    for _setting, _n in _TIE_SETTINGS:
+        for _m, _fmt in _metrics:
+            FIGURES[f"results_ties_{_n}_{_arm}_{_m}"] = Figure(
+                _RORD, f"{_RT}.{_setting}.{_arm} - ignored/{_m}.mean_diff", _fmt
+            )
+FIGURES["results_ties_p_b10_used_regret"] = Figure(_RORD, f"{_RT}.bump 10%.used - ignored/regret.p_ttest", "{:.2f}")
+for _arm, _metrics, _settings in (
+    ("used", ("wrms",), _TIE_SETTINGS),
+    ("used", ("tp",), _TIE_SETTINGS),
+    ("used", ("regret",), _TIE_SETTINGS[:2]),
+    ("default", ("wrms", "tp", "regret"), _TIE_SETTINGS),
+):
+    FIGURES[f"results_ties_p_max_{_arm}_{'_'.join(_metrics)}_{len(_settings)}"] = Extreme(
+        _RORD,
+        "|".join(f"{_RT}.{_s}.{_arm} - ignored/{_m}.p_ttest" for _s, _ in _settings for _m in _metrics),
+        "{:.2g}",
+    )
+for _arm in ("beta", "ordinal"):
+    FIGURES[f"results_likert_wave_{_arm}_wrms"] = Figure(_RORD, f"{_RL}.wave.{_arm}/wrms.0", "{:.4f}")
+FIGURES["results_likert_lake_tp"] = Figure(_RORD, f"{_RL}.lake.ordinal - beta/tp.mean_diff", "{:+.2f}")
+FIGURES["results_likert_p_min_other"] = Extreme(
+    _RORD,
+    "|".join(
+        f"{_RL}.{_u}.ordinal - beta/{_m}.p_ttest"
+        for _u in ("wave", "partial", "bump", "lake")
+        for _m in ("tp", "regret")
+        if (_u, _m) != ("lake", "tp")
+    ),
+    "{:.2f}",
+    pick="min",
+)
+FIGURES["results_likert_learned_lake_wrms"] = Figure(
+    _RORD, f"{_RL}.lake.ordinal-learned - beta/wrms.mean_diff", "{:+.4f}"
+)
+FIGURES["results_likert_learned_lake_p_wrms"] = Figure(_RORD, f"{_RL}.lake.ordinal-learned - beta/wrms.p_ttest", "sci")
+FIGURES["results_likert_learned_lake_tp"] = Figure(_RORD, f"{_RL}.lake.ordinal-learned - beta/tp.mean_diff", "{:+.2f}")
+# docs/lake.md: the one-lake run's table, its first query, its paired differences (lake_summary.json)
+for _s, _n in (("UCBC", "ucbc"), ("random ratings", "random"), ("UCB ratings", "ucb"), ("info per effort", "info")):
+    for _m in ("error5", "wrms"):
+        FIGURES[f"lake_one_{_m}_{_n}"] = Figure(_RL1, f"final.{_s}.{_m}.0", "{:.3f}")
+        FIGURES[f"lake_one_{_m}_se_{_n}"] = Figure(_RL1, f"final.{_s}.{_m}.1", "{:.3f}")
+    FIGURES[f"lake_one_chosen_{_n}"] = Figure(_RL1, f"final.{_s}.chosen_rating.0", "{:.2f}")
+    FIGURES[f"lake_one_rated5_{_n}"] = Figure(_RL1, f"share_rated_5.{_s}", "{:.2f}")
+    FIGURES[f"lake_one_ratings_{_n}"] = Figure(_RL1, f"fraction_ratings.{_s}", "{:.2f}")
+for _m, _fmt in (("error5", "{:.3f}"), ("wrms", "{:.3f}"), ("chosen_rating", "{:.2f}")):
+    FIGURES[f"lake_one_start_{_m}"] = Figure(_RL1, f"per_query.UCBC.{_m}_mean.0", _fmt)
+FIGURES["lake_one_test_rated5"] = Figure(_RL1, "settings.test_paths_rated_5.0")
+for _pair, _n in (
+    ("UCBC vs random ratings", "random"),
+    ("UCBC vs UCB ratings", "ucb"),
+    ("UCBC vs info per effort", "info"),
+):
+    for _m in ("error5", "wrms"):
+        FIGURES[f"lake_diff_{_n}_{_m}"] = Figure(_RL1, f"paired_tests.{_pair}.{_m}.mean_diff", "{:+.3f}")
+# docs/lake.md: the 10-lake planning run (lakes/) and the 20-lake one (lakes20/)
+FIGURES["lake_many_worse"] = Figure(_RL10, "planning.UCBC.worse")
+FIGURES["lake_many_gain_mean"] = Figure(_RL10, "planning.UCBC.distance_gain.mean", "{:.1f}")
+FIGURES["lake_many_gain_max"] = Figure(_RL10, "planning.UCBC.distance_gain.max", "{:.0f}")
+FIGURES["lake_many_fallback"] = Figure(_RL10, "planning.UCBC.sources.fallback")
+FIGURES["lake_many_planned"] = Figure(_RL10, "planning.UCBC.sources.planned")
+for _r in ("wins", "losses", "ties"):
+    FIGURES[f"lake_many_levels_{_r}"] = Figure(_RL10, f"planning.UCBC.paired.{_r}")
+for _r in ("planned", "pick"):
+    FIGURES[f"lake_many_{_r}_level"] = Figure(_RL10, f"planning.UCBC.{_r}_level_mean", "{:.3f}")
+for _s, _n in (("UCBC", "ucbc"), ("random ratings", "random"), ("UCB ratings", "ucb"), ("info per effort", "info")):
+    FIGURES[f"lake_many_error5_{_n}"] = Figure(_RL10, f"final.{_s}.error5.0", "{:.3f}")
+    FIGURES[f"lake_many_error5_se_{_n}"] = Figure(_RL10, f"final.{_s}.error5.1", "{:.3f}")
+    FIGURES[f"lake_many_rated5_{_n}"] = Figure(_RL10, f"share_rated_5.{_s}", "{:.3g}")
+TABLES["lake_plan_per_lake_20"] = Table(_RL20, TABLES["lake_plan_per_lake"].columns, rows="per_lake")
+# --- end of results.md, lake.md, README (issue 53)
 
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 
