@@ -1774,15 +1774,12 @@ class Cells(Figure):
 
     def raw(self) -> int:
         strategy, kind, metric = self.key.split("|")
-        verdicts = json.loads((ROOT / "benchmarks" / "results" / self.file).read_text())["verdicts"]
-        return sum(
-            strategy == "*" or cell["status"][strategy] in ("best", "tied")
-            for checkpoints in verdicts.values()
-            for checkpoint, metrics in checkpoints.items()
-            if kind in ("", checkpoint.split()[0])
-            for name, cell in metrics.items()
-            if metric in ("", name)
-        )
+        data = json.loads((ROOT / "benchmarks" / "results" / self.file).read_text())
+        if strategy == "*":
+            cells = [(cp, m) for by_cp in data["verdicts"].values() for cp, by_m in by_cp.items() for m in by_m]
+        else:
+            cells = [(cp, m) for _, _, cp, m, s in _cells(data) if s == strategy]
+        return sum(kind in ("", cp.split()[0]) and metric in ("", m) for cp, m in cells)
 
 
 _RL1, _RL10, _RL20 = "lake_summary.json", "lakes/lake_summary.json", "lakes20/lake_summary.json"
