@@ -4,6 +4,7 @@ differ between the two runs), a resumable per-seed record, the paired test and t
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import time
@@ -44,16 +45,32 @@ def seed_all(seed: int) -> None:
     np.random.seed(seed)
 
 
+def code_fingerprint() -> str:
+    """A digest of the code of every ``torchpref`` module and of these scripts (their syntax trees, as
+    the stamps hash them): a record resumes only the rows this code measured, so the results file's
+    stamp never covers rows that older code measured."""
+    from torchpref.experiments.stamp import ROOT, code_digest
+
+    here = Path(__file__).resolve().parent
+    files = sorted([*(ROOT / "torchpref").rglob("*.py"), *here.glob("botorch_tutorials_*.py")])
+    digest = hashlib.sha256()
+    for f in files:
+        digest.update(f"{f.relative_to(ROOT).as_posix()}:{code_digest(f)}\n".encode())
+    return digest.hexdigest()
+
+
 class Record:
-    """One JSON line per finished ``(seed, model)`` run, so a long run can be resumed or extended."""
+    """One JSON line per finished ``(seed, model)`` run, so a long run can be resumed or extended: rows
+    of the same settings measured on the same code (:func:`code_fingerprint`); others are left in the
+    file and not read."""
 
     def __init__(self, path: Path, config: dict):
-        self.path, self.config = path, config
+        self.path, self.config = path, {**config, "code": code_fingerprint()}
         self.rows = []
         if path.exists():
             for line in path.read_text().splitlines():
                 row = json.loads(line)
-                if row.get("config") == config:
+                if row.get("config") == self.config:
                     self.rows.append(row)
 
     def done(self, seed: int, model: str) -> bool:
