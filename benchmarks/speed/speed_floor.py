@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import collections
 import csv
-import json
 import os
 import statistics
 import sys
@@ -63,6 +62,7 @@ sys.path.insert(0, str(HERE))
 
 import bench_common as bc  # noqa: E402
 
+from torchpref.experiments.results import write_json  # noqa: E402
 from torchpref.inference import newton  # noqa: E402
 from torchpref.inference.fast_path import fast_path, setting, warm_up  # noqa: E402
 from torchpref.inference.laplace import find_mode  # noqa: E402
@@ -350,7 +350,7 @@ def main(argv=None) -> int:
         "cpus": os.cpu_count(),
         "fast_path": setting(),
     }
-    (args.out / "speed_floor.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+    write_json(args.out / "speed_floor.json", {"meta": meta, "rows": rows}, measured="user")  # stamped
     with open(args.out / "speed_floor.csv", "w", newline="") as fh:
         wr = csv.DictWriter(fh, fieldnames=list(rows[0]))
         wr.writeheader()
