@@ -1585,11 +1585,7 @@ for _s, _n in (("profile per effort", "profile"), ("clipped profile", "clipped")
         ),
         rows=verdict_grid(_s),
     )
-FIGURES["suite50_wall"] = Figure(_S50, "wall_time_s", "{:,.0f} s")
-FIGURES["suite50_cpu"] = Figure(_S50, "cpu_time_s", "{:,.0f} s")
 for _fc, _cp, _m, _s, _n in (
-    ("plateau/fixed", "queries 20", "wrms", "profile per effort", "plateau_wrms_profile"),
-    ("plateau/fixed", "queries 20", "wrms", "UCB ratings", "plateau_wrms_ucbr"),
     ("hartmann3/learned", "queries 20", "tp", "clipped profile", "hartmann3_tp_clipped"),
     ("hartmann3/learned", "queries 20", "tp", "profile per effort", "hartmann3_tp_profile"),
 ):
