@@ -129,3 +129,11 @@ def test_every_stale_readme_figure_has_a_reason():
         - set(kept)
     )
     assert not unexplained, f"stale README figures without a reason in KEPT_STALE.txt: {unexplained}"
+
+
+def test_a_key_whose_name_holds_dots_is_read_whole():
+    data = {"arms": {"mixed, sigma_R = 0.1": {"fit": [1.5, 2.5]}, "mixed": {"sigma_R = 1": 3}}}
+    assert figures.dotted(data, "arms.mixed, sigma_R = 0.1.fit.1") == 2.5
+    assert figures.dotted(data, "arms.mixed.sigma_R = 1") == 3
+    with pytest.raises(KeyError):
+        figures.dotted(data, "arms.mixed, sigma_R = 0.2.fit")
