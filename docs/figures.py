@@ -997,6 +997,8 @@ for _tag, (_file, _metric) in _BT_FIRST.items():
     FIGURES[f"botorch_{_tag}_wall_pair"] = Figure(_file, f"{_metric}.wall_s_PairwiseGP", "{:.0f} s")
     FIGURES[f"botorch_{_tag}_wall_pref"] = Figure(_file, f"{_metric}.wall_s_PreferenceGP", "{:.0f} s")
 FIGURES["botorch_pbo_auc_p_worse"] = Figure(_BT_PBO, "auc_regret.p_worse", "{:.2f}")
+FIGURES["botorch_pbo_final_p_worse"] = Figure(_BT_PBO, "regret.p_worse", "{:.2f}")
+FIGURES["botorch_pbo_final_p_wilcoxon"] = Figure(_BT_PBO, "regret.p_wilcoxon", "{:.2f}")
 FIGURES["botorch_pbo_auc_p_wilcoxon"] = Figure(_BT_PBO, "auc_regret.p_wilcoxon", "{:.2f}")
 for _name, _metric in (
     ("eubo_util", "EUBO-zeta_util"),
