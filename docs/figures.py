@@ -1983,6 +1983,11 @@ for _r in ("f32", "f32n"):
     FIGURES[f"audit_fuzz_{_r}_max_gap"] = Figure(_FZ, f"agreement_{_r}_nograd.max", "sci")
 FIGURES["audit_fuzz_f32n_max_gap_2"] = Figure(_FZ, "agreement_f32n_nograd.max", "{:.2f}")
 FIGURES["audit_fuzz_f32n_jitter_beyond"] = Figure(_FZ, "f32n_beyond_target_with_jitter_at_least_1e-5")
+for _i in range(5):  # native float32's largest gaps from float64 (the file's worst five, largest first)
+    _w = f"agreement_f32n_nograd.worst.{_i}"
+    FIGURES[f"audit_fuzz_worst{_i}_seed"] = Figure(_FZ, f"{_w}.seed")
+    FIGURES[f"audit_fuzz_worst{_i}_gap"] = Figure(_FZ, f"{_w}.gap", "{:.2f}")
+    FIGURES[f"audit_fuzz_worst{_i}_ls"] = Figure(_FZ, f"{_w}.lengthscale", "{:.0f}")
 # docs/likelihoods.md: the person calibration's recovery table and paired means
 for _p in ("rating_offset", "rating_gain", "lapse_rate", "rating_precision"):
     for _c in ("rmse", "prior_rmse", "correlation"):
