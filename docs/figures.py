@@ -1983,6 +1983,69 @@ for _r in ("f32", "f32n"):
     FIGURES[f"audit_fuzz_{_r}_max_gap"] = Figure(_FZ, f"agreement_{_r}_nograd.max", "sci")
 FIGURES["audit_fuzz_f32n_max_gap_2"] = Figure(_FZ, "agreement_f32n_nograd.max", "{:.2f}")
 FIGURES["audit_fuzz_f32n_jitter_beyond"] = Figure(_FZ, "f32n_beyond_target_with_jitter_at_least_1e-5")
+
+
+@dataclass(frozen=True)
+class _Minus(Figure):
+    """The value at the first of the ``|``-joined keys less those at the others."""
+
+    def raw(self) -> float | int:
+        first, *rest = (Figure(self.file, k).raw() for k in self.key.split("|"))
+        return first - sum(rest)
+
+
+def _fuzz_native(key: str) -> Any:
+    """What fuzz.csv says of native float32's problems beyond the agreement target: ``key`` is
+    ``long`` (those with jitter of 1e-5 or more at lengthscales above 20), ``short_min`` /
+    ``short_max`` (the others' lengthscales), ``rounding_max`` (the largest gap of those with less
+    jitter), ``rounding_seeds`` (theirs above 0.05), ``kernel_errors`` (exceptions of the kernel
+    matrix), ``fisher_seeds`` (those of the Fisher-scoring matrix)."""
+    with (ROOT / "benchmarks" / "results" / "fuzz.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    target = json.loads((ROOT / "benchmarks" / "results" / "fuzz.json").read_text())["target"]
+
+    def gap(r: dict) -> float:
+        return max(float(r["f32n_gap_mean_nograd"]), float(r["f32n_gap_cov_nograd"]))
+
+    beyond = [r for r in rows if not r["f32n_error"] and r["f32n_gap_mean_nograd"] and gap(r) > target]
+    jitter = [r for r in beyond if float(r["f32n_jitter"] or 0) >= 1e-5]
+    short = [float(r["lengthscale"]) for r in jitter if float(r["lengthscale"]) <= 20]
+    rounding = [r for r in beyond if float(r["f32n_jitter"] or 0) < 1e-5]
+    errors = [r for r in rows if r["f32n_error"]]
+    return {
+        "long": len(jitter) - len(short),
+        "short_min": min(short),
+        "short_max": max(short),
+        "rounding_max": max(gap(r) for r in rounding),
+        "rounding_seeds": ", ".join(sorted((r["seed"] for r in rounding if gap(r) > 0.05), key=int)),
+        "kernel_errors": sum("kernel matrix" in r["f32n_error"] for r in errors),
+        "fisher_seeds": " and ".join(r["seed"] for r in errors if "Fisher" in r["f32n_error"]),
+    }[key]
+
+
+@dataclass(frozen=True)
+class _FuzzNative(Figure):
+    def raw(self) -> Any:
+        return _fuzz_native(self.key)
+
+
+_F32N = "agreement_f32n_nograd"
+FIGURES["audit_fuzz_f32n_beyond"] = _Minus(_FZ, f"{_F32N}.problems|{_F32N}.within_target")
+FIGURES["audit_fuzz_f32n_rounding"] = _Minus(
+    _FZ, f"{_F32N}.problems|{_F32N}.within_target|f32n_beyond_target_with_jitter_at_least_1e-5"
+)
+for _k, _f in (
+    ("long", "{}"),
+    ("short_min", "{:.2f}"),
+    ("short_max", "{:.0f}"),
+    ("rounding_max", "{:.2f}"),
+    ("rounding_seeds", "{}"),
+    ("kernel_errors", "{}"),
+    ("fisher_seeds", "{}"),
+):
+    FIGURES[f"audit_fuzz_native_{_k}"] = _FuzzNative("fuzz.csv", _k, _f)
+
+
 for _i in range(5):  # native float32's largest gaps from float64 (the file's worst five, largest first)
     _w = f"agreement_f32n_nograd.worst.{_i}"
     FIGURES[f"audit_fuzz_worst{_i}_seed"] = Figure(_FZ, f"{_w}.seed")
