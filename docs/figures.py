@@ -1964,6 +1964,228 @@ for _s, _n in (("UCBC", "ucbc"), ("random ratings", "random"), ("UCB ratings", "
 TABLES["lake_plan_per_lake_20"] = Table(_RL20, TABLES["lake_plan_per_lake"].columns, rows="per_lake")
 # --- end of results.md, lake.md, README (issue 53)
 
+# audit (issue 53)
+_FZ = "fuzz.json"
+FIGURES["audit_fuzz_f32n_exceptions"] = Figure(_FZ, "f32n.exceptions")
+FIGURES["audit_fuzz_comp_problems"] = Figure(_FZ, "comparisons_only.problems", "{:,}")
+FIGURES["audit_fuzz_comp_f64"] = Figure(_FZ, "comparisons_only.f64_exceptions")
+FIGURES["audit_fuzz_comp_f32"] = Figure(_FZ, "comparisons_only.f32_exceptions")
+FIGURES["audit_fuzz_comp_f32n"] = Figure(_FZ, "comparisons_only.f32n_exceptions")
+FIGURES["audit_fuzz_comp_pairwisegp"] = Figure(_FZ, "comparisons_only.pairwisegp_f32_exceptions")
+for _r in ("f64", "f32", "f32n"):
+    FIGURES[f"audit_fuzz_{_r}_nan"] = Figure(_FZ, f"{_r}.nan")
+    FIGURES[f"audit_fuzz_{_r}_unconverged"] = Figure(_FZ, f"{_r}.unconverged")
+for _r in ("f32", "f32n"):
+    for _g in ("nograd", "grad"):
+        FIGURES[f"audit_fuzz_{_r}_{_g}_within"] = Figure(_FZ, f"agreement_{_r}_{_g}.within_target", "{:,}")
+    FIGURES[f"audit_fuzz_{_r}_agree_problems"] = Figure(_FZ, f"agreement_{_r}_nograd.problems", "{:,}")
+    FIGURES[f"audit_fuzz_{_r}_median_gap"] = Figure(_FZ, f"agreement_{_r}_nograd.median", "sci")
+    FIGURES[f"audit_fuzz_{_r}_max_gap"] = Figure(_FZ, f"agreement_{_r}_nograd.max", "sci")
+FIGURES["audit_fuzz_f32n_max_gap_2"] = Figure(_FZ, "agreement_f32n_nograd.max", "{:.2f}")
+FIGURES["audit_fuzz_f32n_jitter_beyond"] = Figure(_FZ, "f32n_beyond_target_with_jitter_at_least_1e-5")
+
+
+@dataclass(frozen=True)
+class _Minus(Figure):
+    """The value at the first of the ``|``-joined keys less those at the others."""
+
+    def raw(self) -> float | int:
+        first, *rest = (Figure(self.file, k).raw() for k in self.key.split("|"))
+        return first - sum(rest)
+
+
+def _fuzz_native(key: str) -> Any:
+    """What fuzz.csv says of native float32's problems beyond the agreement target: ``key`` is
+    ``long`` (those with jitter of 1e-5 or more at lengthscales above 20), ``short_min`` /
+    ``short_max`` (the others' lengthscales), ``rounding_max`` (the largest gap of those with less
+    jitter), ``rounding_seeds`` (theirs above 0.05), ``kernel_errors`` (exceptions of the kernel
+    matrix), ``fisher_seeds`` (those of the Fisher-scoring matrix)."""
+    with (ROOT / "benchmarks" / "results" / "fuzz.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    target = json.loads((ROOT / "benchmarks" / "results" / "fuzz.json").read_text())["target"]
+
+    def gap(r: dict) -> float:
+        return max(float(r["f32n_gap_mean_nograd"]), float(r["f32n_gap_cov_nograd"]))
+
+    beyond = [r for r in rows if not r["f32n_error"] and r["f32n_gap_mean_nograd"] and gap(r) > target]
+    jitter = [r for r in beyond if float(r["f32n_jitter"] or 0) >= 1e-5]
+    short = [float(r["lengthscale"]) for r in jitter if float(r["lengthscale"]) <= 20]
+    rounding = [r for r in beyond if float(r["f32n_jitter"] or 0) < 1e-5]
+    errors = [r for r in rows if r["f32n_error"]]
+    return {
+        "long": len(jitter) - len(short),
+        "short_min": min(short),
+        "short_max": max(short),
+        "rounding_max": max(gap(r) for r in rounding),
+        "rounding_seeds": ", ".join(sorted((r["seed"] for r in rounding if gap(r) > 0.05), key=int)),
+        "kernel_errors": sum("kernel matrix" in r["f32n_error"] for r in errors),
+        "fisher_seeds": " and ".join(r["seed"] for r in errors if "Fisher" in r["f32n_error"]),
+    }[key]
+
+
+@dataclass(frozen=True)
+class _FuzzNative(Figure):
+    def raw(self) -> Any:
+        return _fuzz_native(self.key)
+
+
+_F32N = "agreement_f32n_nograd"
+FIGURES["audit_fuzz_f32n_beyond"] = _Minus(_FZ, f"{_F32N}.problems|{_F32N}.within_target")
+FIGURES["audit_fuzz_f32n_rounding"] = _Minus(
+    _FZ, f"{_F32N}.problems|{_F32N}.within_target|f32n_beyond_target_with_jitter_at_least_1e-5"
+)
+for _k, _f in (
+    ("long", "{}"),
+    ("short_min", "{:.2f}"),
+    ("short_max", "{:.0f}"),
+    ("rounding_max", "{:.2f}"),
+    ("rounding_seeds", "{}"),
+    ("kernel_errors", "{}"),
+    ("fisher_seeds", "{}"),
+):
+    FIGURES[f"audit_fuzz_native_{_k}"] = _FuzzNative("fuzz.csv", _k, _f)
+
+
+for _i in range(5):  # native float32's largest gaps from float64 (the file's worst five, largest first)
+    _w = f"agreement_f32n_nograd.worst.{_i}"
+    FIGURES[f"audit_fuzz_worst{_i}_seed"] = Figure(_FZ, f"{_w}.seed")
+    FIGURES[f"audit_fuzz_worst{_i}_gap"] = Figure(_FZ, f"{_w}.gap", "{:.2f}")
+    FIGURES[f"audit_fuzz_worst{_i}_ls"] = Figure(_FZ, f"{_w}.lengthscale", "{:.0f}")
+# docs/likelihoods.md: the person calibration's recovery table and paired means
+for _p in ("rating_offset", "rating_gain", "lapse_rate", "rating_precision"):
+    for _c in ("rmse", "prior_rmse", "correlation"):
+        FIGURES[f"audit_pcal_{_p}_{_c}"] = Figure(_PCAL, f"recovery.{_p}.{_c}", "{:.2f}")
+    FIGURES[f"audit_pcal_{_p}_bias"] = Figure(_PCAL, f"recovery.{_p}.bias", "{:+.2f}")
+FIGURES["audit_pcal_lapse_under"] = Figure(_PCAL, "recovery.lapse_rate.bias", "{:.2f}")
+for _m, _f in (("wrms", "{:.3f}"), ("tp", "{:.2f}"), ("regret", "{:.3f}")):
+    for _arm in ("calibrated", "plain"):
+        FIGURES[f"audit_pcal_{_m}_{_arm}"] = Figure(_PCAL, f"recovery.paired.{_m}.{_arm}", _f)
+        FIGURES[f"audit_pcal_ideal_{_m}_{_arm}"] = Figure(_PCAL, f"ideal.{_m}.{_arm}", "{:.4f}" if _m == "wrms" else _f)
+FIGURES["audit_pcal_trials"] = Figure(_PCAL, "settings.trials")
+FIGURES["audit_pcal_load"] = Figure(_PCAL, "stamp.load_avg.0", "{:.1f}")
+
+
+# docs/wave.md: the paired differences at 20 queries (wave_summary.json's paired_tests.queries)
+def _p_text(p: float) -> str:
+    return formatted(p, "sci") if p < 0.001 else f"{p:.2g}"
+
+
+def _wave_paired_rows(summary: dict) -> list[dict]:
+    order = (
+        "UCBC vs random ratings",
+        "UCBC vs random rankings",
+        "UCBC vs UCB ratings",
+        "info per effort vs UCBC",
+        "info per effort vs random rankings",
+        "info per effort vs UCB ratings",
+        "info per effort vs random ratings",
+    )
+    out = []
+    for pair in order:
+        t = summary["paired_tests"]["queries"][pair]
+        w, tp = t["wrms"], t["tp"]
+        out.append(
+            {
+                "comparison": pair.replace("info per effort", "info").replace(" vs ", " − "),
+                "dwrms": f"{w['mean_diff']:+.4f} ± {w['sem_diff']:.4f}".replace("-", "−").lstrip("+"),
+                "pwrms": f"{_p_text(w['p_wilcoxon'])} / {_p_text(w['p_ttest'])}",
+                "dtp": f"{tp['mean_diff']:+.2f} ± {tp['sem_diff']:.2f}".replace("-", "−"),
+                "ptp": f"{_p_text(tp['p_wilcoxon'])} / {_p_text(tp['p_ttest'])}",
+            }
+        )
+    return out
+
+
+# docs/wave.md: the strategies at an effort of 20 and the paired differences there and at 20 queries
+for _s, _n in (
+    ("UCBC", "ucbc"),
+    ("random ratings", "random_ratings"),
+    ("random rankings", "random_rankings"),
+    ("UCB ratings", "ucb"),
+    ("info per effort", "info"),
+):
+    FIGURES[f"audit_wave_effort_wrms_{_n}"] = Figure(_WAVE, f"per_effort.{_s}.wrms_mean.20", "{:.4f}")
+    FIGURES[f"audit_wave_effort_wrms_se_{_n}"] = Figure(_WAVE, f"per_effort.{_s}.wrms_sem.20", "{:.4f}")
+    FIGURES[f"audit_wave_effort_tp_{_n}"] = Figure(_WAVE, f"per_effort.{_s}.tp_mean.20", "{:.2f}")
+    FIGURES[f"audit_wave_effort_tp_se_{_n}"] = Figure(_WAVE, f"per_effort.{_s}.tp_sem.20", "{:.2f}")
+for _pair, _m, _n, _f in (
+    ("info per effort vs UCBC", "wrms", "info_ucbc_wrms", "{:+.4f}"),
+    ("info per effort vs UCBC", "tp", "info_ucbc_tp", "{:+.2f}"),
+    ("info per effort vs random rankings", "tp", "info_rankings_tp", "{:+.2f}"),
+    ("UCBC vs UCB ratings", "wrms", "ucbc_ucb_wrms", "{:+.4f}"),
+):
+    FIGURES[f"audit_wave_effort_diff_{_n}"] = Figure(_WAVE, f"paired_tests.effort.{_pair}.{_m}.mean_diff", _f)
+for _pair, _m, _n, _f in (
+    ("UCBC vs random rankings", "tp", "ucbc_rankings_tp", "{:+.2f}"),
+    ("info per effort vs UCBC", "wrms", "info_ucbc_wrms", "{:+.4f}"),
+    ("info per effort vs UCBC", "tp", "info_ucbc_tp", "{:+.2f}"),
+    ("info per effort vs random rankings", "tp", "info_rankings_tp", "{:+.2f}"),
+):
+    FIGURES[f"audit_wave_diff_{_n}"] = Figure(_WAVE, f"paired_tests.queries.{_pair}.{_m}.mean_diff", _f)
+FIGURES["audit_wave_tp_ucb"] = Figure(_WAVE, "final.UCB ratings.tp.0", "{:.2f}")
+FIGURES["audit_wave_proc_load_start"] = Figure(_WPROC, "load_average_at_start.0", "{:.0f}")
+FIGURES["audit_wave_proc_load_end"] = Figure(_WPROC, "load_average_at_end.0", "{:.0f}")
+
+
+# docs/ax.md: Ax's own tests, the table of the documented path, Ax as it is and the harness
+@dataclass(frozen=True)
+class _Count(Figure):
+    """How many entries the list at ``key`` holds."""
+
+    def raw(self) -> int:
+        return len(super().raw())
+
+
+_AXU = "ax/upstream_tests.json"
+FIGURES["audit_ax_upstream_files"] = _Count(_AXU, "files")
+for _mode in ("documented", "plain", "harness"):
+    for _c in ("ran", "passed", "fit_a_preference_model", "fit_and_passed"):
+        FIGURES[f"audit_ax_{_mode}_{_c}"] = Figure(_AXU, f"modes.{_mode}.counts.{_c}")
+    for _c in ("built_preference_gp_only", "built_pairwise_gp_only", "built_both"):
+        FIGURES[f"audit_ax_{_mode}_{_c}"] = _Count(_AXU, f"modes.{_mode}.counts.{_c}")
+    FIGURES[f"audit_ax_{_mode}_load"] = Figure(_AXU, f"modes.{_mode}.load_average_at_start", "{:.1f}")
+# docs/population.md: the shard rows' load averages, lowest and highest
+_SHARD_LOADS = "|".join(f"rows.{_i}.load_start_end.{_j}" for _i in range(6) for _j in range(2))
+FIGURES["audit_shards_load_lo"] = Extreme(_SHARDS, _SHARD_LOADS, "{:.1f}", pick="min")
+FIGURES["audit_shards_load_hi"] = Extreme(_SHARDS, _SHARD_LOADS, "{:.1f}", pick="max")
+
+TABLES["audit_wave_paired"] = Table(
+    "wave_summary.json",
+    (
+        ("comparison", "comparison", "{}"),
+        ("ΔWRMS", "dwrms", "{}"),
+        ("p", "pwrms", "{}"),
+        ("ΔTP", "dtp", "{}"),
+        ("p", "ptp", "{}"),
+    ),
+    rows=_wave_paired_rows,
+)
+# docs/robustness.md: the hostile-start fits' outcomes (hostile_fits.json)
+_HF = "hostile_fits.json"
+FIGURES["audit_hostile_fits"] = Figure(_HF, "fits")
+FIGURES["audit_hostile_fit"] = Figure(_HF, "counts.fit")
+FIGURES["audit_hostile_other"] = Figure(_HF, "other")
+FIGURES["audit_hostile_unconverged"] = Figure(_HF, "counts.unusable: mode not converged")
+FIGURES["audit_hostile_98_seed"] = Figure(_HF, "rows.98.seed")
+FIGURES["audit_hostile_98_n"] = Figure(_HF, "rows.98.n")
+FIGURES["audit_hostile_98_seconds"] = Figure(_HF, "rows.98.seconds", "{:.0f} s")
+FIGURES["audit_hostile_4_seconds"] = Figure(_HF, "rows.4.seconds", "{:.0f} s")
+FIGURES["audit_hostile_load"] = Figure(_HF, "stamp.load_avg.0", "{:.1f}")
+# docs/likelihoods.md: the ties' gain in true positives, smallest and largest (ordinal.json)
+FIGURES["audit_ord_ties_tp_min"] = Figure(_ORD, "summary.ties.bump 10%.used - ignored/tp.mean_diff", "{:.1f}")
+FIGURES["audit_ord_ties_tp_max"] = Figure(_ORD, "summary.ties.wave 10%.used - ignored/tp.mean_diff", "{:.1f}")
+# docs/botorch.md: the ported API checks' table
+FIGURES["audit_api_pairwisegp_failed"] = Figure("botorch_api_counts.json", "summary.PairwiseGP.failed")
+# docs/speed.md: the first call, re-measured on the current code
+_FC = "fast_path/first_call.json"
+for _arm, _n in (("off", "off"), ("auto, cache on disk", "auto")):
+    FIGURES[f"audit_first_call_{_n}_imports"] = Figure(_FC, f"rows.{_arm}.imports_s", "{:.1f} s")
+    FIGURES[f"audit_first_call_{_n}_first_cpu"] = Figure(_FC, f"rows.{_arm}.first_fit_cpu_s", "{:.3f} s")
+FIGURES["audit_first_call_load"] = Figure(_FC, "stamp.load_avg.0", "{:.1f}")
+FIGURES["audit_speedq_load_start_5"] = Figure(
+    "speed_quiet/speed_pairwise.json", "meta.load_average_at_start.1", "{:.1f}"
+)
+
 SUBSTITUTION = re.compile(r"\{\{\s*(?P<name>\w+)\s*\}\}")
 
 
