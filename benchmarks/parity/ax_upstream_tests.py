@@ -71,4 +71,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from torchpref.experiments.stamp import recording_subprocesses
+
+    with recording_subprocesses():  # the stamp hashes the code of the pytest processes it starts too
+        main()
