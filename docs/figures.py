@@ -1048,8 +1048,8 @@ for _task in ("mode", "fit", "eubo"):
     )
 
 # docs/install.md: the recorded test runs (tests/conftest.py, TORCHPREF_RECORD_TESTS);
-# the recorded test runs (TORCHPREF_RECORD_TESTS, tests/conftest.py); "slow" once a make test-slow is recorded
-for _run in ("default",):
+# the recorded test runs (TORCHPREF_RECORD_TESTS, tests/conftest.py): make test and make test-slow
+for _run in ("default", "slow"):
     _file = f"test_runs/{_run}.json"
     FIGURES[f"install_tests_{_run}_wall"] = Figure(_file, "wall_s", "{:.0f} s")
     FIGURES[f"install_tests_{_run}_load"] = Figure(_file, "stamp.load_avg.0", "{:.1f}")
