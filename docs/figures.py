@@ -940,8 +940,6 @@ FIGURES["large_pool_serve_load"] = Figure("large_pools/serve.json", "load_at_sta
 # README.md
 FIGURES["readme_replay_people"] = Figure("replay/replay.json", "meta.people")
 FIGURES["readme_calib_trials"] = Figure("person_calibration.json", "settings.trials")
-FIGURES["readme_calib_wrms_calibrated"] = Figure("person_calibration.json", "recovery.paired.wrms.calibrated", "{:.3f}")
-FIGURES["readme_calib_wrms_plain"] = Figure("person_calibration.json", "recovery.paired.wrms.plain", "{:.3f}")
 
 # docs/install.md
 FIGURES["install_fast_path_build"] = Figure(
@@ -968,8 +966,6 @@ for _op in ("answer", "undo", "resume"):
     FIGURES[f"sessions_prev_{_op}_1000"] = Figure(
         _SCALE, f"seconds@answers=1000,code=previous (replay),operation={_op}", "{:.1f} s"
     )
-FIGURES["sessions_resume_5000"] = Figure(_SCALE, "seconds@answers=5000,code=this,operation=resume", "ms")
-FIGURES["sessions_answer_5000"] = Figure(_SCALE, "seconds@answers=5000,code=this,operation=answer", "ms")
 
 # docs/botorch.md
 FIGURES["botorch_own_pref"] = Figure("botorch_own_tests.json", "summary.PreferenceGP")
@@ -1496,7 +1492,6 @@ for _name, _file in (("suite_replay", "replay/replay.json"), ("suite_replay_clip
         ),
         rows=replay_rows,
     )
-FIGURES["suite_replay_people"] = Figure("replay/replay.json", "meta.people")
 FIGURES["suite_replay_pairs"] = Figure("replay/replay.json", "summary.electricity.random.pairs")
 FIGURES["suite_replay_clipped_seconds"] = Figure("replay_clipped/replay.json", "meta.seconds", "{:.0f} s")
 FIGURES["suite_replay_clipped_load_lo"] = Figure(
@@ -1794,10 +1789,8 @@ class Cells(Figure):
         return sum(kind in ("", cp.split()[0]) and metric in ("", m) for cp, m in cells)
 
 
-_RL1, _RL10, _RL20 = "lake_summary.json", "lakes/lake_summary.json", "lakes20/lake_summary.json"
 _RSEL, _RCLIP = "lakes10_selector/lake_summary.json", "lakes10_selector_clipped/lake_summary.json"
 _RSUITE = "suite50/suite_summary.json"
-_RORD = "ordinal.json"
 _SUITE_STRATEGIES = (
     ("UCBC", "ucbc"),
     ("random ratings", "random"),
@@ -1832,13 +1825,8 @@ FIGURES["results_wsel_p_info_profile_tp"] = Figure(
     _WSEL, f"{_Q}.info per effort vs profile per effort.tp.p_wilcoxon", "{:.2f}"
 )
 # docs/results.md: the one lake's final errors, the 10-lake shares and planning, the 20-lake planning
-for _s, _n in (("UCBC", "ucbc"), ("UCB ratings", "ucb")):
-    FIGURES[f"results_lake1_error5_{_n}"] = Figure(_RL1, f"final.{_s}.error5.0", "{:.3f}")
-    FIGURES[f"results_lake1_wrms_{_n}"] = Figure(_RL1, f"final.{_s}.wrms.0", "{:.3f}")
-FIGURES["results_lakes10_random"] = Figure(_RSEL, "share_rated_5.random ratings", "percent")
 FIGURES["results_lakes10_plan_worse"] = Figure(_RSEL, "planning.UCBC.worse")
-FIGURES["results_lakes20_plan_worse"] = Figure(_RL20, "planning.UCBC.worse")
-FIGURES["results_lakes20_scenarios"] = Figure(_RL20, "scenario_time_s", "{:.0f} s")
+FIGURES["results_lakes20_plan_worse"] = Figure(_L20, "planning.UCBC.worse")
 # docs/results.md: the 9-strategy suite (suite50/): its time summed over its runs, its verdict cells
 FIGURES["results_suite50_wall"] = Figure(_RSUITE, "wall_time_s", "{:,.0f} s")
 FIGURES["results_suite50_cpu"] = Figure(_RSUITE, "cpu_time_s", "{:,.0f} s")
@@ -1867,8 +1855,6 @@ FIGURES["readme_suite50_most_cells"] = Extreme(
 )
 # docs/results.md: the person calibration (person_calibration.json) and the realistic suite at equal
 # seconds (suite_realistic_plain/, suite_realistic_trajectories/)
-for _m in ("rmse", "prior_rmse"):
-    FIGURES[f"results_pcal_offset_{_m}"] = Figure(_PCAL, f"recovery.rating_offset.{_m}", "{:.2f}")
 FIGURES["results_realistic_cells"] = Cells("suite_realistic_plain/suite_summary.json", "*|effort|")
 for _effort in ("plain", "trajectories"):
     _file = f"suite_realistic_{_effort}/suite_summary.json"
@@ -1885,9 +1871,9 @@ _RL = "summary.likert"
 _TIE_SETTINGS = (("wave 10%", "w10"), ("wave 25%", "w25"), ("bump 10%", "b10"), ("bump 25%", "b25"))
 for _setting, _n in _TIE_SETTINGS[:2]:
     for _arm in ("ignored", "used"):
-        FIGURES[f"results_ties_{_n}_{_arm}_wrms"] = Figure(_RORD, f"{_RT}.{_setting}.{_arm}/wrms.0", "{:.4f}")
-    FIGURES[f"results_ties_{_n}_tau_learned"] = Figure(_RORD, f"{_RT}.{_setting}.tau_learned_mean", "{:.2f}")
-    FIGURES[f"results_ties_{_n}_margin"] = Figure(_RORD, f"{_RT}.{_setting}.margin_mean", "{:.2f}")
+        FIGURES[f"results_ties_{_n}_{_arm}_wrms"] = Figure(_ORD, f"{_RT}.{_setting}.{_arm}/wrms.0", "{:.4f}")
+    FIGURES[f"results_ties_{_n}_tau_learned"] = Figure(_ORD, f"{_RT}.{_setting}.tau_learned_mean", "{:.2f}")
+    FIGURES[f"results_ties_{_n}_margin"] = Figure(_ORD, f"{_RT}.{_setting}.margin_mean", "{:.2f}")
 for _arm, _metrics in (
     ("used", (("tp", "{:+.2f}"), ("regret", "{:+.3f}"))),
     ("default", (("wrms", "{:+.4f}"), ("tp", "{:+.2f}"), ("regret", "{:+.3f}"))),
@@ -1896,9 +1882,9 @@ for _arm, _metrics in (
     for _setting, _n in _TIE_SETTINGS:
         for _m, _fmt in _metrics:
             FIGURES[f"results_ties_{_n}_{_arm}_{_m}"] = Figure(
-                _RORD, f"{_RT}.{_setting}.{_arm} - ignored/{_m}.mean_diff", _fmt
+                _ORD, f"{_RT}.{_setting}.{_arm} - ignored/{_m}.mean_diff", _fmt
             )
-FIGURES["results_ties_p_b10_used_regret"] = Figure(_RORD, f"{_RT}.bump 10%.used - ignored/regret.p_ttest", "{:.2f}")
+FIGURES["results_ties_p_b10_used_regret"] = Figure(_ORD, f"{_RT}.bump 10%.used - ignored/regret.p_ttest", "{:.2f}")
 for _arm, _metrics, _settings in (
     ("used", ("wrms",), _TIE_SETTINGS),
     ("used", ("tp",), _TIE_SETTINGS),
@@ -1906,15 +1892,15 @@ for _arm, _metrics, _settings in (
     ("default", ("wrms", "tp", "regret"), _TIE_SETTINGS),
 ):
     FIGURES[f"results_ties_p_max_{_arm}_{'_'.join(_metrics)}_{len(_settings)}"] = Extreme(
-        _RORD,
+        _ORD,
         "|".join(f"{_RT}.{_s}.{_arm} - ignored/{_m}.p_ttest" for _s, _ in _settings for _m in _metrics),
         "{:.2g}",
     )
 for _arm in ("beta", "ordinal"):
-    FIGURES[f"results_likert_wave_{_arm}_wrms"] = Figure(_RORD, f"{_RL}.wave.{_arm}/wrms.0", "{:.4f}")
-FIGURES["results_likert_lake_tp"] = Figure(_RORD, f"{_RL}.lake.ordinal - beta/tp.mean_diff", "{:+.2f}")
+    FIGURES[f"results_likert_wave_{_arm}_wrms"] = Figure(_ORD, f"{_RL}.wave.{_arm}/wrms.0", "{:.4f}")
+FIGURES["results_likert_lake_tp"] = Figure(_ORD, f"{_RL}.lake.ordinal - beta/tp.mean_diff", "{:+.2f}")
 FIGURES["results_likert_p_min_other"] = Extreme(
-    _RORD,
+    _ORD,
     "|".join(
         f"{_RL}.{_u}.ordinal - beta/{_m}.p_ttest"
         for _u in ("wave", "partial", "bump", "lake")
@@ -1925,43 +1911,43 @@ FIGURES["results_likert_p_min_other"] = Extreme(
     pick="min",
 )
 FIGURES["results_likert_learned_lake_wrms"] = Figure(
-    _RORD, f"{_RL}.lake.ordinal-learned - beta/wrms.mean_diff", "{:+.4f}"
+    _ORD, f"{_RL}.lake.ordinal-learned - beta/wrms.mean_diff", "{:+.4f}"
 )
-FIGURES["results_likert_learned_lake_p_wrms"] = Figure(_RORD, f"{_RL}.lake.ordinal-learned - beta/wrms.p_ttest", "sci")
-FIGURES["results_likert_learned_lake_tp"] = Figure(_RORD, f"{_RL}.lake.ordinal-learned - beta/tp.mean_diff", "{:+.2f}")
+FIGURES["results_likert_learned_lake_p_wrms"] = Figure(_ORD, f"{_RL}.lake.ordinal-learned - beta/wrms.p_ttest", "sci")
+FIGURES["results_likert_learned_lake_tp"] = Figure(_ORD, f"{_RL}.lake.ordinal-learned - beta/tp.mean_diff", "{:+.2f}")
 # docs/lake.md: the one-lake run's table, its first query, its paired differences (lake_summary.json)
 for _s, _n in (("UCBC", "ucbc"), ("random ratings", "random"), ("UCB ratings", "ucb"), ("info per effort", "info")):
     for _m in ("error5", "wrms"):
-        FIGURES[f"lake_one_{_m}_{_n}"] = Figure(_RL1, f"final.{_s}.{_m}.0", "{:.3f}")
-        FIGURES[f"lake_one_{_m}_se_{_n}"] = Figure(_RL1, f"final.{_s}.{_m}.1", "{:.3f}")
-    FIGURES[f"lake_one_chosen_{_n}"] = Figure(_RL1, f"final.{_s}.chosen_rating.0", "{:.2f}")
-    FIGURES[f"lake_one_rated5_{_n}"] = Figure(_RL1, f"share_rated_5.{_s}", "{:.2f}")
-    FIGURES[f"lake_one_ratings_{_n}"] = Figure(_RL1, f"fraction_ratings.{_s}", "{:.2f}")
+        FIGURES[f"lake_one_{_m}_{_n}"] = Figure(_L1, f"final.{_s}.{_m}.0", "{:.3f}")
+        FIGURES[f"lake_one_{_m}_se_{_n}"] = Figure(_L1, f"final.{_s}.{_m}.1", "{:.3f}")
+    FIGURES[f"lake_one_chosen_{_n}"] = Figure(_L1, f"final.{_s}.chosen_rating.0", "{:.2f}")
+    FIGURES[f"lake_one_rated5_{_n}"] = Figure(_L1, f"share_rated_5.{_s}", "{:.2f}")
+    FIGURES[f"lake_one_ratings_{_n}"] = Figure(_L1, f"fraction_ratings.{_s}", "{:.2f}")
 for _m, _fmt in (("error5", "{:.3f}"), ("wrms", "{:.3f}"), ("chosen_rating", "{:.2f}")):
-    FIGURES[f"lake_one_start_{_m}"] = Figure(_RL1, f"per_query.UCBC.{_m}_mean.0", _fmt)
-FIGURES["lake_one_test_rated5"] = Figure(_RL1, "settings.test_paths_rated_5.0")
+    FIGURES[f"lake_one_start_{_m}"] = Figure(_L1, f"per_query.UCBC.{_m}_mean.0", _fmt)
+FIGURES["lake_one_test_rated5"] = Figure(_L1, "settings.test_paths_rated_5.0")
 for _pair, _n in (
     ("UCBC vs random ratings", "random"),
     ("UCBC vs UCB ratings", "ucb"),
     ("UCBC vs info per effort", "info"),
 ):
     for _m in ("error5", "wrms"):
-        FIGURES[f"lake_diff_{_n}_{_m}"] = Figure(_RL1, f"paired_tests.{_pair}.{_m}.mean_diff", "{:+.3f}")
+        FIGURES[f"lake_diff_{_n}_{_m}"] = Figure(_L1, f"paired_tests.{_pair}.{_m}.mean_diff", "{:+.3f}")
 # docs/lake.md: the 10-lake planning run (lakes/) and the 20-lake one (lakes20/)
-FIGURES["lake_many_worse"] = Figure(_RL10, "planning.UCBC.worse")
-FIGURES["lake_many_gain_mean"] = Figure(_RL10, "planning.UCBC.distance_gain.mean", "{:.1f}")
-FIGURES["lake_many_gain_max"] = Figure(_RL10, "planning.UCBC.distance_gain.max", "{:.0f}")
-FIGURES["lake_many_fallback"] = Figure(_RL10, "planning.UCBC.sources.fallback")
-FIGURES["lake_many_planned"] = Figure(_RL10, "planning.UCBC.sources.planned")
+FIGURES["lake_many_worse"] = Figure(_L10, "planning.UCBC.worse")
+FIGURES["lake_many_gain_mean"] = Figure(_L10, "planning.UCBC.distance_gain.mean", "{:.1f}")
+FIGURES["lake_many_gain_max"] = Figure(_L10, "planning.UCBC.distance_gain.max", "{:.0f}")
+FIGURES["lake_many_fallback"] = Figure(_L10, "planning.UCBC.sources.fallback")
+FIGURES["lake_many_planned"] = Figure(_L10, "planning.UCBC.sources.planned")
 for _r in ("wins", "losses", "ties"):
-    FIGURES[f"lake_many_levels_{_r}"] = Figure(_RL10, f"planning.UCBC.paired.{_r}")
+    FIGURES[f"lake_many_levels_{_r}"] = Figure(_L10, f"planning.UCBC.paired.{_r}")
 for _r in ("planned", "pick"):
-    FIGURES[f"lake_many_{_r}_level"] = Figure(_RL10, f"planning.UCBC.{_r}_level_mean", "{:.3f}")
+    FIGURES[f"lake_many_{_r}_level"] = Figure(_L10, f"planning.UCBC.{_r}_level_mean", "{:.3f}")
 for _s, _n in (("UCBC", "ucbc"), ("random ratings", "random"), ("UCB ratings", "ucb"), ("info per effort", "info")):
-    FIGURES[f"lake_many_error5_{_n}"] = Figure(_RL10, f"final.{_s}.error5.0", "{:.3f}")
-    FIGURES[f"lake_many_error5_se_{_n}"] = Figure(_RL10, f"final.{_s}.error5.1", "{:.3f}")
-    FIGURES[f"lake_many_rated5_{_n}"] = Figure(_RL10, f"share_rated_5.{_s}", "{:.3g}")
-TABLES["lake_plan_per_lake_20"] = Table(_RL20, TABLES["lake_plan_per_lake"].columns, rows="per_lake")
+    FIGURES[f"lake_many_error5_{_n}"] = Figure(_L10, f"final.{_s}.error5.0", "{:.3f}")
+    FIGURES[f"lake_many_error5_se_{_n}"] = Figure(_L10, f"final.{_s}.error5.1", "{:.3f}")
+    FIGURES[f"lake_many_rated5_{_n}"] = Figure(_L10, f"share_rated_5.{_s}", "{:.3g}")
+TABLES["lake_plan_per_lake_20"] = Table(_L20, TABLES["lake_plan_per_lake"].columns, rows="per_lake")
 # --- end of results.md, lake.md, README (issue 53)
 
 # audit (issue 53)
@@ -2054,15 +2040,14 @@ for _i in range(5):  # native float32's largest gaps from float64 (the file's wo
 # docs/likelihoods.md: the person calibration's recovery table and paired means
 for _p in ("rating_offset", "rating_gain", "lapse_rate", "rating_precision"):
     for _c in ("rmse", "prior_rmse", "correlation"):
-        FIGURES[f"audit_pcal_{_p}_{_c}"] = Figure(_PCAL, f"recovery.{_p}.{_c}", "{:.2f}")
-    FIGURES[f"audit_pcal_{_p}_bias"] = Figure(_PCAL, f"recovery.{_p}.bias", "{:+.2f}")
-FIGURES["audit_pcal_lapse_under"] = Figure(_PCAL, "recovery.lapse_rate.bias", "{:.2f}")
+        FIGURES[f"pcal_{_p}_{_c}"] = Figure(_PCAL, f"recovery.{_p}.{_c}", "{:.2f}")
+    FIGURES[f"pcal_{_p}_bias"] = Figure(_PCAL, f"recovery.{_p}.bias", "{:+.2f}")
+FIGURES["pcal_lapse_under"] = Figure(_PCAL, "recovery.lapse_rate.bias", "{:.2f}")
 for _m, _f in (("wrms", "{:.3f}"), ("tp", "{:.2f}"), ("regret", "{:.3f}")):
     for _arm in ("calibrated", "plain"):
-        FIGURES[f"audit_pcal_{_m}_{_arm}"] = Figure(_PCAL, f"recovery.paired.{_m}.{_arm}", _f)
-        FIGURES[f"audit_pcal_ideal_{_m}_{_arm}"] = Figure(_PCAL, f"ideal.{_m}.{_arm}", "{:.4f}" if _m == "wrms" else _f)
-FIGURES["audit_pcal_trials"] = Figure(_PCAL, "settings.trials")
-FIGURES["audit_pcal_load"] = Figure(_PCAL, "stamp.load_avg.0", "{:.1f}")
+        FIGURES[f"pcal_{_m}_{_arm}"] = Figure(_PCAL, f"recovery.paired.{_m}.{_arm}", _f)
+        FIGURES[f"pcal_ideal_{_m}_{_arm}"] = Figure(_PCAL, f"ideal.{_m}.{_arm}", "{:.4f}" if _m == "wrms" else _f)
+FIGURES["pcal_load"] = Figure(_PCAL, "stamp.load_avg.0", "{:.1f}")
 
 
 # docs/wave.md: the paired differences at 20 queries (wave_summary.json's paired_tests.queries)
@@ -2122,7 +2107,6 @@ for _pair, _m, _n, _f in (
     ("info per effort vs random rankings", "tp", "info_rankings_tp", "{:+.2f}"),
 ):
     FIGURES[f"audit_wave_diff_{_n}"] = Figure(_WAVE, f"paired_tests.queries.{_pair}.{_m}.mean_diff", _f)
-FIGURES["audit_wave_tp_ucb"] = Figure(_WAVE, "final.UCB ratings.tp.0", "{:.2f}")
 FIGURES["audit_wave_proc_load_start"] = Figure(_WPROC, "load_average_at_start.0", "{:.0f}")
 FIGURES["audit_wave_proc_load_end"] = Figure(_WPROC, "load_average_at_end.0", "{:.0f}")
 

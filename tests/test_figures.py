@@ -137,3 +137,15 @@ def test_a_key_whose_name_holds_dots_is_read_whole():
     assert figures.dotted(data, "arms.mixed.sigma_R = 1") == 3
     with pytest.raises(KeyError):
         figures.dotted(data, "arms.mixed, sigma_R = 0.2.fit")
+
+
+def test_each_figure_has_one_name():
+    """Two names for the same file, key and format would be two owners of one figure."""
+    seen: dict[tuple, str] = {}
+    twins = []
+    for name, fig in figures.FIGURES.items():
+        spec = (type(fig).__name__, fig.file, fig.key, fig.fmt, getattr(fig, "pick", None))
+        if spec in seen:
+            twins.append(f"{seen[spec]} and {name}")
+        seen.setdefault(spec, name)
+    assert not twins, "the same figure under two names: " + "; ".join(twins)
