@@ -51,6 +51,23 @@ def dotted(value: Any, key: str) -> Any:
     return value
 
 
+def load(file: str) -> Any:
+    """A results file (under ``benchmarks/results/``) as parsed: a CSV's rows, or the JSON value. Read
+    once per process while the file is unchanged (its modification time and size), since a page's
+    figures read the same files many times; callers only read what it returns."""
+    path = ROOT / "benchmarks" / "results" / file
+    st = path.stat()
+    return _parsed(path, st.st_mtime_ns, st.st_size)
+
+
+@functools.cache
+def _parsed(path: Path, mtime_ns: int, size: int) -> Any:
+    if path.suffix == ".csv":
+        with path.open(newline="") as fh:
+            return list(csv.DictReader(fh))
+    return json.loads(path.read_text())
+
+
 @dataclass(frozen=True)
 class Figure:
     file: str  # under benchmarks/results/
@@ -58,16 +75,14 @@ class Figure:
     fmt: str = "{}"  # a str.format pattern, or one of "percent", "percent2", "kb_mb", "sci", "ms"
 
     def raw(self) -> float | int | str:
-        path = ROOT / "benchmarks" / "results" / self.file
-        if path.suffix == ".csv":
+        if self.file.endswith(".csv"):
             column, _, where = self.key.partition("@")
             wanted = dict(kv.split("=", 1) for kv in where.split(",") if kv)
-            with path.open(newline="") as fh:
-                rows = [r for r in csv.DictReader(fh) if all(r.get(k) == v for k, v in wanted.items())]
+            rows = [r for r in load(self.file) if all(r.get(k) == v for k, v in wanted.items())]
             if len(rows) != 1:
                 raise KeyError(f"{self.file}: {len(rows)} rows match {where!r}, expected 1")
             return float(rows[0][column])
-        return dotted(json.loads(path.read_text()), self.key)
+        return dotted(load(self.file), self.key)
 
     def text(self) -> str:
         return formatted(self.raw(), self.fmt)
@@ -96,11 +111,9 @@ def _rows(file: str, rows: str | Callable[[Any], list[dict]] = "") -> list[dict]
     as ``__key__``) at the dotted path ``rows`` of a JSON file, or, where ``rows`` is a function, what it
     returns given the whole loaded JSON (rows the file holds only in a nested or per-cell form, such as
     counts of verdicts)."""
-    path = ROOT / "benchmarks" / "results" / file
-    if path.suffix == ".csv":
-        with path.open(newline="") as fh:
-            return list(csv.DictReader(fh))
-    value = json.loads(path.read_text())
+    value = load(file)
+    if file.endswith(".csv"):
+        return list(value)
     if callable(rows):
         return list(rows(value))
     value = dotted(value, rows)
@@ -1781,7 +1794,7 @@ class Cells(Figure):
 
     def raw(self) -> int:
         strategy, kind, metric = self.key.split("|")
-        data = json.loads((ROOT / "benchmarks" / "results" / self.file).read_text())
+        data = load(self.file)
         if strategy == "*":
             cells = [(cp, m) for by_cp in data["verdicts"].values() for cp, by_m in by_cp.items() for m in by_m]
         else:
@@ -1986,9 +1999,8 @@ def _fuzz_native(key: str) -> Any:
     ``short_max`` (the others' lengthscales), ``rounding_max`` (the largest gap of those with less
     jitter), ``rounding_seeds`` (theirs above 0.05), ``kernel_errors`` (exceptions of the kernel
     matrix), ``fisher_seeds`` (those of the Fisher-scoring matrix)."""
-    with (ROOT / "benchmarks" / "results" / "fuzz.csv").open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    target = json.loads((ROOT / "benchmarks" / "results" / "fuzz.json").read_text())["target"]
+    rows = load("fuzz.csv")
+    target = load("fuzz.json")["target"]
 
     def gap(r: dict) -> float:
         return max(float(r["f32n_gap_mean_nograd"]), float(r["f32n_gap_cov_nograd"]))
